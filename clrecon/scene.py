@@ -1,0 +1,376 @@
+"""Scenes: TOML files validated into immutable config objects (stage 0 of the pipeline).
+
+A scene says what scanner, scan protocol, breathing and heart rhythm, phantom, noise and
+reconstruction to run. Every section is a frozen dataclass; derived quantities (collimation
+at the isocentre, table feed, number of projections) are properties, never stored twice.
+
+Errors name the key, the bad value and what is allowed; unknown keys are errors that
+suggest the nearest valid key. Built-in scenes live in ``clrecon/scenes/*.toml``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover
+    import tomli as tomllib
+
+from .conventions import MU_WATER_PER_MM, collimation_iso_mm
+from .errors import SceneError
+
+SCENE_DIR = Path(__file__).resolve().parent / "scenes"
+
+METHODS = ("barycentric", "local_linear", "r4dct", "nearest", "bin")
+FILTERS = ("ram-lak", "shepp-logan", "hann")
+RHYTHMS = ("periodic", "hrv", "af", "pvc")
+
+
+# ---------------------------------------------------------------------------------------
+# field helpers: each field carries its check and a human description of what is allowed
+def _f(default, allowed: str, check, doc: str = ""):
+    return field(default=default, metadata={"allowed": allowed, "check": check, "doc": doc})
+
+
+def _pos(x):
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0
+
+
+def _nonneg(x):
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x >= 0
+
+
+def _num(x):
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _posint(x):
+    return isinstance(x, int) and not isinstance(x, bool) and x > 0
+
+
+def _nonnegint(x):
+    return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+
+
+def _bool(x):
+    return isinstance(x, bool)
+
+
+def _frac(x):
+    return _num(x) and 0 <= x <= 1
+
+
+POS = ("a number > 0", _pos)
+NONNEG = ("a number >= 0", _nonneg)
+NUM = ("a finite number", _num)
+POSINT = ("an integer > 0", _posint)
+NONNEGINT = ("an integer >= 0", _nonnegint)
+BOOL = ("true or false", _bool)
+FRAC = ("a number in [0, 1]", _frac)
+
+
+def F(default, kind, doc=""):
+    return _f(default, kind[0], kind[1], doc)
+
+
+# ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ScannerConfig:
+    """CT scanner hardware (Table 1 of the paper by default). Lengths in mm."""
+
+    sid_mm: float = F(595.0, POS, "source to isocentre distance")
+    sdd_mm: float = F(1085.6, POS, "source to detector distance")
+    n_cols: int = F(900, POSINT, "detector columns")
+    n_rows: int = F(64, POSINT, "detector rows")
+    col_pitch_mm: float = F(0.8, POS, "detector column pitch at the detector")
+    row_pitch_mm: float = F(0.8, POS, "detector row pitch at the detector")
+    views_per_rotation: int = F(984, POSINT, "projections per rotation")
+    rotation_time_s: float = F(0.3, POS, "seconds per rotation")
+
+    @property
+    def collimation_iso_mm(self) -> float:
+        """W = N_rows * row_pitch * SID / SDD (mm)."""
+        return collimation_iso_mm(self.n_rows, self.row_pitch_mm, self.sid_mm, self.sdd_mm)
+
+    @property
+    def fov_radius_mm(self) -> float:
+        """Radius at the isocentre of the circle every column sees (mm)."""
+        half = self.n_cols * self.col_pitch_mm / 2.0
+        return self.sid_mm * math.sin(math.atan2(half, self.sdd_mm))
+
+
+@dataclass(frozen=True)
+class ScanConfig:
+    """Helical protocol. Either ``coverage_mm`` or ``n_projections`` fixes the scan length.
+
+    Coverage = source travel + W (DESIGN.md section 1); projections = round(travel/h * N) + 1.
+    """
+
+    pitches: tuple = _f((0.02,), "a non-empty list of numbers in (0, 2]",
+                        lambda v: isinstance(v, tuple) and len(v) > 0 and all(_pos(p) and p <= 2 for p in v),
+                        "table feed per rotation / collimation W; one scan per pitch")
+    coverage_mm: float = F(119.7, POS, "longitudinal coverage = travel + W")
+    n_projections: int = F(0, NONNEGINT, "if > 0: the scan length in projections (overrides coverage_mm)")
+    z_centre_mm: float = F(0.0, NUM, "table position of the scan centre")
+    start_angle_deg: float = F(0.0, NUM, "gantry angle of the first view")
+
+    def feed_mm(self, scanner: ScannerConfig, pitch: float) -> float:
+        """Table feed per rotation h = pitch * W (mm)."""
+        return pitch * scanner.collimation_iso_mm
+
+    def projection_count(self, scanner: ScannerConfig, pitch: float) -> int:
+        if self.n_projections > 0:
+            return self.n_projections
+        travel = max(self.coverage_mm - scanner.collimation_iso_mm, 0.0)
+        return int(round(travel / self.feed_mm(scanner, pitch) * scanner.views_per_rotation)) + 1
+
+    def travel_mm(self, scanner: ScannerConfig, pitch: float) -> float:
+        n = self.projection_count(scanner, pitch)
+        return (n - 1) * self.feed_mm(scanner, pitch) / scanner.views_per_rotation
+
+    def z_start_mm(self, scanner: ScannerConfig, pitch: float) -> float:
+        return self.z_centre_mm - self.travel_mm(scanner, pitch) / 2.0
+
+    def duration_s(self, scanner: ScannerConfig, pitch: float) -> float:
+        return self.projection_count(scanner, pitch) * scanner.rotation_time_s / scanner.views_per_rotation
+
+
+@dataclass(frozen=True)
+class SignalsConfig:
+    """Breathing and heart rhythm (reference/phantom-and-signals.md; Lujan 1999 breathing model)."""
+
+    seed: int = F(1, NONNEGINT, "seed of the breathing and rhythm irregularities")
+    resp_period_s: float = F(5.0, POS, "mean breathing period")
+    resp_period_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
+                               "cycle-to-cycle coefficient of variation of the period")
+    resp_depth_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
+                              "cycle-to-cycle coefficient of variation of the depth")
+    resp_exponent: int = _f(2, "an integer in 1..4", lambda x: _posint(x) and x <= 4,
+                            "n in cos^(2n): larger gives a longer end-exhale dwell")
+    resp_drift: float = _f(0.05, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
+                           "slow baseline drift, as a fraction of the mean depth, peak to peak")
+    breath_hold: bool = F(False, BOOL, "no breathing: amplitude constant at breath_hold_amplitude")
+    breath_hold_amplitude: float = F(0.5, FRAC, "normalised amplitude during a breath hold")
+    rr_s: float = _f(0.75, "a number in [0.3, 2.0]", lambda x: _num(x) and 0.3 <= x <= 2.0, "mean R-R interval")
+    rhythm: str = _f("periodic", "one of " + ", ".join(RHYTHMS), lambda x: x in RHYTHMS,
+                     "periodic; hrv (3 % sinus variability); af (i.i.d. R-R); pvc (ectopic beats)")
+    rr_cv: float = _f(0.0, "a number in [0, 0.4]", lambda x: _num(x) and 0 <= x <= 0.4,
+                      "R-R coefficient of variation for hrv/af (0: the rhythm's default)")
+    ectopic_rate: float = _f(0.0, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
+                             "fraction of beats that are premature (pvc rhythm)")
+    frame_time_s: float = F(0.0, NONNEG, "0: continuous motion; > 0: motion frozen in phantom frames of this length")
+
+
+@dataclass(frozen=True)
+class PhantomConfig:
+    """The built-in analytic thorax (clrecon.phantom). Motion amplitudes in mm."""
+
+    cardiac_motion: bool = F(True, BOOL, "heart beats")
+    respiratory_motion: bool = F(True, BOOL, "thorax breathes")
+    diaphragm_si_mm: float = _f(20.0, "a number in [0, 40]", lambda x: _num(x) and 0 <= x <= 40,
+                                "diaphragm excursion end-exhale -> end-inhale")
+    chest_ap_mm: float = _f(12.0, "a number in [0, 30]", lambda x: _num(x) and 0 <= x <= 30, "chest AP expansion")
+    heart_si_fraction: float = F(0.6, FRAC, "heart SI motion / diaphragm motion")
+    mu_water_per_mm: float = F(MU_WATER_PER_MM, POS, "attenuation of water (1/mm)")
+    metal_insert: bool = F(False, BOOL, "add a small metal-like (steel) insert near the spine")
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Poisson quanta + Gaussian electronic noise, seeded per projection."""
+
+    enabled: bool = F(True, BOOL, "add noise")
+    i0_photons: float = F(2.0e5, POS, "unattenuated photons per detector cell")
+    electronic_sigma: float = F(5.0, NONNEG, "std of the electronic noise, in photon-equivalent counts")
+    seed: int = F(7, NONNEGINT, "noise seed")
+    also_noise_free: bool = F(True, BOOL, "also reconstruct the noise-free projections (the paper's Table 2)")
+
+
+@dataclass(frozen=True)
+class ReconConfig:
+    """Reconstruction grid, targets, methods and filter."""
+
+    nx: int = F(512, POSINT, "voxels along x (patient left)")
+    ny: int = F(512, POSINT, "voxels along y (posterior)")
+    nz: int = F(100, POSINT, "slices")
+    voxel_mm: float = F(1.0, POS, "in-plane voxel size")
+    slice_mm: float = F(1.0, POS, "slice spacing")
+    cardiac_phases: tuple = _f((0.0, 0.2, 0.4, 0.6, 0.8), "a non-empty list of numbers in [0, 1)",
+                               lambda v: isinstance(v, tuple) and len(v) > 0 and all(_num(c) and 0 <= c < 1 for c in v),
+                               "target cardiac phases")
+    resp_bins: int = _f(10, "an integer in 1..50", lambda x: _posint(x) and x <= 50,
+                        "respiratory amplitude bins of equal width; targets at the bin midpoints")
+    methods: tuple = _f(METHODS, "a non-empty list from " + ", ".join(METHODS),
+                        lambda v: isinstance(v, tuple) and len(v) > 0 and all(m in METHODS for m in v)
+                        and len(set(v)) == len(v), "reconstruction methods")
+    kappa: float = F(1.0, POS, "von Mises concentration of the local-linear cardiac kernel")
+    sigma: float = F(0.15, POS, "Gaussian width of the local-linear amplitude kernel")
+    filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
+    small_fov_mm: tuple = _f((-90.0, 60.0, -110.0, 30.0), "[x_min, x_max, y_min, y_max] with min < max",
+                             lambda v: isinstance(v, tuple) and len(v) == 4 and all(_num(x) for x in v)
+                             and v[0] < v[1] and v[2] < v[3], "box around the heart (mm, LPS)")
+
+    @property
+    def resp_targets(self) -> tuple:
+        """Target amplitudes: midpoints of ``resp_bins`` equal bins of [0, 1]."""
+        return tuple((i + 0.5) / self.resp_bins for i in range(self.resp_bins))
+
+    @property
+    def fov_radius_mm(self) -> float:
+        return 0.5 * min(self.nx, self.ny) * self.voxel_mm
+
+
+SECTIONS = {
+    "scanner": ScannerConfig,
+    "scan": ScanConfig,
+    "signals": SignalsConfig,
+    "phantom": PhantomConfig,
+    "noise": NoiseConfig,
+    "recon": ReconConfig,
+}
+TOP_KEYS = ("name", "description") + tuple(SECTIONS)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A whole validated scene. ``source`` is the file it came from (not part of equality)."""
+
+    name: str = "custom"
+    description: str = ""
+    scanner: ScannerConfig = field(default_factory=ScannerConfig)
+    scan: ScanConfig = field(default_factory=ScanConfig)
+    signals: SignalsConfig = field(default_factory=SignalsConfig)
+    phantom: PhantomConfig = field(default_factory=PhantomConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    recon: ReconConfig = field(default_factory=ReconConfig)
+    source: str = field(default="", compare=False)
+
+    # -- what the scene asks for (DESIGN: compute only what is asked) -----------------
+    @property
+    def has_cardiac(self) -> bool:
+        return self.phantom.cardiac_motion
+
+    @property
+    def has_respiratory(self) -> bool:
+        return self.phantom.respiratory_motion and not self.signals.breath_hold
+
+    @property
+    def cardiac_targets(self) -> tuple:
+        return self.recon.cardiac_phases if self.has_cardiac else (0.0,)
+
+    @property
+    def resp_targets(self) -> tuple:
+        return self.recon.resp_targets if self.has_respiratory else (self.signals.breath_hold_amplitude
+                                                                     if self.signals.breath_hold else 0.5,)
+
+    def to_dict(self) -> dict:
+        d = {"name": self.name, "description": self.description}
+        for sec in SECTIONS:
+            d[sec] = {k: (list(v) if isinstance(v, tuple) else v)
+                      for k, v in dataclasses.asdict(getattr(self, sec)).items()}
+        return d
+
+    def scan_hash(self, pitch: float) -> str:
+        """Content hash of everything that determines the noise-free projections of one pitch."""
+        from . import PROJECTOR_VERSION
+        d = self.to_dict()
+        payload = {"scanner": d["scanner"], "scan": {**d["scan"], "pitches": [pitch]},
+                   "signals": d["signals"], "phantom": d["phantom"], "projector": PROJECTOR_VERSION}
+        return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+
+    def replace(self, **sections) -> "Scene":
+        """New scene with some sections' values replaced, e.g. ``replace(recon={"nz": 4})``."""
+        d = self.to_dict()
+        for sec, vals in sections.items():
+            if sec in SECTIONS:
+                d[sec].update(vals)
+            else:
+                d[sec] = vals
+        return scene_from_dict(d, source=self.source)
+
+
+# ---------------------------------------------------------------------------------------
+def _suggest(key: str, allowed) -> str:
+    near = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.5)
+    return f"; did you mean {near[0]!r}?" if near else f"; valid keys: {', '.join(allowed)}"
+
+
+def _build_section(cls, raw: Any, where: str):
+    if not isinstance(raw, dict):
+        raise SceneError(f"{where}: expected a table [{where}], got {type(raw).__name__} {raw!r}")
+    names = {f.name: f for f in fields(cls)}
+    kwargs = {}
+    for key, value in raw.items():
+        if key not in names:
+            raise SceneError(f"{where}.{key}: unknown key{_suggest(key, names)}")
+        f = names[key]
+        if isinstance(value, list):
+            value = tuple(value)
+        if isinstance(f.default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if isinstance(f.default, tuple) and value and all(isinstance(x, int) and not isinstance(x, bool)
+                                                           for x in value) and isinstance(f.default[0], float):
+            value = tuple(float(x) for x in value)
+        if not f.metadata["check"](value):
+            raise SceneError(f"{where}.{key} = {value!r}: must be {f.metadata['allowed']}")
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+def scene_from_dict(raw: dict, source: str = "") -> Scene:
+    """Validate a parsed TOML document into a :class:`Scene`."""
+    prefix = f"{source}: " if source else ""
+    if not isinstance(raw, dict):
+        raise SceneError(f"{prefix}a scene must be a TOML table")
+    for key in raw:
+        if key not in TOP_KEYS:
+            raise SceneError(f"{prefix}{key}: unknown key{_suggest(key, TOP_KEYS)}")
+    try:
+        parts = {sec: _build_section(cls, raw.get(sec, {}), sec) for sec, cls in SECTIONS.items()}
+    except SceneError as e:
+        raise SceneError(f"{prefix}{e}") from None
+    for k in ("name", "description"):
+        if k in raw and not isinstance(raw[k], str):
+            raise SceneError(f"{prefix}{k} = {raw[k]!r}: must be a string")
+    scene = Scene(name=raw.get("name", Path(source).stem if source else "custom"),
+                  description=raw.get("description", ""), source=source, **parts)
+    _check_consistency(scene, prefix)
+    return scene
+
+
+def _check_consistency(s: Scene, prefix: str) -> None:
+    sc, rc = s.scanner, s.recon
+    if sc.sdd_mm <= sc.sid_mm:
+        raise SceneError(f"{prefix}scanner.sdd_mm = {sc.sdd_mm}: must be greater than scanner.sid_mm = {sc.sid_mm}")
+    if s.scan.n_projections == 0 and s.scan.coverage_mm <= sc.collimation_iso_mm:
+        raise SceneError(f"{prefix}scan.coverage_mm = {s.scan.coverage_mm}: must exceed the collimation "
+                         f"W = {sc.collimation_iso_mm:.2f} mm")
+
+
+def load_scene(name_or_path: str | Path) -> Scene:
+    """A built-in scene by name (``demo``, ``tiny``, ...) or a TOML file by path."""
+    p = Path(name_or_path)
+    if not p.suffix and not p.exists():
+        p = SCENE_DIR / f"{name_or_path}.toml"
+        if not p.exists():
+            raise SceneError(f"scene {str(name_or_path)!r} is neither a file nor a built-in scene; "
+                             f"built-in: {', '.join(builtin_scene_names())}")
+    if not p.is_file():
+        raise SceneError(f"scene file {str(p)!r} does not exist")
+    try:
+        raw = tomllib.loads(p.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise SceneError(f"{p}: malformed TOML: {e}") from None
+    return scene_from_dict(raw, source=str(p))
+
+
+def builtin_scene_names() -> list[str]:
+    return sorted(f.stem for f in SCENE_DIR.glob("*.toml"))
