@@ -1,0 +1,97 @@
+"""Error metrics against ground truth (stage 9 of the pipeline).
+
+Conventions (the paper's Table 2): absolute voxel-wise HU differences between a
+reconstruction and the ground-truth CT of the same target, pooled over **all voxels of all
+targets**, reported as mean ± standard deviation, in two fields of view:
+
+- large FOV: the reconstruction circle (radius = the smaller of the scanner's field of view
+  and half the image width), every slice;
+- small FOV: an axial box around the heart (``recon.small_fov_mm``), every slice.
+
+Volumes are arrays ``(n_cardiac, n_resp, nz, ny, nx)`` in HU.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from .conventions import voxel_coords
+
+
+def fov_masks(scene) -> dict[str, np.ndarray]:
+    """Boolean in-plane masks ``(ny, nx)`` for the ``large`` and ``small`` FOVs."""
+    rc = scene.recon
+    x = voxel_coords(rc.nx, rc.voxel_mm)
+    y = voxel_coords(rc.ny, rc.voxel_mm)
+    xx, yy = np.meshgrid(x, y)
+    radius = min(scene.scanner.fov_radius_mm, rc.fov_radius_mm)
+    large = xx ** 2 + yy ** 2 <= radius ** 2
+    x0, x1, y0, y1 = rc.small_fov_mm
+    small = (xx >= x0) & (xx <= x1) & (yy >= y0) & (yy <= y1) & large
+    return {"large": large, "small": small}
+
+
+def abs_error_stats(recon: np.ndarray, truth: np.ndarray, mask2d: np.ndarray) -> dict:
+    """Mean and std of |recon - truth| over the in-plane mask, all slices and targets.
+
+    ``recon``/``truth``: (..., nz, ny, nx) HU, same shape. Accumulates in float64 per
+    slice so that paper-size volumes do not need a float64 copy.
+    """
+    if recon.shape != truth.shape:
+        raise ValueError(f"recon shape {recon.shape} != truth shape {truth.shape}")
+    n = 0
+    s1 = 0.0
+    s2 = 0.0
+    r2 = recon.reshape((-1,) + recon.shape[-2:])
+    t2 = truth.reshape((-1,) + truth.shape[-2:])
+    for a, b in zip(r2, t2):
+        d = np.abs(a[mask2d].astype(np.float64) - b[mask2d])
+        n += d.size
+        s1 += d.sum()
+        s2 += (d * d).sum()
+    mean = s1 / max(n, 1)
+    var = max(s2 / max(n, 1) - mean * mean, 0.0)
+    return {"mae_hu": float(mean), "std_hu": float(np.sqrt(var)), "n_voxels": int(n)}
+
+
+def table2(recon: np.ndarray, truth: np.ndarray, scene) -> dict:
+    """Pooled and per-target MAE/std for both FOVs.
+
+    Returns ``{"large": {...pooled...}, "small": {...}, "per_target": {"large": [[mae]], "small": ...}}``
+    where per-target lists are indexed ``[cardiac][resp]``.
+    """
+    masks = fov_masks(scene)
+    out: dict = {}
+    per: dict = {}
+    for fov, m in masks.items():
+        out[fov] = abs_error_stats(recon, truth, m)
+        per[fov] = [[abs_error_stats(recon[i, j], truth[i, j], m)["mae_hu"] for j in range(recon.shape[1])]
+                    for i in range(recon.shape[0])]
+    out["per_target"] = per
+    return out
+
+
+def blood_pool_volume_ml(volume_hu: np.ndarray, seed_zyx_mm, scene, z_mm: np.ndarray,
+                         threshold_hu: float = 220.0) -> float:
+    """Volume (mL) of the connected region above ``threshold_hu`` containing the seed point.
+
+    Used for the LV blood pool: contrast-enhanced blood (300-450 HU) against myocardium
+    (80-100 HU); 220 HU is about midway. ``volume_hu`` is (nz, ny, nx); the seed is a
+    point inside the LV cavity (mm). Returns 0.0 if the seed voxel is below threshold
+    (the cavity is not where the truth says it is: that is an error worth showing).
+    """
+    rc = scene.recon
+    x = voxel_coords(rc.nx, rc.voxel_mm)
+    y = voxel_coords(rc.ny, rc.voxel_mm)
+    sz, sy, sx = seed_zyx_mm
+    iz = int(np.argmin(np.abs(z_mm - sz)))
+    iy = int(np.argmin(np.abs(y - sy)))
+    ix = int(np.argmin(np.abs(x - sx)))
+    above = volume_hu > threshold_hu
+    if not above[iz, iy, ix]:
+        return 0.0
+    labels, _ = ndimage.label(above)
+    region = labels == labels[iz, iy, ix]
+    dz = float(z_mm[1] - z_mm[0]) if len(z_mm) > 1 else rc.slice_mm
+    return float(region.sum() * rc.voxel_mm ** 2 * abs(dz) / 1000.0)

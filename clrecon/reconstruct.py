@@ -1,0 +1,290 @@
+"""5DCT reconstruction: plan weights, stream the store slab by slab, rebin, interpolate, FBP.
+
+Stages 5-8 of the pipeline, for one scan (one pitch):
+
+1. **Plan** (no projection data needed): for each slice, the SSRB candidates (every turn
+   whose rows cover the slice, :func:`clrecon.rebin.candidates`), grouped by view; for each
+   method the phase-space weights per (slice, view, target)
+   (:func:`clrecon.interpolate.method_weights`). The union of the (projection, slice) pairs
+   with a non-zero weight is all the data the reconstruction will ever touch, so the
+   simulator only needs to project those projections.
+2. **Stream**: projections are read from the store in index (= time = z) order, in chunks;
+   each chunk is rebinned only for the pairs it owns (:func:`clrecon.rebin.ssrb_rows`).
+   Noise, if asked for, is applied to the chunk once per read (seeded per projection).
+3. **Interpolate**: :func:`clrecon.interpolate.apply_weights` turns rebinned rows into one
+   fan-beam sinogram per (slice, target).
+4. **FBP**: :func:`clrecon.fbp.fbp_hu`, batched over slices and targets.
+
+Slices are processed in slabs in z order so that only one slab's rebinned rows are held.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import fbp as fbp_mod
+from . import interpolate, noise, rebin
+from .conventions import voxel_coords
+from .geometry import ProjectionTable
+
+
+@dataclass(frozen=True)
+class Targets:
+    """Target grid: ``cardiac`` (n_c,) phases in [0,1) x ``resp`` (n_r,) amplitudes in [0,1]."""
+
+    cardiac: tuple
+    resp: tuple
+
+    @property
+    def pairs(self) -> np.ndarray:
+        """(n_c * n_r, 2) array of (c*, a*), cardiac-major: row i*n_r + j = (cardiac[i], resp[j])."""
+        cc, rr = np.meshgrid(np.asarray(self.cardiac, float), np.asarray(self.resp, float), indexing="ij")
+        return np.stack([cc.ravel(), rr.ravel()], axis=1)
+
+    @property
+    def shape(self) -> tuple:
+        return (len(self.cardiac), len(self.resp))
+
+
+def slice_positions(scene, slice_range: tuple | None = None) -> np.ndarray:
+    """z (mm) of the reconstructed slices, (nz,), centred on the scan centre; optional [i0, i1) range."""
+    rc = scene.recon
+    z = voxel_coords(rc.nz, rc.slice_mm, scene.scan.z_centre_mm)
+    if slice_range is not None:
+        i0, i1 = slice_range
+        z = z[i0:i1]
+    return z
+
+
+def object_radius_mm(scene) -> float:
+    """Radius of the region whose rays SSRB must serve: the reconstruction circle."""
+    return min(scene.scanner.fov_radius_mm, scene.recon.fov_radius_mm)
+
+
+@dataclass
+class MethodPlan:
+    """Weights of one method over a set of slices: arrays (S, V, T, K)."""
+
+    proj_index: np.ndarray  # int64 global projection index
+    weight: np.ndarray      # float64, 0 in unused slots
+    targets_shape: tuple    # (n_c, n_r) of the targets actually solved (r4dct: (1, n_r))
+
+
+@dataclass
+class Plan:
+    slices_z: np.ndarray
+    methods: dict = field(default_factory=dict)  # name -> MethodPlan
+    seconds: float = 0.0
+
+    def needed_pairs(self):
+        """Unique (projection, slice) pairs with a non-zero weight, sorted by projection."""
+        keys = []
+        for mp in self.methods.values():
+            S = mp.proj_index.shape[0]
+            sl = np.broadcast_to(np.arange(S)[:, None, None, None], mp.proj_index.shape)
+            nz = mp.weight != 0
+            keys.append(mp.proj_index[nz].astype(np.int64) * S + sl[nz])
+        if not keys:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        u = np.unique(np.concatenate(keys))
+        S = len(self.slices_z)
+        return u // S, u % S
+
+    def needed_projections(self, n_total: int) -> np.ndarray:
+        proj, _ = self.needed_pairs()
+        mask = np.zeros(n_total, bool)
+        mask[proj] = True
+        return mask
+
+
+def plan(scene, table: ProjectionTable, slices_z: np.ndarray, targets: Targets, methods) -> Plan:
+    """Weights of every method for every (slice, view, target); see the module docstring."""
+    t0 = time.perf_counter()
+    sc, rc = scene.scanner, scene.recon
+    nv = sc.views_per_rotation
+    radius = object_radius_mm(scene)
+    pairs_all = targets.pairs
+    opts = dict(kappa=rc.kappa, sigma=rc.sigma, use_cardiac=scene.has_cardiac, use_resp=scene.has_respiratory,
+                cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=1.0 / rc.resp_bins)
+    p = Plan(slices_z=np.asarray(slices_z, float))
+    per_method: dict = {m: [] for m in methods}
+    for z in p.slices_z:
+        cand = rebin.candidates(table, float(z), sc, radius)
+        if cand.size == 0:
+            raise ValueError(f"slice z = {z:.2f} mm has no SSRB candidates: it lies outside the scanned range")
+        views = table.view[cand]
+        order = np.argsort(views, kind="stable")
+        cand = cand[order]
+        bounds = np.searchsorted(views[order], np.arange(nv + 1))
+        for m in methods:
+            tg = pairs_all[:len(targets.resp)] if m == "r4dct" else pairs_all
+            per_view_idx, per_view_w = [], []
+            for v in range(nv):
+                sel = cand[bounds[v]:bounds[v + 1]]
+                if sel.size == 0:
+                    raise ValueError(
+                        f"slice z = {z:.2f} mm, view {v}: no projection covers it (pitch too high for the "
+                        f"detector's rows)")
+                w = interpolate.method_weights(m, table.cardiac_phase[sel], table.resp_amplitude[sel], tg, **opts)
+                per_view_idx.append(sel[w.index])
+                per_view_w.append(w.weight)
+            per_method[m].append((_stack_pad(per_view_idx, 0), _stack_pad(per_view_w, 0.0)))
+    for m, lst in per_method.items():
+        K = max(a.shape[-1] for a, _ in lst)
+        idx = np.stack([_pad_last(a, K, 0) for a, _ in lst])
+        w = np.stack([_pad_last(b, K, 0.0) for _, b in lst])
+        shape = (1, len(targets.resp)) if m == "r4dct" else targets.shape
+        p.methods[m] = MethodPlan(proj_index=idx, weight=w, targets_shape=shape)
+    p.seconds = time.perf_counter() - t0
+    return p
+
+
+def _cardiac_bin_width(targets: Targets) -> float:
+    c = np.sort(np.asarray(targets.cardiac, float))
+    if len(c) < 2:
+        return 0.2
+    gaps = np.diff(np.concatenate([c, [c[0] + 1.0]]))
+    return float(np.min(gaps))
+
+
+def _pad_last(a: np.ndarray, K: int, fill) -> np.ndarray:
+    if a.shape[-1] == K:
+        return a
+    pad = [(0, 0)] * (a.ndim - 1) + [(0, K - a.shape[-1])]
+    return np.pad(a, pad, constant_values=fill)
+
+
+def _stack_pad(arrays, fill) -> np.ndarray:
+    K = max(a.shape[-1] for a in arrays)
+    return np.stack([_pad_last(a, K, fill) for a in arrays])
+
+
+@dataclass
+class StageTimes:
+    seconds: dict = field(default_factory=dict)
+
+    def add(self, name: str, dt: float) -> None:
+        self.seconds[name] = self.seconds.get(name, 0.0) + dt
+
+
+def reconstruct(scene, store, plan_: Plan, variants=("noise-free",), rt=None, times: StageTimes | None = None,
+                progress=None, chunk: int = 512, on_slab=None, slab_size: int | None = None) -> dict:
+    """Reconstruct every planned method and noise variant.
+
+    Parameters
+    ----------
+    store : object with ``read(start, stop, noisy=False) -> (m, R, C) float32`` and ``table``.
+    variants : iterable of ``"noise-free"`` / ``"noisy"``.
+    on_slab : optional callback ``(slice_slice, {(variant, method): (n_c, n_r, s, ny, nx)})`` that
+        receives each slab's volumes as it finishes (to write them out and free memory). If None,
+        whole volumes are returned.
+
+    Returns
+    -------
+    dict ``{(variant, method): volume (n_c, n_r, nz, ny, nx) float32 HU}`` (empty if ``on_slab``).
+    """
+    times = times or StageTimes()
+    sc, rc = scene.scanner, scene.recon
+    geom = fbp_mod.FanBeamGeometry.from_scene(scene)
+    S = len(plan_.slices_z)
+    if slab_size is None:
+        slab_size = _slab_size(scene, plan_)
+    results: dict = {}
+    for s0 in range(0, S, slab_size):
+        s1 = min(S, s0 + slab_size)
+        slab = _reconstruct_slab(scene, store, plan_, s0, s1, variants, geom, rt, times, chunk, progress)
+        if on_slab is not None:
+            on_slab(slice(s0, s1), slab)
+        else:
+            for key, vol in slab.items():
+                if key not in results:
+                    results[key] = np.zeros(vol.shape[:2] + (S,) + vol.shape[3:], np.float32)
+                results[key][:, :, s0:s1] = vol
+    return results
+
+
+def _slab_size(scene, plan_: Plan) -> int:
+    """Slices per slab so that the slab's rebinned rows stay under ~1.5 GB."""
+    proj, sl = plan_.needed_pairs()
+    S = max(len(plan_.slices_z), 1)
+    rows_per_slice = max(len(proj) / S, 1)
+    bytes_per_slice = rows_per_slice * scene.scanner.n_cols * 4 * 2
+    return int(max(1, min(S, 1.5e9 // bytes_per_slice)))
+
+
+def _reconstruct_slab(scene, store, plan_: Plan, s0, s1, variants, geom, rt, times, chunk, progress) -> dict:
+    sc, rc = scene.scanner, scene.recon
+    t0 = time.perf_counter()
+    sub = {m: (mp.proj_index[s0:s1], mp.weight[s0:s1], mp.targets_shape) for m, mp in plan_.methods.items()}
+    # (projection, slice) pairs of this slab, and each method's index into them
+    keys = []
+    Ssl = s1 - s0
+    for idx, w, _ in sub.values():
+        sl = np.broadcast_to(np.arange(Ssl)[:, None, None, None], idx.shape)
+        nzm = w != 0
+        keys.append(idx[nzm].astype(np.int64) * Ssl + sl[nzm])
+    ukeys = np.unique(np.concatenate(keys))
+    pair_proj = ukeys // Ssl
+    pair_slice = ukeys % Ssl
+    pair_dz = plan_.slices_z[s0:s1][pair_slice] - store.table.source_z_mm[pair_proj]
+    times.add("plan", time.perf_counter() - t0)
+
+    # stream the store in index order, rebinning only the pairs each chunk owns
+    rows = {v: np.empty((len(ukeys), sc.n_cols), np.float32) for v in variants}
+    bounds = np.unique(np.concatenate([np.arange(pair_proj.min(), pair_proj.max() + 1, chunk),
+                                       [pair_proj.max() + 1]])) if len(pair_proj) else np.zeros(1, int)
+    for b0, b1 in zip(bounds[:-1], bounds[1:]):
+        lo, hi = np.searchsorted(pair_proj, [b0, b1])
+        if lo == hi:
+            continue
+        first, last = int(pair_proj[lo]), int(pair_proj[hi - 1]) + 1
+        t1 = time.perf_counter()
+        clean = store.read(first, last, noisy=False)
+        times.add("read", time.perf_counter() - t1)
+        for v in variants:
+            data = clean
+            if v == "noisy":
+                t1 = time.perf_counter()
+                data = noise.add_noise(clean, np.arange(first, last), scene.noise)
+                times.add("noise", time.perf_counter() - t1)
+            t1 = time.perf_counter()
+            rows[v][lo:hi] = rebin.ssrb_rows(data, (pair_proj[lo:hi] - first).astype(np.int32),
+                                            pair_dz[lo:hi].astype(np.float32), sc, rt=rt)
+            times.add("rebin", time.perf_counter() - t1)
+        if progress is not None:
+            progress.update(0)
+
+    out = {}
+    for m, (idx, w, tshape) in sub.items():
+        t1 = time.perf_counter()
+        key = idx.astype(np.int64) * Ssl + np.arange(Ssl)[:, None, None, None]
+        pos = np.searchsorted(ukeys, key)
+        pos = np.where(w != 0, np.clip(pos, 0, len(ukeys) - 1), 0).astype(np.int32)
+        Sn, V, T, K = idx.shape
+        flat_pos = pos.reshape(-1, K)
+        flat_w = w.reshape(-1, K).astype(np.float32)
+        times.add("plan", time.perf_counter() - t1)
+        for v in variants:
+            t1 = time.perf_counter()
+            sino = interpolate.apply_weights(rows[v], flat_pos, flat_w, rt=rt)  # (S*V*T, C)
+            sino = sino.reshape(Sn, V, T, sc.n_cols).transpose(0, 2, 1, 3).reshape(Sn * T, V, sc.n_cols)
+            times.add("interpolate", time.perf_counter() - t1)
+            t1 = time.perf_counter()
+            img = fbp_batched(sino, geom, rc.filter, scene.phantom.mu_water_per_mm)
+            times.add("fbp", time.perf_counter() - t1)
+            img = img.reshape(Sn, tshape[0], tshape[1], rc.ny, rc.nx).transpose(1, 2, 0, 3, 4)
+            out[(v, m)] = np.ascontiguousarray(img)
+        if progress is not None:
+            progress.update(s1 - s0)
+    return out
+
+
+def fbp_batched(sino: np.ndarray, geom, window: str, mu_water: float, batch: int = 64) -> np.ndarray:
+    """FBP in HU of (B, V, C) sinograms in batches of ``batch`` (bounded memory)."""
+    out = np.empty((sino.shape[0], geom.ny, geom.nx), np.float32)
+    for b0 in range(0, sino.shape[0], batch):
+        out[b0:b0 + batch] = fbp_mod.fbp_hu(sino[b0:b0 + batch], geom, window, mu_water)
+    return out

@@ -1,0 +1,271 @@
+"""``clrecon run``: simulate (or reuse) -> reconstruct -> evaluate -> report, into a run directory.
+
+The run directory holds ``results.json`` (schema in README.md), ``volumes.h5``
+(:mod:`clrecon.volumes`) and ``report.md`` with its figures. Outputs are written under
+temporary names and renamed when complete, so an interrupted run never leaves files that
+look finished.
+
+Only what the scene and the request ask for is computed: no noise stage without noise, no
+cardiac axis without cardiac motion, no respiratory axis without breathing, only the
+projections the requested slices use, only the requested methods and targets; a second run
+with the same scan reuses the stored projections. ``results.json["stages"]`` says which
+stages ran, which were skipped and why.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__, geometry, groundtruth, metrics, reconstruct, simulate
+from .cl_runtime import get_runtime
+from .errors import ClreconError
+from .reconstruct import StageTimes, Targets
+from .volumes import VolumeWriter, pitch_key
+
+RESULTS_FORMAT = 1
+FIVE_D_METHODS = ("barycentric", "local_linear")
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    from tqdm import tqdm
+
+    disable = (not enabled) or os.environ.get("CLRECON_NO_PROGRESS") == "1"
+    return tqdm(total=total, desc=desc, disable=disable, leave=False, dynamic_ncols=True)
+
+
+def resolve_targets(scene, cardiac=None, resp=None) -> Targets:
+    """Targets of the run: the scene's, narrowed by ``cardiac``/``resp`` lists if given."""
+    c = tuple(scene.cardiac_targets)
+    r = tuple(scene.resp_targets)
+    if cardiac:
+        if not scene.has_cardiac:
+            raise ClreconError("--targets: the scene has no cardiac motion, so there is no cardiac axis to select")
+        bad = [x for x in cardiac if not 0 <= x < 1]
+        if bad:
+            raise ClreconError(f"--targets: cardiac phase {bad[0]} outside [0, 1)")
+        c = tuple(float(x) for x in cardiac)
+    if resp:
+        if not scene.has_respiratory:
+            raise ClreconError("--targets: the scene has no breathing, so there is no respiratory axis to select")
+        bad = [x for x in resp if not 0 <= x <= 1]
+        if bad:
+            raise ClreconError(f"--targets: respiratory amplitude {bad[0]} outside [0, 1]")
+        r = tuple(float(x) for x in resp)
+    return Targets(cardiac=c, resp=r)
+
+
+def noise_variants(scene) -> tuple:
+    if not scene.noise.enabled:
+        return ("noise-free",)
+    return ("noisy", "noise-free") if scene.noise.also_noise_free else ("noisy",)
+
+
+def _versions() -> dict:
+    import h5py
+    import pyopencl
+    import scipy
+
+    return {"clrecon": __version__, "python": sys.version.split()[0], "numpy": np.__version__,
+            "scipy": scipy.__version__, "pyopencl": pyopencl.VERSION_TEXT, "h5py": h5py.__version__,
+            "platform": platform.platform()}
+
+
+def _write_json_atomic(path: Path, obj) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
+    tmp.replace(path)
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, tuple):
+        return list(o)
+    raise TypeError(type(o))
+
+
+def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None, pitches=None,
+        cache_dir=None, progress=True, report=True, log=print) -> dict:
+    """Run the whole job; returns the ``results.json`` dictionary."""
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("results.json", "volumes.h5", "report.md"):
+        if (out / stale).exists():
+            (out / stale).unlink()
+    rt = get_runtime()
+    methods = tuple(methods or scene.recon.methods)
+    unknown = [m for m in methods if m not in scene.recon.methods and m not in reconstruct_methods()]
+    if unknown:
+        raise ClreconError(f"--methods: unknown method {unknown[0]!r}; allowed: {', '.join(reconstruct_methods())}")
+    pitches = tuple(pitches or scene.scan.pitches)
+    targets = resolve_targets(scene, cardiac, resp)
+    nz = scene.recon.nz
+    if slice_range is not None:
+        i0, i1 = slice_range
+        if not (0 <= i0 < i1 <= nz):
+            raise ClreconError(f"--slices {i0}:{i1}: must satisfy 0 <= start < stop <= recon.nz = {nz}")
+    slices_z = reconstruct.slice_positions(scene, slice_range)
+    variants = noise_variants(scene)
+    times = StageTimes()
+    stages: dict = {}
+    rc = scene.recon
+    axes = {"cardiac_phase": targets.cardiac, "resp_amplitude": targets.resp, "z_mm": slices_z,
+            "y_mm": reconstruct.voxel_coords(rc.ny, rc.voxel_mm), "x_mm": reconstruct.voxel_coords(rc.nx, rc.voxel_mm)}
+    full_shape = targets.shape + (len(slices_z), rc.ny, rc.nx)
+    writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory)
+    sim_info = {}
+    try:
+        for pitch in pitches:
+            pk = pitch_key(pitch)
+            log(f"[{pk}] planning {len(slices_z)} slices x {targets.shape[0] * targets.shape[1]} targets "
+                f"x {len(methods)} methods")
+            t0 = time.perf_counter()
+            table = geometry.projection_table(scene, pitch)
+            times.add("signals", time.perf_counter() - t0)
+            plan = reconstruct.plan(scene, table, slices_z, targets, methods)
+            times.add("plan", plan.seconds)
+            needed = plan.needed_projections(len(table))
+            t0 = time.perf_counter()
+            store = simulate.simulate(scene, pitch, needed=needed, cache_dir=cache_dir, progress=progress)
+            times.add("simulate", time.perf_counter() - t0)
+            sim_info[pk] = {"projections_total": len(table), "projections_needed": int(needed.sum()),
+                            "projections_simulated": int(getattr(store, "n_simulated", 0)),
+                            "projections_reused": int(getattr(store, "n_reused", 0)),
+                            "store": str(getattr(store, "path", ""))}
+            for v in variants:
+                for m in methods:
+                    writer.create(f"recon/{pk}/{v}/{m}", full_shape)
+
+            def on_slab(zs, slab, pk=pk):
+                for (v, m), vol in slab.items():
+                    vol = np.broadcast_to(vol, targets.shape + vol.shape[2:])  # r4dct: same for every c
+                    writer.write(f"recon/{pk}/{v}/{m}", vol, zs)
+
+            bar = _progress(len(slices_z), f"reconstruct {pk}", progress)
+            reconstruct.reconstruct(scene, store, plan, variants=variants, rt=rt, times=times, progress=bar,
+                                    on_slab=on_slab)
+            bar.close()
+            if hasattr(store, "close"):
+                store.close()
+
+        log("ground truth")
+        t0 = time.perf_counter()
+        bar = _progress(targets.shape[0] * targets.shape[1], "ground truth", progress)
+        gt = groundtruth.groundtruth_volumes(scene, slices_z, targets, rt=rt, progress=bar)
+        bar.close()
+        writer.create("groundtruth", full_shape)
+        writer.write("groundtruth", gt)
+        times.add("groundtruth", time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ph = groundtruth.phantom_truth_volumes(scene, slices_z, targets)
+        writer.create("phantom", full_shape)
+        writer.write("phantom", ph)
+        times.add("phantom_truth", time.perf_counter() - t0)
+
+        log("metrics")
+        t0 = time.perf_counter()
+        met, resp_only = evaluate(scene, writer.f, gt, targets, slices_z, pitches, variants, methods)
+        times.add("metrics", time.perf_counter() - t0)
+        writer.close()
+    except BaseException:
+        writer.abort()
+        raise
+
+    for name in ("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp", "groundtruth",
+                 "phantom_truth", "metrics"):
+        stages[name] = {"ran": name in times.seconds, "seconds": round(times.seconds.get(name, 0.0), 3)}
+    if not scene.noise.enabled:
+        stages["noise"]["skipped_because"] = "scene has noise.enabled = false"
+    total_sim = sum(v["projections_simulated"] for v in sim_info.values())
+    if total_sim == 0:
+        stages["simulate"]["ran"] = False
+        stages["simulate"]["skipped_because"] = "every needed projection was already in the projection store"
+    stages["simulate"].update(per_pitch=sim_info)
+    results = {
+        "format_version": RESULTS_FORMAT,
+        "scene": scene.to_dict(),
+        "scene_source": scene.source,
+        "versions": _versions(),
+        "device": rt.description,
+        "request": {"methods": list(methods), "pitches": list(pitches), "variants": list(variants),
+                    "targets": {"cardiac": list(targets.cardiac), "resp": list(targets.resp)},
+                    "slices": list(slice_range) if slice_range else [0, nz], "slices_z_mm": slices_z.tolist()},
+        "dimensions": {"cardiac": scene.has_cardiac, "resp": scene.has_respiratory},
+        "stages": stages,
+        "metrics": met,
+        "respiratory_only": resp_only,
+        "outputs": {"volumes": "volumes.h5", "report": "report.md" if report else None},
+    }
+    if report:
+        t0 = time.perf_counter()
+        from . import report as report_mod
+        report_mod.write_report(out, results)
+        stages["report"] = {"ran": True, "seconds": round(time.perf_counter() - t0, 3)}
+    results["total_seconds"] = round(time.perf_counter() - t_start, 3)
+    _write_json_atomic(out / "results.json", results)
+    return results
+
+
+def reconstruct_methods():
+    from .scene import METHODS
+    return METHODS
+
+
+def evaluate(scene, f, gt, targets, slices_z, pitches, variants, methods):
+    """Table-2 metrics per pitch/variant/method and the respiratory-only comparison."""
+    from .phantom import Phantom
+
+    met: dict = {}
+    resp_only: dict = {}
+    phantom = Phantom(scene.phantom)
+    masks = metrics.fov_masks(scene)
+    lv_gt = _lv_volumes(scene, phantom, gt, targets, slices_z)
+    for pitch in pitches:
+        pk = pitch_key(pitch)
+        met[pk] = {}
+        resp_only[pk] = {}
+        for v in variants:
+            met[pk][v] = {}
+            vols = {m: f[f"recon/{pk}/{v}/{m}"][()].reshape(gt.shape) for m in methods}
+            for m in methods:
+                met[pk][v][m] = metrics.table2(vols[m], gt, scene)
+            if "r4dct" in vols and scene.has_cardiac and scene.has_respiratory:
+                rows = []
+                for i, c in enumerate(targets.cardiac):
+                    row = {"cardiac_phase": c, "small_fov_mae_hu": {}, "lv_volume_ml": {"groundtruth": lv_gt[i]},
+                           "lv_volume_spread_ml": {"groundtruth": _spread(lv_gt[i])}}
+                    for m in [x for x in methods if x in FIVE_D_METHODS + ("r4dct",)]:
+                        row["small_fov_mae_hu"][m] = metrics.abs_error_stats(vols[m][i], gt[i], masks["small"])["mae_hu"]
+                        lv = _lv_volumes(scene, phantom, vols[m][i:i + 1], Targets((c,), targets.resp), slices_z)[0]
+                        row["lv_volume_ml"][m] = lv
+                        row["lv_volume_spread_ml"][m] = _spread(lv)
+                    rows.append(row)
+                resp_only[pk][v] = rows
+    return met, resp_only
+
+
+def _spread(values) -> float:
+    v = np.asarray(values, float)
+    return float(v.max() - v.min()) if v.size else 0.0
+
+
+def _lv_volumes(scene, phantom, vols, targets, slices_z) -> list:
+    """LV blood-pool volume (mL) in each target's volume, seeded at the phantom's LV centre."""
+    out = []
+    for i, c in enumerate(targets.cardiac):
+        row = []
+        for j, a in enumerate(targets.resp):
+            seed = phantom.lv_blood_pool_centre(c, a)  # (x, y, z) mm
+            row.append(metrics.blood_pool_volume_ml(vols[i, j], (seed[2], seed[1], seed[0]), scene, slices_z))
+        out.append(row)
+    return out

@@ -1,0 +1,56 @@
+"""The OpenCL runtime: kernel sources found, headers expanded, programs built once."""
+
+import numpy as np
+import pytest
+
+from clrecon import cl_runtime
+from clrecon.errors import OpenCLUnavailable
+
+
+def test_kernel_dir_has_sources():
+    d = cl_runtime.kernel_dir()
+    assert any(d.glob("*.cl"))
+
+
+def test_include_expansion(tmp_path, monkeypatch):
+    (tmp_path / "a.h").write_text("#define A 3\n")
+    (tmp_path / "k.cl").write_text('#include "a.h"\n#include "a.h"\n__kernel void f(__global int*x){x[0]=A;}\n')
+    (tmp_path / "k2.cl").write_text('#include "a.h"\n__kernel void f(__global int*x){x[0]=A+1;}\n')
+    monkeypatch.setattr(cl_runtime, "kernel_dir", lambda: tmp_path)
+    src = cl_runtime.load_source("k.cl")
+    assert src.count("#define A 3") == 1 and "#include" not in src
+    rt = cl_runtime.Runtime()
+    prog = rt.program("k.cl")
+    assert rt.program("k.cl") is prog  # built once
+    buf = rt.empty((1,), np.int32)
+    rt.kernel("k.cl", "f")(rt.queue, (1,), None, buf)
+    assert rt.from_device(buf, (1,), np.int32)[0] == 3
+    # editing the header changes the source handed to the driver -> rebuilt with the new value
+    (tmp_path / "a.h").write_text("#define A 5\n")
+    rt2 = cl_runtime.Runtime()
+    rt2.kernel("k2.cl", "f")(rt2.queue, (1,), None, buf2 := rt2.empty((1,), np.int32))
+    assert rt2.from_device(buf2, (1,), np.int32)[0] == 6
+
+
+def test_default_device_is_pocl_cpu():
+    rt = cl_runtime.get_runtime()
+    assert rt.is_cpu
+    assert cl_runtime.get_runtime() is rt
+
+
+def test_bad_device_spec_names_installed_platforms():
+    with pytest.raises(OpenCLUnavailable, match="matches no OpenCL platform; installed"):
+        cl_runtime.Runtime("no-such-platform-xyz")
+
+
+def test_no_platform_says_what_to_install(monkeypatch):
+    import pyopencl as cl
+    monkeypatch.setattr(cl, "get_platforms", lambda: [])
+    with pytest.raises(OpenCLUnavailable, match="pip install 'pyopencl\\[pocl\\]'"):
+        cl_runtime.Runtime()
+
+
+def test_to_device_rejects_non_numeric():
+    rt = cl_runtime.get_runtime()
+    with pytest.raises(TypeError, match="numeric"):
+        rt.to_device(np.array(["a"]))
