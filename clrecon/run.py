@@ -124,6 +124,7 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
     full_shape = targets.shape + (len(slices_z), rc.ny, rc.nx)
     writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory)
     sim_info = {}
+    method_seconds: dict = {}
     try:
         for pitch in pitches:
             pk = pitch_key(pitch)
@@ -152,9 +153,17 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
                     writer.write(f"recon/{pk}/{v}/{m}", vol, zs)
 
             bar = _progress(len(slices_z), f"reconstruct {pk}", progress)
-            reconstruct.reconstruct(scene, store, plan, variants=variants, rt=rt, times=times, progress=bar,
+            ptimes = StageTimes()
+            reconstruct.reconstruct(scene, store, plan, variants=variants, rt=rt, times=ptimes, progress=bar,
                                     on_slab=on_slab)
             bar.close()
+            method_seconds[pk] = {}
+            for key, sec in ptimes.seconds.items():
+                if key.startswith("method:"):
+                    _, m, v = key.split(":")
+                    method_seconds[pk].setdefault(v, {})[m] = round(sec, 3)
+                else:
+                    times.add(key, sec)
             if hasattr(store, "close"):
                 store.close()
 
@@ -203,6 +212,7 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
         "dimensions": {"cardiac": scene.has_cardiac, "resp": scene.has_respiratory},
         "stages": stages,
         "metrics": met,
+        "method_seconds": method_seconds,
         "respiratory_only": resp_only,
         "outputs": {"volumes": "volumes.h5", "report": "report.md" if report else None},
     }
