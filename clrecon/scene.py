@@ -280,10 +280,13 @@ class Scene:
 
     def scan_hash(self, pitch: float) -> str:
         """Content hash of everything that determines the noise-free projections of one pitch."""
-        from . import PROJECTOR_VERSION
+        from . import PROJECTOR_VERSION, signals
         d = self.to_dict()
+        # The amplitude normalisation spans the whole signal trace, whose length depends on
+        # the longest scan over *all* the scene's pitches: part of what a projection shows.
         payload = {"scanner": d["scanner"], "scan": {**d["scan"], "pitches": [pitch]},
-                   "signals": d["signals"], "phantom": d["phantom"], "projector": PROJECTOR_VERSION}
+                   "signals": d["signals"], "phantom": d["phantom"], "projector": PROJECTOR_VERSION,
+                   "signal_trace_s": signals.trace_duration_s(self)}
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
     def replace(self, **sections) -> "Scene":
