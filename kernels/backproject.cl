@@ -1,0 +1,140 @@
+// Distance-weighted fan-beam backprojection for a flat detector, full 2*pi scan.
+// Kak & Slaney (1988), "Principles of Computerized Tomographic Imaging", sec. 3.4.2
+// (equally spaced collinear detectors), in the conventions of clrecon/conventions.py:
+//   source at (R cos b, R sin b), detector columns along e_u = (-sin b, cos b),
+//   U = R - (x cos b + y sin b),  u = SDD (-x sin b + y cos b) / U,
+//   column index  c = u / col_pitch + (n_cols - 1) / 2,
+//   mu(x, y) = dbeta * sum_j (R / U_j)^2 * Q_j(c_j)        (Q: the filtered projection).
+// Linear interpolation in c; c outside [0, n_cols - 1] (at most the half cell beyond the
+// outer column centre, for pixels inside the FOV) takes the edge column's value. Pixels
+// whose centre lies outside the scanner's FOV circle (fov_r2 = radius^2) are written as 0:
+// not every view sees them, so their sum would be incomplete. The FOV circle is tangent to
+// the outer column *edges*, so inside it |c - (n_cols-1)/2| <= n_cols/2 by construction.
+//
+// The per-view table `trig` holds (cos b / R, sin b / R): then R/U = 1 / (1 - x c' - y s')
+// and c - c_centre = (SDD / col_pitch) (y c' - x s') (R/U), one reciprocal per view.
+//
+// Geometry comes in as kernel arguments, so one build serves every geometry; only the
+// local size LX x LY and the view chunk VCHUNK are compile-time constants (-D): PoCL
+// specialises its binaries per local size anyway (DESIGN.md, "Making kernels fast on PoCL").
+//
+// PoCL notes (PoCL 3.0, LLVM target znver3 = AVX2 on this machine, so a float16 is two
+// ymm registers):
+// * builtins such as native_recip, clamp and min are *not inlined* here; a call in the
+//   view loop spills the float16 accumulator to the stack on every view (measured 1.8x
+//   slower). The loops below use plain arithmetic and ternaries only.
+// * calling a builtin with a float16 argument (e.g. fma) makes clang warn about the
+//   AVX-512 ABI, and a program built with that warning comes back from PoCL's on-disk
+//   cache with no kernels in it (INVALID_KERNEL_NAME on the second run). Plain `a*b + c`
+//   is contracted to FMAs under -cl-mad-enable instead.
+
+#define GEOMETRY_ARGS                                                                     \
+    const int nx, const int ny,         /* image size, img[y, x] */                        \
+    const int n_views, const int n_cols,                                                   \
+    const float voxel_mm,               /* pixel size, mm */                               \
+    const float sdd_over_pitch,         /* SDD / col_pitch */                              \
+    const float fov_r2,                 /* squared FOV radius at the isocentre, mm^2 */    \
+    const float dbeta                   /* 2 pi / n_views, rad */
+
+// Pixel (x, y) in the view with table entry cs = (cos b, sin b) / R: returns the
+// fractional column index c = u / col_pitch + centre and puts the distance weight
+// (R/U)^2 in *w.
+inline float fan_column(const float x, const float y, const float2 cs, const float sdd_over_pitch,
+                        const float centre, float *w)
+{
+    const float r_over_u = 1.0f / (1.0f - (x * cs.x + y * cs.y));  // R / U
+    *w = r_over_u * r_over_u;
+    return sdd_over_pitch * (y * cs.x - x * cs.y) * r_over_u + centre;
+}
+
+// Batched kernel: 16 filtered sinograms interleaved as [view][column][batch] and read as
+// one float16 per interpolation tap. The 16 lanes are the SIMD width; the geometry of a
+// (pixel, view) pair is computed once for all 16 (DESIGN.md "FBP": 3.9 vs 0.36 G
+// updates/s for one sinogram per work-item).
+//
+// Columns are padded by one replica of the edge column on each side (n_cols + 2 stored),
+// so the taps of any pixel inside the FOV are in range without a clamp in the loop.
+//
+// The work-group sweeps the views in chunks of VCHUNK separated by barriers: PoCL runs the
+// work-items of a group one after another between barriers, so without the chunks each
+// work-item would stream all views (~1.5 MB for an 8x8 tile) before its neighbour reuses
+// them; with them the group's rows of a chunk stay in L1 (measured 1.35x faster).
+//
+// Work-item (ix, iy, g): pixel (ix, iy) of the 16 images of batch group g.
+//   sino16: (n_groups, n_views, n_cols + 2) float16     out: (n_groups * 16, ny, nx) float
+__kernel __attribute__((reqd_work_group_size(LX, LY, 1)))
+void backproject_batched16(__global const float16 *restrict sino16,
+                           __global const float2 *restrict trig,
+                           __global float *restrict out,
+                           GEOMETRY_ARGS)
+{
+    const int ix = get_global_id(0), iy = get_global_id(1), g = get_global_id(2);
+    const float x = ((float)ix - 0.5f * (float)(nx - 1)) * voxel_mm;
+    const float y = ((float)iy - 0.5f * (float)(ny - 1)) * voxel_mm;
+    // no early return: every work-item of the group must reach the barriers
+    const bool in_image = ix < nx && iy < ny;
+    const bool in_fov = in_image && x * x + y * y <= fov_r2;
+    const int stride = n_cols + 2;
+    const float centre = 0.5f * (float)(n_cols - 1) + 1.0f;  // +1: the left pad column
+    __global const float16 *sino = sino16 + (size_t)g * n_views * stride;
+
+    float16 acc = (float16)(0.0f);
+    for (int j0 = 0; j0 < n_views; j0 += VCHUNK) {
+        if (in_fov) {
+            const int j1 = j0 + VCHUNK < n_views ? j0 + VCHUNK : n_views;
+            __global const float16 *s = sino + (size_t)j0 * stride;
+            for (int j = j0; j < j1; ++j, s += stride) {
+                float w;
+                const float c = fan_column(x, y, trig[j], sdd_over_pitch, centre, &w);
+                const int i0 = (int)c;  // c >= 0.5 inside the FOV: truncation is floor
+                const float wb = w * (c - (float)i0);
+                const float wa = w - wb;
+                acc += wa * s[i0] + wb * s[i0 + 1];
+            }
+        }
+        barrier(CLK_GLOBAL_MEM_FENCE);
+    }
+    if (!in_image)
+        return;
+    acc *= dbeta;
+    // One store per lane, straight into (B, ny, nx): written once per pixel, so cheap.
+    const size_t plane = (size_t)nx * ny;
+    __global float *o = out + (size_t)g * 16 * plane + (size_t)iy * nx + ix;
+    o[0 * plane] = acc.s0;  o[1 * plane] = acc.s1;  o[2 * plane] = acc.s2;  o[3 * plane] = acc.s3;
+    o[4 * plane] = acc.s4;  o[5 * plane] = acc.s5;  o[6 * plane] = acc.s6;  o[7 * plane] = acc.s7;
+    o[8 * plane] = acc.s8;  o[9 * plane] = acc.s9;  o[10 * plane] = acc.sa; o[11 * plane] = acc.sb;
+    o[12 * plane] = acc.sc; o[13 * plane] = acc.sd; o[14 * plane] = acc.se; o[15 * plane] = acc.sf;
+}
+
+// Reference kernel: one sinogram per work-item in the plain (B, n_views, n_cols) layout,
+// with the edge clamp in the loop -- the straightforward way, kept for the benchmark and
+// as an independent cross-check of the batched kernel's layout, padding and chunking.
+// Work-item (ix, iy, b).   sino: (B, n_views, n_cols) float    out: (B, ny, nx) float
+__kernel __attribute__((reqd_work_group_size(LX, LY, 1)))
+void backproject_single(__global const float *restrict sino,
+                        __global const float2 *restrict trig,
+                        __global float *restrict out,
+                        GEOMETRY_ARGS)
+{
+    const int ix = get_global_id(0), iy = get_global_id(1), b = get_global_id(2);
+    if (ix >= nx || iy >= ny)
+        return;
+    const float x = ((float)ix - 0.5f * (float)(nx - 1)) * voxel_mm;
+    const float y = ((float)iy - 0.5f * (float)(ny - 1)) * voxel_mm;
+    const float last = (float)(n_cols - 1);
+    float acc = 0.0f;
+    if (x * x + y * y <= fov_r2) {
+        __global const float *s = sino + (size_t)b * n_views * n_cols;
+        for (int j = 0; j < n_views; ++j, s += n_cols) {
+            float w;
+            float c = fan_column(x, y, trig[j], sdd_over_pitch, 0.5f * last, &w);
+            c = c < 0.0f ? 0.0f : (c > last ? last : c);
+            int i0 = (int)c;
+            i0 = i0 > n_cols - 2 ? n_cols - 2 : i0;
+            const float t = c - (float)i0;
+            acc += w * ((1.0f - t) * s[i0] + t * s[i0 + 1]);
+        }
+        acc *= dbeta;
+    }
+    out[((size_t)b * ny + iy) * nx + ix] = acc;
+}
