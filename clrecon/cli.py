@@ -59,6 +59,36 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    try:
+        from viewer.app import screenshot, view
+    except ImportError as e:
+        raise ClreconError(f"the viewer is not installed with this package ({e})") from None
+    choices = dict(method=args.method, pitch=args.pitch, variant=args.variant, cardiac=args.cardiac,
+                   resp=args.resp, difference=args.difference, window=args.window)
+    if args.screenshot:
+        try:
+            w, h = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            raise ClreconError(f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 1300x1000") from None
+        path, title = screenshot(args.run_dir, args.screenshot, size=(w, h), **choices)
+        print(f"wrote {path}: {title}")
+        return 0
+    view(args.run_dir, **choices)
+    return 0
+
+
+def cmd_export(args) -> int:
+    from .export import export
+
+    index = export(args.run_dir, args.format, method=args.method, pitch=args.pitch, variant=args.variant,
+                   out=args.out)
+    what = index["method"] if index["pitch_key"] is None else f"{index['method']} {index['pitch_key']} {index['variant']}"
+    n_files = sum(len(t["files"]) for t in index["targets"])
+    print(f"wrote {len(index['targets'])} targets of {what} as {args.format} ({n_files} files) to {index['out']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="clrecon", description=__doc__.splitlines()[0])
     p.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -77,6 +107,28 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("scenes", help="list the built-in scenes with their size, disk and memory")
     s.set_defaults(func=cmd_scenes)
+
+    v = sub.add_parser("view", help="3D viewer of a run's 5D volumes (pyvista); --screenshot renders offscreen")
+    v.add_argument("run_dir", help="run directory (with volumes.h5)")
+    v.add_argument("--screenshot", metavar="FILE", help="render offscreen to this PNG and exit (no display needed)")
+    v.add_argument("--method", help="reconstruction method, groundtruth or phantom (default: best method present)")
+    v.add_argument("--pitch", help="pitch, e.g. 0.02 (default: the smallest present)")
+    v.add_argument("--variant", help="noisy or noise-free (default: noisy if present)")
+    v.add_argument("--cardiac", help="cardiac phase target, e.g. 0.4 or 40%% (default: the middle target)")
+    v.add_argument("--resp", help="respiratory amplitude target, e.g. 0.55 or 55%% (default: the middle target)")
+    v.add_argument("--difference", action="store_true", help="show the method minus the ground truth")
+    v.add_argument("--window", default="mediastinum", help="lung, mediastinum or cardiac (default: mediastinum)")
+    v.add_argument("--size", default="1300x1000", help="screenshot size WIDTHxHEIGHT in pixels")
+    v.set_defaults(func=cmd_view)
+
+    e = sub.add_parser("export", help="write a run's 5D volumes as DICOM CT series or NIfTI files, one per target")
+    e.add_argument("run_dir", help="run directory (with volumes.h5)")
+    e.add_argument("--format", required=True, choices=("dicom", "nifti"))
+    e.add_argument("--method", help="reconstruction method, groundtruth or phantom (default: best method present)")
+    e.add_argument("--pitch", help="pitch, e.g. 0.02 (default: the smallest present)")
+    e.add_argument("--variant", help="noisy or noise-free (default: noisy if present)")
+    e.add_argument("--out", help="output folder (default: RUN_DIR/export/FORMAT/SOURCE)")
+    e.set_defaults(func=cmd_export)
     return p
 
 

@@ -73,11 +73,14 @@ def write_report(out_dir: Path, results: dict) -> Path:
     lines.append("")
     try:
         from . import figures
-        lines += figures.write_figures(out_dir, results)
     except ImportError:
-        pass
+        figures = None
+    if figures is not None:
+        lines += figures.write_figures(out_dir, results)
     path = out_dir / "report.md"
     tmp = path.with_name("report.md.partial")
     tmp.write_text("\n".join(lines) + "\n")
     tmp.replace(path)
+    if figures is not None:
+        figures.write_html(out_dir, lines, title=f"clrecon run: {s['name']}")
     return path

@@ -1,0 +1,92 @@
+"""Figures of a run directory (matplotlib Agg) from a fake run: files, skips, phase-space choices."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from clrecon import figures, report
+from fake_run_dir import fake_scene, make_fake_run
+
+ALL = ("phase_space.png", "coronal.png", "motion_rows.png", "mae_per_target_small.png",
+       "mae_per_target_large.png", "error_vs_time.png")
+
+
+def _img(path):
+    import matplotlib.image as mpimg
+
+    return mpimg.imread(path)[..., :3].mean(axis=-1)
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("run")
+    return d, make_fake_run(d)
+
+
+def test_write_report_makes_every_figure_and_html(full_run):
+    d, results = full_run
+    md = report.write_report(d, results).read_text()
+    expected = ALL if figures.phase_space_missing() is None else ALL[1:]
+    for name in expected:
+        png = d / "figures" / name
+        assert f"(figures/{name})" in md
+        img = _img(png)
+        assert img.shape[0] > 200 and img.shape[1] > 300
+        assert img.std() > 0.05, f"{name} looks blank"
+    assert "failed" not in md and md.count("skipped") == len(ALL) - len(expected)
+    page = (d / "report.html").read_text()
+    assert page.count("data:image/png;base64,") == len(expected) and "<table>" in page
+
+
+def test_phase_space_choices_follow_the_methods():
+    pytest.importorskip("clrecon.interpolate")
+    scene = fake_scene()
+    s = figures.phase_space_sample(scene, 0.02, 0.0, 0, (0.4, 0.5))
+    n = len(s["c"])
+    assert n >= 8 and len(s["index"]) == n
+    b, ll = s["barycentric"], s["local_linear"]
+    assert 1 <= len(b["index"]) <= 3 and np.all(b["weight"] > 0) and b["weight"].sum() == pytest.approx(1.0)
+    assert 3 <= len(ll["index"]) <= 8 and ll["weight"].sum() == pytest.approx(1.0)
+    dc = figures.circular_diff(s["c"][ll["index"]], 0.4)
+    da = s["a"][ll["index"]] - 0.5
+    quadrant = (dc >= 0).astype(int) * 2 + (da >= 0).astype(int)
+    assert np.bincount(quadrant, minlength=4).max() <= 2  # two nearest per quadrant
+    if len(b["index"]) == 3:  # the target lies inside the chosen triangle (unwrapped)
+        p = np.stack([0.4 + figures.circular_diff(s["c"][b["index"]], 0.4), s["a"][b["index"]]], 1)
+        lam = np.linalg.solve(np.vstack([p.T, np.ones(3)]), [0.4, 0.5, 1.0])
+        assert np.all(lam >= -1e-9)
+
+
+def test_coronal_has_physical_aspect(full_run, tmp_path):
+    d, results = full_run
+    run = figures._Run(d, results)
+    try:
+        left, right, bottom, top = run.extent()
+        assert (right - left) / (top - bottom) == pytest.approx((40 * 8.0) / (10 * 6.0))
+        assert run.coronal("groundtruth", 1, 1, run.heart_plane_index(1, 1)).shape == (10, 40)
+    finally:
+        run.close()
+
+
+def test_missing_inputs_are_skipped_with_a_reason(tmp_path):
+    results = make_fake_run(tmp_path, methods=("nearest", "local_linear"), pitches=(0.1,),
+                            variants=("noise-free",))
+    results["method_seconds"] = {}
+    lines = figures.write_figures(tmp_path, results)
+    text = "\n".join(lines)
+    assert "no r4dct reconstruction" in text and "no method_seconds" in text
+    assert (tmp_path / "figures" / "coronal.png").exists()
+    assert not (tmp_path / "figures" / "motion_rows.png").exists()
+
+
+def test_single_target_run(tmp_path):
+    scene = fake_scene().replace(phantom={"cardiac_motion": False, "respiratory_motion": False})
+    results = make_fake_run(tmp_path, methods=("local_linear",), pitches=(0.1,), variants=("noise-free",),
+                            scene=scene)
+    text = "\n".join(figures.write_figures(tmp_path, json.loads(json.dumps(results))))
+    assert "single target" in text and "neither cardiac nor respiratory" in text
+    assert "failed" not in text
+    assert _img(tmp_path / "figures" / "coronal.png").std() > 0.05
