@@ -1,0 +1,140 @@
+// Phase-space interpolation kernels (DESIGN.md "Phase-space interpolation"; 5DCT paper 2.2).
+//
+// local_linear_weights: per row (one (slice, view, target)), the weights l of the local
+//   weighted linear regression  y ~ b0 + b1 dc + b2 da,  value b0 = l^T y.
+// apply_weights: rows of the output = weighted sums of rebinned rows.
+//
+// Build options: USE_DOUBLE (compute the 3x3 solve in double; needs cl_khr_fp64),
+// K_SLOTS (points per row, 8 for the paper's two-per-quadrant selection).
+
+#ifdef USE_DOUBLE
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+typedef double real;
+#else
+typedef float real;
+#endif
+
+#ifndef K_SLOTS
+#define K_SLOTS 8
+#endif
+
+#define TWO_PI_R ((real)6.283185307179586)
+
+// Local weighted linear regression, solved in centred form.
+//
+// With w_j the similarity weights, S0 = sum w, m = sum w p / S0 (p_j = (dc_j, da_j)) and
+// C = sum w (p - m)(p - m)^T / S0, the normal-equation solution of the paper,
+// l^T = e1^T (X^T W X)^-1 X^T W, is identical to
+//     l_j = w_j / S0 * (1 - m^T C^-1 (p_j - m)),
+// which keeps the intercept out of the 2x2 solve (better conditioned in float32) and makes
+// the degenerate cases explicit through the eigenvalues lam1 >= lam2 >= 0 of C:
+//   lam2 > rcond * lam1            full fit b0 + b1 dc + b2 da (the paper's)
+//   lam1 > spread2, lam2 small     points (nearly) collinear: fit b0 + b s along the principal
+//                                  direction s (drops the degenerate direction; exact for the
+//                                  1-D no-cardiac / no-breathing cases where dc or da is 0)
+//   lam1 <= spread2                points coincide: weighted mean
+// In every branch sum_j l_j = 1 exactly (in exact arithmetic) and nothing divides by zero.
+//
+// Weights are computed from log-weights minus their maximum, so the largest weight is 1:
+// no underflow of all weights, whatever kappa, sigma and the distances.
+//
+// Layout (structure of arrays, row fastest): dc[k * n + i], da[k * n + i], l[k * n + i].
+// Slots k >= count[i] are ignored and get l = 0.
+__kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) signed circular dc
+                                   __global const real *da,    // (K_SLOTS, n) a - a*
+                                   __global const int *count,  // (n,) valid slots, first ones
+                                   __global real *l_out,       // (K_SLOTS, n) weights
+                                   const int n,
+                                   const real kappa,
+                                   const real inv_two_sigma2,  // 1 / (2 sigma^2)
+                                   const real rcond,
+                                   const real spread2)
+{
+    const int i = get_global_id(0);
+    if (i >= n)
+        return;
+    const int cnt = clamp(count[i], 0, K_SLOTS);
+
+    real x[K_SLOTS], y[K_SLOTS], w[K_SLOTS];
+    real lmax = -INFINITY;
+    for (int k = 0; k < K_SLOTS; ++k) {
+        x[k] = (k < cnt) ? dc[k * n + i] : (real)0;
+        y[k] = (k < cnt) ? da[k * n + i] : (real)0;
+        w[k] = kappa * (cos(TWO_PI_R * x[k]) - (real)1) - y[k] * y[k] * inv_two_sigma2;
+        if (k < cnt)
+            lmax = fmax(lmax, w[k]);
+    }
+    real s0 = 0, sx = 0, sy = 0;
+    for (int k = 0; k < K_SLOTS; ++k) {
+        w[k] = (k < cnt) ? exp(w[k] - lmax) : (real)0;
+        s0 += w[k];
+        sx += w[k] * x[k];
+        sy += w[k] * y[k];
+    }
+    if (cnt == 0) {  // nothing to fit: all-zero weights (the host never sends such rows)
+        for (int k = 0; k < K_SLOTS; ++k)
+            l_out[k * n + i] = (real)0;
+        return;
+    }
+    const real mx = sx / s0, my = sy / s0;
+    real cxx = 0, cxy = 0, cyy = 0;
+    for (int k = 0; k < K_SLOTS; ++k) {
+        const real ex = x[k] - mx, ey = y[k] - my;
+        cxx += w[k] * ex * ex;
+        cxy += w[k] * ex * ey;
+        cyy += w[k] * ey * ey;
+    }
+    cxx /= s0; cxy /= s0; cyy /= s0;
+
+    const real tr = cxx + cyy;
+    const real hd = (real)0.5 * (cxx - cyy);
+    const real lam1 = (real)0.5 * tr + sqrt(hd * hd + cxy * cxy);
+    const real det = cxx * cyy - cxy * cxy;
+    const real lam2 = (lam1 > (real)0) ? det / lam1 : (real)0;
+
+    // g = C^+ m (C^+ symmetric), so m^T C^+ (p - m) = g . (p - m).
+    real gx = 0, gy = 0;
+    if (lam1 > spread2 && lam2 > rcond * lam1) {
+        gx = (cyy * mx - cxy * my) / det;
+        gy = (-cxy * mx + cxx * my) / det;
+    } else if (lam1 > spread2) {
+        // principal eigenvector of C; take the better-conditioned of the two formulas
+        real ex = cxy, ey = lam1 - cxx;
+        const real fx = lam1 - cyy, fy = cxy;
+        if (fx * fx + fy * fy > ex * ex + ey * ey) { ex = fx; ey = fy; }
+        const real nrm = sqrt(ex * ex + ey * ey);
+        ex /= nrm; ey /= nrm;
+        const real proj = (ex * mx + ey * my) / lam1;
+        gx = proj * ex;
+        gy = proj * ey;
+    }
+    for (int k = 0; k < K_SLOTS; ++k) {
+        const real lk = w[k] / s0 * ((real)1 - gx * (x[k] - mx) - gy * (y[k] - my));
+        l_out[k * n + i] = (k < cnt) ? lk : (real)0;
+    }
+}
+
+// out[b, col] = sum_k weight[b, k] * rows[index[b, k], col].
+// One work-item per output element (gather, one owner), column fastest so neighbouring
+// work-items read neighbouring columns of the same rebinned row. Zero weights are skipped,
+// so an unused slot never reads (or propagates a NaN from) the row it points to.
+__kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinned rows
+                            __global const int *index,     // (B, k_slots) into P
+                            __global const float *weight,  // (B, k_slots)
+                            __global float *out,           // (B, n_cols)
+                            const int n_out,
+                            const int n_cols,
+                            const int k_slots)
+{
+    const int col = get_global_id(0);
+    const int b = get_global_id(1);
+    if (col >= n_cols || b >= n_out)
+        return;
+    float acc = 0.0f;
+    for (int k = 0; k < k_slots; ++k) {
+        const float wk = weight[b * k_slots + k];
+        if (wk != 0.0f)
+            acc += wk * rows[(size_t)index[b * k_slots + k] * (size_t)n_cols + (size_t)col];
+    }
+    out[(size_t)b * (size_t)n_cols + (size_t)col] = acc;
+}
