@@ -520,7 +520,7 @@ def write_figures(out_dir, results: dict) -> list[str]:
     try:
         has_5d = results.get("dimensions", {}).get("cardiac", True) or results.get("dimensions", {}).get("resp", True)
         add("phase_space.png", "Phase space of one slice and view", lambda p: fig_phase_space(run, p),
-            phase_space_missing() or (None if has_5d else "the scene has neither cardiac nor respiratory motion"))
+            phase_space_missing() if has_5d else "the scene has neither cardiac nor respiratory motion")
         add("coronal.png", "Coronal comparison through the heart", lambda p: fig_coronal(run, p),
             None if (run.pitches() or run.has("groundtruth")) else "the run has no volumes to show")
         add("motion_rows.png", "Respiratory-only and cardiac-only 5DCT vs r4DCT",
