@@ -28,6 +28,7 @@ import numpy as np
 from . import fbp as fbp_mod
 from . import interpolate, noise, rebin
 from .conventions import voxel_coords
+from .errors import ClreconError
 from .geometry import ProjectionTable
 
 
@@ -101,43 +102,37 @@ class Plan:
 
 
 def plan(scene, table: ProjectionTable, slices_z: np.ndarray, targets: Targets, methods) -> Plan:
-    """Weights of every method for every (slice, view, target); see the module docstring."""
+    """Weights of every method for every (slice, view, target); see the module docstring.
+
+    Raises :class:`clrecon.errors.ClreconError` naming the slice and view when a (slice, view)
+    has no SSRB candidate (slice outside the scanned range, or pitch too high for the rows).
+    """
     t0 = time.perf_counter()
     sc, rc = scene.scanner, scene.recon
     nv = sc.views_per_rotation
-    radius = object_radius_mm(scene)
-    pairs_all = targets.pairs
+    p = Plan(slices_z=np.asarray(slices_z, float))
+    groups = rebin.candidate_groups(table, p.slices_z, sc, object_radius_mm(scene))
+    if groups.empty.any():
+        g = int(np.flatnonzero(groups.empty)[0])
+        z = p.slices_z[g // nv]
+        zk = table.source_z_mm
+        raise ClreconError(
+            f"slice z = {z:.2f} mm, view {g % nv}: no projection covers it (scan covers source z "
+            f"{zk.min():.1f}..{zk.max():.1f} mm with an SSRB window of "
+            f"+-{rebin.slice_window_mm(sc, object_radius_mm(scene)):.2f} mm); reduce recon.nz/slice_mm or the pitch")
+    c = table.cardiac_phase[groups.row]
+    a = table.resp_amplitude[groups.row]
     opts = dict(kappa=rc.kappa, sigma=rc.sigma, use_cardiac=scene.has_cardiac, use_resp=scene.has_respiratory,
                 cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=1.0 / rc.resp_bins)
-    p = Plan(slices_z=np.asarray(slices_z, float))
-    per_method: dict = {m: [] for m in methods}
-    for z in p.slices_z:
-        cand = rebin.candidates(table, float(z), sc, radius)
-        if cand.size == 0:
-            raise ValueError(f"slice z = {z:.2f} mm has no SSRB candidates: it lies outside the scanned range")
-        views = table.view[cand]
-        order = np.argsort(views, kind="stable")
-        cand = cand[order]
-        bounds = np.searchsorted(views[order], np.arange(nv + 1))
-        for m in methods:
-            tg = pairs_all[:len(targets.resp)] if m == "r4dct" else pairs_all
-            per_view_idx, per_view_w = [], []
-            for v in range(nv):
-                sel = cand[bounds[v]:bounds[v + 1]]
-                if sel.size == 0:
-                    raise ValueError(
-                        f"slice z = {z:.2f} mm, view {v}: no projection covers it (pitch too high for the "
-                        f"detector's rows)")
-                w = interpolate.method_weights(m, table.cardiac_phase[sel], table.resp_amplitude[sel], tg, **opts)
-                per_view_idx.append(sel[w.index])
-                per_view_w.append(w.weight)
-            per_method[m].append((_stack_pad(per_view_idx, 0), _stack_pad(per_view_w, 0.0)))
-    for m, lst in per_method.items():
-        K = max(a.shape[-1] for a, _ in lst)
-        idx = np.stack([_pad_last(a, K, 0) for a, _ in lst])
-        w = np.stack([_pad_last(b, K, 0.0) for _, b in lst])
+    S = len(p.slices_z)
+    for m in methods:
+        tg = targets.pairs[:len(targets.resp)] if m == "r4dct" else targets.pairs
+        w = interpolate.batch_weights(m, c, a, groups.offsets, tg, **opts)
+        G, T, K = w.index.shape
+        proj = groups.projection[w.index].reshape(S, nv, T, K)
+        weight = np.where(w.weight != 0, w.weight, 0.0).reshape(S, nv, T, K)
         shape = (1, len(targets.resp)) if m == "r4dct" else targets.shape
-        p.methods[m] = MethodPlan(proj_index=idx, weight=w, targets_shape=shape)
+        p.methods[m] = MethodPlan(proj_index=proj, weight=weight, targets_shape=shape)
     p.seconds = time.perf_counter() - t0
     return p
 
@@ -148,18 +143,6 @@ def _cardiac_bin_width(targets: Targets) -> float:
         return 0.2
     gaps = np.diff(np.concatenate([c, [c[0] + 1.0]]))
     return float(np.min(gaps))
-
-
-def _pad_last(a: np.ndarray, K: int, fill) -> np.ndarray:
-    if a.shape[-1] == K:
-        return a
-    pad = [(0, 0)] * (a.ndim - 1) + [(0, K - a.shape[-1])]
-    return np.pad(a, pad, constant_values=fill)
-
-
-def _stack_pad(arrays, fill) -> np.ndarray:
-    K = max(a.shape[-1] for a in arrays)
-    return np.stack([_pad_last(a, K, fill) for a in arrays])
 
 
 @dataclass
