@@ -20,10 +20,14 @@ section 2.2):
     y ~ b0 + b1 dc + b2 da with w = exp(kappa (cos 2 pi dc - 1)) exp(-da^2 / 2 sigma^2);
     the weights l^T = e1^T (X^T W X)^-1 X^T W are solved per row by the OpenCL kernel
     ``local_linear_weights`` (``kernels/interp.cl``). Fewer than 3 selected points (2 in a
-    1-D problem) -> nearest point. Collinear points (ill-conditioned X^T W X: smallest
-    eigenvalue of the weighted covariance of (dc, da) below ``LL_RCOND`` times the largest)
-    -> fit along the principal direction, i.e. the degenerate direction is dropped;
-    coinciding points (spread below ``LL_SPREAD``) -> weighted mean.
+    1-D problem) -> nearest point. Kernel weights below ``LL_WEIGHT_FLOOR`` times the row's
+    largest are zero (narrow kernels, kappa up to 100 and sigma down to 0.01: the far points
+    drop out instead of underflowing differently in float32 and float64). Ill-conditioned
+    X^T W X (collinear points, or a thin cloud far from the target: an eigenvalue of the
+    weighted covariance of (dc, da) below ``LL_RCOND`` times the points' weighted mean
+    squared distance to the target) -> fit along the principal direction, i.e. the
+    degenerate direction is dropped; both directions degenerate (coinciding points,
+    duplicates, spread below ``LL_SPREAD``) -> weighted mean.
 ``r4dct``
     Amplitude only (cardiac ignored): linear between the candidates bracketing a*; outside
     the sampled range, the nearest in amplitude.
@@ -71,11 +75,18 @@ BARY_EPS = 1e-9
 #: Local linear: points per quadrant and slots per row.
 LL_PER_QUADRANT = 2
 LL_SLOTS = 4 * LL_PER_QUADRANT
-#: Local linear: eigenvalue ratio of the weighted (dc, da) covariance below which the points
-#: count as collinear (std ratio 1e-2) and the fit drops the degenerate direction.
+#: Local linear: a direction of the weighted (dc, da) covariance whose eigenvalue is below
+#: LL_RCOND times the weighted mean squared distance of the points to the target counts as
+#: degenerate and is dropped from the fit (std ratio 1e-2: the fit never extrapolates more
+#: than ~100 point spreads, which bounds |weights| and the float32 kernel's error).
 LL_RCOND = 1e-4
 #: Local linear: spread (std, phase units) below which the points count as coinciding.
 LL_SPREAD = 1e-6
+#: Local linear: kernel weights below this fraction of the largest one in the row are zero
+#: (the point lies outside the kernel). Makes the float32 and float64 solves use the same
+#: points whatever kappa and sigma (float32 exp underflows near 1e-38).
+LL_WEIGHT_FLOOR = 1e-10
+LL_LOG_WEIGHT_FLOOR = float(np.log(LL_WEIGHT_FLOOR))
 
 _LOCAL = 64  # fixed work-group size (PoCL specialises binaries per local size)
 
@@ -480,11 +491,14 @@ def local_linear_solve_reference(dc, da, count, kappa: float, sigma: float) -> n
     live = np.arange(LL_SLOTS)[None, :] < count[:, None]
     x = np.where(live, x, 0.0)
     y = np.where(live, y, 0.0)
-    lw = kappa * (np.cos(2 * np.pi * x) - 1.0) - y * y / (2.0 * sigma * sigma)
+    # kappa (cos 2 pi x - 1) written as -2 kappa sin^2(pi x): no cancellation near x = 0
+    sx = np.sin(np.pi * x)
+    lw = -2.0 * kappa * sx * sx - y * y / (2.0 * sigma * sigma)
     lw = np.where(live, lw, -np.inf)
     lmax = np.max(lw, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore"):
-        w = np.where(live, np.exp(lw - np.where(np.isfinite(lmax), lmax, 0.0)), 0.0)
+    rel = lw - np.where(np.isfinite(lmax), lmax, 0.0)
+    # relative weights below LL_WEIGHT_FLOOR are zero (the point is outside the kernel)
+    w = np.where(live & (rel >= LL_LOG_WEIGHT_FLOOR), np.exp(np.where(live, rel, 0.0)), 0.0)
     s0 = w.sum(axis=1)
     s0s = np.where(s0 > 0, s0, 1.0)
     mx, my = (w * x).sum(1) / s0s, (w * y).sum(1) / s0s
@@ -494,9 +508,10 @@ def local_linear_solve_reference(dc, da, count, kappa: float, sigma: float) -> n
     lam1 = 0.5 * (cxx + cyy) + np.sqrt(half * half + cxy * cxy)
     det = cxx * cyy - cxy * cxy
     lam2 = np.where(lam1 > 0, det / np.where(lam1 > 0, lam1, 1.0), 0.0)
-    spread2 = LL_SPREAD ** 2
-    full = (lam1 > spread2) & (lam2 > LL_RCOND * lam1)
-    rank1 = (lam1 > spread2) & ~full
+    # conditioning relative to the weighted mean squared distance of the points to the target
+    thresh = np.maximum(LL_RCOND * (cxx + cyy + mx * mx + my * my), LL_SPREAD ** 2)
+    full = lam2 > thresh
+    rank1 = (lam1 > thresh) & ~full
     sdet = np.where(full, det, 1.0)
     gx = np.where(full, (cyy * mx - cxy * my) / sdet, 0.0)
     gy = np.where(full, (-cxy * mx + cxx * my) / sdet, 0.0)
@@ -549,7 +564,8 @@ def local_linear_solve(dc, da, count, kappa: float, sigma: float, rt=None,
     d_cnt = rt.to_device(count, np.int32, "count")
     d_l = rt.empty((LL_SLOTS, n), real)
     ev = knl(rt.queue, (-(-n // _LOCAL) * _LOCAL,), (_LOCAL,), d_dc, d_da, d_cnt, d_l, np.int32(n),
-             real(kappa), real(1.0 / (2.0 * sigma * sigma)), real(LL_RCOND), real(LL_SPREAD ** 2))
+             real(kappa), real(1.0 / (2.0 * sigma * sigma)), real(LL_RCOND), real(LL_SPREAD ** 2),
+             real(LL_LOG_WEIGHT_FLOOR))
     l = rt.from_device(d_l, (LL_SLOTS, n), real, wait_for=[ev])
     return np.ascontiguousarray(l.T, dtype=np.float64)
 

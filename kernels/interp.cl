@@ -18,7 +18,7 @@ typedef float real;
 #define K_SLOTS 8
 #endif
 
-#define TWO_PI_R ((real)6.283185307179586)
+#define PI_R ((real)3.141592653589793)
 
 // Local weighted linear regression, solved in centred form.
 //
@@ -27,16 +27,24 @@ typedef float real;
 // l^T = e1^T (X^T W X)^-1 X^T W, is identical to
 //     l_j = w_j / S0 * (1 - m^T C^-1 (p_j - m)),
 // which keeps the intercept out of the 2x2 solve (better conditioned in float32) and makes
-// the degenerate cases explicit through the eigenvalues lam1 >= lam2 >= 0 of C:
-//   lam2 > rcond * lam1            full fit b0 + b1 dc + b2 da (the paper's)
-//   lam1 > spread2, lam2 small     points (nearly) collinear: fit b0 + b s along the principal
-//                                  direction s (drops the degenerate direction; exact for the
-//                                  1-D no-cardiac / no-breathing cases where dc or da is 0)
-//   lam1 <= spread2                points coincide: weighted mean
+// the degenerate cases explicit through the eigenvalues lam1 >= lam2 >= 0 of C, compared
+// with thresh = max(rcond * D2, spread2), D2 = sum w |p|^2 / S0 the weighted mean squared
+// distance of the points to the target (scale of the problem):
+//   lam2 > thresh                  full fit b0 + b1 dc + b2 da (the paper's)
+//   lam1 > thresh >= lam2          points (nearly) collinear, or a thin cloud far from the
+//                                  target: fit b0 + b s along the principal direction s
+//                                  (drops the degenerate direction; exact for the 1-D
+//                                  no-cardiac / no-breathing cases where dc or da is 0)
+//   lam1 <= thresh                 points coincide: weighted mean
 // In every branch sum_j l_j = 1 exactly (in exact arithmetic) and nothing divides by zero.
+// Relative to D2 the extrapolation is bounded (|g . (p - m)| <~ 1 / rcond), which bounds
+// the float32 build's error by ~eps / rcond instead of letting it grow without limit.
 //
 // Weights are computed from log-weights minus their maximum, so the largest weight is 1:
-// no underflow of all weights, whatever kappa, sigma and the distances.
+// no underflow of all weights, whatever kappa, sigma and the distances. Relative weights
+// below exp(log_floor) are set to zero in both precisions (the float64 reference does the
+// same), so float32 underflow never changes which points take part. The cardiac term
+// kappa (cos 2 pi x - 1) is evaluated as -2 kappa sin^2(pi x) (no cancellation near x = 0).
 //
 // Layout (structure of arrays, row fastest): dc[k * n + i], da[k * n + i], l[k * n + i].
 // Slots k >= count[i] are ignored and get l = 0.
@@ -48,7 +56,8 @@ __kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) s
                                    const real kappa,
                                    const real inv_two_sigma2,  // 1 / (2 sigma^2)
                                    const real rcond,
-                                   const real spread2)
+                                   const real spread2,
+                                   const real log_floor)       // log of the relative weight floor
 {
     const int i = get_global_id(0);
     if (i >= n)
@@ -60,13 +69,15 @@ __kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) s
     for (int k = 0; k < K_SLOTS; ++k) {
         x[k] = (k < cnt) ? dc[k * n + i] : (real)0;
         y[k] = (k < cnt) ? da[k * n + i] : (real)0;
-        w[k] = kappa * (cos(TWO_PI_R * x[k]) - (real)1) - y[k] * y[k] * inv_two_sigma2;
+        const real sp = sin(PI_R * x[k]);
+        w[k] = (real)-2 * kappa * sp * sp - y[k] * y[k] * inv_two_sigma2;
         if (k < cnt)
             lmax = fmax(lmax, w[k]);
     }
     real s0 = 0, sx = 0, sy = 0;
     for (int k = 0; k < K_SLOTS; ++k) {
-        w[k] = (k < cnt) ? exp(w[k] - lmax) : (real)0;
+        const real rel = w[k] - lmax;
+        w[k] = (k < cnt && rel >= log_floor) ? exp(rel) : (real)0;
         s0 += w[k];
         sx += w[k] * x[k];
         sy += w[k] * y[k];
@@ -93,11 +104,12 @@ __kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) s
     const real lam2 = (lam1 > (real)0) ? det / lam1 : (real)0;
 
     // g = C^+ m (C^+ symmetric), so m^T C^+ (p - m) = g . (p - m).
+    const real thresh = fmax(rcond * (tr + mx * mx + my * my), spread2);
     real gx = 0, gy = 0;
-    if (lam1 > spread2 && lam2 > rcond * lam1) {
+    if (lam2 > thresh) {
         gx = (cyy * mx - cxy * my) / det;
         gy = (-cxy * mx + cxx * my) / det;
-    } else if (lam1 > spread2) {
+    } else if (lam1 > thresh) {
         // principal eigenvector of C; take the better-conditioned of the two formulas
         real ex = cxy, ey = lam1 - cxx;
         const real fx = lam1 - cyy, fy = cxy;

@@ -468,3 +468,59 @@ def test_weights_are_finite_and_sum_to_one(pts, targets, method, use_cardiac, us
     assert np.all(np.abs(W.weight.sum(-1) - 1) < TOL["weights_f64"] * _scale(W))
     if method != "local_linear":  # all but the regression are convex combinations
         assert np.all(W.weight >= 0)
+
+
+def _inside_copied_hull(c, a, targets):
+    """Targets inside the convex hull of the points and their copies at c - 1 and c + 1."""
+    P = np.concatenate([np.stack([c + s, a], axis=1) for s in (0.0, -1.0, 1.0)])
+    try:
+        return Delaunay(P).find_simplex(targets) >= 0
+    except Exception:  # Qhull: fewer than three distinct points, or all collinear
+        return np.zeros(len(targets), dtype=bool)
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(pts=_points, targets=st.lists(st.tuples(_coord, _coord), min_size=1, max_size=6),
+       method=st.sampled_from(["barycentric", "local_linear", "r4dct"]),
+       kernel=st.sampled_from([(1.0, 0.15), (10.0, 0.05), (100.0, 0.01)]),
+       n_dup=st.integers(0, 3), collinear=st.booleans())
+def test_linear_data_reproduced_where_the_method_promises_it(pts, targets, method, kernel, n_dup, collinear):
+    """Barycentric inside the hull of the copied points (in some consistent unwrapping of c),
+    local linear where its weighted points are well conditioned (>= 3, not collinear), r4dct
+    in amplitude inside the sampled range; weights always finite and summing to one."""
+    p = np.array(pts, dtype=np.float64)
+    c, a = p[:, 0] % 1.0, p[:, 1]
+    if collinear:                          # all points on one line through the plane
+        a = 0.2 + 0.5 * c
+    c, a = np.concatenate([c, c[:n_dup]]), np.concatenate([a, a[:n_dup]])   # duplicates
+    tg = np.array(targets, dtype=np.float64)
+    kappa, sigma = kernel
+    W = ip.method_weights(method, c, a, tg, kappa=kappa, sigma=sigma)
+    scale = _scale(W)
+    assert np.all(np.isfinite(W.weight))
+    assert np.all(np.abs(W.weight.sum(-1) - 1) < TOL["weights_f64"] * scale)
+    tol = TOL["weights_f64"] * scale
+    dc = circular_difference(c[W.index], tg[:, None, 0])
+    da = a[W.index] - tg[:, None, 1]
+    ma = (W.weight * da).sum(-1)
+    if method == "r4dct":
+        inside = (tg[:, 1] >= a.min()) & (tg[:, 1] <= a.max())
+        assert np.all(np.abs(ma[inside]) < tol[inside])
+    elif method == "barycentric":
+        inside = _inside_copied_hull(c, a, tg % [1.0, 2.0])
+        assert np.all(np.abs(ma[inside]) < tol[inside])
+        # c is periodic: each slot's vertex is the point or one of its copies at +-1
+        shifts = np.array(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T  # (27, 3)
+        mc = np.abs((W.weight[:, None, :] * (dc[:, None, :] + shifts[None])).sum(-1)).min(-1)
+        assert np.all(mc[inside] < tol[inside])
+    else:
+        for t in range(tg.shape[0]):
+            used = W.weight[t] != 0
+            x, y = dc[t][used], da[t][used]
+            lk = kappa * (np.cos(2 * np.pi * x) - 1) - y * y / (2 * sigma * sigma)
+            k = np.exp(lk - lk.max())
+            m = np.array([k @ x, k @ y]) / k.sum()
+            cov = np.cov(np.stack([x, y]), aweights=k, bias=True) if used.sum() > 1 else np.zeros((2, 2))
+            d2 = np.trace(cov) + m @ m
+            if used.sum() >= 3 and np.linalg.eigvalsh(cov)[0] > 10 * max(ip.LL_RCOND * d2, ip.LL_SPREAD ** 2):
+                assert abs(W.weight[t] @ dc[t]) < tol[t] and abs(W.weight[t] @ da[t]) < tol[t]
