@@ -96,6 +96,27 @@ def slice_window_mm(scanner: ScannerConfig, object_radius_mm: float) -> float:
     return v_max * scanner.sid_mm * scanner.sdd_mm / (u_max * u_max + scanner.sdd_mm ** 2)
 
 
+def max_covering_pitch(scanner: ScannerConfig, object_radius_mm: float) -> float:
+    """Largest helical pitch for which every (slice, view) inside the scanned range has a candidate.
+
+    The sources of one view advance by the table feed h = pitch * W per rotation, so a slice
+    between two of them is up to h / 2 from the nearer one; it has an SSRB candidate of that
+    view when h / 2 <= :func:`slice_window_mm`. Hence pitch * W <= 2 * window.
+
+    Parameters
+    ----------
+    scanner : ScannerConfig
+    object_radius_mm : float
+        See :func:`slice_window_mm` (the pipeline uses min(scanner FOV, reconstruction FOV)).
+
+    Returns
+    -------
+    float
+        ``2 * slice_window_mm / W`` (0 for a single-row detector: no helical pitch covers).
+    """
+    return 2.0 * slice_window_mm(scanner, object_radius_mm) / scanner.collimation_iso_mm
+
+
 def candidates(table: "ProjectionTable", slice_z_mm: float, scanner: ScannerConfig,
                object_radius_mm: float) -> np.ndarray:
     """Projections whose source is close enough to a slice for SSRB, all turns, every view.

@@ -319,8 +319,8 @@ def _build_section(cls, raw: Any, where: str):
             value = tuple(value)
         if isinstance(f.default, float) and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
-        if isinstance(f.default, tuple) and value and all(isinstance(x, int) and not isinstance(x, bool)
-                                                           for x in value) and isinstance(f.default[0], float):
+        if isinstance(f.default, tuple) and isinstance(value, tuple) and value and all(
+                isinstance(x, int) and not isinstance(x, bool) for x in value) and isinstance(f.default[0], float):
             value = tuple(float(x) for x in value)
         if not f.metadata["check"](value):
             raise SceneError(f"{where}.{key} = {value!r}: must be {f.metadata['allowed']}")
@@ -356,6 +356,28 @@ def _check_consistency(s: Scene, prefix: str) -> None:
     if s.scan.n_projections == 0 and s.scan.coverage_mm <= sc.collimation_iso_mm:
         raise SceneError(f"{prefix}scan.coverage_mm = {s.scan.coverage_mm}: must exceed the collimation "
                          f"W = {sc.collimation_iso_mm:.2f} mm")
+    # Derived geometry must be finite (extreme values such as sid_mm = 1e-308 pass the
+    # per-key checks but overflow or divide by zero here).
+    # SSRB needs a candidate for every (slice, view): the feed per rotation must stay within
+    # twice the slice window (rebin imports no OpenCL; imported here to avoid a cycle)
+    from .rebin import max_covering_pitch
+    try:
+        p_max = max_covering_pitch(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
+        for p in s.scan.pitches:
+            s.scan.projection_count(sc, p)
+        finite = math.isfinite(p_max) and math.isfinite(sc.collimation_iso_mm)
+    except (ArithmeticError, ValueError):
+        finite = False
+    if not finite:
+        raise SceneError(f"{prefix}scanner (sid_mm = {sc.sid_mm}, sdd_mm = {sc.sdd_mm}, n_cols = {sc.n_cols}, "
+                         f"col_pitch_mm = {sc.col_pitch_mm}, n_rows = {sc.n_rows}, row_pitch_mm = "
+                         f"{sc.row_pitch_mm}), scan and recon sizes: the derived geometry (field of view, "
+                         f"collimation, SSRB window, projection count) is not finite; use the mm sizes of a real scanner")
+    too_high = [p for p in s.scan.pitches if p > p_max * (1.0 + 1e-9)]
+    if too_high:
+        raise SceneError(f"{prefix}scan.pitches = {list(s.scan.pitches)}: pitch {too_high[0]:g} leaves "
+                         f"(slice, view) pairs without data; the largest pitch that covers every "
+                         f"(slice, view) is {p_max:.4f}")
 
 
 def load_scene(name_or_path: str | Path) -> Scene:

@@ -32,6 +32,10 @@ a ``.h5`` that cannot be read raises :class:`~clrecon.errors.StoreError`. A stor
 table no longer matches what the current code computes for the scene (signal model changed
 without a ``PROJECTOR_VERSION`` bump) is stale: it is discarded with a warning.
 
+Integrity: every dataset carries HDF5 Fletcher-32 chunk checksums, and :meth:`ProjectionStore.read`
+refuses NaN or inf line integrals; both raise :class:`~clrecon.errors.StoreError` naming the
+file (a corrupt store never yields numbers).
+
 Noise is not stored: :meth:`ProjectionStore.read` adds it on the way out (see
 :mod:`clrecon.noise`), so one store serves the noise-free and the noisy reconstructions.
 """
@@ -196,12 +200,14 @@ class ProjectionStore:
         block = int(np.clip(CHUNK_BYTES // (r * c * 4), 1, n))
         self.cache_dir.mkdir(parents=True, exist_ok=True)
         with h5py.File(path, "w") as f:
+            # fletcher32: every chunk carries a checksum, so a corrupted file fails on read
+            # (StoreError) instead of returning wrong numbers
             f.create_dataset("projections", shape=self.shape, dtype=np.float32, chunks=(block, r, c),
-                             compression="lzf", shuffle=True)
-            f.create_dataset("present", data=np.zeros(n, dtype=bool))
+                             compression="lzf", shuffle=True, fletcher32=True)
+            f.create_dataset("present", data=np.zeros(n, dtype=bool), fletcher32=True)
             g = f.create_group("table")
             for col in ProjectionTable.COLUMNS:
-                g.create_dataset(col, data=getattr(self._table, col))
+                g.create_dataset(col, data=getattr(self._table, col), fletcher32=True)
             f.attrs.update({
                 "format": FORMAT, "scan_hash": self.scan_hash, "pitch": self.pitch,
                 "scene_json": json.dumps(self.scene.to_dict(), sort_keys=True),
@@ -329,6 +335,11 @@ class ProjectionStore:
             self.close()
             raise StoreError(f"{self.path}: corrupt or truncated projection store ({_one_line(e)}); "
                              f"delete it to simulate again") from None
+        bad = ~np.isfinite(data)
+        if bad.any():
+            k = start + np.flatnonzero(bad.any(axis=(1, 2)))
+            raise StoreError(f"{self.path}: projections {k[0]}..{k[-1]} hold {int(bad.sum())} NaN or inf "
+                             f"line integrals (corrupt store); delete it to simulate again")
         if noisy:
             data = add_noise(data, np.arange(start, stop, dtype=np.int64), self.scene.noise)
         return data
