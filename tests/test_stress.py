@@ -179,12 +179,23 @@ def test_photon_starvation_is_finite_and_worse_than_noise_free(stress_run):
         assert m["noisy"][method]["large"]["mae_hu"] > 2 * m["noise-free"][method]["large"]["mae_hu"]
 
 
+def test_ectopic_scene_has_an_ectopic_beat_during_the_scan():
+    from clrecon import signals
+
+    s = load_scene("stress-ectopic")
+    duration = projection_table(s, 0.1).time_s[-1]
+    peaks = signals.r_peaks(s)
+    rr = np.diff(peaks)
+    during = rr[(peaks[1:] > 0) & (peaks[:-1] < duration)]
+    assert during.min() < 0.7 * s.signals.rr_s and during.max() > 1.3 * s.signals.rr_s
+
+
 def test_ectopic_beats_interpolate_as_well_as_periodic_rhythm_within_reason(stress_run):
     """Irregular R-R intervals only move the phase samples: the 5-D methods stay usable."""
     _, res = stress_run("stress-ectopic")
     m = res["metrics"]["p0.100"]["noise-free"]
     for method in ("barycentric", "local_linear"):
-        assert m[method]["large"]["mae_hu"] < m["nearest"]["large"]["mae_hu"] * 1.5 + 20.0
+        assert m[method]["large"]["mae_hu"] < 2.0 * m["nearest"]["large"]["mae_hu"] + 20.0
 
 
 def test_metal_scene_shows_the_metal(stress_run):
