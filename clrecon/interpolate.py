@@ -28,6 +28,13 @@ section 2.2):
     squared distance to the target) -> fit along the principal direction, i.e. the
     degenerate direction is dropped; both directions degenerate (coinciding points,
     duplicates, spread below ``LL_SPREAD``) -> weighted mean.
+    EXTRAPOLATION (our choice; the paper is silent): when every selected point lies strictly
+    on one side of the target along an axis (e.g. a target amplitude above every amplitude
+    sampled at that view), the slope along that axis is dropped and the fit is locally
+    constant along it, as 1-D interpolation clamps at the ends of its data. An unguarded
+    linear fit extrapolates there with weights whose sum of magnitudes reached 7-25 on short
+    scans and amplifies noise and motion error. ``extrapolate=True``
+    (``recon.local_linear_extrapolate = true``) gives the paper's plain fit.
 ``r4dct``
     Amplitude only (cardiac ignored): linear between the candidates bracketing a*; outside
     the sampled range, the nearest in amplitude.
@@ -442,11 +449,25 @@ def _local_linear_select(dc, da, d2, min_points):
     return ids, count
 
 
-def _local_linear(dc, da, d2, use_cardiac, use_resp, kappa, sigma, rt, precision):
+def _one_sided(x, live):
+    """(...,) True where every live selected value lies strictly on one side of 0."""
+    pos = np.where(live, x > 0, True).all(axis=-1)
+    neg = np.where(live, x < 0, True).all(axis=-1)
+    return pos | neg
+
+
+def _local_linear(dc, da, d2, use_cardiac, use_resp, kappa, sigma, rt, precision, extrapolate=False):
     min_points = 1 + int(use_cardiac) + int(use_resp)  # 3 in 2-D (the paper), 2 in 1-D
     ids, count = _local_linear_select(dc, da, d2, min_points)
     sel_dc = _take(dc, ids)
     sel_da = _take(da, ids)
+    if not extrapolate:
+        # No extrapolation along an axis the selected points do not bracket: zero that axis'
+        # differences, so the solver's degenerate-direction fallback drops its slope (local
+        # constant along it). See EXTRAPOLATION in the module docstring.
+        live = np.arange(LL_SLOTS) < count[..., None]
+        sel_da = np.where(_one_sided(sel_da, live)[..., None], 0.0, sel_da)
+        sel_dc = np.where(_one_sided(sel_dc, live)[..., None], 0.0, sel_dc)
     shape = ids.shape
     l = local_linear_solve(sel_dc.reshape(-1, LL_SLOTS), sel_da.reshape(-1, LL_SLOTS),
                            count.reshape(-1), kappa, sigma, rt=rt, precision=precision)
@@ -575,7 +596,7 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
                   cardiac_bin_width: float = 0.2, resp_bin_width: float = 0.1,
                   use_cardiac: bool = True, use_resp: bool = True, allow_empty: bool = False,
                   chunk_groups: int = 1024, workers: int | None = None, rt=None,
-                  precision: str | None = None) -> Weights:
+                  precision: str | None = None, extrapolate: bool = False) -> Weights:
     """Interpolation weights for many (slice, view) groups at once.
 
     Parameters
@@ -648,7 +669,8 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
         elif method == "barycentric":
             idx, w = _barycentric(ch, targets, dc, da, d2, use_cardiac, use_resp, workers)
         else:
-            idx, w = _local_linear(dc, da, d2, use_cardiac, use_resp, kappa, sigma, rt, precision)
+            idx, w = _local_linear(dc, da, d2, use_cardiac, use_resp, kappa, sigma, rt, precision,
+                                   extrapolate)
         empty = ch.counts == 0
         w = np.where(empty[:, None, None], 0.0, w)
         gidx = np.where(w != 0, idx + ch.start[:, None, None], 0)
@@ -668,7 +690,7 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
 def method_weights(method: str, c, a, targets, *, kappa: float = 1.0, sigma: float = 0.15,
                    cardiac_bin_width: float = 0.2, resp_bin_width: float = 0.1,
                    use_cardiac: bool = True, use_resp: bool = True, rt=None,
-                   precision: str | None = None) -> Weights:
+                   precision: str | None = None, extrapolate: bool = False) -> Weights:
     """Interpolation weights for one (slice, view): candidates (n,) -> Weights (T, K) into 0..n-1.
 
     See :func:`batch_weights` for the parameters; raises :class:`NoCandidatesError` for n = 0.
@@ -676,7 +698,8 @@ def method_weights(method: str, c, a, targets, *, kappa: float = 1.0, sigma: flo
     c = np.asarray(c, dtype=np.float64).ravel()
     w = batch_weights(method, c, a, [0, c.size], targets, kappa=kappa, sigma=sigma,
                       cardiac_bin_width=cardiac_bin_width, resp_bin_width=resp_bin_width,
-                      use_cardiac=use_cardiac, use_resp=use_resp, workers=1, rt=rt, precision=precision)
+                      use_cardiac=use_cardiac, use_resp=use_resp, workers=1, rt=rt, precision=precision,
+                      extrapolate=extrapolate)
     return Weights(index=w.index[0], weight=w.weight[0])
 
 

@@ -123,7 +123,8 @@ def plan(scene, table: ProjectionTable, slices_z: np.ndarray, targets: Targets, 
     c = table.cardiac_phase[groups.row]
     a = table.resp_amplitude[groups.row]
     opts = dict(kappa=rc.kappa, sigma=rc.sigma, use_cardiac=scene.has_cardiac, use_resp=scene.has_respiratory,
-                cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=1.0 / rc.resp_bins)
+                cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=1.0 / rc.resp_bins,
+                extrapolate=rc.local_linear_extrapolate)
     S = len(p.slices_z)
     for m in methods:
         tg = targets.pairs[:len(targets.resp)] if m == "r4dct" else targets.pairs

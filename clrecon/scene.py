@@ -213,6 +213,8 @@ class ReconConfig:
                         and len(set(v)) == len(v), "reconstruction methods")
     kappa: float = F(1.0, POS, "von Mises concentration of the local-linear cardiac kernel")
     sigma: float = F(0.15, POS, "Gaussian width of the local-linear amplitude kernel")
+    local_linear_extrapolate: bool = F(False, BOOL, "true: the paper's plain local-linear fit, which extrapolates "
+                                       "along an axis the points do not bracket; false: locally constant there")
     filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
     small_fov_mm: tuple = _f((-90.0, 60.0, -110.0, 30.0), "[x_min, x_max, y_min, y_max] with min < max",
                              lambda v: isinstance(v, tuple) and len(v) == 4 and all(_num(x) for x in v)

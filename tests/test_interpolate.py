@@ -522,5 +522,28 @@ def test_linear_data_reproduced_where_the_method_promises_it(pts, targets, metho
             m = np.array([k @ x, k @ y]) / k.sum()
             cov = np.cov(np.stack([x, y]), aweights=k, bias=True) if used.sum() > 1 else np.zeros((2, 2))
             d2 = np.trace(cov) + m @ m
-            if used.sum() >= 3 and np.linalg.eigvalsh(cov)[0] > 10 * max(ip.LL_RCOND * d2, ip.LL_SPREAD ** 2):
+            # the promise holds where the points bracket the target on both axes (no extrapolation guard)
+            bracketed = not ((x > 0).all() or (x < 0).all() or (y > 0).all() or (y < 0).all())
+            if bracketed and used.sum() >= 3 and np.linalg.eigvalsh(cov)[0] > 10 * max(ip.LL_RCOND * d2,
+                                                                                       ip.LL_SPREAD ** 2):
                 assert abs(W.weight[t] @ dc[t]) < tol[t] and abs(W.weight[t] @ da[t]) < tol[t]
+
+
+def test_local_linear_does_not_extrapolate_along_an_unbracketed_axis():
+    """Every point below the target amplitude: the default fit is constant in amplitude
+    (weights within [0, 1] when c is bracketed, exact for data depending on c only), while
+    ``extrapolate=True`` (the paper's plain fit) reproduces linear data by extrapolating."""
+    import clrecon.interpolate as ip
+    c = np.array([0.30, 0.35, 0.45, 0.50, 0.38, 0.42])
+    a = np.array([0.10, 0.20, 0.15, 0.05, 0.12, 0.18])
+    target = np.array([[0.40, 0.60]])
+    guarded = ip.method_weights("local_linear", c, a, target, precision="double")
+    plain = ip.method_weights("local_linear", c, a, target, precision="double", extrapolate=True)
+    lin_c = 3.0 + 2.0 * (c - 0.40)
+    lin_ca = lin_c + 5.0 * (a - 0.60)
+    g = guarded.weight[0] @ lin_c[guarded.index[0]]
+    assert g == pytest.approx(3.0, abs=1e-9)                     # exact in c
+    assert abs(guarded.weight[0]).sum() < 1.5                     # no amplification
+    assert plain.weight[0] @ lin_ca[plain.index[0]] == pytest.approx(3.0, abs=1e-9)
+    assert abs(plain.weight[0]).sum() > 2.0                       # it extrapolates
+    assert guarded.weight[0].sum() == pytest.approx(1.0)
