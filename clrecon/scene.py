@@ -188,7 +188,8 @@ class NoiseConfig:
     """Poisson quanta + Gaussian electronic noise, seeded per projection."""
 
     enabled: bool = F(True, BOOL, "add noise")
-    i0_photons: float = F(2.0e5, POS, "unattenuated photons per detector cell")
+    i0_photons: float = _f(2.0e5, "a number in (0, 1e15]", lambda x: _pos(x) and x <= 1e15,
+                           "unattenuated photons per detector cell (above 1e15 NumPy's Poisson sampler fails)")
     electronic_sigma: float = F(5.0, NONNEG, "std of the electronic noise, in photon-equivalent counts")
     seed: int = F(7, NONNEGINT, "noise seed")
     also_noise_free: bool = F(True, BOOL, "also reconstruct the noise-free projections (the paper's Table 2)")

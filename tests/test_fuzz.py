@@ -38,7 +38,8 @@ def _one_line_cli_error(capsys, argv, *fragments):
     ("[scanner]\nn_colz = 96", ["scanner.n_colz: unknown key", "did you mean 'n_cols'"]),
     ("colour = 1", ["colour: unknown key", "valid keys"]),
     ("[recon]\nresp_bins = 99", ["recon.resp_bins = 99", "an integer in 1..50"]),
-    ("[noise]\ni0_photons = nan", ["noise.i0_photons = nan", "a number > 0"]),
+    ("[noise]\ni0_photons = nan", ["noise.i0_photons = nan", "a number in (0, 1e15]"]),
+    ("[noise]\ni0_photons = 1e19", ["noise.i0_photons = 1e+19", "a number in (0, 1e15]"]),
     ("[scan]\npitches = 0.5", ["scan.pitches = 0.5", "a non-empty list"]),            # scalar for a list
     ("[scan]\npitches = [0.1, inf]", ["scan.pitches", "(0, 2]"]),
     ("[signals]\nrhythm = 3", ["signals.rhythm = 3", "one of periodic"]),

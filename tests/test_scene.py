@@ -51,7 +51,7 @@ def test_paper_p010_derives_scan_from_coverage():
     ("signals", "rhythm", "chaotic", "one of periodic"),
     ("signals", "rr_s", 0.1, "[0.3, 2.0]"),
     ("noise", "enabled", "yes", "true or false"),
-    ("noise", "i0_photons", float("nan"), "a number > 0"),
+    ("noise", "i0_photons", float("nan"), "a number in (0, 1e15]"),
     ("recon", "methods", ["barycentric", "magic"], "a non-empty list from"),
     ("recon", "cardiac_phases", [0.0, 1.0], "[0, 1)"),
     ("recon", "filter", "cosine", "ram-lak"),
