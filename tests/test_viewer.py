@@ -1,6 +1,15 @@
-"""The pyvista viewer: offscreen screenshots of a fake run, state/selection logic, one-line errors."""
+"""The pyvista viewer: offscreen screenshots of a fake run, state/selection logic, one-line errors.
+
+Everything that renders runs in one spawned child process: an OpenGL context on Mesa's
+llvmpipe loads Mesa's LLVM, after which PoCL (another LLVM) aborts when it initialises in the
+same process ("option registered more than once"). The pytest process itself must stay able
+to run the OpenCL tests. Assertions fail inside the child and are re-raised here.
+"""
 
 from __future__ import annotations
+
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 
 import h5py
 import numpy as np
@@ -22,6 +31,13 @@ def run_dir(tmp_path_factory):
     return d
 
 
+@pytest.fixture(scope="module")
+def render():
+    """``render(fn, *args)``: run a module-level check in the rendering child process."""
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        yield lambda fn, *args: pool.submit(fn, *args).result(timeout=300)
+
+
 def _png(path):
     import matplotlib.image as mpimg
 
@@ -29,7 +45,11 @@ def _png(path):
     return img[..., :3].mean(axis=-1)  # grey, [0, 1]
 
 
-def test_screenshot_shows_the_anatomy(run_dir, tmp_path):
+def test_screenshot_shows_the_anatomy(run_dir, tmp_path, render):
+    render(_screenshot_shows_the_anatomy, run_dir, tmp_path)
+
+
+def _screenshot_shows_the_anatomy(run_dir, tmp_path):
     out = tmp_path / "shot.png"
     assert main(["view", str(run_dir), "--screenshot", str(out), "--size", "640x480", "--cardiac", "40%",
                  "--resp", "0.5", "--window", "mediastinum"]) == 0
@@ -44,7 +64,11 @@ def test_screenshot_shows_the_anatomy(run_dir, tmp_path):
     assert volume.std() > 0.02
 
 
-def test_screenshot_lung_window_and_difference_differ(run_dir, tmp_path):
+def test_screenshot_lung_window_and_difference_differ(run_dir, tmp_path, render):
+    render(_screenshot_lung_window_and_difference_differ, run_dir, tmp_path)
+
+
+def _screenshot_lung_window_and_difference_differ(run_dir, tmp_path):
     a, _ = screenshot(run_dir, tmp_path / "lung.png", window="lung", size=(400, 300))
     b, title = screenshot(run_dir, tmp_path / "diff.png", method="nearest", difference=True, size=(400, 300))
     assert "nearest p0.100 noisy - groundtruth" in title and "W400/L0" in title
@@ -53,7 +77,11 @@ def test_screenshot_lung_window_and_difference_differ(run_dir, tmp_path):
     assert np.abs(ia - ib).mean() > 0.02
 
 
-def test_viewer_state_changes_update_the_grid(run_dir):
+def test_viewer_state_changes_update_the_grid(run_dir, render):
+    render(_viewer_state_changes_update_the_grid, run_dir)
+
+
+def _viewer_state_changes_update_the_grid(run_dir):
     data = RunData(run_dir)
     try:
         st = initial_state(data, method="local_linear", cardiac=0.0, resp=0.9)
@@ -79,7 +107,11 @@ def test_viewer_state_changes_update_the_grid(run_dir):
         data.close()
 
 
-def test_interactive_controls_build_offscreen_and_cursor_reads_mm(run_dir, tmp_path):
+def test_interactive_controls_build_offscreen_and_cursor_reads_mm(run_dir, tmp_path, render):
+    render(_interactive_controls_build_offscreen_and_cursor_reads_mm, run_dir, tmp_path)
+
+
+def _interactive_controls_build_offscreen_and_cursor_reads_mm(run_dir, tmp_path):
     data = RunData(run_dir)
     try:
         v = Viewer(data, initial_state(data), off_screen=True, window_size=(800, 600))
@@ -145,3 +177,13 @@ def test_one_line_errors(run_dir, tmp_path, capsys):
     assert "volume format 0" in capsys.readouterr().err
     assert main(["view", str(run_dir), "--screenshot", png, "--window", "bone"]) == 2
     assert "lung, mediastinum, cardiac" in capsys.readouterr().err
+
+
+def test_this_process_never_loaded_a_gl_driver():
+    """Rendering stays in the child: no Mesa driver here, so PoCL can still start in this process."""
+    maps = "/proc/self/maps"
+    try:
+        text = open(maps).read()
+    except OSError:
+        pytest.skip("no /proc/self/maps")
+    assert "libEGL_mesa" not in text and "libGLX_mesa" not in text and "libOSMesa" not in text

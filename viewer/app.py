@@ -15,6 +15,11 @@ offscreen window from the VTK wheel) and writes a PNG.
 
 Data (:class:`RunData`) and view state (:class:`ViewState`) are plain Python, independent of
 pyvista, so they are tested without rendering.
+
+Caveat: on a machine without a GPU the OpenGL context comes from Mesa's llvmpipe, which loads
+Mesa's LLVM; PoCL (the OpenCL CPU device, another LLVM) then aborts if it is initialised later
+in the same process. ``clrecon view`` never needs OpenCL, and the tests render in a child
+process; do not render and run OpenCL in one Python process.
 """
 
 from __future__ import annotations
