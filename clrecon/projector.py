@@ -1,0 +1,524 @@
+"""Cone-beam projector: exact line integrals through the analytic phantom (stage 3 of the pipeline).
+
+Takes the packed quadric objects of :mod:`clrecon.phantom` (one set per view) and the
+canonical per-view detector frames of :func:`clrecon.conventions.detector_frames`, and
+returns ``proj[view, row, col]`` = integral of mu along the ray from the source through the
+centre of each flat-detector cell (dimensionless, float32). Line integrals through
+quadrics are closed-form (reference/phantom-and-signals.md, "Exact line integrals"), so the
+projections are exact up to float32 rounding -- no voxel "inverse crime".
+
+The integral is over the whole line through source and cell; objects are assumed to lie in
+front of the source (always so in CT). The OpenCL kernel is ``kernels/project.cl``.
+
+Work split (measured on the PoCL CPU device, see :mod:`clrecon.bench_projector`):
+
+- host, float64, per (view, object): pose-independent culling by the bounding sphere against
+  the detector pyramid, the object's detector rectangle (projected corners of its bounding
+  box) and a record of ray-independent constants expressed relative to the ray through the
+  object's centre (so float32 never subtracts large numbers);
+- kernel, float32: one work-item per 8 neighbouring cells of a row; one work-group per
+  64 x 8 cell tile builds the tile's object list in local memory; each work-item skips
+  objects whose rectangle misses its cells. A ray pays only for the objects it can hit.
+
+Also here: :func:`voxelise_objects` (``kernels/voxelise.cl``), the supersampled point-sample
+voxeliser used by :meth:`clrecon.phantom.Phantom.voxelise`.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from . import phantom as ph
+from .cl_runtime import get_runtime
+from .conventions import detector_coords, detector_frames
+
+# ---------------------------------------------------------------------------------------
+# per (view, object) kernel record, float32; must match kernels/project.cl
+REC = 68
+R_FLAGS, R_MU, R_RECT, R_UC, R_VC, R_TC = 0, 1, slice(2, 6), 6, 7, 8
+R_DC, R_EU, R_EV = slice(9, 12), slice(12, 15), slice(15, 18)
+R_WU, R_WV, R_W0 = slice(18, 21), slice(21, 24), slice(24, 27)
+R_BU, R_BV, R_B0, R_OX, R_OY, R_OZ = 27, 28, 29, 30, 31, 64
+R_PLANE, R_CUT, CUT_STRIDE = 32, 40, 12
+VIEW_REC = 12
+#: local object-list capacity of a work-group (objects beyond it go in further passes)
+LIST_MAX = 256
+#: cells per work-item (float vector width) and work-group shapes (segments x rows)
+VW = 8
+_SHAPE_MULTIROW = (8, 8)
+_SHAPE_ONEROW = (16, 1)
+#: output cells per kernel launch (bounds the memory of one chunk: 64 MiB of float32)
+CHUNK_CELLS = 1 << 24
+
+# per object voxeliser record, float32; must match kernels/voxelise.cl
+VREC = 64
+
+
+def _dot(a, b):
+    return np.einsum("...i,...i->...", a, b)
+
+
+def _mat(axes_flat, semi):
+    """World -> normalised local map M = D^-1 R^T, (..., 3, 3), from packed AXES and SEMI."""
+    R = axes_flat.reshape(axes_flat.shape[:-1] + (3, 3))
+    return np.swapaxes(R, -1, -2) / semi[..., :, None]
+
+
+def _apply(M, v):
+    return np.einsum("...ij,...j->...i", M, v)
+
+
+def _box_half_extent(kind, axes_flat, semi):
+    """World axis-aligned half extents (..., 3) of the unclipped primitives."""
+    R = axes_flat.reshape(axes_flat.shape[:-1] + (3, 3))
+    cols = R * semi[..., None, :]  # column k = axis k scaled by its semi-axis
+    ell = np.sqrt((cols ** 2).sum(-1))
+    cyl = np.sqrt((cols[..., :2] ** 2).sum(-1)) + np.abs(cols[..., 2])
+    return np.where((kind == ph.KIND_CYLINDER)[..., None], cyl, ell)
+
+
+def _local_box(objs):
+    """Local bounding box lo, hi (..., 3) in [-1, 1], tightened by axis-aligned clip planes."""
+    lo = -np.ones(objs.shape[:-1] + (3,))
+    hi = np.ones_like(lo)
+    R = objs[..., ph.AXES].reshape(objs.shape[:-1] + (3, 3))
+    semi = objs[..., ph.SEMI]
+    c = objs[..., ph.CENTRE]
+    for k in range(ph.N_PLANES):
+        n = objs[..., 17 + 4 * k:20 + 4 * k]
+        d = objs[..., 20 + 4 * k]
+        nl = np.einsum("...ji,...j->...i", R, n) * semi  # plane in local coords: nl . x' <= d - n . c
+        rhs = d - _dot(n, c)
+        mag = np.abs(nl)
+        big = mag.max(-1, keepdims=True)
+        for ax in range(3):
+            others = np.delete(mag, ax, axis=-1).max(-1)
+            aligned = (mag[..., ax] > 0) & (others <= 1e-9 * big[..., 0])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                bound = rhs / nl[..., ax]
+            hi[..., ax] = np.where(aligned & (nl[..., ax] > 0), np.minimum(hi[..., ax], bound), hi[..., ax])
+            lo[..., ax] = np.where(aligned & (nl[..., ax] < 0), np.maximum(lo[..., ax], bound), lo[..., ax])
+    return lo, hi
+
+
+_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64)
+
+
+def _uv(r, eu, ev):
+    """Detector coordinates (u, v) of in-plane vectors r = u e_u + v e_v (reciprocal basis)."""
+    n0 = np.cross(eu, ev)
+    nn = _dot(n0, n0)
+    return _dot(np.cross(r, ev), n0) / nn, _dot(np.cross(eu, r), n0) / nn
+
+
+def _rect(centre, axes_flat, semi, lo, hi, s, D0, eu, ev, n, nn):
+    """Detector rectangle (u_lo, u_hi, v_lo, v_hi), each (K,), of a box's 8 corners.
+
+    ``n`` is the detector normal pointing away from the source, ``nn = n . n``. A box
+    reaching behind the source plane gets an infinite rectangle (never culled).
+    """
+    R = axes_flat.reshape(-1, 3, 3)
+    loc = lo[:, None, :] + _CORNERS[None] * (hi - lo)[:, None, :]          # (K, 8, 3)
+    X = centre[:, None, :] + np.einsum("kij,kcj->kci", R, loc * semi[:, None, :])
+    rel = X - s[:, None, :]
+    den = _dot(rel, n[:, None, :])
+    ok = den.min(-1) > 1e-9 * np.linalg.norm(rel, axis=-1).max(-1) * np.sqrt(nn)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = _dot(D0, n)[:, None] / den
+    r = rel * lam[..., None] - D0[:, None, :]                               # P - det
+    u, v = _uv(r, eu[:, None, :], ev[:, None, :])
+    inf = np.inf
+    out = np.stack([np.where(ok, u.min(-1), -inf), np.where(ok, u.max(-1), inf),
+                    np.where(ok, v.min(-1), -inf), np.where(ok, v.max(-1), inf)], -1)
+    return out
+
+
+def prepare_records(objects, src, det_centre, e_u, e_v, u_range, v_range, cull=True):
+    """Kernel records of the (view, object) pairs that can reach the detector.
+
+    Parameters
+    ----------
+    objects : (m, n_obj, STRIDE) float64 packed objects (:mod:`clrecon.phantom` layout).
+    src, det_centre, e_u, e_v : (m, 3) per-view frames (mm).
+    u_range, v_range : (lo, hi) mm, the outermost cell centres.
+    cull : bool
+        False keeps every active object for every view (the unculled reference).
+
+    Returns
+    -------
+    rec : (K, REC) float32 records, ordered by view then object.
+    view_index : (K,) int64 view of each record.
+    """
+    objs = np.asarray(objects, dtype=np.float64)
+    m, n_obj, _ = objs.shape
+    s = np.asarray(src, np.float64)
+    D0v = np.asarray(det_centre, np.float64) - s
+    euv, evv = np.asarray(e_u, np.float64), np.asarray(e_v, np.float64)
+    nv = np.cross(euv, evv)
+    nv *= np.sign(_dot(D0v, nv))[:, None]  # detector normal pointing away from the source
+    active = (objs[..., ph.KIND] != ph.KIND_NONE) & (objs[..., ph.MU] != 0.0)
+
+    if cull:
+        # bounding sphere against the pyramid of rays through the outermost cell centres
+        kind = objs[..., ph.KIND]
+        semi = objs[..., ph.SEMI]
+        rho = np.where(kind == ph.KIND_CYLINDER, np.hypot(np.maximum(semi[..., 0], semi[..., 1]), semi[..., 2]),
+                       semi.max(-1))
+        rel = objs[..., ph.CENTRE] - s[:, None, :]
+        (ul, uh), (vl, vh) = u_range, v_range
+        corners = [(ul, vl), (uh, vl), (uh, vh), (ul, vh)]
+        dirs = [D0v + a * euv + b * evv for a, b in corners]
+        inner = D0v + 0.5 * (ul + uh) * euv + 0.5 * (vl + vh) * evv
+        keep = active.copy()
+        for k in range(4):
+            N = np.cross(dirs[k], dirs[(k + 1) % 4])
+            norm = np.linalg.norm(N, axis=-1)
+            sgn = np.where(_dot(N, inner) >= 0, 1.0, -1.0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                Nh = N * (sgn / np.where(norm > 0, norm, 1.0))[:, None]
+            dist = _dot(rel, Nh[:, None, :])
+            keep &= (dist >= -rho) | (norm[:, None] <= 1e-12 * np.linalg.norm(dirs[k], axis=-1)[:, None] ** 2)
+        depth = _dot(rel, (nv / np.linalg.norm(nv, axis=-1, keepdims=True))[:, None, :])
+        keep |= active & (depth <= rho)  # reaches the source plane: never culled
+    else:
+        keep = active
+    iv, io = np.nonzero(keep)
+    o = objs[iv, io]                                   # (K, STRIDE)
+    K = len(iv)
+    s, D0, eu, ev, n = s[iv], D0v[iv], euv[iv], evv[iv], nv[iv]
+    nn = _dot(n, n)
+    kind = o[:, ph.KIND].astype(np.int64)
+    c = o[:, ph.CENTRE]
+    M = _mat(o[:, ph.AXES], o[:, ph.SEMI])
+
+    # the ray through the centre: p_c = s + lam (c - s) on the detector, tc = 1 / lam
+    rc = c - s
+    den = _dot(rc, n)
+    front = den > 1e-12 * np.linalg.norm(rc, axis=-1) * np.sqrt(nn)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.where(front, _dot(D0, n) / den, 1.0)
+    pc_rel = np.where(front[:, None], rc * lam[:, None], D0)         # p_c - s
+    tc = np.where(front, 1.0 / lam, _dot(rc, D0) / _dot(D0, D0))
+    r = pc_rel - D0                                                   # p_c - det, in the plane
+    uc, vc = _uv(r, eu, ev)
+    Xc = s + tc[:, None] * pc_rel                                     # ray point at tau = 0
+    oo = _apply(M, Xc - c)
+    dc, eul, evl = _apply(M, pc_rel), _apply(M, eu), _apply(M, ev)
+    cyl = kind == ph.KIND_CYLINDER
+    t = tc[:, None]
+    Wu = np.cross(oo, eul) + t * np.cross(eul, dc)
+    Wv = np.cross(oo, evl) + t * np.cross(evl, dc)
+    W0 = np.cross(oo, dc)
+    mask = np.where(cyl[:, None], np.array([1.0, 1.0, 0.0]), 1.0)   # the quadric's axes
+    Bu = _dot(oo * mask, eul) + tc * _dot(eul * mask, dc)
+    Bv = _dot(oo * mask, evl) + tc * _dot(evl * mask, dc)
+    B0 = _dot(oo * mask, dc)
+
+    rec = np.zeros((K, REC))
+    rec[:, R_MU] = o[:, ph.MU]
+    rec[:, R_UC], rec[:, R_VC], rec[:, R_TC] = uc, vc, tc
+    rec[:, R_DC], rec[:, R_EU], rec[:, R_EV] = dc, eul, evl
+    rec[:, R_WU], rec[:, R_WV], rec[:, R_W0] = Wu, Wv, W0
+    rec[:, R_BU], rec[:, R_BV], rec[:, R_B0] = Bu, Bv, B0
+    rec[:, R_OX], rec[:, R_OY], rec[:, R_OZ] = oo[:, 0], oo[:, 1], oo[:, 2]
+
+    # clip planes (world): tau g <= k with g = g0 + du gu + dv gv, k = hk - tc (du gu + dv gv)
+    nplanes = np.zeros(K, np.int64)
+    for k in range(ph.N_PLANES):
+        pn = o[:, 17 + 4 * k:20 + 4 * k]
+        pd = o[:, 20 + 4 * k]
+        on = np.any(pn != 0.0, axis=-1)
+        vals = np.stack([_dot(pn, pc_rel), _dot(pn, eu), _dot(pn, ev), pd - _dot(pn, Xc)], -1)
+        slot = R_PLANE + 4 * nplanes
+        for j in range(4):
+            rec[np.nonzero(on)[0], slot[on] + j] = vals[on, j]
+        # a plane with n = 0 and d < 0 excludes everything: encode as g = 0, k = -1
+        dead = (~on) & (pd < 0)
+        rec[np.nonzero(dead)[0], R_PLANE + 4 * nplanes[dead] + 3] = -1.0
+        nplanes += on | dead
+
+    # cut ellipsoids, in their own normalised frames but on the same tau
+    flags = kind | (nplanes << 2)
+    lo, hi = _local_box(o)
+    rect = _rect(c, o[:, ph.AXES], o[:, ph.SEMI], lo, hi, s, D0, eu, ev, n, nn)
+    for k in range(ph.N_CUTS):
+        mi, cs, ca, cm = ph.cut_fields(k)
+        mode = o[:, mi].astype(np.int64)
+        M2 = _mat(o[:, ca], o[:, cm])
+        base = R_CUT + CUT_STRIDE * k
+        rec[:, base:base + 3] = _apply(M2, Xc - o[:, cs])
+        rec[:, base + 3:base + 6] = _apply(M2, pc_rel)
+        rec[:, base + 6:base + 9] = _apply(M2, eu)
+        rec[:, base + 9:base + 12] = _apply(M2, ev)
+        flags |= mode << (4 + 2 * k)
+        isect = mode == ph.CUT_INTERSECT
+        if np.any(isect):  # the object lies inside the cut: intersect the rectangles
+            r2 = _rect(o[:, cs], o[:, ca], o[:, cm], -np.ones((K, 3)), np.ones((K, 3)), s, D0, eu, ev, n, nn)
+            rect = np.where(isect[:, None], np.stack([np.maximum(rect[:, 0], r2[:, 0]), np.minimum(rect[:, 1], r2[:, 1]),
+                                                      np.maximum(rect[:, 2], r2[:, 2]), np.minimum(rect[:, 3], r2[:, 3])],
+                                                     -1), rect)
+    # a safety margin so that float32 rounding of the rectangle never culls a grazing ray
+    pad = 1e-4 + 1e-5 * np.abs(rect)
+    rect = rect + np.array([-1.0, 1.0, -1.0, 1.0]) * pad
+    rec[:, R_RECT] = np.clip(rect, -3e38, 3e38)
+    rec[:, R_FLAGS] = flags
+    if cull:
+        (ul, uh), (vl, vh) = u_range, v_range
+        hit = (rect[:, 1] >= ul) & (rect[:, 0] <= uh) & (rect[:, 3] >= vl) & (rect[:, 2] <= vh)
+        rec, iv = rec[hit], iv[hit]
+    return rec.astype(np.float32), iv
+
+
+# ---------------------------------------------------------------------------------------
+def _as_frames(src, det_centre, e_u, e_v, m):
+    out = []
+    for name, a in (("src", src), ("det_centre", det_centre), ("e_u", e_u), ("e_v", e_v)):
+        a = np.asarray(a)
+        if a.dtype.kind not in "fiu":
+            raise TypeError(f"{name}: expected a real array, got dtype {a.dtype}")
+        if a.shape != (m, 3):
+            raise ValueError(f"{name} must have shape ({m}, 3), got {a.shape}")
+        out.append(np.asarray(a, dtype=np.float64))
+    return out
+
+
+def _axis(a, name):
+    a = np.asarray(a)
+    if a.dtype.kind not in "fiu":
+        raise TypeError(f"{name}: expected a real array, got dtype {a.dtype}")
+    if a.ndim != 1 or a.size == 0:
+        raise ValueError(f"{name} must be a non-empty 1-D array, got shape {a.shape}")
+    return np.asarray(a, dtype=np.float64)
+
+
+class _Layout:
+    """Detector-side arrays shared by every chunk: padded u, segment and tile ranges."""
+
+    def __init__(self, u, v, rt):
+        self.n_cols, self.n_rows = len(u), len(v)
+        self.n_seg = -(-self.n_cols // VW)
+        self.lx, self.ly = _SHAPE_MULTIROW if self.n_rows > 1 else _SHAPE_ONEROW
+        u_pad = np.concatenate([u, np.full(self.n_seg * VW - self.n_cols, u[-1])])
+        seg = u_pad.reshape(self.n_seg, VW)
+        seg_lo, seg_hi = seg.min(1), seg.max(1)
+        ntx = -(-self.n_seg // self.lx)
+        nty = -(-self.n_rows // self.ly)
+        tile_u = np.array([[seg_lo[i * self.lx:(i + 1) * self.lx].min(), seg_hi[i * self.lx:(i + 1) * self.lx].max()]
+                           for i in range(ntx)])
+        tile_v = np.array([[v[j * self.ly:(j + 1) * self.ly].min(), v[j * self.ly:(j + 1) * self.ly].max()]
+                           for j in range(nty)])
+        self.global_xy = (ntx * self.lx, nty * self.ly)
+        self.u_range = (float(u.min()), float(u.max()))
+        self.v_range = (float(v.min()), float(v.max()))
+        self.bufs = [rt.to_device(a) for a in (u_pad, seg_lo, seg_hi, v, tile_u, tile_v)]
+
+
+def project_views(objects, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, *, cull: bool = True,
+                  chunk_views: int | None = None, out=None) -> np.ndarray:
+    """Exact line integrals of per-view quadric objects on a flat detector.
+
+    Parameters
+    ----------
+    objects : (m, n_obj, STRIDE) array
+        Packed objects per view (:mod:`clrecon.phantom` layout; may be a broadcast view).
+    src, det_centre, e_u, e_v : (m, 3) arrays
+        Source, detector centre, column and row unit directions per view (mm).
+    u_mm : (n_cols,) column centres; v_mm : (n_rows,) row centres (mm).
+    rt : Runtime, optional
+        OpenCL runtime (default :func:`clrecon.cl_runtime.get_runtime`).
+    cull : bool
+        False: every ray visits every object (the reference of the culling test; slow).
+    chunk_views : int, optional
+        Views per kernel launch (default: ``CHUNK_CELLS`` output cells per launch).
+    out : (m, n_rows, n_cols) float32 array, optional
+        Written in place and returned.
+
+    Returns
+    -------
+    (m, n_rows, n_cols) float32 line integrals of mu (dimensionless), ``proj[view, row, col]``.
+    """
+    objs = np.asarray(objects)
+    if objs.dtype.kind not in "fiu":
+        raise TypeError(f"objects: expected a real array, got dtype {objs.dtype}")
+    if objs.ndim != 3 or objs.shape[2] != ph.STRIDE:
+        raise ValueError(f"objects must have shape (m, n_obj, {ph.STRIDE}), got {objs.shape}")
+    m = objs.shape[0]
+    src, det, eu, ev = _as_frames(src, det_centre, e_u, e_v, m)
+    u, v = _axis(u_mm, "u_mm"), _axis(v_mm, "v_mm")
+    shape = (m, len(v), len(u))
+    if out is None:
+        out = np.empty(shape, np.float32)
+    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}")
+    if m == 0:
+        return out
+    rt = rt or get_runtime()
+    lay = _Layout(u, v, rt)
+    step = chunk_views or max(1, CHUNK_CELLS // (lay.n_rows * lay.n_cols))
+    kern = rt.kernel("project.cl", "project", VW=VW, LX=lay.lx, LY=lay.ly, CULL=int(cull), LIST_MAX=LIST_MAX)
+    view_rec = np.zeros((m, VIEW_REC))
+    view_rec[:, 0:3], view_rec[:, 3:6], view_rec[:, 6:9] = det - src, eu, ev
+    pending = None
+    for a in range(0, m, step):
+        b = min(m, a + step)
+        # prepare chunk a on the host while the device still works on the previous one
+        rec, iv = prepare_records(objs[a:b], src[a:b], det[a:b], eu[a:b], ev[a:b], lay.u_range, lay.v_range, cull)
+        launch = _launch(rt, kern, lay, rec, iv, view_rec[a:b], cull, out[a:b])
+        if pending is not None:
+            pending[0].wait()
+        pending = launch
+    pending[0].wait()
+    return out
+
+
+def _launch(rt, kern, lay, rec, iv, view_rec, cull, dest):
+    """Enqueue one chunk (one pass per LIST_MAX objects) and the copy of its result into ``dest``.
+
+    Returns (copy event, buffers to keep alive until it completes).
+    """
+    m = len(view_rec)
+    counts = np.bincount(iv, minlength=m)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = np.arange(len(iv)) - start[iv]
+    n_max = max(int(counts.max()), 1)
+    per_pass = LIST_MAX if cull else n_max
+    out_buf = rt.empty((m, lay.n_rows, lay.n_cols))
+    view_buf = rt.to_device(view_rec)
+    keep, events = [view_buf, out_buf], []
+    gx, gy = lay.global_xy
+    for p in range(max(1, -(-n_max // per_pass))):
+        sel = (slot >= p * per_pass) & (slot < (p + 1) * per_pass)
+        cnt = np.clip(counts - p * per_pass, 0, per_pass).astype(np.int32)
+        width = max(int(cnt.max()), 1)
+        packed = np.zeros((m, width, REC), np.float32)
+        packed[iv[sel], slot[sel] - p * per_pass] = rec[sel]
+        rec_buf, cnt_buf = rt.to_device(packed), rt.to_device(cnt, np.int32)
+        keep += [rec_buf, cnt_buf]
+        events.append(kern(rt.queue, (gx, gy, m), (lay.lx, lay.ly, 1), rec_buf, cnt_buf, view_buf, *lay.bufs,
+                           np.int32(lay.n_cols), np.int32(lay.n_rows), np.int32(lay.n_seg), np.int32(width),
+                           np.int32(p > 0), out_buf, wait_for=events[-1:] or None))
+    copy = rt.cl.enqueue_copy(rt.queue, dest, out_buf, wait_for=events[-1:], is_blocking=False)
+    return copy, keep
+
+
+# ---------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=8)
+def _phantom_for(cfg):
+    return ph.Phantom(cfg)
+
+
+def project(scene, table, rt=None, *, chunk_views: int | None = None, cull: bool = True) -> np.ndarray:
+    """Line integrals of the scene's phantom for every projection of ``table``.
+
+    The phantom is posed at ``(table.state_cardiac, table.state_resp)`` per projection; the
+    frames come from :func:`clrecon.conventions.detector_frames` with the scene's SID/SDD
+    and ``(table.angle_rad, table.source_z_mm)``; cells from ``detector_coords``. Chunked
+    internally, so memory stays bounded whatever ``len(table)``.
+
+    Returns
+    -------
+    (len(table), n_rows, n_cols) float32.
+    """
+    sc = scene.scanner
+    phantom = _phantom_for(scene.phantom)
+    u = detector_coords(sc.n_cols, sc.col_pitch_mm)
+    v = detector_coords(sc.n_rows, sc.row_pitch_mm)
+    n = len(table)
+    out = np.empty((n, sc.n_rows, sc.n_cols), np.float32)
+    step = chunk_views or max(1, CHUNK_CELLS // (sc.n_rows * sc.n_cols))
+    rt = rt or get_runtime()
+    for a in range(0, n, step):
+        sl = slice(a, min(n, a + step))
+        src, det, eu, ev = detector_frames(table.angle_rad[sl], table.source_z_mm[sl], sc.sid_mm, sc.sdd_mm)
+        objs = phantom.objects_batch(table.state_cardiac[sl], table.state_resp[sl])
+        project_views(objs, src, det, eu, ev, u, v, rt=rt, cull=cull, out=out[sl])
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+def voxel_records(objects) -> np.ndarray:
+    """Voxeliser records (n_obj, VREC) float32 of packed objects (n_obj, STRIDE), world frame."""
+    o = np.asarray(objects, dtype=np.float64)
+    n = len(o)
+    rec = np.zeros((n, VREC))
+    kind = o[:, ph.KIND].astype(np.int64)
+    c = o[:, ph.CENTRE]
+    ext = _box_half_extent(o[:, ph.KIND], o[:, ph.AXES], o[:, ph.SEMI])
+    lo, hi = c - ext, c + ext
+    nplanes = np.zeros(n, np.int64)
+    for k in range(ph.N_PLANES):
+        pn, pd = o[:, 17 + 4 * k:20 + 4 * k], o[:, 20 + 4 * k]
+        on = np.any(pn != 0.0, axis=-1) | (pd < 0)   # n = 0, d < 0: empty (0 <= d fails)
+        for j in range(4):
+            rec[np.nonzero(on)[0], 20 + 4 * nplanes[on] + j] = np.concatenate([pn, pd[:, None]], -1)[on, j]
+        nplanes += on
+    flags = kind | (nplanes << 2)
+    for k in range(ph.N_CUTS):
+        mi, cs, ca, cm = ph.cut_fields(k)
+        mode = o[:, mi].astype(np.int64)
+        flags |= mode << (4 + 2 * k)
+        rec[:, 28 + 12 * k:31 + 12 * k] = o[:, cs]
+        rec[:, 31 + 12 * k:40 + 12 * k] = _mat(o[:, ca], o[:, cm]).reshape(n, 9)
+        isect = mode == ph.CUT_INTERSECT
+        ext2 = _box_half_extent(np.full(n, ph.KIND_ELLIPSOID), o[:, ca], o[:, cm])
+        lo = np.where(isect[:, None], np.maximum(lo, o[:, cs] - ext2), lo)
+        hi = np.where(isect[:, None], np.minimum(hi, o[:, cs] + ext2), hi)
+    rec[:, 0] = np.where((kind != ph.KIND_NONE) & (o[:, ph.MU] != 0), flags, 0)
+    rec[:, 1] = o[:, ph.MU]
+    rec[:, 2:8] = np.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1], lo[:, 2], hi[:, 2]], -1)
+    rec[:, 8:11] = c
+    rec[:, 11:20] = _mat(o[:, ph.AXES], o[:, ph.SEMI]).reshape(n, 9)
+    return rec.astype(np.float32)
+
+
+def _spacing(a, name):
+    if len(a) < 2:
+        return 1.0
+    d = np.diff(a)
+    if not np.allclose(d, d[0], rtol=1e-6, atol=1e-9) or d[0] <= 0:
+        raise ValueError(f"{name} must be uniformly increasing")
+    return float(d[0])
+
+
+def voxelise_objects(objects, x_mm, y_mm, z_mm, supersample: int = 3, rt=None) -> np.ndarray:
+    """Supersampled voxelisation of packed objects, mu (nz, ny, nx) float32 (1/mm).
+
+    Parameters
+    ----------
+    objects : (n_obj, STRIDE) packed objects of one state.
+    x_mm, y_mm, z_mm : voxel-centre coordinates (mm), uniformly spaced (a single value
+        counts as a 1 mm thick voxel).
+    supersample : int >= 1
+        Point samples per axis per voxel (``supersample**3`` per voxel, regular sub-grid).
+    """
+    if int(supersample) != supersample or supersample < 1:
+        raise ValueError(f"supersample must be an integer >= 1, got {supersample!r}")
+    x, y, z = _axis(x_mm, "x_mm"), _axis(y_mm, "y_mm"), _axis(z_mm, "z_mm")
+    dx, dy, dz = _spacing(x, "x_mm"), _spacing(y, "y_mm"), _spacing(z, "z_mm")
+    objs = np.asarray(objects, dtype=np.float64)
+    if objs.ndim != 2 or objs.shape[1] != ph.STRIDE:
+        raise ValueError(f"objects must have shape (n_obj, {ph.STRIDE}), got {objs.shape}")
+    rec = voxel_records(objs)
+    live = rec[:, 0] != 0
+    # per-slice object lists: objects whose z range meets the slice
+    zlo, zhi = rec[:, 6], rec[:, 7]
+    inz = live[None, :] & (zhi[None, :] >= (z - 0.5 * dz)[:, None]) & (zlo[None, :] <= (z + 0.5 * dz)[:, None])
+    counts = inz.sum(1).astype(np.int32)
+    stride = max(int(counts.max()), 1)
+    lists = np.zeros((len(z), stride), np.int32)
+    order = np.argsort(~inz, axis=1, kind="stable")[:, :stride]
+    lists[:] = order
+    rt = rt or get_runtime()
+    lx, ly = 8, 8
+    kern = rt.kernel("voxelise.cl", "voxelise", VW=VW, SS=int(supersample), LX=lx, LY=ly)
+    nx, ny, nz = len(x), len(y), len(z)
+    nseg = -(-nx // VW)
+    gx, gy = -(-nseg // lx) * lx, -(-ny // ly) * ly
+    out_buf = rt.empty((nz, ny, nx))
+    bufs = [rt.to_device(rec), rt.to_device(lists, np.int32), rt.to_device(counts, np.int32)]
+    ev = kern(rt.queue, (gx, gy, nz), (lx, ly, 1), *bufs, np.int32(stride),
+              rt.to_device(x), rt.to_device(y), rt.to_device(z),
+              np.float32(dx), np.float32(dy), np.float32(dz), np.int32(nx), np.int32(ny), np.int32(nz), out_buf)
+    return rt.from_device(out_buf, (nz, ny, nx), wait_for=[ev])
