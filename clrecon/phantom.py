@@ -449,14 +449,22 @@ class Phantom:
         """Centre of the LV cavity (x, y, z) mm at state (c, a): a seed inside the LV blood pool."""
         return self.objects(c, a)[self.names.index("lv_blood"), CENTRE].copy()
 
-    def heart_box_mm(self, margin: float = 10.0) -> tuple:
-        """Axial box (x_min, x_max, y_min, y_max) mm holding the epicardial fat at every state."""
+    def heart_box_mm(self, margin: float = 10.0, grid_mm: float = 3.0) -> tuple:
+        """Axial box (x_min, x_max, y_min, y_max) mm holding the epicardial fat at every state.
+
+        Found on a ``grid_mm`` grid of the trimmed envelope at end-diastole/end-systole x
+        end-exhale/end-inhale, widened by ``margin`` (the default small FOV of the scenes).
+        """
         i = self.names.index("epicardial_fat")
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        for a in (0.0, 1.0):
-            o = self.objects(0.0, a)[i]
-            ext = np.abs(o[AXES].reshape(3, 3)) @ o[SEMI]
-            lo, hi = np.minimum(lo, o[CENTRE] - ext), np.maximum(hi, o[CENTRE] + ext)
+        for c in (0.0, P["c_end_systole"]):
+            for a in (0.0, 1.0):
+                o = self.objects(c, a)[i]
+                ext = np.sqrt((o[AXES].reshape(3, 3) ** 2) @ o[SEMI] ** 2)
+                axes = [np.arange(o[2 + k] - ext[k], o[2 + k] + ext[k] + grid_mm, grid_mm) for k in range(3)]
+                pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+                pts = pts[inside(o, pts)]
+                lo, hi = np.minimum(lo, pts.min(0)), np.maximum(hi, pts.max(0))
         return (float(lo[0] - margin), float(hi[0] + margin), float(lo[1] - margin), float(hi[1] + margin))
 
     # -- construction ------------------------------------------------------------------------

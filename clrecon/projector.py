@@ -12,13 +12,18 @@ front of the source (always so in CT). The OpenCL kernel is ``kernels/project.cl
 
 Work split (measured on the PoCL CPU device, see :mod:`clrecon.bench_projector`):
 
-- host, float64, per (view, object): pose-independent culling by the bounding sphere against
-  the detector pyramid, the object's detector rectangle (projected corners of its bounding
-  box) and a record of ray-independent constants expressed relative to the ray through the
-  object's centre (so float32 never subtracts large numbers);
-- kernel, float32: one work-item per 8 neighbouring cells of a row; one work-group per
-  64 x 8 cell tile builds the tile's object list in local memory; each work-item skips
-  objects whose rectangle misses its cells. A ray pays only for the objects it can hit.
+- per (view, object), in float64 (``kernels/prepare.cl``, one work-item per view; its NumPy
+  reference :func:`prepare_records` is the fallback on devices without float64): culling
+  of the object's bounding sphere against the pyramid of rays, the object's detector
+  rectangle (projected corners of its bounding box), and a record of ray-independent
+  constants expressed relative to the ray through the object's centre, so that float32
+  never subtracts large numbers;
+- per cell, in float32 (``kernels/project.cl``): one work-item per 8 neighbouring cells of
+  a row (explicit float8); one work-group per 64 x 8 cell tile builds the tile's object
+  list in local memory; a work-item skips objects (and cut ellipsoids) whose rectangle
+  misses its cells, and uses the closed-form chord directly for plain ellipsoids and for
+  cylinders whose end caps no ray of the view meets. A ray pays only for the objects it
+  can hit: about 6 of the phantom's 141 per ray at the paper's 900 x 64 detector.
 
 Also here: :func:`voxelise_objects` (``kernels/voxelise.cl``), the supersampled point-sample
 voxeliser used by :meth:`clrecon.phantom.Phantom.voxelise`.
@@ -36,11 +41,12 @@ from .conventions import detector_coords, detector_frames
 
 # ---------------------------------------------------------------------------------------
 # per (view, object) kernel record, float32; must match kernels/project.cl
-REC = 68
+REC = 76
 R_FLAGS, R_MU, R_RECT, R_UC, R_VC, R_TC = 0, 1, slice(2, 6), 6, 7, 8
 R_DC, R_EU, R_EV = slice(9, 12), slice(12, 15), slice(15, 18)
 R_WU, R_WV, R_W0 = slice(18, 21), slice(21, 24), slice(24, 27)
 R_BU, R_BV, R_B0, R_OX, R_OY, R_OZ = 27, 28, 29, 30, 31, 64
+R_CUT_RECT = 68  # 2 x (u_lo, u_hi, v_lo, v_hi) of the cut ellipsoids
 R_PLANE, R_CUT, CUT_STRIDE = 32, 40, 12
 VIEW_REC = 12
 #: local object-list capacity of a work-group (objects beyond it go in further passes)
@@ -57,7 +63,13 @@ VREC = 64
 
 
 def _dot(a, b):
-    return np.einsum("...i,...i->...", a, b)
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def _cross(a, b):
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
 
 
 def _mat(axes_flat, semi):
@@ -67,7 +79,7 @@ def _mat(axes_flat, semi):
 
 
 def _apply(M, v):
-    return np.einsum("...ij,...j->...i", M, v)
+    return M[..., 0] * v[..., 0:1] + M[..., 1] * v[..., 1:2] + M[..., 2] * v[..., 2:3]
 
 
 def _box_half_extent(kind, axes_flat, semi):
@@ -108,31 +120,43 @@ _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)],
 
 def _uv(r, eu, ev):
     """Detector coordinates (u, v) of in-plane vectors r = u e_u + v e_v (reciprocal basis)."""
-    n0 = np.cross(eu, ev)
+    n0 = _cross(eu, ev)
     nn = _dot(n0, n0)
-    return _dot(np.cross(r, ev), n0) / nn, _dot(np.cross(eu, r), n0) / nn
+    return _dot(_cross(r, ev), n0) / nn, _dot(_cross(eu, r), n0) / nn
 
 
 def _rect(centre, axes_flat, semi, lo, hi, s, D0, eu, ev, n, nn):
     """Detector rectangle (u_lo, u_hi, v_lo, v_hi), each (K,), of a box's 8 corners.
 
-    ``n`` is the detector normal pointing away from the source, ``nn = n . n``. A box
-    reaching behind the source plane gets an infinite rectangle (never culled).
+    ``n`` is the detector normal pointing away from the source, ``nn = n . n``. A corner X
+    projects to ``u = (D0 . n) ((X - s) . a_u) / ((X - s) . n) - D0 . a_u`` with
+    ``a_u = (e_v x n0) / |n0|^2``, ``n0 = e_u x e_v`` (and alike for v), and the three
+    dot products are linear in the corner, so the 8 corners cost 3 x 8 multiply-adds.
+    A box reaching behind the source plane gets an infinite rectangle (never culled).
     """
     R = axes_flat.reshape(-1, 3, 3)
-    loc = lo[:, None, :] + _CORNERS[None] * (hi - lo)[:, None, :]          # (K, 8, 3)
-    X = centre[:, None, :] + np.einsum("kij,kcj->kci", R, loc * semi[:, None, :])
-    rel = X - s[:, None, :]
-    den = _dot(rel, n[:, None, :])
-    ok = den.min(-1) > 1e-9 * np.linalg.norm(rel, axis=-1).max(-1) * np.sqrt(nn)
+    cols = R * semi[:, None, :]                           # column j = local axis j x semi-axis j
+    base = centre - s + _apply(cols, lo)                  # corner (0, 0, 0), relative to the source
+    span = cols * (hi - lo)[:, None, :]                   # edge vectors of the box, columns
+    n0 = _cross(eu, ev)
+    nn0 = _dot(n0, n0)
+    a_u = _cross(ev, n0) / nn0[:, None]
+    a_v = _cross(n0, eu) / nn0[:, None]
+    vals = []
+    for f in (n, a_u, a_v):
+        fb = _dot(base, f)
+        fs = np.einsum("kij,ki->kj", span, f)             # f . edge_j, (K, 3)
+        vals.append(fb[:, None] + fs @ _CORNERS.T)        # (K, 8)
+    den, nu, nv = vals
+    size = np.linalg.norm(base, axis=-1) + np.linalg.norm(span, axis=1).sum(-1)
+    ok = den.min(-1) > 1e-9 * size * np.sqrt(nn)
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = _dot(D0, n)[:, None] / den
-    r = rel * lam[..., None] - D0[:, None, :]                               # P - det
-    u, v = _uv(r, eu[:, None, :], ev[:, None, :])
+    u = lam * nu - _dot(D0, a_u)[:, None]
+    v = lam * nv - _dot(D0, a_v)[:, None]
     inf = np.inf
-    out = np.stack([np.where(ok, u.min(-1), -inf), np.where(ok, u.max(-1), inf),
-                    np.where(ok, v.min(-1), -inf), np.where(ok, v.max(-1), inf)], -1)
-    return out
+    return np.stack([np.where(ok, u.min(-1), -inf), np.where(ok, u.max(-1), inf),
+                     np.where(ok, v.min(-1), -inf), np.where(ok, v.max(-1), inf)], -1)
 
 
 def prepare_records(objects, src, det_centre, e_u, e_v, u_range, v_range, cull=True):
@@ -156,30 +180,32 @@ def prepare_records(objects, src, det_centre, e_u, e_v, u_range, v_range, cull=T
     s = np.asarray(src, np.float64)
     D0v = np.asarray(det_centre, np.float64) - s
     euv, evv = np.asarray(e_u, np.float64), np.asarray(e_v, np.float64)
-    nv = np.cross(euv, evv)
+    nv = _cross(euv, evv)
     nv *= np.sign(_dot(D0v, nv))[:, None]  # detector normal pointing away from the source
     active = (objs[..., ph.KIND] != ph.KIND_NONE) & (objs[..., ph.MU] != 0.0)
+    # side planes of the pyramid of rays through the outermost cell centres (unit normals
+    # pointing inwards; degenerate sides of a one-row or one-column detector are zero)
+    (ul, uh), (vl, vh) = u_range, v_range
+    dirs = [D0v + a * euv + b * evv for a, b in ((ul, vl), (uh, vl), (uh, vh), (ul, vh))]
+    inner = D0v + 0.5 * (ul + uh) * euv + 0.5 * (vl + vh) * evv
+    sides = []
+    for k in range(4):
+        N = _cross(dirs[k], dirs[(k + 1) % 4])
+        norm = np.linalg.norm(N, axis=-1)
+        live = norm > 1e-12 * _dot(dirs[k], dirs[k])
+        sgn = np.where(_dot(N, inner) >= 0, 1.0, -1.0)
+        sides.append(N * np.where(live, sgn / np.where(live, norm, 1.0), 0.0)[:, None])
+    sides = np.stack(sides, 1)                                        # (m, 4, 3)
 
     if cull:
-        # bounding sphere against the pyramid of rays through the outermost cell centres
+        # bounding sphere against the pyramid
         kind = objs[..., ph.KIND]
         semi = objs[..., ph.SEMI]
         rho = np.where(kind == ph.KIND_CYLINDER, np.hypot(np.maximum(semi[..., 0], semi[..., 1]), semi[..., 2]),
                        semi.max(-1))
         rel = objs[..., ph.CENTRE] - s[:, None, :]
-        (ul, uh), (vl, vh) = u_range, v_range
-        corners = [(ul, vl), (uh, vl), (uh, vh), (ul, vh)]
-        dirs = [D0v + a * euv + b * evv for a, b in corners]
-        inner = D0v + 0.5 * (ul + uh) * euv + 0.5 * (vl + vh) * evv
-        keep = active.copy()
-        for k in range(4):
-            N = np.cross(dirs[k], dirs[(k + 1) % 4])
-            norm = np.linalg.norm(N, axis=-1)
-            sgn = np.where(_dot(N, inner) >= 0, 1.0, -1.0)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                Nh = N * (sgn / np.where(norm > 0, norm, 1.0))[:, None]
-            dist = _dot(rel, Nh[:, None, :])
-            keep &= (dist >= -rho) | (norm[:, None] <= 1e-12 * np.linalg.norm(dirs[k], axis=-1)[:, None] ** 2)
+        dist = np.einsum("mnj,mkj->mnk", rel, sides)                  # (m, n, 4)
+        keep = active & np.all(dist >= -rho[..., None], axis=-1)
         depth = _dot(rel, (nv / np.linalg.norm(nv, axis=-1, keepdims=True))[:, None, :])
         keep |= active & (depth <= rho)  # reaches the source plane: never culled
     else:
@@ -208,9 +234,9 @@ def prepare_records(objects, src, det_centre, e_u, e_v, u_range, v_range, cull=T
     dc, eul, evl = _apply(M, pc_rel), _apply(M, eu), _apply(M, ev)
     cyl = kind == ph.KIND_CYLINDER
     t = tc[:, None]
-    Wu = np.cross(oo, eul) + t * np.cross(eul, dc)
-    Wv = np.cross(oo, evl) + t * np.cross(evl, dc)
-    W0 = np.cross(oo, dc)
+    Wu = _cross(oo, eul) + t * _cross(eul, dc)
+    Wv = _cross(oo, evl) + t * _cross(evl, dc)
+    W0 = _cross(oo, dc)
     mask = np.where(cyl[:, None], np.array([1.0, 1.0, 0.0]), 1.0)   # the quadric's axes
     Bu = _dot(oo * mask, eul) + tc * _dot(eul * mask, dc)
     Bv = _dot(oo * mask, evl) + tc * _dot(evl * mask, dc)
@@ -246,19 +272,46 @@ def prepare_records(objects, src, det_centre, e_u, e_v, u_range, v_range, cull=T
     for k in range(ph.N_CUTS):
         mi, cs, ca, cm = ph.cut_fields(k)
         mode = o[:, mi].astype(np.int64)
-        M2 = _mat(o[:, ca], o[:, cm])
-        base = R_CUT + CUT_STRIDE * k
-        rec[:, base:base + 3] = _apply(M2, Xc - o[:, cs])
-        rec[:, base + 3:base + 6] = _apply(M2, pc_rel)
-        rec[:, base + 6:base + 9] = _apply(M2, eu)
-        rec[:, base + 9:base + 12] = _apply(M2, ev)
         flags |= mode << (4 + 2 * k)
-        isect = mode == ph.CUT_INTERSECT
-        if np.any(isect):  # the object lies inside the cut: intersect the rectangles
-            r2 = _rect(o[:, cs], o[:, ca], o[:, cm], -np.ones((K, 3)), np.ones((K, 3)), s, D0, eu, ev, n, nn)
-            rect = np.where(isect[:, None], np.stack([np.maximum(rect[:, 0], r2[:, 0]), np.minimum(rect[:, 1], r2[:, 1]),
-                                                      np.maximum(rect[:, 2], r2[:, 2]), np.minimum(rect[:, 3], r2[:, 3])],
-                                                     -1), rect)
+        j = np.nonzero(mode != ph.CUT_NONE)[0]
+        if not len(j):
+            continue
+        M2 = _mat(o[j, ca], o[j, cm])
+        base = R_CUT + CUT_STRIDE * k
+        rec[j, base:base + 3] = _apply(M2, Xc[j] - o[j, cs])
+        rec[j, base + 3:base + 6] = _apply(M2, pc_rel[j])
+        rec[j, base + 6:base + 9] = _apply(M2, eu[j])
+        rec[j, base + 9:base + 12] = _apply(M2, ev[j])
+        r2 = _rect(o[j, cs], o[j, ca], o[j, cm], -np.ones((len(j), 3)), np.ones((len(j), 3)),
+                   s[j], D0[j], eu[j], ev[j], n[j], nn[j])
+        rect2 = r2 + np.array([-1.0, 1.0, -1.0, 1.0]) * (1e-4 + 1e-5 * np.abs(r2))
+        rec[j, R_CUT_RECT + 4 * k:R_CUT_RECT + 4 * k + 4] = np.clip(rect2, -3e38, 3e38)
+        isect = mode[j] == ph.CUT_INTERSECT  # the object lies inside the cut: intersect the rectangles
+        ji = j[isect]
+        rect[ji] = np.stack([np.maximum(rect[ji, 0], r2[isect, 0]), np.minimum(rect[ji, 1], r2[isect, 1]),
+                             np.maximum(rect[ji, 2], r2[isect, 2]), np.minimum(rect[ji, 3], r2[isect, 3])], -1)
+    # cylinders whose end caps no ray of the view meets: the kernel skips the slab. The rays
+    # that meet an infinite cylinder form a connected family along which the chord moves
+    # continuously, so if no ray crosses a cap disc and one ray (through a point of the
+    # axis inside the pyramid) meets the finite part, every chord lies inside the slab.
+    # A cap (in its bounding sphere) misses both nappes of the double pyramid if some
+    # side sees it beyond -rho and some beyond +rho.
+    sd = sides[iv]
+    axis = o[:, ph.AXES].reshape(K, 3, 3)[:, :, 2]
+    half = o[:, 16]
+    rho_cap = np.maximum(o[:, 14], o[:, 15])
+    no_slab = cyl.copy()
+    for sgn in (-1.0, 1.0):
+        dist = np.einsum("kj,kij->ki", c + sgn * half[:, None] * axis - s, sd)
+        no_slab &= np.any(dist < -rho_cap[:, None], -1) & np.any(dist > rho_cap[:, None], -1)
+    dd = inner[iv] / np.linalg.norm(inner[iv], axis=-1, keepdims=True)
+    r0, b = s - c, _dot(dd, axis)
+    denom = 1.0 - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ax = np.where(denom > 1e-12, (_dot(r0, axis) - _dot(r0, dd) * b) / denom, 0.0)
+    on_axis = c + np.clip(t_ax, -half, half)[:, None] * axis - s
+    no_slab &= np.all(np.einsum("kj,kij->ki", on_axis, sd) >= 0.0, -1) & (_dot(on_axis, n) > 0.0)
+    flags |= no_slab.astype(np.int64) << 8
     # a safety margin so that float32 rounding of the rectangle never culls a grazing ray
     pad = 1e-4 + 1e-5 * np.abs(rect)
     rect = rect + np.array([-1.0, 1.0, -1.0, 1.0]) * pad
@@ -358,14 +411,19 @@ def project_views(objects, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, *, cu
     lay = _Layout(u, v, rt)
     step = chunk_views or max(1, CHUNK_CELLS // (lay.n_rows * lay.n_cols))
     kern = rt.kernel("project.cl", "project", VW=VW, LX=lay.lx, LY=lay.ly, CULL=int(cull), LIST_MAX=LIST_MAX)
+    on_device = has_fp64(rt)
     view_rec = np.zeros((m, VIEW_REC))
     view_rec[:, 0:3], view_rec[:, 3:6], view_rec[:, 6:9] = det - src, eu, ev
+    broadcast = objs.strides[0] == 0  # the same objects for every view (e.g. the ground truth)
     pending = None
     for a in range(0, m, step):
         b = min(m, a + step)
-        # prepare chunk a on the host while the device still works on the previous one
-        rec, iv = prepare_records(objs[a:b], src[a:b], det[a:b], eu[a:b], ev[a:b], lay.u_range, lay.v_range, cull)
-        launch = _launch(rt, kern, lay, rec, iv, view_rec[a:b], cull, out[a:b])
+        # prepare chunk a while the device still works on the previous one
+        if on_device:
+            records = _prepare_on_device(rt, objs[a:b], broadcast, src[a:b], view_rec[a:b], lay, cull)
+        else:
+            records = _prepare_on_host(rt, objs[a:b], src[a:b], det[a:b], eu[a:b], ev[a:b], lay, cull)
+        launch = _launch(rt, kern, lay, records, view_rec[a:b], cull, out[a:b])
         if pending is not None:
             pending[0].wait()
         pending = launch
@@ -373,32 +431,74 @@ def project_views(objects, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, *, cu
     return out
 
 
-def _launch(rt, kern, lay, rec, iv, view_rec, cull, dest):
-    """Enqueue one chunk (one pass per LIST_MAX objects) and the copy of its result into ``dest``.
+def has_fp64(rt) -> bool:
+    """Whether the device runs the float64 record kernel (else records are made with NumPy)."""
+    return "cl_khr_fp64" in rt.device.extensions
 
-    Returns (copy event, buffers to keep alive until it completes).
-    """
-    m = len(view_rec)
-    counts = np.bincount(iv, minlength=m)
+
+def _prepare_on_device(rt, objs, broadcast, src, view_rec, lay, cull):
+    """Records of one chunk by kernels/prepare.cl: (record buffer, count buffer, n_obj, events)."""
+    m, n_obj = objs.shape[0], objs.shape[1]
+    obj_buf = rt.to_device(objs[0] if broadcast else objs, np.float64)
+    views = np.concatenate([src, view_rec[:, 0:9]], axis=1)
+    rec_buf = rt.empty((m, n_obj, REC))
+    cnt_buf = rt.empty((m,), np.int32)
+    kern = rt.kernel("prepare.cl", "prepare", CULL=int(cull))
+    (ul, uh), (vl, vh) = lay.u_range, lay.v_range
+    ev = kern(rt.queue, (m,), None, obj_buf, np.int64(0 if broadcast else n_obj * ph.STRIDE), np.int32(n_obj),
+              rt.to_device(views, np.float64), np.float64(ul), np.float64(uh), np.float64(vl), np.float64(vh),
+              np.int32(m), rec_buf, cnt_buf)
+    return rec_buf, cnt_buf, n_obj, [ev], [obj_buf]
+
+
+def prepare_records_device(objects, src, det_centre, e_u, e_v, u_range, v_range, cull=True, rt=None):
+    """:func:`prepare_records` computed by ``kernels/prepare.cl`` (for tests): (rec (K, REC), view_index)."""
+    rt = rt or get_runtime()
+    objs = np.asarray(objects, dtype=np.float64)
+    src = np.asarray(src, np.float64)
+    m, n_obj = objs.shape[:2]
+    view_rec = np.zeros((m, VIEW_REC))
+    view_rec[:, 0:3] = np.asarray(det_centre, np.float64) - src
+    view_rec[:, 3:6], view_rec[:, 6:9] = e_u, e_v
+
+    class _Ranges:
+        pass
+
+    lay = _Ranges()
+    lay.u_range, lay.v_range = u_range, v_range
+    rec_buf, cnt_buf, _, events, _keep = _prepare_on_device(rt, objs, objs.strides[0] == 0, src, view_rec, lay, cull)
+    counts = rt.from_device(cnt_buf, (m,), np.int32, wait_for=events)
+    rec = rt.from_device(rec_buf, (m, n_obj, REC))
+    iv = np.repeat(np.arange(m), counts)
+    slot = np.concatenate([np.arange(k) for k in counts]) if m else np.zeros(0, int)
+    return rec[iv, slot], iv
+
+
+def _prepare_on_host(rt, objs, src, det, eu, ev, lay, cull):
+    """Records of one chunk by the NumPy reference :func:`prepare_records`, uploaded."""
+    m, n_obj = objs.shape[0], objs.shape[1]
+    rec, iv = prepare_records(objs, src, det, eu, ev, lay.u_range, lay.v_range, cull)
+    counts = np.bincount(iv, minlength=m).astype(np.int32)
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    slot = np.arange(len(iv)) - start[iv]
-    n_max = max(int(counts.max()), 1)
-    per_pass = LIST_MAX if cull else n_max
+    packed = np.zeros((m, n_obj, REC), np.float32)
+    packed[iv, np.arange(len(iv)) - start[iv]] = rec
+    return rt.to_device(packed), rt.to_device(counts, np.int32), n_obj, [], []
+
+
+def _launch(rt, kern, lay, records, view_rec, cull, dest):
+    """Enqueue the projection of one chunk (a pass per LIST_MAX records when culling) and the
+    copy of its result into ``dest``. Returns (copy event, buffers to keep alive until then)."""
+    rec_buf, cnt_buf, n_obj, events, keep = records
+    m = len(view_rec)
     out_buf = rt.empty((m, lay.n_rows, lay.n_cols))
     view_buf = rt.to_device(view_rec)
-    keep, events = [view_buf, out_buf], []
+    keep = keep + [rec_buf, cnt_buf, view_buf, out_buf]
     gx, gy = lay.global_xy
-    for p in range(max(1, -(-n_max // per_pass))):
-        sel = (slot >= p * per_pass) & (slot < (p + 1) * per_pass)
-        cnt = np.clip(counts - p * per_pass, 0, per_pass).astype(np.int32)
-        width = max(int(cnt.max()), 1)
-        packed = np.zeros((m, width, REC), np.float32)
-        packed[iv[sel], slot[sel] - p * per_pass] = rec[sel]
-        rec_buf, cnt_buf = rt.to_device(packed), rt.to_device(cnt, np.int32)
-        keep += [rec_buf, cnt_buf]
-        events.append(kern(rt.queue, (gx, gy, m), (lay.lx, lay.ly, 1), rec_buf, cnt_buf, view_buf, *lay.bufs,
-                           np.int32(lay.n_cols), np.int32(lay.n_rows), np.int32(lay.n_seg), np.int32(width),
-                           np.int32(p > 0), out_buf, wait_for=events[-1:] or None))
+    passes = range(0, n_obj, LIST_MAX) if cull else [0]
+    for first in passes:
+        events.append(kern(rt.queue, (gx, gy, m), (lay.lx, lay.ly, 1), rec_buf, cnt_buf, np.int32(first), view_buf,
+                           *lay.bufs, np.int32(lay.n_cols), np.int32(lay.n_rows), np.int32(lay.n_seg),
+                           np.int32(n_obj), np.int32(first > 0), out_buf, wait_for=events[-1:] or None))
     copy = rt.cl.enqueue_copy(rt.queue, dest, out_buf, wait_for=events[-1:], is_blocking=False)
     return copy, keep
 

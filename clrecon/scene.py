@@ -217,9 +217,10 @@ class ReconConfig:
     local_linear_extrapolate: bool = F(False, BOOL, "true: the paper's plain local-linear fit, which extrapolates "
                                        "along an axis the points do not bracket; false: locally constant there")
     filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
-    small_fov_mm: tuple = _f((-90.0, 60.0, -110.0, 30.0), "[x_min, x_max, y_min, y_max] with min < max",
+    small_fov_mm: tuple = _f((-70.0, 85.0, -100.0, 40.0), "[x_min, x_max, y_min, y_max] with min < max",
                              lambda v: isinstance(v, tuple) and len(v) == 4 and all(_num(x) for x in v)
-                             and v[0] < v[1] and v[2] < v[3], "box around the heart (mm, LPS)")
+                             and v[0] < v[1] and v[2] < v[3],
+                             "box around the heart (mm, LPS): the phantom's epicardial fat at every state + 10 mm")
 
     @property
     def resp_targets(self) -> tuple:

@@ -62,7 +62,7 @@ typedef int16 ivec;
 #endif
 
 // record layout (must match clrecon/projector.py)
-#define REC 68
+#define REC 76
 #define R_FLAGS 0
 #define R_MU 1
 #define R_ULO 2
@@ -84,12 +84,14 @@ typedef int16 ivec;
 #define R_OX 30      /* o: local position of the central ray at tau = 0 (0 unless the  */
 #define R_OY 31      /* object centre does not project onto the detector plane)          */
 #define R_OZ 64
+#define R_CUT_RECT 68  /* 2 x (u_lo, u_hi, v_lo, v_hi) of the cut ellipsoids */
 #define R_PLANE 32   /* 2 x (g0, gu, gv, hk) */
 #define R_CUT 40     /* 2 x (o (3), dc (3), eu (3), ev (3)) */
 #define CUT_STRIDE 12
 
 #define KIND_ELLIPSOID 1
 #define KIND_CYLINDER 2
+#define NO_SLAB 256  /* flag: no ray of this view meets the cylinder's end caps */
 #define CUT_SUBTRACT 1
 #define CUT_INTERSECT 2
 #define BIG 1.0e30f
@@ -98,8 +100,9 @@ typedef int16 ivec;
 #define VIEW_REC 12
 
 __kernel __attribute__((reqd_work_group_size(LX, LY, 1)))
-void project(__global const float *rec,      // (m, nmax, REC)
-             __global const int *count,      // (m,) objects per view after view-level culling
+void project(__global const float *rec,      // (m, nmax, REC): each view's records, compacted
+             __global const int *count,      // (m,) records per view
+             const int first,                // this pass handles records [first, first + LIST_MAX)
              __global const float *view,     // (m, VIEW_REC)
              __global const float *u_pad,    // (n_seg * VW,) column centres, padded
              __global const float *seg_lo,   // (n_seg,) min u of each VW-segment
@@ -114,8 +117,12 @@ void project(__global const float *rec,      // (m, nmax, REC)
     const int seg = get_global_id(0);
     const int row = get_global_id(1);
     const int iv = get_global_id(2);
-    __global const float *vrec = rec + (size_t)iv * nmax * REC;
+    __global const float *vrec = rec + ((size_t)iv * nmax + first) * REC;
+#if CULL
+    const int n = clamp(count[iv] - first, 0, LIST_MAX);
+#else
     const int n = count[iv];
+#endif
 
 #if CULL
     __local int list[LIST_MAX];
@@ -163,6 +170,7 @@ void project(__global const float *rec,      // (m, nmax, REC)
         const int flags = (int)r[R_FLAGS];
         const int kind = flags & 3;
         const int nplanes = (flags >> 2) & 3;
+        const int simple = (flags & 255) < 4;  // no planes, no cuts
         const int cut0 = (flags >> 4) & 3;
         const int cut1 = (flags >> 6) & 3;
         const float tc = r[R_TC];
@@ -182,23 +190,25 @@ void project(__global const float *rec,      // (m, nmax, REC)
             const vec w1 = du * r[R_WU + 1] + (dv * r[R_WV + 1] + r[R_W0 + 1]);
             const vec w2 = du * r[R_WU + 2] + (dv * r[R_WV + 2] + r[R_W0 + 2]);
             disc = A - (w0 * w0 + w1 * w1 + w2 * w2);
-            if ((flags >> 2) == 0) {  // the common case: a plain ellipsoid (no planes, no cuts)
-                acc += r[R_MU] * select((vec)(0.0f), 2.0f * sqrt(disc) / A, disc > 0.0f);
-                continue;
-            }
         } else {
             A = dx * dx + dy * dy;
             const vec w2 = du * r[R_WU + 2] + (dv * r[R_WV + 2] + r[R_W0 + 2]);
             disc = A - w2 * w2;
         }
+        if (simple && (kind == KIND_ELLIPSOID || (flags & NO_SLAB))) {
+            // the common case: a plain ellipsoid, or a cylinder whose caps this view never sees
+            acc += r[R_MU] * select((vec)(0.0f), 2.0f * sqrt(disc) / A, disc > 0.0f);
+            continue;
+        }
         // interval [t1, t2] in tau
         const float ee = (kind == KIND_ELLIPSOID) ? 1.0f : 0.0f;  // |e|^2 over the quadric's axes
         const vec B = du * r[R_BU] + (dv * r[R_BV] + r[R_B0]) + tc * (ex * ex + ey * ey + ee * ez * ez);
         const vec sq = sqrt(fmax(disc, 0.0f));
-        vec t1 = (-B - sq) / A;
-        vec t2 = (-B + sq) / A;
+        const vec inv_a = 1.0f / A;
+        vec t1 = (-B - sq) * inv_a;
+        vec t2 = (-B + sq) * inv_a;
         ivec valid = disc > 0.0f;
-        if (kind == KIND_CYLINDER) {
+        if (kind == KIND_CYLINDER && !(flags & NO_SLAB)) {
             // ray parallel to the axis: inside the infinite cylinder or not at all
             const vec dz = r[R_DC + 2] + ez;
             const vec qx = r[R_OX] + tc * ex, qy = r[R_OY] + tc * ey;
@@ -208,7 +218,8 @@ void project(__global const float *rec,      // (m, nmax, REC)
             valid = select(valid, qx * qx + qy * qy <= 1.0f, par);
             // slab |q_z + tau d_z| <= 1
             const vec qz = r[R_OZ] + tc * ez;
-            const vec ta = (1.0f - qz) / dz, tb = (-1.0f - qz) / dz;
+            const vec inv_dz = 1.0f / dz;
+            const vec ta = (1.0f - qz) * inv_dz, tb = (-1.0f - qz) * inv_dz;
             const ivec zpar = fabs(dz) < 1.0e-30f;
             const ivec zin = fabs(qz) <= 1.0f;
             t1 = fmax(t1, select(fmin(ta, tb), select((vec)(BIG), (vec)(-BIG), zin), zpar));
@@ -230,6 +241,15 @@ void project(__global const float *rec,      // (m, nmax, REC)
             const int mode = k == 0 ? cut0 : cut1;
             if (mode == 0)
                 continue;
+#if CULL
+            // a cut whose rectangle misses these cells meets none of their rays
+            __global const float *rr = r + R_CUT_RECT + 4 * k;
+            if (rr[1] < slo || rr[0] > shi || rr[3] < v || rr[2] > v) {
+                if (mode == CUT_INTERSECT)
+                    valid = (ivec)(0);
+                continue;
+            }
+#endif
             __global const float *cr = r + R_CUT + CUT_STRIDE * k;
             const vec fx = du * cr[6] + dv * cr[9];
             const vec fy = du * cr[7] + dv * cr[10];

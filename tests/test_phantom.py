@@ -289,3 +289,12 @@ def test_voxelise_shape_and_values(phantom):
     assert (hu < -600).mean() > 0.1                    # lungs are there
     box = phantom.heart_box_mm()
     assert box[0] < phantom.lv_blood_pool_centre(0, 0)[0] < box[1]
+
+
+def test_default_small_fov_holds_the_heart(phantom):
+    from clrecon.scene import ReconConfig
+    x0, x1, y0, y1 = ReconConfig().small_fov_mm
+    b = phantom.heart_box_mm(margin=5.0)
+    assert x0 <= b[0] and b[1] <= x1 and y0 <= b[2] and b[3] <= y1
+    # and it is a box around the heart, not the whole chest
+    assert (x1 - x0) * (y1 - y0) < 0.4 * (2 * ph.P["body_semi_lr"]) * (2 * ph.P["body_semi_ap"])

@@ -36,6 +36,10 @@ TOL = {
     "phantom_rms": (2e-6, "float32 accumulation over ~40 objects of line integrals <= 6"),
     # exact chord of a water cylinder: far from its edge only float32 rounding
     "water_rtol": (2e-6, "float32 rounding, rays away from the edge"),
+    # the record kernel and its NumPy reference evaluate the same float64 formulas in a
+    # different order, then round to float32: a couple of float32 ulps
+    "record_rtol": (4 * EPS32, "float64 -> float32 rounding of the same formulas"),
+    "record_atol": (1e-9, "o, W0, B0: zero up to float64 rounding (|o| ~ 1e-14, |dc| ~ 1e3)"),
     # culling only removes exact zeros and keeps the summation order
     "culling": (0.0, "culled objects add +0.0; the order of the sum is unchanged"),
     # analytic vs ray marching through the voxelised phantom (3x3x3 supersampled pixels,
@@ -156,6 +160,36 @@ def test_reference_can_fail():
 
 
 # ---------------------------------------------------------------------------------------
+# the float64 record kernel (kernels/prepare.cl) against its NumPy reference
+@pytest.mark.parametrize("cull", [True, False])
+def test_record_kernel_matches_numpy_reference(cull):
+    rng = np.random.default_rng(11)
+    m = 6
+    mixed = np.concatenate([random_objects(rng, 12), ph.Phantom().objects(0.3, 0.4)])
+    objs = np.broadcast_to(mixed, (m,) + mixed.shape)
+    src, det, eu, ev = views(rng, m, z_spread=60.0)
+    args = (objs, src, det, eu, ev, (-350.0, 350.0), (-25.0, 25.0), cull)
+    ref, iv_ref = projector.prepare_records(*args)
+    got, iv = projector.prepare_records_device(*args)
+    np.testing.assert_array_equal(iv, iv_ref)
+    assert len(iv) > 5 * m and (len(iv) < m * len(mixed)) == cull
+    np.testing.assert_array_equal(got[:, projector.R_FLAGS], ref[:, projector.R_FLAGS])
+    # the same float64 formulas in another order: equal up to a float32 ulp or two
+    np.testing.assert_allclose(got, ref, rtol=tol("record_rtol"), atol=tol("record_atol"))
+
+
+def test_host_records_give_the_same_projections(monkeypatch):
+    rng = np.random.default_rng(12)
+    objs = np.broadcast_to(random_objects(rng, 8), (3, 8, ph.STRIDE))
+    src, det, eu, ev = views(rng, 3)
+    u, v = detector_coords(64, 10.0), detector_coords(8, 16.0)
+    dev = projector.project_views(objs, src, det, eu, ev, u, v)
+    monkeypatch.setattr(projector, "has_fp64", lambda rt: False)
+    host = projector.project_views(objs, src, det, eu, ev, u, v)
+    assert_close_to_ref(host, dev.astype(np.float64), tol("kernel_atol"))
+
+
+# ---------------------------------------------------------------------------------------
 # edge cases
 def single_view(beta=0.4, z=0.0):
     return detector_frames(np.array([beta]), np.array([z]), SID, SDD)
@@ -235,6 +269,25 @@ def test_objects_at_the_detector_edge_and_clip_planes_parallel_to_rays():
     assert ref[0, 0, -1] > 0 and ref[0, -1, 0] == 0.0
     assert_close_to_ref(p, ref, tol("kernel_atol"))
     np.testing.assert_array_equal(p, projector.project_views(objs, src, det, eu, ev, u, v, cull=False))
+
+
+def test_cylinders_whose_caps_no_ray_meets_skip_the_slab_exactly():
+    """The host marks cylinders whose end caps no ray of the view meets (the kernel then
+    drops the slab); marking one whose finite part is out of view would be wrong."""
+    src, det, eu, ev = single_view(beta=0.8, z=2.0)
+    u, v = detector_coords(48, 15.0), detector_coords(6, 8.0)
+    tilt = ph._axis_frame(np.array([0.1, 0.05, 1.0]))
+    long_ = make_object(ph.KIND_CYLINDER, 0.02, [5.0, -3.0, 0.0], tilt, [80.0, 60.0, 300.0])
+    short = make_object(ph.KIND_CYLINDER, 0.02, [0.0, 0.0, 4.0], np.eye(3), [50.0, 50.0, 8.0])
+    beyond = make_object(ph.KIND_CYLINDER, 0.02, [0.0, 0.0, 250.0], np.eye(3), [80.0, 80.0, 100.0])
+    objs = np.array([long_, short, beyond])[None]
+    rec, iv = projector.prepare_records(objs, src, det, eu, ev, (u[0], u[-1]), (v[0], v[-1]), cull=False)
+    no_slab = (rec[:, projector.R_FLAGS].astype(int) >> 8) & 1
+    assert list(no_slab) == [1, 0, 0]
+    p = projector.project_views(objs, src, det, eu, ev, u, v)
+    assert_close_to_ref(p, project_views_ref(objs, src, det, eu, ev, u, v), tol("kernel_atol"))
+    only_beyond = projector.project_views(objs[:, 2:], src, det, eu, ev, u, v, cull=False)
+    assert np.all(only_beyond == 0.0)
 
 
 def test_centred_water_cylinder_gives_exact_chords():
