@@ -102,7 +102,7 @@ def test_photon_starvation_clamps_to_the_documented_ceiling():
 
 
 # ---------------------------------------------------------------------------------------
-# end to end (needs the cone-beam projector)
+# end to end
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
     return tmp_path_factory.mktemp("stress-cache")
@@ -110,7 +110,6 @@ def cache(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def stress_run(tmp_path_factory, cache):
-    pytest.importorskip("clrecon.projector", reason="the cone-beam projector is not in this checkout yet")
     from clrecon.run import run
 
     done = {}
