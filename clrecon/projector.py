@@ -443,12 +443,14 @@ def _prepare_on_device(rt, objs, broadcast, src, view_rec, lay, cull):
     views = np.concatenate([src, view_rec[:, 0:9]], axis=1)
     rec_buf = rt.empty((m, n_obj, REC))
     cnt_buf = rt.empty((m,), np.int32)
+    views_buf = rt.to_device(views, np.float64)
     kern = rt.kernel("prepare.cl", "prepare", CULL=int(cull))
     (ul, uh), (vl, vh) = lay.u_range, lay.v_range
     ev = kern(rt.queue, (m,), None, obj_buf, np.int64(0 if broadcast else n_obj * ph.STRIDE), np.int32(n_obj),
-              rt.to_device(views, np.float64), np.float64(ul), np.float64(uh), np.float64(vl), np.float64(vh),
+              views_buf, np.float64(ul), np.float64(uh), np.float64(vl), np.float64(vh),
               np.int32(m), rec_buf, cnt_buf)
-    return rec_buf, cnt_buf, n_obj, [ev], [obj_buf]
+    # every buffer a queued kernel uses stays referenced until its results are read
+    return rec_buf, cnt_buf, n_obj, [ev], [obj_buf, views_buf]
 
 
 def prepare_records_device(objects, src, det_centre, e_u, e_v, u_range, v_range, cull=True, rt=None):
@@ -618,7 +620,7 @@ def voxelise_objects(objects, x_mm, y_mm, z_mm, supersample: int = 3, rt=None) -
     gx, gy = -(-nseg // lx) * lx, -(-ny // ly) * ly
     out_buf = rt.empty((nz, ny, nx))
     bufs = [rt.to_device(rec), rt.to_device(lists, np.int32), rt.to_device(counts, np.int32)]
-    ev = kern(rt.queue, (gx, gy, nz), (lx, ly, 1), *bufs, np.int32(stride),
-              rt.to_device(x), rt.to_device(y), rt.to_device(z),
+    axes = [rt.to_device(a) for a in (x, y, z)]  # referenced until the result is read
+    ev = kern(rt.queue, (gx, gy, nz), (lx, ly, 1), *bufs, np.int32(stride), *axes,
               np.float32(dx), np.float32(dy), np.float32(dz), np.int32(nx), np.int32(ny), np.int32(nz), out_buf)
     return rt.from_device(out_buf, (nz, ny, nx), wait_for=[ev])

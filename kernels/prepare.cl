@@ -53,41 +53,36 @@
 #define R_CUT_RECT 68
 #define NO_SLAB 256
 
-typedef double3 d3;
+// 3-vectors as double4 with w = 0: no undefined padding lane (Oclgrind's uninitialised-value
+// checker otherwise taints dot products through the padding of double3)
+typedef double4 d3;
+#define V3(x, y, z) ((d3)((x), (y), (z), 0.0))
 
-static d3 ld3(__global const double *p) { return (d3)(p[0], p[1], p[2]); }
+static d3 ld3(__global const double *p) { return V3(p[0], p[1], p[2]); }
 
 static void st3(__global float *p, d3 v) { p[0] = (float)v.x; p[1] = (float)v.y; p[2] = (float)v.z; }
 
 // M = D^-1 R^T applied to v: component i = (column i of R) . v / semi_i
 static d3 local_of(__global const double *axes, __global const double *semi, d3 v) {
-    const d3 c0 = (d3)(axes[0], axes[3], axes[6]);
-    const d3 c1 = (d3)(axes[1], axes[4], axes[7]);
-    const d3 c2 = (d3)(axes[2], axes[5], axes[8]);
-    return (d3)(dot(c0, v) / semi[0], dot(c1, v) / semi[1], dot(c2, v) / semi[2]);
+    const d3 c0 = V3(axes[0], axes[3], axes[6]);
+    const d3 c1 = V3(axes[1], axes[4], axes[7]);
+    const d3 c2 = V3(axes[2], axes[5], axes[8]);
+    return V3(dot(c0, v) / semi[0], dot(c1, v) / semi[1], dot(c2, v) / semi[2]);
 }
 
-static d3 col_of(__global const double *axes, int j) { return (d3)(axes[j], axes[3 + j], axes[6 + j]); }
+static d3 col_of(__global const double *axes, int j) { return V3(axes[j], axes[3 + j], axes[6 + j]); }
 
 // detector rectangle of a box (local [lo, hi] in the primitive's normalised frame): see _rect
 static double4 box_rect(d3 centre, __global const double *axes, __global const double *semi, d3 lo, d3 hi,
                         d3 s, d3 D0, d3 n, double nn, d3 a_u, d3 a_v) {
-    const double lo_[3] = {lo.x, lo.y, lo.z}, hi_[3] = {hi.x, hi.y, hi.z};
-    d3 base = centre - s;
-    d3 span[3];
-    double size = 0.0;
-    for (int j = 0; j < 3; ++j) {
-        const d3 cj = col_of(axes, j) * semi[j];
-        base += cj * lo_[j];
-        span[j] = cj * (hi_[j] - lo_[j]);
-        size += length(span[j]);
-    }
-    size += length(base);
+    const d3 c0 = col_of(axes, 0) * semi[0], c1 = col_of(axes, 1) * semi[1], c2 = col_of(axes, 2) * semi[2];
+    const d3 base = centre - s + c0 * lo.x + c1 * lo.y + c2 * lo.z;
+    const d3 s0 = c0 * (hi.x - lo.x), s1 = c1 * (hi.y - lo.y), s2 = c2 * (hi.z - lo.z);
+    const double size = length(base) + length(s0) + length(s1) + length(s2);
     const double D0n = dot(D0, n), u0 = dot(D0, a_u), v0 = dot(D0, a_v);
     double umin = INFINITY, umax = -INFINITY, vmin = INFINITY, vmax = -INFINITY, dmin = INFINITY;
     for (int c = 0; c < 8; ++c) {
-        const d3 X = base + span[0] * (double)((c >> 2) & 1) + span[1] * (double)((c >> 1) & 1)
-                     + span[2] * (double)(c & 1);
+        const d3 X = base + s0 * (double)((c >> 2) & 1) + s1 * (double)((c >> 1) & 1) + s2 * (double)(c & 1);
         const double den = dot(X, n);
         const double lam = D0n / den;
         const double u = lam * dot(X, a_u) - u0, v = lam * dot(X, a_v) - v0;
@@ -177,7 +172,7 @@ __kernel void prepare(__global const double *objs,   // views' objects: view i a
         const d3 Wu = cross(oo, eul) + tc * cross(eul, dc);
         const d3 Wv = cross(oo, evl) + tc * cross(evl, dc);
         const d3 W0 = cross(oo, dc);
-        const d3 mask = cyl ? (d3)(1.0, 1.0, 0.0) : (d3)(1.0);
+        const d3 mask = cyl ? V3(1.0, 1.0, 0.0) : V3(1.0, 1.0, 1.0);
         const double Bu = dot(oo * mask, eul) + tc * dot(eul * mask, dc);
         const double Bv = dot(oo * mask, evl) + tc * dot(evl * mask, dc);
         const double B0 = dot(oo * mask, dc);
@@ -194,7 +189,9 @@ __kernel void prepare(__global const double *objs,   // views' objects: view i a
 
         // clip planes, and the local box they tighten when aligned with an axis
         int nplanes = 0;
-        double lo_[3] = {-1.0, -1.0, -1.0}, hi_[3] = {1.0, 1.0, 1.0};
+        // local box as scalars: Oclgrind's uninitialised-value checker crashes on private
+        // arrays and on vectors updated per component under a condition
+        double lo_x = -1.0, lo_y = -1.0, lo_z = -1.0, hi_x = 1.0, hi_y = 1.0, hi_z = 1.0;
         for (int k = 0; k < 2; ++k) {
             const d3 pn = ld3(o + O_PLANES + 4 * k);
             const double pd = o[O_PLANES + 4 * k + 3];
@@ -204,27 +201,28 @@ __kernel void prepare(__global const double *objs,   // views' objects: view i a
                 pl[0] = (float)dot(pn, pc_rel); pl[1] = (float)dot(pn, eu); pl[2] = (float)dot(pn, ev);
                 pl[3] = (float)(pd - dot(pn, Xc));
                 nplanes++;
-                const double nl[3] = {dot(col_of(ax, 0), pn) * semi[0], dot(col_of(ax, 1), pn) * semi[1],
-                                      dot(col_of(ax, 2), pn) * semi[2]};
+                const d3 nl = V3(dot(col_of(ax, 0), pn) * semi[0], dot(col_of(ax, 1), pn) * semi[1],
+                                   dot(col_of(ax, 2), pn) * semi[2]);
                 const double rhs = pd - dot(pn, c);
-                const double mag[3] = {fabs(nl[0]), fabs(nl[1]), fabs(nl[2])};
-                const double big = fmax(fmax(mag[0], mag[1]), mag[2]);
-                for (int a = 0; a < 3; ++a) {
-                    const double others = fmax(mag[(a + 1) % 3], mag[(a + 2) % 3]);
-                    if (mag[a] > 0.0 && others <= 1e-9 * big) {
-                        const double bound = rhs / nl[a];
-                        if (nl[a] > 0.0) hi_[a] = fmin(hi_[a], bound);
-                        else lo_[a] = fmax(lo_[a], bound);
-                    }
+                const d3 mag = V3(fabs(nl.x), fabs(nl.y), fabs(nl.z));
+                const double tiny = 1e-9 * fmax(fmax(mag.x, mag.y), mag.z);
+                // a plane along local axis a bounds the box on that axis
+#define TIGHTEN(A, B, C)                                                          \
+                if (mag.A > 0.0 && fmax(mag.B, mag.C) <= tiny) {                  \
+                    if (nl.A > 0.0) hi_##A = fmin(hi_##A, rhs / nl.A);            \
+                    else lo_##A = fmax(lo_##A, rhs / nl.A);                       \
                 }
+                TIGHTEN(x, y, z)
+                TIGHTEN(y, z, x)
+                TIGHTEN(z, x, y)
+#undef TIGHTEN
             } else if (pd < 0.0) {  // n = 0, d < 0: excludes everything
                 pl[3] = -1.0f;
                 nplanes++;
             }
         }
         int flags = kind | (nplanes << 2);
-        double4 rect = box_rect(c, ax, semi, (d3)(lo_[0], lo_[1], lo_[2]), (d3)(hi_[0], hi_[1], hi_[2]),
-                                s, D0, n, nn, a_u, a_v);
+        double4 rect = box_rect(c, ax, semi, V3(lo_x, lo_y, lo_z), V3(hi_x, hi_y, hi_z), s, D0, n, nn, a_u, a_v);
         for (int k = 0; k < 2; ++k) {
             __global const double *ct = o + O_CUT0 + CUT_LEN * k;
             const int mode = (int)ct[0];
@@ -239,7 +237,7 @@ __kernel void prepare(__global const double *objs,   // views' objects: view i a
             st3(cr + 3, local_of(cax, csemi, pc_rel));
             st3(cr + 6, local_of(cax, csemi, eu));
             st3(cr + 9, local_of(cax, csemi, ev));
-            const double4 r2 = box_rect(cc, cax, csemi, (d3)(-1.0), (d3)(1.0), s, D0, n, nn, a_u, a_v);
+            const double4 r2 = box_rect(cc, cax, csemi, V3(-1.0, -1.0, -1.0), V3(1.0, 1.0, 1.0), s, D0, n, nn, a_u, a_v);
             store_rect(R + R_CUT_RECT + 4 * k, r2);
             if (mode == CUT_INTERSECT)
                 rect = (double4)(fmax(rect.x, r2.x), fmin(rect.y, r2.y), fmax(rect.z, r2.z), fmin(rect.w, r2.w));
@@ -272,10 +270,11 @@ __kernel void prepare(__global const double *objs,   // views' objects: view i a
         store_rect(R + R_RECT, rect);
         R[R_FLAGS] = (float)flags;
 #if CULL
-        if (!(prect.y >= ul && prect.x <= uh && prect.w >= vl && prect.z <= vh))
-            continue;  // not kept: the next survivor overwrites this slot
-#endif
+        // rectangle off the detector: not kept, the next survivor overwrites this slot
+        kept += (prect.y >= ul && prect.x <= uh && prect.w >= vl && prect.z <= vh) ? 1 : 0;
+#else
         kept++;
+#endif
     }
     count[iv] = kept;
 }

@@ -11,7 +11,7 @@ from scipy.ndimage import map_coordinates
 
 from clrecon import phantom as ph
 from clrecon import projector
-from clrecon.conventions import MU_WATER_PER_MM, detector_coords, detector_frames
+from clrecon.conventions import MU_WATER_PER_MM, detector_coords, detector_frames, mu_to_hu
 from clrecon.geometry import projection_table
 from clrecon.scene import load_scene
 
@@ -434,3 +434,16 @@ def test_voxelise_matches_numpy_point_samples(ss):
     bad = np.abs(got - ref) > 1e-5
     assert bad.mean() <= tol("voxelise_mismatch_fraction") * ss ** 3 + 1.0 / got.size
     assert np.abs(ref).max() > 0.01
+
+
+def test_voxelise_edge_grids():
+    """Grids smaller than a work-item's 8 voxels, single-sample axes (1 mm thick), empty space."""
+    objs = ph.Phantom().objects(0.0, 0.0)
+    x = np.array([-100.0, -99.0, -98.0, -97.0, -96.0])            # 5 < VW voxels along x
+    got = projector.voxelise_objects(objs, x, np.array([20.0]), np.array([60.0]), supersample=2)
+    ref = _numpy_voxelise(objs, x, np.array([20.0]), np.array([60.0]), 2, 1.0, 1.0, 1.0)
+    assert got.shape == (1, 1, 5)
+    np.testing.assert_allclose(got, ref, atol=1e-7)
+    assert np.all(mu_to_hu(got) < -700)                            # inside the right lung
+    outside = projector.voxelise_objects(objs, np.array([400.0]), np.array([0.0]), np.array([0.0]), supersample=1)
+    assert outside.shape == (1, 1, 1) and outside[0, 0, 0] == 0.0
