@@ -8,4 +8,4 @@ Pipeline (one module per stage): scene -> signals -> geometry (per-projection ta
 __version__ = "0.1.0"
 
 #: Bumped whenever the projector or phantom changes what a stored projection holds.
-PROJECTOR_VERSION = 1
+PROJECTOR_VERSION = 2  # 2: the committed phantom + culled projector (1 was the pre-release skeleton)

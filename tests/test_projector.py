@@ -447,3 +447,13 @@ def test_voxelise_edge_grids():
     assert np.all(mu_to_hu(got) < -700)                            # inside the right lung
     outside = projector.voxelise_objects(objs, np.array([400.0]), np.array([0.0]), np.array([0.0]), supersample=1)
     assert outside.shape == (1, 1, 1) and outside[0, 0, 0] == 0.0
+
+
+def test_bench_projector_runs_and_checks_its_reference():
+    from clrecon.bench_projector import bench_projector
+
+    res = bench_projector(6, "tiny", reference_projections=2, repeats=1)
+    assert res["projections"] == 6 and res["reference"]["projections"] == 2
+    assert res["max_abs_diff_vs_reference"] == 0.0
+    assert res["rays_per_s"] > 0 and res["projected_total_s"] > 0
+    assert 0 < res["evaluated_pairs_per_ray"] < res["n_objects"]
