@@ -557,9 +557,9 @@ class Phantom:
         for k in range(npairs):
             z_post = (k - (npairs - 1) / 2) * P["rib_spacing"] + 0.5 * P["rib_drop"]
             for side, sname in ((-1.0, "right"), (1.0, "left")):
-                pts = [vec(side * P["rib_ellipse_lr"] * np.sin(t), chest_y(P["rib_ellipse_ap"] * np.cos(t)),
-                           z_post - P["rib_drop"] * 0.5 * (1.0 - np.cos(np.pi * (t - theta[0]) / (theta[-1] - theta[0]))))
-                       for t in theta]
+                drop = P["rib_drop"] * 0.5 * (1.0 - np.cos(np.pi * (theta - theta[0]) / (theta[-1] - theta[0])))
+                pts = [vec(side * P["rib_ellipse_lr"] * np.sin(t), chest_y(P["rib_ellipse_ap"] * np.cos(t)), z_post - dz)
+                       for t, dz in zip(theta, drop)]
                 for s, seg in enumerate(mitred_chain(pts, P["rib_radius"])):
                     add(f"rib_{sname}_{k}_{s}", "body_muscle", KIND_CYLINDER, P["hu_rib"], *seg)
 

@@ -237,7 +237,8 @@ __kernel void prepare(__global const double *objs,   // views' objects: view i a
             st3(cr + 3, local_of(cax, csemi, pc_rel));
             st3(cr + 6, local_of(cax, csemi, eu));
             st3(cr + 9, local_of(cax, csemi, ev));
-            const double4 r2 = box_rect(cc, cax, csemi, V3(-1.0, -1.0, -1.0), V3(1.0, 1.0, 1.0), s, D0, n, nn, a_u, a_v);
+            const double4 r2 = box_rect(cc, cax, csemi, V3(-1.0, -1.0, -1.0), V3(1.0, 1.0, 1.0),
+                                        s, D0, n, nn, a_u, a_v);
             store_rect(R + R_CUT_RECT + 4 * k, r2);
             if (mode == CUT_INTERSECT)
                 rect = (double4)(fmax(rect.x, r2.x), fmin(rect.y, r2.y), fmax(rect.z, r2.z), fmin(rect.w, r2.w));
