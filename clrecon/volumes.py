@@ -87,9 +87,10 @@ def open_volumes(path) -> h5py.File:
         f = h5py.File(p, "r")
     except OSError as e:
         raise StoreError(f"{p}: not a readable HDF5 file ({e})") from None
-    if f.attrs.get("format_version") != FORMAT_VERSION:
+    version = f.attrs.get("format_version")
+    if version != FORMAT_VERSION:
         f.close()
-        raise StoreError(f"{p}: volume format {f.attrs.get('format_version')!r} is not {FORMAT_VERSION}; "
+        raise StoreError(f"{p}: volume format {version!r} is not {FORMAT_VERSION}; "
                          f"re-run `clrecon run` with this version")
     return f
 
