@@ -24,48 +24,49 @@ from .phantom import Phantom
 
 
 def groundtruth_sinograms(scene, phantom: Phantom, c: float, a: float, slices_z: np.ndarray, rt=None) -> np.ndarray:
-    """Exact in-plane fan-beam sinograms of the frozen phantom, (nz, V, C) float32."""
+    """Exact in-plane fan-beam sinograms of the frozen phantom, (nz, V, C) float32.
+
+    All slices go to the projector in one call (nz * V one-row views) so the per-call set-up
+    is paid once per target.
+    """
     sc = scene.scanner
     V = sc.views_per_rotation
+    S = len(slices_z)
     beta = np.deg2rad(scene.scan.start_angle_deg) + 2 * np.pi * np.arange(V) / V
     u = detector_coords(sc.n_cols, sc.col_pitch_mm)
     objs = phantom.objects(c, a)
-    out = np.empty((len(slices_z), V, sc.n_cols), np.float32)
-    for i, z in enumerate(slices_z):
-        src, det, e_u, e_v = detector_frames(beta, np.full(V, z), sc.sid_mm, sc.sdd_mm)
-        objs_v = np.broadcast_to(objs, (V,) + objs.shape)
-        out[i] = projector.project_views(objs_v, src, det, e_u, e_v, u, np.zeros(1), rt=rt)[:, 0, :]
-    return out
+    src, det, e_u, e_v = detector_frames(np.tile(beta, S), np.repeat(np.asarray(slices_z, float), V),
+                                         sc.sid_mm, sc.sdd_mm)
+    objs_v = np.broadcast_to(objs, (S * V,) + objs.shape)
+    out = projector.project_views(objs_v, src, det, e_u, e_v, u, np.zeros(1), rt=rt)
+    return out.reshape(S, V, sc.n_cols)
 
 
-def groundtruth_volumes(scene, slices_z: np.ndarray, targets, rt=None, progress=None) -> np.ndarray:
-    """Ground-truth CT for every target, (n_c, n_r, nz, ny, nx) float32 HU."""
+def groundtruth_volumes(scene, slices_z: np.ndarray, targets, rt=None, progress=None):
+    """Ground-truth CT of every target, yielded as ``(i, j, (nz, ny, nx) float32 HU)``.
+
+    One target at a time, so a caller can write it out and keep memory bounded.
+    """
     from .reconstruct import fbp_batched
 
     rc = scene.recon
     geom = fbp_mod.FanBeamGeometry.from_scene(scene)
     phantom = Phantom(scene.phantom)
-    n_c, n_r = targets.shape
-    out = np.empty((n_c, n_r, len(slices_z), rc.ny, rc.nx), np.float32)
     for i, c in enumerate(targets.cardiac):
         for j, a in enumerate(targets.resp):
             sino = groundtruth_sinograms(scene, phantom, c, a, slices_z, rt=rt)
-            out[i, j] = fbp_batched(sino, geom, rc.filter, scene.phantom.mu_water_per_mm)
+            yield i, j, fbp_batched(sino, geom, rc.filter, scene.phantom.mu_water_per_mm)
             if progress is not None:
                 progress.update(1)
-    return out
 
 
-def phantom_truth_volumes(scene, slices_z: np.ndarray, targets, supersample: int = 2) -> np.ndarray:
-    """The analytic phantom voxelised at every target, (n_c, n_r, nz, ny, nx) float32 HU."""
+def phantom_truth_volumes(scene, slices_z: np.ndarray, targets, supersample: int = 2, rt=None):
+    """The analytic phantom voxelised at every target, yielded as ``(i, j, (nz, ny, nx) float32 HU)``."""
     rc = scene.recon
     phantom = Phantom(scene.phantom)
     x = voxel_coords(rc.nx, rc.voxel_mm)
     y = voxel_coords(rc.ny, rc.voxel_mm)
-    n_c, n_r = targets.shape
-    out = np.empty((n_c, n_r, len(slices_z), rc.ny, rc.nx), np.float32)
     for i, c in enumerate(targets.cardiac):
         for j, a in enumerate(targets.resp):
-            mu = phantom.voxelise(c, a, x, y, np.asarray(slices_z), supersample=supersample)
-            out[i, j] = mu_to_hu(mu, scene.phantom.mu_water_per_mm)
-    return out
+            mu = phantom.voxelise(c, a, x, y, np.asarray(slices_z), supersample=supersample, rt=rt)
+            yield i, j, mu_to_hu(mu, scene.phantom.mu_water_per_mm).astype(np.float32)

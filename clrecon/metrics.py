@@ -55,21 +55,52 @@ def abs_error_stats(recon: np.ndarray, truth: np.ndarray, mask2d: np.ndarray) ->
     return {"mae_hu": float(mean), "std_hu": float(np.sqrt(var)), "n_voxels": int(n)}
 
 
-def table2(recon: np.ndarray, truth: np.ndarray, scene) -> dict:
-    """Pooled and per-target MAE/std for both FOVs.
+class Table2:
+    """Accumulates |recon - truth| per target; pooled and per-target MAE/std for both FOVs.
 
-    Returns ``{"large": {...pooled...}, "small": {...}, "per_target": {"large": [[mae]], "small": ...}}``
-    where per-target lists are indexed ``[cardiac][resp]``.
+    Targets are added one at a time (``add(i, j, recon, truth)`` with (nz, ny, nx) HU
+    volumes) so paper-size runs never hold more than one target's volumes. The absolute
+    difference is formed once (float32) and summed in float64 over each FOV's voxels.
     """
-    masks = fov_masks(scene)
-    out: dict = {}
-    per: dict = {}
-    for fov, m in masks.items():
-        out[fov] = abs_error_stats(recon, truth, m)
-        per[fov] = [[abs_error_stats(recon[i, j], truth[i, j], m)["mae_hu"] for j in range(recon.shape[1])]
-                    for i in range(recon.shape[0])]
-    out["per_target"] = per
-    return out
+
+    def __init__(self, scene, n_cardiac: int, n_resp: int):
+        self.flat = {fov: np.flatnonzero(m.ravel()) for fov, m in fov_masks(scene).items()}
+        self.sums = {fov: np.zeros((n_cardiac, n_resp, 2)) for fov in self.flat}
+        self.count = {fov: np.zeros((n_cardiac, n_resp), np.int64) for fov in self.flat}
+
+    def add(self, i: int, j: int, recon: np.ndarray, truth: np.ndarray) -> None:
+        if recon.shape != truth.shape:
+            raise ValueError(f"recon shape {recon.shape} != truth shape {truth.shape}")
+        d = np.abs(recon - truth).reshape(recon.shape[0], -1)
+        for fov, idx in self.flat.items():
+            x = d[:, idx].astype(np.float64)
+            self.sums[fov][i, j] = (x.sum(), (x * x).sum())
+            self.count[fov][i, j] = x.size
+
+    def result(self) -> dict:
+        """``{"large": {mae_hu, std_hu, n_voxels}, "small": {...}, "per_target": {fov: [[mae]]}}``."""
+        out: dict = {}
+        per: dict = {}
+        for fov in self.flat:
+            n = int(self.count[fov].sum())
+            total = self.sums[fov].sum(axis=(0, 1))
+            mean = total[0] / max(n, 1)
+            out[fov] = {"mae_hu": float(mean),
+                        "std_hu": float(np.sqrt(max(total[1] / max(n, 1) - mean * mean, 0.0))), "n_voxels": n}
+            per[fov] = (self.sums[fov][..., 0] / np.maximum(self.count[fov], 1)).tolist()
+        out["per_target"] = per
+        return out
+
+
+def table2(recon: np.ndarray, truth: np.ndarray, scene) -> dict:
+    """:class:`Table2` of whole (n_c, n_r, nz, ny, nx) HU arrays (the paper's Table 2 convention)."""
+    if recon.shape != truth.shape:
+        raise ValueError(f"recon shape {recon.shape} != truth shape {truth.shape}")
+    acc = Table2(scene, recon.shape[0], recon.shape[1])
+    for i in range(recon.shape[0]):
+        for j in range(recon.shape[1]):
+            acc.add(i, j, recon[i, j], truth[i, j])
+    return acc.result()
 
 
 def blood_pool_volume_ml(volume_hu: np.ndarray, seed_zyx_mm, scene, z_mm: np.ndarray,

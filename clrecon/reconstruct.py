@@ -160,7 +160,7 @@ def reconstruct(scene, store, plan_: Plan, variants=("noise-free",), rt=None, ti
 
     Parameters
     ----------
-    store : object with ``read(start, stop, noisy=False) -> (m, R, C) float32`` and ``table``.
+    store : object with ``read_indices(indices, noisy=False) -> (m, R, C) float32`` and ``table``.
     variants : iterable of ``"noise-free"`` / ``"noisy"``.
     on_slab : optional callback ``(slice_slice, {(variant, method): (n_c, n_r, s, ny, nx)})`` that
         receives each slab's volumes as it finishes (to write them out and free memory). If None,
@@ -224,18 +224,18 @@ def _reconstruct_slab(scene, store, plan_: Plan, s0, s1, variants, geom, rt, tim
         lo, hi = np.searchsorted(pair_proj, [b0, b1])
         if lo == hi:
             continue
-        first, last = int(pair_proj[lo]), int(pair_proj[hi - 1]) + 1
+        wanted, slot = np.unique(pair_proj[lo:hi], return_inverse=True)
         t1 = time.perf_counter()
-        clean = store.read(first, last, noisy=False)
+        clean = store.read_indices(wanted, noisy=False)
         times.add("read", time.perf_counter() - t1)
         for v in variants:
             data = clean
             if v == "noisy":
                 t1 = time.perf_counter()
-                data = noise.add_noise(clean, np.arange(first, last), scene.noise)
+                data = noise.add_noise(clean, wanted, scene.noise)
                 times.add("noise", time.perf_counter() - t1)
             t1 = time.perf_counter()
-            rows[v][lo:hi] = rebin.ssrb_rows(data, (pair_proj[lo:hi] - first).astype(np.int32),
+            rows[v][lo:hi] = rebin.ssrb_rows(data, slot.astype(np.int32).ravel(),
                                             pair_dz[lo:hi].astype(np.float32), sc, rt=rt)
             times.add("rebin", time.perf_counter() - t1)
 

@@ -170,20 +170,20 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
         log("ground truth")
         t0 = time.perf_counter()
         bar = _progress(targets.shape[0] * targets.shape[1], "ground truth", progress)
-        gt = groundtruth.groundtruth_volumes(scene, slices_z, targets, rt=rt, progress=bar)
-        bar.close()
         writer.create("groundtruth", full_shape)
-        writer.write("groundtruth", gt)
+        for i, j, vol in groundtruth.groundtruth_volumes(scene, slices_z, targets, rt=rt, progress=bar):
+            writer.write_target("groundtruth", i, j, vol)
+        bar.close()
         times.add("groundtruth", time.perf_counter() - t0)
         t0 = time.perf_counter()
-        ph = groundtruth.phantom_truth_volumes(scene, slices_z, targets)
         writer.create("phantom", full_shape)
-        writer.write("phantom", ph)
+        for i, j, vol in groundtruth.phantom_truth_volumes(scene, slices_z, targets, rt=rt):
+            writer.write_target("phantom", i, j, vol)
         times.add("phantom_truth", time.perf_counter() - t0)
 
         log("metrics")
         t0 = time.perf_counter()
-        met, resp_only = evaluate(scene, writer.f, gt, targets, slices_z, pitches, variants, methods)
+        met, resp_only = evaluate(scene, writer.f, targets, slices_z, pitches, variants, methods)
         times.add("metrics", time.perf_counter() - t0)
         writer.close()
     except BaseException:
@@ -231,34 +231,56 @@ def reconstruct_methods():
     return METHODS
 
 
-def evaluate(scene, f, gt, targets, slices_z, pitches, variants, methods):
-    """Table-2 metrics per pitch/variant/method and the respiratory-only comparison."""
+def evaluate(scene, f, targets, slices_z, pitches, variants, methods):
+    """Table-2 metrics per pitch/variant/method and the respiratory-only comparison.
+
+    Reads one target's volumes at a time from the (open) volume file ``f``.
+    """
     from .phantom import Phantom
+    from .volumes import read_volume
 
     met: dict = {}
     resp_only: dict = {}
     phantom = Phantom(scene.phantom)
     masks = metrics.fov_masks(scene)
-    lv_gt = _lv_volumes(scene, phantom, gt, targets, slices_z)
+    n_c, n_r = targets.shape
+    gt = lambda i, j: read_volume(f, "groundtruth", (i, j))  # noqa: E731
+    seeds = [[phantom.lv_blood_pool_centre(c, a) for a in targets.resp] for c in targets.cardiac]
+
+    def lv(vol, i, j):
+        x, y, z = seeds[i][j]
+        return metrics.blood_pool_volume_ml(vol, (z, y, x), scene, slices_z)
+
+    want_ro = "r4dct" in methods and scene.has_cardiac and scene.has_respiratory
+    lv_gt = [[lv(gt(i, j), i, j) for j in range(n_r)] for i in range(n_c)] if want_ro else None
     for pitch in pitches:
         pk = pitch_key(pitch)
         met[pk] = {}
         resp_only[pk] = {}
         for v in variants:
             met[pk][v] = {}
-            vols = {m: f[f"recon/{pk}/{v}/{m}"][()].reshape(gt.shape) for m in methods}
+            ro_mae = {m: np.zeros((n_c, n_r)) for m in methods}
+            ro_lv = {m: np.zeros((n_c, n_r)) for m in methods}
             for m in methods:
-                met[pk][v][m] = metrics.table2(vols[m], gt, scene)
-            if "r4dct" in vols and scene.has_cardiac and scene.has_respiratory:
+                name = f"recon/{pk}/{v}/{m}"
+                acc = metrics.Table2(scene, n_c, n_r)
+                for i in range(n_c):
+                    for j in range(n_r):
+                        vol, truth = read_volume(f, name, (i, j)), gt(i, j)
+                        acc.add(i, j, vol, truth)
+                        if want_ro and m in FIVE_D_METHODS + ("r4dct",):
+                            ro_mae[m][i, j] = metrics.abs_error_stats(vol, truth, masks["small"])["mae_hu"]
+                            ro_lv[m][i, j] = lv(vol, i, j)
+                met[pk][v][m] = acc.result()
+            if want_ro:
                 rows = []
                 for i, c in enumerate(targets.cardiac):
                     row = {"cardiac_phase": c, "small_fov_mae_hu": {}, "lv_volume_ml": {"groundtruth": lv_gt[i]},
                            "lv_volume_spread_ml": {"groundtruth": _spread(lv_gt[i])}}
                     for m in [x for x in methods if x in FIVE_D_METHODS + ("r4dct",)]:
-                        row["small_fov_mae_hu"][m] = metrics.abs_error_stats(vols[m][i], gt[i], masks["small"])["mae_hu"]
-                        lv = _lv_volumes(scene, phantom, vols[m][i:i + 1], Targets((c,), targets.resp), slices_z)[0]
-                        row["lv_volume_ml"][m] = lv
-                        row["lv_volume_spread_ml"][m] = _spread(lv)
+                        row["small_fov_mae_hu"][m] = float(ro_mae[m][i].mean())
+                        row["lv_volume_ml"][m] = ro_lv[m][i].tolist()
+                        row["lv_volume_spread_ml"][m] = _spread(ro_lv[m][i])
                     rows.append(row)
                 resp_only[pk][v] = rows
     return met, resp_only
@@ -267,15 +289,3 @@ def evaluate(scene, f, gt, targets, slices_z, pitches, variants, methods):
 def _spread(values) -> float:
     v = np.asarray(values, float)
     return float(v.max() - v.min()) if v.size else 0.0
-
-
-def _lv_volumes(scene, phantom, vols, targets, slices_z) -> list:
-    """LV blood-pool volume (mL) in each target's volume, seeded at the phantom's LV centre."""
-    out = []
-    for i, c in enumerate(targets.cardiac):
-        row = []
-        for j, a in enumerate(targets.resp):
-            seed = phantom.lv_blood_pool_centre(c, a)  # (x, y, z) mm
-            row.append(metrics.blood_pool_volume_ml(vols[i, j], (seed[2], seed[1], seed[0]), scene, slices_z))
-        out.append(row)
-    return out

@@ -344,6 +344,47 @@ class ProjectionStore:
             data = add_noise(data, np.arange(start, stop, dtype=np.int64), self.scene.noise)
         return data
 
+    def read_indices(self, indices, noisy: bool = False) -> np.ndarray:
+        """Projections ``indices`` (sorted, unique), shape (len(indices), R, C), float32.
+
+        For sparse selections (a run that needs only some projections): reads the covering
+        range of the file, requires only the selected projections to be present, and keeps
+        only those. Same errors and noise as :meth:`read`.
+        """
+        idx = np.asarray(indices, dtype=np.int64)
+        if idx.size == 0:
+            return np.zeros((0,) + tuple(self.shape[1:]), np.float32)
+        if np.any(np.diff(idx) <= 0):
+            raise ValueError("indices must be sorted and unique")
+        n = self.shape[0]
+        if idx[0] < 0 or idx[-1] >= n:
+            raise ValueError(f"indices outside [0, {n})")
+        if noisy and not self.scene.noise.enabled:
+            raise ValueError("noisy=True but the scene's noise.enabled is false")
+        if self._state != "final":
+            raise StoreError(f"{self.path}: the store is {self._state}, not finished; run simulate first")
+        missing = idx[~self._present[idx]]
+        if missing.size:
+            raise StoreError(f"{self.path}: projections {missing[0]}..{missing[-1]} "
+                             f"({missing.size} of the requested {idx.size}) were not simulated")
+        start, stop = int(idx[0]), int(idx[-1]) + 1
+        try:
+            if self._reader is None:
+                self._reader = h5py.File(self.path, "r", rdcc_nbytes=CACHE_BYTES)
+            data = self._reader["projections"][start:stop][idx - start]
+        except (OSError, KeyError, RuntimeError) as e:
+            self.close()
+            raise StoreError(f"{self.path}: corrupt or truncated projection store ({_one_line(e)}); "
+                             f"delete it to simulate again") from None
+        bad = ~np.isfinite(data)
+        if bad.any():
+            k = idx[np.flatnonzero(bad.any(axis=(1, 2)))]
+            raise StoreError(f"{self.path}: projections {k[0]}..{k[-1]} hold {int(bad.sum())} NaN or inf "
+                             f"line integrals (corrupt store); delete it to simulate again")
+        if noisy:
+            data = add_noise(data, idx, self.scene.noise)
+        return data
+
     def close(self) -> None:
         """Close the read handle (reopened on the next :meth:`read`)."""
         if self._reader is not None:

@@ -65,6 +65,11 @@ class VolumeWriter:
         v = self._squeeze(vol)
         self.f[name][(slice(None),) * (v.ndim - 3) + (z_slice,)] = v
 
+    def write_target(self, name: str, i: int, j: int, vol: np.ndarray) -> None:
+        """Write one target's ``(nz, ny, nx)`` volume at cardiac index ``i``, respiratory index ``j``."""
+        sel = tuple(k for k, keep in zip((i, j), self.keep) if keep)
+        self.f[name][sel] = vol
+
     def close(self) -> None:
         self.f.close()
         self.partial.replace(self.path)
