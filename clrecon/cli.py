@@ -7,7 +7,10 @@ User errors (:class:`clrecon.errors.ClreconError`) print one line and exit with 
 from __future__ import annotations
 
 import argparse
+import errno
+import signal
 import sys
+import threading
 
 from .errors import ClreconError
 
@@ -132,9 +135,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _terminate(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # SIGTERM (a batch system's cancel) unwinds like Ctrl-C: partial outputs are closed cleanly
+    # and keep their temporary names, so a later run resumes from them.
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)
     try:
         return args.func(args)
     except ClreconError as e:
@@ -142,6 +153,14 @@ def main(argv=None) -> int:
             raise
         print(f"clrecon: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:
+        if args.debug:
+            raise
+        what = "disk full" if e.errno == errno.ENOSPC else "could not read or write a file"
+        print(f"clrecon: error: {what} ({e.strerror or e}{': ' + str(e.filename) if e.filename else ''}); "
+              f"outputs of earlier runs are kept; run again to resume", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
-        print("clrecon: interrupted; finished outputs are kept, unfinished ones were not renamed", file=sys.stderr)
+        print("clrecon: interrupted; finished outputs are kept and unfinished ones keep their .partial names: "
+              "run the same command again to resume", file=sys.stderr)
         return 130

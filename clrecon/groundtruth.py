@@ -42,10 +42,11 @@ def groundtruth_sinograms(scene, phantom: Phantom, c: float, a: float, slices_z:
     return out.reshape(S, V, sc.n_cols)
 
 
-def groundtruth_volumes(scene, slices_z: np.ndarray, targets, rt=None, progress=None):
+def groundtruth_volumes(scene, slices_z: np.ndarray, targets, rt=None, progress=None, skip=()):
     """Ground-truth CT of every target, yielded as ``(i, j, (nz, ny, nx) float32 HU)``.
 
-    One target at a time, so a caller can write it out and keep memory bounded.
+    One target at a time, so a caller can write it out and keep memory bounded; targets whose
+    flat index ``i * n_resp + j`` is in ``skip`` (already done) are left out.
     """
     from .reconstruct import fbp_batched
 
@@ -54,13 +55,15 @@ def groundtruth_volumes(scene, slices_z: np.ndarray, targets, rt=None, progress=
     phantom = Phantom(scene.phantom)
     for i, c in enumerate(targets.cardiac):
         for j, a in enumerate(targets.resp):
+            if i * len(targets.resp) + j in skip:
+                continue
             sino = groundtruth_sinograms(scene, phantom, c, a, slices_z, rt=rt)
             yield i, j, fbp_batched(sino, geom, rc.filter, scene.phantom.mu_water_per_mm)
             if progress is not None:
                 progress.update(1)
 
 
-def phantom_truth_volumes(scene, slices_z: np.ndarray, targets, supersample: int = 2, rt=None):
+def phantom_truth_volumes(scene, slices_z: np.ndarray, targets, supersample: int = 2, rt=None, skip=()):
     """The analytic phantom voxelised at every target, yielded as ``(i, j, (nz, ny, nx) float32 HU)``."""
     rc = scene.recon
     phantom = Phantom(scene.phantom)
@@ -68,5 +71,7 @@ def phantom_truth_volumes(scene, slices_z: np.ndarray, targets, supersample: int
     y = voxel_coords(rc.ny, rc.voxel_mm)
     for i, c in enumerate(targets.cardiac):
         for j, a in enumerate(targets.resp):
+            if i * len(targets.resp) + j in skip:
+                continue
             mu = phantom.voxelise(c, a, x, y, np.asarray(slices_z), supersample=supersample, rt=rt)
             yield i, j, mu_to_hu(mu, scene.phantom.mu_water_per_mm).astype(np.float32)

@@ -14,6 +14,7 @@ stages ran, which were skipped and why.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import platform
@@ -99,9 +100,6 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
     t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    for stale in ("results.json", "volumes.h5", "report.md"):
-        if (out / stale).exists():
-            (out / stale).unlink()
     rt = get_runtime()
     methods = tuple(methods or scene.recon.methods)
     unknown = [m for m in methods if m not in scene.recon.methods and m not in reconstruct_methods()]
@@ -122,18 +120,35 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
     axes = {"cardiac_phase": targets.cardiac, "resp_amplitude": targets.resp, "z_mm": slices_z,
             "y_mm": reconstruct.voxel_coords(rc.ny, rc.voxel_mm), "x_mm": reconstruct.voxel_coords(rc.nx, rc.voxel_mm)}
     full_shape = targets.shape + (len(slices_z), rc.ny, rc.nx)
-    writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory)
+    run_key = hashlib.sha256(json.dumps(
+        {"scene": scene.to_dict(), "methods": methods, "pitches": pitches, "variants": variants,
+         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT},
+        sort_keys=True, default=_json_default).encode()).hexdigest()
+    writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
+                          run_key=run_key)
+    if writer.resumed:
+        log("resuming an interrupted run: finished slices and targets are kept")
+    n_t = targets.shape[0] * targets.shape[1]
     sim_info = {}
     method_seconds: dict = {}
     try:
         for pitch in pitches:
             pk = pitch_key(pitch)
-            log(f"[{pk}] planning {len(slices_z)} slices x {targets.shape[0] * targets.shape[1]} targets "
-                f"x {len(methods)} methods")
+            names = [f"recon/{pk}/{v}/{m}" for v in variants for m in methods]
+            for name in names:
+                writer.create(name, full_shape, len(slices_z))
+            todo = np.flatnonzero(~np.logical_and.reduce([writer.done(n) for n in names]))
+            if todo.size == 0:
+                log(f"[{pk}] already reconstructed (resumed run)")
+                sim_info[pk] = {"projections_total": scene.scan.projection_count(scene.scanner, pitch),
+                                "projections_needed": 0, "projections_simulated": 0, "projections_reused": 0,
+                                "store": ""}
+                continue
+            log(f"[{pk}] planning {todo.size} slices x {n_t} targets x {len(methods)} methods")
             t0 = time.perf_counter()
             table = geometry.projection_table(scene, pitch)
             times.add("signals", time.perf_counter() - t0)
-            plan = reconstruct.plan(scene, table, slices_z, targets, methods)
+            plan = reconstruct.plan(scene, table, slices_z[todo], targets, methods)
             times.add("plan", plan.seconds)
             needed = plan.needed_projections(len(table))
             t0 = time.perf_counter()
@@ -143,14 +158,11 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
                             "projections_simulated": int(getattr(store, "n_simulated", 0)),
                             "projections_reused": int(getattr(store, "n_reused", 0)),
                             "store": str(getattr(store, "path", ""))}
-            for v in variants:
-                for m in methods:
-                    writer.create(f"recon/{pk}/{v}/{m}", full_shape)
 
-            def on_slab(zs, slab, pk=pk):
+            def on_slab(zs, slab, pk=pk, todo=todo):
                 for (v, m), vol in slab.items():
                     vol = np.broadcast_to(vol, targets.shape + vol.shape[2:])  # r4dct: same for every c
-                    writer.write(f"recon/{pk}/{v}/{m}", vol, zs)
+                    writer.write(f"recon/{pk}/{v}/{m}", vol, todo[zs])
 
             bar = _progress(len(slices_z), f"reconstruct {pk}", progress)
             ptimes = StageTimes()
@@ -169,22 +181,26 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
 
         log("ground truth")
         t0 = time.perf_counter()
-        bar = _progress(targets.shape[0] * targets.shape[1], "ground truth", progress)
-        writer.create("groundtruth", full_shape)
-        for i, j, vol in groundtruth.groundtruth_volumes(scene, slices_z, targets, rt=rt, progress=bar):
-            writer.write_target("groundtruth", i, j, vol)
+        for name in ("groundtruth", "phantom"):
+            writer.create(name, full_shape, n_t)
+        skip = set(np.flatnonzero(writer.done("groundtruth")))
+        bar = _progress(n_t - len(skip), "ground truth", progress)
+        for i, j, vol in groundtruth.groundtruth_volumes(scene, slices_z, targets, rt=rt, progress=bar, skip=skip):
+            writer.write_target("groundtruth", i, j, targets.shape[1], vol)
         bar.close()
         times.add("groundtruth", time.perf_counter() - t0)
         t0 = time.perf_counter()
-        writer.create("phantom", full_shape)
-        for i, j, vol in groundtruth.phantom_truth_volumes(scene, slices_z, targets, rt=rt):
-            writer.write_target("phantom", i, j, vol)
+        skip = set(np.flatnonzero(writer.done("phantom")))
+        for i, j, vol in groundtruth.phantom_truth_volumes(scene, slices_z, targets, rt=rt, skip=skip):
+            writer.write_target("phantom", i, j, targets.shape[1], vol)
         times.add("phantom_truth", time.perf_counter() - t0)
 
         log("metrics")
         t0 = time.perf_counter()
         met, resp_only = evaluate(scene, writer.f, targets, slices_z, pitches, variants, methods)
         times.add("metrics", time.perf_counter() - t0)
+        # the previous run's results must not describe the new volumes, even for a moment
+        (out / "results.json").unlink(missing_ok=True)
         writer.close()
     except BaseException:
         writer.abort()
@@ -210,6 +226,7 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
                     "targets": {"cardiac": list(targets.cardiac), "resp": list(targets.resp)},
                     "slices": list(slice_range) if slice_range else [0, nz], "slices_z_mm": slices_z.tolist()},
         "dimensions": {"cardiac": scene.has_cardiac, "resp": scene.has_respiratory},
+        "resumed": writer.resumed,
         "stages": stages,
         "metrics": met,
         "method_seconds": method_seconds,

@@ -33,16 +33,34 @@ def pitch_key(pitch: float) -> str:
 
 
 class VolumeWriter:
-    """Writes ``volumes.h5`` as ``volumes.h5.partial`` and renames it when closed cleanly."""
+    """Writes ``volumes.h5`` as ``volumes.h5.partial`` and renames it when closed cleanly.
 
-    def __init__(self, path: Path, axes: dict, keep_cardiac: bool, keep_resp: bool):
+    Resumable: every finished block is marked in a ``done`` attribute (slices for
+    reconstructions, targets for truths) after it is written and flushed. A later run with
+    the same ``run_key`` (hash of scene and request) reopens the partial file and skips what
+    is marked; any other key starts afresh.
+    """
+
+    def __init__(self, path: Path, axes: dict, keep_cardiac: bool, keep_resp: bool, run_key: str = ""):
         self.path = Path(path)
         self.partial = self.path.with_name(self.path.name + ".partial")
-        self.f = h5py.File(self.partial, "w")
-        self.f.attrs["format_version"] = FORMAT_VERSION
-        for k, v in axes.items():
-            self.f[f"axes/{k}"] = np.asarray(v, np.float64)
         self.keep = (keep_cardiac, keep_resp)
+        self.resumed = False
+        if self.partial.exists():
+            try:
+                f = h5py.File(self.partial, "a")
+                if f.attrs.get("run_key") == run_key and f.attrs.get("format_version") == FORMAT_VERSION:
+                    self.f, self.resumed = f, True
+                else:
+                    f.close()
+            except OSError:  # a partial file too damaged to open: start again
+                pass
+        if not self.resumed:
+            self.f = h5py.File(self.partial, "w")
+            self.f.attrs["format_version"] = FORMAT_VERSION
+            self.f.attrs["run_key"] = run_key
+            for k, v in axes.items():
+                self.f[f"axes/{k}"] = np.asarray(v, np.float64)
 
     def _dims(self):
         return tuple(d for d, keep in zip(DIMS, self.keep + (True, True, True)) if keep)
@@ -51,24 +69,40 @@ class VolumeWriter:
         drop = tuple(i for i, keep in enumerate(self.keep) if not keep)
         return vol.reshape(tuple(s for i, s in enumerate(vol.shape) if i not in drop))
 
-    def create(self, name: str, full_shape: tuple) -> None:
+    def create(self, name: str, full_shape: tuple, done_size: int) -> None:
+        """Create dataset ``name`` (kept as it is when resuming) with a ``done`` mask of ``done_size``."""
+        if name in self.f:
+            return
         shape = self._squeeze(np.empty(full_shape, np.bool_)).shape
         chunks = tuple(1 for _ in shape[:-3]) + (1,) + tuple(shape[-2:])
         ds = self.f.create_dataset(name, shape=shape, dtype=np.float32, chunks=chunks)
         ds.attrs["dims"] = list(self._dims())
         ds.attrs["units"] = "HU"
+        ds.attrs["done"] = np.zeros(done_size, np.uint8)
 
-    def write(self, name: str, vol: np.ndarray, z_slice=slice(None)) -> None:
-        """Write a full-axis block ``(n_c, n_r, s, ny, nx)`` into slices ``z_slice``."""
-        if name not in self.f:
-            raise KeyError(name)
+    def done(self, name: str) -> np.ndarray:
+        """Boolean mask of the finished blocks of ``name`` (slices or flattened targets)."""
+        return np.asarray(self.f[name].attrs["done"], bool)
+
+    def _mark(self, name: str, which) -> None:
+        self.f.flush()  # data first, then the mark: a crash between them only redoes work
+        d = np.asarray(self.f[name].attrs["done"], np.uint8)
+        d[which] = 1
+        self.f[name].attrs["done"] = d
+        self.f.flush()
+
+    def write(self, name: str, vol: np.ndarray, z_index) -> None:
+        """Write a full-axis block ``(n_c, n_r, s, ny, nx)`` into slice indices ``z_index`` (increasing)."""
         v = self._squeeze(vol)
-        self.f[name][(slice(None),) * (v.ndim - 3) + (z_slice,)] = v
+        z = np.asarray(z_index)
+        self.f[name][(slice(None),) * (v.ndim - 3) + (list(z),)] = v
+        self._mark(name, z)
 
-    def write_target(self, name: str, i: int, j: int, vol: np.ndarray) -> None:
+    def write_target(self, name: str, i: int, j: int, n_resp: int, vol: np.ndarray) -> None:
         """Write one target's ``(nz, ny, nx)`` volume at cardiac index ``i``, respiratory index ``j``."""
         sel = tuple(k for k, keep in zip((i, j), self.keep) if keep)
         self.f[name][sel] = vol
+        self._mark(name, i * n_resp + j)
 
     def close(self) -> None:
         self.f.close()
