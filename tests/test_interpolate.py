@@ -476,7 +476,8 @@ def _inside_copied_hull(c, a, targets):
     default tolerance but outside for the exact amplitude test, and either answer is right."""
     P = np.concatenate([np.stack([c + s, a], axis=1) for s in (0.0, -1.0, 1.0)])
     try:
-        return Delaunay(P).find_simplex(targets, tol=-1e-9) >= 0
+        # bruteforce: the directed walk can cycle forever on degenerate (lattice) triangulations
+        return Delaunay(P).find_simplex(targets, bruteforce=True, tol=-1e-9) >= 0
     except Exception:  # Qhull: fewer than three distinct points, or all collinear
         return np.zeros(len(targets), dtype=bool)
 
