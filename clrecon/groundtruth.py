@@ -75,3 +75,25 @@ def phantom_truth_volumes(scene, slices_z: np.ndarray, targets, supersample: int
                 continue
             mu = phantom.voxelise(c, a, x, y, np.asarray(slices_z), supersample=supersample, rt=rt)
             yield i, j, mu_to_hu(mu, scene.phantom.mu_water_per_mm).astype(np.float32)
+
+
+def lv_region_mask(phantom: Phantom, c: float, a: float, x_mm, y_mm, z_mm, margin_mm: float = 6.0,
+                   rt=None) -> np.ndarray:
+    """The phantom's LV blood-pool object at (c, a) grown by ``margin_mm``, as a (nz, ny, nx) bool mask.
+
+    The region in which :func:`clrecon.metrics.blood_pool_volume_ml` counts contrast-enhanced
+    voxels: it follows the heart as it breathes and beats, and the margin leaves room for a
+    reconstruction whose cavity is blurred or displaced by motion.
+    """
+    from . import phantom as ph
+
+    objs = phantom.objects(c, a)
+    row = objs[phantom.names.index("lv_blood")][None].copy()
+    row[0, ph.MU] = 1.0
+    row[0, ph.SEMI] += margin_mm
+    planes = row[0, ph.PLANES].reshape(ph.N_PLANES, 4)
+    active = np.linalg.norm(planes[:, :3], axis=1) > 0
+    planes[active, 3] += margin_mm * np.linalg.norm(planes[active, :3], axis=1)
+    row[0, ph.PLANES] = planes.ravel()
+    mu = projector.voxelise_objects(row, np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_mm), supersample=1, rt=rt)
+    return mu > 0.5

@@ -14,8 +14,6 @@ Volumes are arrays ``(n_cardiac, n_resp, nz, ny, nx)`` in HU.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
-
 from .conventions import voxel_coords
 
 
@@ -103,26 +101,16 @@ def table2(recon: np.ndarray, truth: np.ndarray, scene) -> dict:
     return acc.result()
 
 
-def blood_pool_volume_ml(volume_hu: np.ndarray, seed_zyx_mm, scene, z_mm: np.ndarray,
+def blood_pool_volume_ml(volume_hu: np.ndarray, region: np.ndarray, voxel_ml: float,
                          threshold_hu: float = 220.0) -> float:
-    """Volume (mL) of the connected region above ``threshold_hu`` containing the seed point.
+    """Volume (mL) of the voxels above ``threshold_hu`` inside ``region``.
 
     Used for the LV blood pool: contrast-enhanced blood (300-450 HU) against myocardium
-    (80-100 HU); 220 HU is about midway. ``volume_hu`` is (nz, ny, nx); the seed is a
-    point inside the LV cavity (mm). Returns 0.0 if the seed voxel is below threshold
-    (the cavity is not where the truth says it is: that is an error worth showing).
+    (80-100 HU); 220 HU is about midway. ``region`` (nz, ny, nx) bool is the true LV cavity
+    at the target state dilated by a margin (:func:`clrecon.groundtruth.lv_region_mask`), so
+    contrast in the neighbouring chambers and the aorta, which touch the cavity, is not counted
+    (a connected-component measure leaked into them and doubled the volume).
     """
-    rc = scene.recon
-    x = voxel_coords(rc.nx, rc.voxel_mm)
-    y = voxel_coords(rc.ny, rc.voxel_mm)
-    sz, sy, sx = seed_zyx_mm
-    iz = int(np.argmin(np.abs(z_mm - sz)))
-    iy = int(np.argmin(np.abs(y - sy)))
-    ix = int(np.argmin(np.abs(x - sx)))
-    above = volume_hu > threshold_hu
-    if not above[iz, iy, ix]:
-        return 0.0
-    labels, _ = ndimage.label(above)
-    region = labels == labels[iz, iy, ix]
-    dz = float(z_mm[1] - z_mm[0]) if len(z_mm) > 1 else rc.slice_mm
-    return float(region.sum() * rc.voxel_mm ** 2 * abs(dz) / 1000.0)
+    if volume_hu.shape != region.shape:
+        raise ValueError(f"volume shape {volume_hu.shape} != region shape {region.shape}")
+    return float(np.count_nonzero((volume_hu > threshold_hu) & region) * voxel_ml)

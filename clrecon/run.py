@@ -262,13 +262,16 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods):
     masks = metrics.fov_masks(scene)
     n_c, n_r = targets.shape
     gt = lambda i, j: read_volume(f, "groundtruth", (i, j))  # noqa: E731
-    seeds = [[phantom.lv_blood_pool_centre(c, a) for a in targets.resp] for c in targets.cardiac]
+    want_ro = "r4dct" in methods and scene.has_cardiac and scene.has_respiratory
+    rc = scene.recon
+    x, y = reconstruct.voxel_coords(rc.nx, rc.voxel_mm), reconstruct.voxel_coords(rc.ny, rc.voxel_mm)
+    voxel_ml = rc.voxel_mm ** 2 * (abs(slices_z[1] - slices_z[0]) if len(slices_z) > 1 else rc.slice_mm) / 1000.0
+    regions = ([[groundtruth.lv_region_mask(phantom, c, a, x, y, slices_z) for a in targets.resp]
+                for c in targets.cardiac] if want_ro else None)
 
     def lv(vol, i, j):
-        x, y, z = seeds[i][j]
-        return metrics.blood_pool_volume_ml(vol, (z, y, x), scene, slices_z)
+        return metrics.blood_pool_volume_ml(vol, regions[i][j], voxel_ml)
 
-    want_ro = "r4dct" in methods and scene.has_cardiac and scene.has_respiratory
     lv_gt = [[lv(gt(i, j), i, j) for j in range(n_r)] for i in range(n_c)] if want_ro else None
     for pitch in pitches:
         pk = pitch_key(pitch)

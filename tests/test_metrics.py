@@ -41,13 +41,30 @@ def test_shape_mismatch_is_an_error(scene):
         table2(np.zeros((1, 1, 2, 3, 3)), np.zeros((1, 1, 2, 3, 4)), scene)
 
 
-def test_blood_pool_volume_of_a_box(scene):
-    s = scene.replace(recon={"nx": 32, "ny": 32, "nz": 8, "voxel_mm": 2.0, "slice_mm": 2.0})
+def test_blood_pool_volume_counts_only_inside_the_region():
     vol = np.zeros((8, 32, 32), np.float32)
-    vol[2:6, 10:20, 12:17] = 400.0                     # 4 x 10 x 5 voxels of 8 mm^3
-    vol[2:6, 25:28, 25:28] = 400.0                     # a separate bright region: not counted
-    z = (np.arange(8) - 3.5) * 2.0
-    x = (np.arange(32) - 15.5) * 2.0
-    seed = (z[3], x[14], x[13])
-    assert blood_pool_volume_ml(vol, seed, s, z) == pytest.approx(4 * 10 * 5 * 8 / 1000)
-    assert blood_pool_volume_ml(vol, (z[0], x[0], x[0]), s, z) == 0.0
+    vol[2:6, 10:20, 12:17] = 400.0                     # 4 x 10 x 5 voxels above threshold
+    vol[2:6, 20:28, 12:17] = 400.0                     # touching bright neighbour: outside the region
+    region = np.zeros(vol.shape, bool)
+    region[1:7, 8:20, 10:20] = True
+    assert blood_pool_volume_ml(vol, region, 0.008) == pytest.approx(4 * 10 * 5 * 0.008)
+    with pytest.raises(ValueError, match="shape"):
+        blood_pool_volume_ml(vol, region[:-1], 0.008)
+
+
+def test_lv_region_follows_the_phantom():
+    from clrecon.groundtruth import lv_region_mask
+    from clrecon.phantom import Phantom
+    ph = Phantom()
+    x = y = (np.arange(96) - 47.5) * 2.0
+    z = (np.arange(60) - 29.5) * 2.0
+    cav = lv_region_mask(ph, 0.0, 0.5, x, y, z, margin_mm=0.0)
+    vol_ml = cav.sum() * 8 / 1000
+    # the phantom's voxelised LV cavity at end-diastole matches its volume curve within 10 %
+    # (2 mm voxels, the part inside the 120 mm slab)
+    assert vol_ml == pytest.approx(ph.lv_blood_volume_ml(0.0), rel=0.10)
+    grown = lv_region_mask(ph, 0.0, 0.5, x, y, z, margin_mm=6.0)
+    assert grown.sum() > cav.sum() and not (cav & ~grown).any()
+    inhale = lv_region_mask(ph, 0.0, 1.0, x, y, z, margin_mm=0.0)
+    zc = lambda m: (m.sum(axis=(1, 2)) * z).sum() / m.sum()   # noqa: E731
+    assert zc(inhale) < zc(cav) - 3.0                   # the heart moves down on inhale
