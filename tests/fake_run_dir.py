@@ -72,10 +72,11 @@ def make_fake_run(out: Path, methods=METHODS, pitches=PITCHES, variants=VARIANTS
     rng = np.random.default_rng(seed)
     axes = {"cardiac_phase": cardiac, "resp_amplitude": resp, "z_mm": z, "y_mm": y, "x_mm": x}
     w = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory)
-    w.create("groundtruth", shape)
-    w.write("groundtruth", gt)
-    w.create("phantom", shape)
-    w.write("phantom", gt)
+    nz = shape[2]
+    w.create("groundtruth", shape, nz)
+    w.write("groundtruth", gt, np.arange(nz))
+    w.create("phantom", shape, nz)
+    w.write("phantom", gt, np.arange(nz))
     met, secs = {}, {}
     for pitch in pitches:
         pk = pitch_key(pitch)
@@ -93,8 +94,8 @@ def make_fake_run(out: Path, methods=METHODS, pitches=PITCHES, variants=VARIANTS
                     vol = gt.copy()
                 vol = vol + rng.normal(0.0, noise * (1 + k) * (1 + 5 * pitch), shape).astype(np.float32)
                 name = f"recon/{pk}/{v}/{m}"
-                w.create(name, shape)
-                w.write(name, vol)
+                w.create(name, shape, nz)
+                w.write(name, vol, np.arange(nz))
                 met[pk][v][m] = metrics.table2(vol, gt, scene)
                 secs[pk][v][m] = 0.5 + k + 3 * pitch
     w.close()
