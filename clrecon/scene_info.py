@@ -17,14 +17,24 @@ def scene_costs(scene) -> dict:
     n_targets = len(scene.cardiac_targets) * len(scene.resp_targets)
     vol_bytes = n_targets * rc.nz * rc.ny * rc.nx * 4
     n_vols = len(scene.scan.pitches) * len(noise_variants(scene)) * len(rc.methods) + 2
-    # peak: one 512-projection read chunk (+ its noisy copy) + one slab of rebinned rows (capped
-    # at 1.5 GB by the slab size) + one FBP batch of 64 sinograms and its images
-    chunk = 512 * proj_bytes * 2
-    fbp_batch = 64 * (sc.views_per_rotation * sc.n_cols + rc.ny * rc.nx) * 4 * 3
-    slab_rows = min(1.5e9, sum(n_proj.values()) / len(n_proj) * sc.n_cols * 4 * 2)
+    # peak, as reconstruct.py walks it: one 512-projection read chunk (+ its noisy copy), one
+    # slab of rebinned rows (capped at 1.5 GB by the slab size), the slab's output volumes for
+    # every method and variant, one method's slab of sinograms, and one target's truth volume
+    from .rebin import slice_window_mm
+
+    radius = min(sc.fov_radius_mm, rc.fov_radius_mm)
+    feed = min(scene.scan.feed_mm(sc, p) for p in scene.scan.pitches)
+    rows_per_slice = 2 * slice_window_mm(sc, radius) / feed * sc.views_per_rotation
+    n_var = len(noise_variants(scene))
+    slab = int(max(1, min(rc.nz, 1.5e9 // (rows_per_slice * sc.n_cols * 4 * n_var))))
+    chunk = 512 * proj_bytes * (1 + n_var)
+    slab_rows = min(1.5e9, slab * rows_per_slice * sc.n_cols * 4 * n_var)
+    slab_vols = len(rc.methods) * n_var * n_targets * slab * rc.ny * rc.nx * 4
+    slab_sinos = n_targets * slab * sc.views_per_rotation * sc.n_cols * 4 * 2
+    peak = chunk + slab_rows + slab_vols + slab_sinos + 2 * rc.nz * rc.ny * rc.nx * 4
     return {"projections": n_proj, "store_bytes": sum(n_proj.values()) * proj_bytes,
             "volume_bytes": vol_bytes * n_vols, "n_volumes": n_vols, "n_targets": n_targets,
-            "peak_memory_bytes": chunk + fbp_batch + slab_rows + 2 * vol_bytes}
+            "peak_memory_bytes": peak, "slab_slices": slab}
 
 
 def describe_scenes() -> str:
