@@ -263,8 +263,8 @@ def _reconstruct_slab(scene, store, plan_: Plan, s0, s1, variants, geom, rt, tim
             times.add(f"method:{m}:{v}", t_interp + t_fbp)
             img = img.reshape(Sn, tshape[0], tshape[1], rc.ny, rc.nx).transpose(1, 2, 0, 3, 4)
             out[(v, m)] = np.ascontiguousarray(img)
-        if progress is not None:
-            progress.update(s1 - s0)
+    if progress is not None:
+        progress.update(s1 - s0)
     return out
 
 
