@@ -92,6 +92,18 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    from .bench import format_report, run_bench, write_json
+
+    only = [x.strip() for x in args.only.split(",") if x.strip()] if args.only else None
+    res = run_bench(quick=args.quick, only=only, repeats=args.repeats)
+    print(format_report(res))
+    if args.json:
+        write_json(res, args.json)
+        print(f"wrote {args.json}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="clrecon", description=__doc__.splitlines()[0])
     p.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -132,6 +144,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--variant", help="noisy or noise-free (default: noisy if present)")
     e.add_argument("--out", help="output folder (default: RUN_DIR/export/FORMAT/SOURCE)")
     e.set_defaults(func=cmd_export)
+
+    b = sub.add_parser("bench", help="throughput figures, each with a reference measured in the same run")
+    b.add_argument("--quick", action="store_true", help="smaller sizes and one repeat (about a minute)")
+    b.add_argument("--json", metavar="FILE", help="also write every number and the machine description here")
+    b.add_argument("--only", help="comma list from backprojection,projector,interpolation,end-to-end,memory,scaling")
+    b.add_argument("--repeats", type=int, help="timed repeats per figure (default 3; --quick 1); the median is shown")
+    b.set_defaults(func=cmd_bench)
     return p
 
 

@@ -108,7 +108,7 @@ def plan(scene, table: ProjectionTable, slices_z: np.ndarray, targets: Targets, 
     has no SSRB candidate (slice outside the scanned range, or pitch too high for the rows).
     """
     t0 = time.perf_counter()
-    sc, rc = scene.scanner, scene.recon
+    sc = scene.scanner
     nv = sc.views_per_rotation
     p = Plan(slices_z=np.asarray(slices_z, float))
     groups = rebin.candidate_groups(table, p.slices_z, sc, object_radius_mm(scene))
@@ -122,9 +122,7 @@ def plan(scene, table: ProjectionTable, slices_z: np.ndarray, targets: Targets, 
             f"+-{rebin.slice_window_mm(sc, object_radius_mm(scene)):.2f} mm); reduce recon.nz/slice_mm or the pitch")
     c = table.cardiac_phase[groups.row]
     a = table.resp_amplitude[groups.row]
-    opts = dict(kappa=rc.kappa, sigma=rc.sigma, use_cardiac=scene.has_cardiac, use_resp=scene.has_respiratory,
-                cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=1.0 / rc.resp_bins,
-                extrapolate=rc.local_linear_extrapolate)
+    opts = weight_options(scene, targets)
     S = len(p.slices_z)
     for m in methods:
         tg = targets.pairs[:len(targets.resp)] if m == "r4dct" else targets.pairs
@@ -136,6 +134,14 @@ def plan(scene, table: ProjectionTable, slices_z: np.ndarray, targets: Targets, 
         p.methods[m] = MethodPlan(proj_index=proj, weight=weight, targets_shape=shape)
     p.seconds = time.perf_counter() - t0
     return p
+
+
+def weight_options(scene, targets: Targets) -> dict:
+    """Keyword options of :func:`clrecon.interpolate.batch_weights` for a scene and its targets."""
+    rc = scene.recon
+    return dict(kappa=rc.kappa, sigma=rc.sigma, use_cardiac=scene.has_cardiac, use_resp=scene.has_respiratory,
+                cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=1.0 / rc.resp_bins,
+                extrapolate=rc.local_linear_extrapolate)
 
 
 def _cardiac_bin_width(targets: Targets) -> float:
