@@ -781,3 +781,82 @@ def apply_weights(rows, index, weight, rt=None) -> np.ndarray:
     ev = knl(rt.queue, (-(-C // _LOCAL) * _LOCAL, B), (_LOCAL, 1), d_rows, d_idx, d_w, d_out,
              np.int32(B), np.int32(C), np.int32(K))
     return rt.from_device(d_out, (B, C), np.float32, wait_for=[ev])
+
+
+class DeviceRows:
+    """Rebinned rows uploaded once, for several :func:`apply_weights_interleaved` calls.
+
+    ``rows`` (P, C) is converted to float32; :meth:`release` frees the device copy (on a
+    CPU device it is host memory too, so release it as soon as the slab is done).
+    """
+
+    def __init__(self, rows, rt=None):
+        rows = np.asarray(rows)
+        if rows.dtype.kind not in "fiu":
+            raise TypeError(f"rows: expected a real numeric array, got dtype {rows.dtype}")
+        if rows.ndim != 2:
+            raise ValueError(f"rows: expected shape (P, C), got {rows.shape}")
+        self.rt = rt or get_runtime()
+        self.shape = rows.shape
+        self.buf = self.rt.to_device(rows, np.float32, "rows")
+
+    def release(self) -> None:
+        if self.buf is not None:
+            self.buf.release()
+            self.buf = None
+
+
+def apply_weights_interleaved(rows: DeviceRows, index, weight, rt=None):
+    """:func:`apply_weights` for whole sinograms, written in the batched backprojector's layout.
+
+    Parameters
+    ----------
+    rows : DeviceRows
+        (P, C) rows on the device.
+    index : array_like of int
+        (B, V, K): row of ``rows`` for slot k of view v of sinogram b; only slots with
+        non-zero weight are read.
+    weight : array_like of float
+        (B, V, K) weights (converted to float32).
+    rt : Runtime, optional
+
+    Returns
+    -------
+    (buffer, n_groups)
+        Device buffer of (n_groups, V, C + 2, 16) float32, n_groups = ceil(B / 16): the
+        layout of :func:`clrecon.fbp.interleave_batch` (sinogram ``16 g + lane`` in lane
+        ``lane`` of group ``g``; lanes beyond B are zero), for
+        :func:`clrecon.fbp.backproject_interleaved`.
+    """
+    index = np.asarray(index)
+    weight = np.asarray(weight)
+    if index.dtype.kind not in "iu":
+        raise TypeError(f"index: expected an integer array, got dtype {index.dtype}")
+    if weight.dtype.kind != "f":
+        raise TypeError(f"weight: expected a float array, got dtype {weight.dtype}")
+    if index.ndim != 3 or weight.shape != index.shape:
+        raise ValueError(f"expected index and weight (B, V, K) of equal shape, got {index.shape}, {weight.shape}")
+    P, C = rows.shape
+    B, V, K = index.shape
+    live = weight != 0
+    if np.any(live) and (index[live].min() < 0 or index[live].max() >= P):
+        raise ValueError(f"index: entries with non-zero weight must lie in [0, {P})")
+    rt = rt or rows.rt
+    G = max(1, -(-B // 16))
+    idx = np.zeros((G * 16, V, K), np.int32)
+    wgt = np.zeros((G * 16, V, K), np.float32)
+    idx[:B] = np.where(live, index, 0)
+    wgt[:B] = weight
+    d_out = rt.empty((G, V, C + 2, 16), np.float32)
+    if B == 0 or P == 0 or C == 0 or V == 0 or K == 0:
+        rt.cl.enqueue_fill_buffer(rt.queue, d_out, np.float32(0), 0, G * V * (C + 2) * 16 * 4).wait()
+        return d_out, G
+    knl = rt.kernel("interp.cl", "apply_weights_interleaved16")
+    d_idx = rt.to_device(idx, np.int32, "index")
+    d_w = rt.to_device(wgt, np.float32, "weight")
+    ev = knl(rt.queue, (-(-(C + 2) // _LOCAL) * _LOCAL, V, G), (_LOCAL, 1, 1), rows.buf, d_idx, d_w, d_out,
+             np.int32(V), np.int32(C), np.int32(K))
+    ev.wait()
+    d_idx.release()
+    d_w.release()
+    return d_out, G
