@@ -74,3 +74,69 @@ def test_bad_inputs():
         add_noise(np.zeros((4, 2, 2), np.float32), np.arange(3), cfg)
     with pytest.raises(TypeError, match="integers"):
         add_noise(np.zeros((2, 2, 2), np.float32), np.array([0.0, 1.0]), cfg)
+
+
+# --- the generator: Philox4x64-10 streams, OpenCL kernel vs its float64 NumPy reference ------
+from clrecon import noise as noise_mod  # noqa: E402
+
+
+@pytest.mark.parametrize("counter, key", [((0, 0, 0, 0), (0, 0)), ((5, 7, 0, 0), (7, 123456)),
+                                          ((2 ** 64 - 2, 1, 2, 3), (2 ** 64 - 1, 99))])
+def test_philox_matches_numpy_bit_generator(counter, key):
+    """NumPy's Philox (4x64-10) increments its counter before each block."""
+    bg = np.random.Philox(counter=np.array(counter, np.uint64), key=np.array(key, np.uint64))
+    c = np.array(counter, np.uint64)
+    with np.errstate(over="ignore"):
+        c[0] += np.uint64(1)
+    np.testing.assert_array_equal(noise_mod.philox4x64(c, np.array(key, np.uint64)), bg.random_raw(4))
+
+
+@pytest.mark.parametrize("i0, sigma", [(2.0e5, 5.0), (2.0e5, 0.0), (50.0, 5.0), (3.0, 0.0)])
+def test_kernel_matches_float64_reference(i0, sigma):
+    """Same streams and samplers: identical values (inversion below a mean of 10, PTRS above,
+    starvation, and every pass of the kernel)."""
+    rng = np.random.default_rng(5)
+    p = rng.uniform(0.0, 12.0, (5, 6, 70)).astype(np.float32)
+    p[0, 0, :10] = 40.0  # starvation: mean ~0
+    idx = np.array([0, 1, 17, 10 ** 6, 2 ** 40])
+    cfg = NoiseConfig(i0_photons=i0, electronic_sigma=sigma, seed=9)
+    np.testing.assert_array_equal(add_noise(p, idx, cfg), noise_mod.add_noise_reference(p, idx, cfg))
+
+
+def test_kernel_matches_reference_at_huge_counts():
+    p = np.random.default_rng(6).uniform(0.0, 3.0, (2, 4, 50)).astype(np.float32)
+    cfg = NoiseConfig(i0_photons=1.0e15, seed=2)
+    a, b = add_noise(p, np.arange(2), cfg), noise_mod.add_noise_reference(p, np.arange(2), cfg)
+    assert np.mean(a == b) > 0.99
+    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)  # float32 rounding of -log(N / I0)
+
+
+def test_reference_is_the_fallback_without_float64(monkeypatch):
+    p = np.random.default_rng(7).uniform(0.0, 5.0, (3, 2, 9)).astype(np.float32)
+    cfg = NoiseConfig(seed=4)
+    want = add_noise(p, np.arange(3), cfg)
+    monkeypatch.setattr(noise_mod, "_has_fp64", lambda rt: False)
+    np.testing.assert_array_equal(add_noise(p, np.arange(3), cfg), want)
+
+
+def test_cos2pi_polynomial():
+    u = np.random.default_rng(8).random(100000)
+    assert np.abs(noise_mod.cos2pi(u) - np.cos(2 * np.pi * u)).max() < 2e-15
+
+
+@pytest.mark.parametrize("lam", [0.3, 4.0, 9.9, 10.0, 60.0, 3.0e4])
+def test_poisson_counts_mean_and_variance(lam):
+    """Both samplers: mean and variance of N within 5 standard errors (sigma_e = 0)."""
+    shape = (20, 50, 50)
+    i0 = 1.0e6
+    p = np.full(shape, np.log(i0 / lam), np.float32)
+    noisy = add_noise(p, np.arange(shape[0]), NoiseConfig(i0_photons=i0, electronic_sigma=0.0, seed=1))
+    n = np.rint(i0 * np.exp(-noisy.astype(np.float64)))  # N >= 1 survives the log exactly enough
+    lam_t = i0 * np.exp(-np.float64(p.flat[0]))
+    m = n.size
+    # the 1-photon floor turns N = 0 into 1: compare with the floored distribution's moments
+    p0 = np.exp(-lam_t)
+    mean = lam_t + p0
+    var = lam_t + lam_t ** 2 + p0 - mean ** 2
+    assert abs(n.mean() - mean) < K_SE * np.sqrt(var / m)
+    assert abs(n.var(ddof=1) - var) < K_SE * var * np.sqrt(2.0 / (m - 1)) * 2

@@ -122,3 +122,54 @@ def test_reconstruct_matches_plain_pipeline(tmp_path):
         assert got.shape == ref.shape
         assert np.abs(got - ref).max() < 0.05, m  # HU; float32 rounding of a different summation order
     store.close()
+
+
+# --- the new kernels under Oclgrind (memcheck, data races, uninitialised values) -----------
+def _grind(capfd):
+    import os
+    import re
+
+    import pyopencl as cl
+
+    from clrecon.cl_runtime import Runtime
+
+    if not any("oclgrind" in p.name.lower() for p in cl.get_platforms()):
+        pytest.skip("Oclgrind is not installed: pip install 'pyopencl[oclgrind]'")
+    saved = {k: os.environ.get(k) for k in ("OCLGRIND_DATA_RACES", "OCLGRIND_UNINITIALIZED")}
+    os.environ.update(OCLGRIND_DATA_RACES="1", OCLGRIND_UNINITIALIZED="1")
+    try:
+        rt = Runtime("oclgrind")
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    diag = re.compile(r"Invalid (read|write)|data race|[Uu]ninitiali[sz]ed|Oclgrind.*error|out of bounds", re.I)
+
+    def clean():
+        err = capfd.readouterr().err
+        assert not diag.search(err), err[:4000]
+    return rt, clean
+
+
+def test_oclgrind_interleaved_apply_and_noise(capfd):
+    from clrecon import noise
+    from clrecon.scene import NoiseConfig
+
+    rt, clean = _grind(capfd)
+    rng = np.random.default_rng(1)
+    rows = rng.standard_normal((9, 11)).astype(np.float32)
+    idx = rng.integers(0, 9, (19, 3, 2))
+    w = rng.standard_normal((19, 3, 2)).astype(np.float32)
+    dr = ip.DeviceRows(rows, rt=rt)
+    buf, G = ip.apply_weights_interleaved(dr, idx, w, rt=rt)
+    got = rt.from_device(buf, (G, 3, 13, 16))
+    ref = fbp.interleave_batch(ip.apply_weights_reference(rows, idx.reshape(-1, 2), w.reshape(-1, 2))
+                               .reshape(19, 3, 11).astype(np.float32))
+    assert _rel(got, ref) < TOL["interleaved_apply"]
+    p = rng.uniform(0, 12, (2, 3, 25)).astype(np.float32)  # 75 cells: padded to 128
+    cfg = NoiseConfig(i0_photons=50.0, seed=2)              # both passes run
+    np.testing.assert_array_equal(noise.add_noise(p, np.array([3, 9]), cfg, rt=rt),
+                                  noise.add_noise_reference(p, np.array([3, 9]), cfg))
+    clean()
