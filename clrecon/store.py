@@ -319,30 +319,11 @@ class ProjectionStore:
         n = self.shape[0]
         if not (0 <= start <= stop <= n):
             raise ValueError(f"range [{start}, {stop}) outside [0, {n}]")
-        if noisy and not self.scene.noise.enabled:
-            raise ValueError("noisy=True but the scene's noise.enabled is false")
-        if self._state != "final":
-            raise StoreError(f"{self.path}: the store is {self._state}, not finished; run simulate first")
-        missing = np.flatnonzero(~self._present[start:stop])
-        if missing.size:
-            raise StoreError(f"{self.path}: projections {start + missing[0]}..{start + missing[-1]} "
-                             f"({missing.size} of the requested {stop - start}) were not simulated")
-        try:
-            if self._reader is None:
-                self._reader = h5py.File(self.path, "r", rdcc_nbytes=CACHE_BYTES)
-            data = self._reader["projections"][start:stop]
-        except (OSError, KeyError, RuntimeError) as e:
-            self.close()
-            raise StoreError(f"{self.path}: corrupt or truncated projection store ({_one_line(e)}); "
-                             f"delete it to simulate again") from None
-        bad = ~np.isfinite(data)
-        if bad.any():
-            k = start + np.flatnonzero(bad.any(axis=(1, 2)))
-            raise StoreError(f"{self.path}: projections {k[0]}..{k[-1]} hold {int(bad.sum())} NaN or inf "
-                             f"line integrals (corrupt store); delete it to simulate again")
-        if noisy:
-            data = add_noise(data, np.arange(start, stop, dtype=np.int64), self.scene.noise)
-        return data
+        if start == stop:
+            if noisy and not self.scene.noise.enabled:
+                raise ValueError("noisy=True but the scene's noise.enabled is false")
+            return np.zeros((0,) + tuple(self.shape[1:]), np.float32)
+        return self.read_indices(np.arange(start, stop, dtype=np.int64), noisy=noisy)
 
     def read_indices(self, indices, noisy: bool = False) -> np.ndarray:
         """Projections ``indices`` (sorted, unique), shape (len(indices), R, C), float32.
@@ -371,7 +352,9 @@ class ProjectionStore:
         try:
             if self._reader is None:
                 self._reader = h5py.File(self.path, "r", rdcc_nbytes=CACHE_BYTES)
-            data = self._reader["projections"][start:stop][idx - start]
+            data = self._reader["projections"][start:stop]
+            if idx.size != stop - start:  # sparse selection: keep only the requested projections
+                data = data[idx - start]
         except (OSError, KeyError, RuntimeError) as e:
             self.close()
             raise StoreError(f"{self.path}: corrupt or truncated projection store ({_one_line(e)}); "
