@@ -256,20 +256,30 @@ def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None) -> np.ndarr
     knl = rt.kernel("noise.cl", "add_noise", LLVM_MATH=llvm_math)
     knl_rest = rt.kernel("noise.cl", "add_noise_rest", LLVM_MATH=llvm_math)
     padded = -(-cells // _LOCAL) * _LOCAL  # pass 1 has no bounds check (it would stop vectorisation)
-    flat = np.zeros((m, padded), np.float32)
-    flat[:, :cells] = p.reshape(m, cells)
-    d_p = rt.to_device(flat, np.float32, "line_integrals")
-    d_idx = rt.to_device(idx.astype(np.int64), np.int64, "proj_index")
-    d_out = rt.empty((m, padded), np.float32)
-    d_rest = rt.empty((m, padded), np.uint8)
+    flat_in = p.reshape(m, cells)
+    out = np.empty((m, cells), np.float32)
     args = (np.int32(padded), np.uint64(cfg.seed), np.float64(cfg.i0_photons), np.float64(cfg.electronic_sigma),
             np.float64(N_FLOOR))
-    ev = knl(rt.queue, (padded, m), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, *args)
-    ev = knl_rest(rt.queue, (padded, m), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, *args, wait_for=[ev])
-    out = rt.from_device(d_out, (m, padded), np.float32, wait_for=[ev])[:, :cells].reshape(p.shape)
-    for buf in (d_p, d_idx, d_out, d_rest):
-        buf.release()
-    return out
+    # blocks of projections keep the device buffers (host memory on a CPU device) small
+    block = max(1, BLOCK_CELLS // padded)
+    for j0 in range(0, m, block):
+        j1 = min(m, j0 + block)
+        part = flat_in[j0:j1]
+        if padded != cells:
+            part = np.pad(part, ((0, 0), (0, padded - cells)))
+        d_p = rt.to_device(part, np.float32, "line_integrals")
+        d_idx = rt.to_device(idx[j0:j1].astype(np.int64), np.int64, "proj_index")
+        d_out = rt.empty((j1 - j0, padded), np.float32)
+        d_rest = rt.empty((j1 - j0, padded), np.uint8)
+        ev = knl(rt.queue, (padded, j1 - j0), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, *args)
+        ev = knl_rest(rt.queue, (padded, j1 - j0), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, *args, wait_for=[ev])
+        res = rt.from_device(d_out, (j1 - j0, padded), np.float32, wait_for=[ev])
+        out[j0:j1] = res[:, :cells]
+        for buf in (d_p, d_idx, d_out, d_rest):
+            buf.release()
+    return out.reshape(p.shape)
 
 
+#: Cells per kernel launch (about 2^22: 16 MiB of line integrals, as many of output).
+BLOCK_CELLS = 1 << 22
 _LOCAL = 64  # fixed work-group size (PoCL specialises binaries per local size)

@@ -140,3 +140,11 @@ def test_poisson_counts_mean_and_variance(lam):
     var = lam_t + lam_t ** 2 + p0 - mean ** 2
     assert abs(n.mean() - mean) < K_SE * np.sqrt(var / m)
     assert abs(n.var(ddof=1) - var) < K_SE * var * np.sqrt(2.0 / (m - 1)) * 2
+
+
+def test_kernel_blocks_do_not_change_the_noise(monkeypatch):
+    p = np.random.default_rng(9).uniform(0.0, 6.0, (7, 3, 30)).astype(np.float32)  # 90 cells: padded
+    cfg = NoiseConfig(seed=5)
+    whole = add_noise(p, np.arange(7), cfg)
+    monkeypatch.setattr(noise_mod, "BLOCK_CELLS", 200)  # two projections per launch
+    np.testing.assert_array_equal(add_noise(p, np.arange(7), cfg), whole)
