@@ -339,12 +339,12 @@ def backproject_interleaved(sino16, n_groups: int, geom: FanBeamGeometry, *, run
     float32 as :func:`backproject`.
     """
     rt = runtime or get_runtime()
-    kern = rt.kernel(_KERNEL_FILE, "backproject_batched16", _fast=True, **_defines())
+    kern = rt.kernel(_KERNEL_FILE, "backproject_batched16x2", _fast=True, **_defines())
     trig = rt.to_device(_trig_table(geom))
     shape = (n_groups * BATCH_LANES, geom.ny, geom.nx)
     out_buf = rt.empty(shape)
-    ev = kern(rt.queue, _global_size(geom, n_groups), LOCAL_SIZE + (1,), sino16, trig, out_buf,
-              *_geometry_args(geom), wait_for=wait_for)
+    ev = kern(rt.queue, _global_size(geom, -(-n_groups // 2)), LOCAL_SIZE + (1,), sino16, trig, out_buf,
+              *_geometry_args(geom), np.int32(n_groups), wait_for=wait_for)
     res = rt.from_device(out_buf, shape, wait_for=[ev])
     out_buf.release()
     trig.release()

@@ -172,4 +172,9 @@ def test_oclgrind_interleaved_apply_and_noise(capfd):
     cfg = NoiseConfig(i0_photons=50.0, seed=2)              # both passes run
     np.testing.assert_array_equal(noise.add_noise(p, np.array([3, 9]), cfg, rt=rt),
                                   noise.add_noise_reference(p, np.array([3, 9]), cfg))
+    # backprojection, two groups per work-item with an odd group count (the last one alone)
+    small = fbp.FanBeamGeometry(sid_mm=595.0, sdd_mm=1085.6, n_cols=12, col_pitch_mm=60.0, n_views=10, nx=9, ny=7,
+                                voxel_mm=40.0)
+    q = rng.standard_normal((33, small.n_views, small.n_cols)).astype(np.float32)
+    assert _rel(fbp.backproject(q, small, runtime=rt), fbp.backproject_single(q, small)) < 1e-5
     clean()
