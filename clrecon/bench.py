@@ -10,8 +10,9 @@ Sections (``--only`` picks some):
 
 ``backprojection``
     G voxel-updates/s of :func:`clrecon.fbp.backproject` (512^2 from 984 views x 900
-    columns, 64 sinograms per call: one launch of the reconstruction at this size,
-    :func:`clrecon.fbp.groups_per_launch` = 4 groups of 16)
+    columns, 64 sinograms per call, from host sinograms: interleave, upload, kernel, read
+    back; the reconstruction itself interleaves on the device and launches two groups of
+    16 at a time, :func:`clrecon.fbp.groups_per_launch`)
     on ramp-filtered sinograms of analytic disk phantoms; references: the one-sinogram-per-
     work-item kernel (:func:`clrecon.fbp.backproject_single`) and the ASTRA Toolbox CPU
     fan-beam backprojector (``line_fanflat``, optional: ``pip install 'clrecon[bench]'``),
@@ -66,7 +67,7 @@ GOAL_BACKPROJECTION_GUPS = 4.0
 GOAL_SIMULATION_S = 600.0
 GOAL_PEAK_MEMORY_GIB = 8.0
 
-#: Sinograms per backprojection launch in the reconstruction at 984 x 900 (4 groups of 16).
+#: Sinograms per backprojection call in the benchmark (the former FBP batch of the reconstruction).
 RECON_FBP_BATCH = 64
 
 

@@ -318,16 +318,19 @@ def interleave_batch(filtered: np.ndarray) -> np.ndarray:
     return out
 
 
-#: Upper bound on the interleaved sinograms of one backprojection launch (bytes): several
-#: groups per launch give PoCL more work-groups to share out (small images: 1.3x), while
-#: the buffer stays bounded (paper size: 4 groups of 57 MB).
+#: Groups of 16 sinograms per backprojection launch: one pair, which the kernel backprojects
+#: together. Measured on the 2-core machine (same load, alternating): 2 groups per launch
+#: 10.7 G updates/s at 128^2 (8.3 with 8, 6.6 with 45 groups: the larger interleaved buffer
+#: falls out of cache between being written and being read) and 10.0 at 512^2 (8.7 with 4).
+LAUNCH_GROUPS = 2
+#: Upper bound on the interleaved sinograms of one launch (bytes); binds only for huge rows.
 LAUNCH_BYTES = 256 << 20
 
 
 def groups_per_launch(geom: FanBeamGeometry) -> int:
-    """Groups of 16 sinograms per backprojection launch under :data:`LAUNCH_BYTES`."""
+    """Groups of 16 sinograms per backprojection launch: :data:`LAUNCH_GROUPS`, within :data:`LAUNCH_BYTES`."""
     per_group = geom.n_views * (geom.n_cols + 2) * BATCH_LANES * 4
-    return max(1, int(LAUNCH_BYTES // per_group))
+    return max(1, min(LAUNCH_GROUPS, int(LAUNCH_BYTES // per_group)))
 
 
 def backproject_interleaved(sino16, n_groups: int, geom: FanBeamGeometry, *, runtime=None,
@@ -372,8 +375,8 @@ def backproject(filtered, geom: FanBeamGeometry, *, runtime=None) -> np.ndarray:
     -----
     Sinograms go to the device in groups of 16, interleaved as [view][column][batch] so
     that each interpolation tap is one float16 load (:func:`interleave_batch`); a batch
-    that is not a multiple of 16 is zero-padded. One kernel launch takes up to
-    :func:`groups_per_launch` groups (device buffer at most :data:`LAUNCH_BYTES`).
+    that is not a multiple of 16 is zero-padded. One kernel launch takes
+    :func:`groups_per_launch` groups (two: the kernel does them together).
     """
     a = _check_sinograms(filtered, geom, "filtered")
     rt = runtime or get_runtime()
@@ -426,8 +429,8 @@ def fbp(sino, geom: FanBeamGeometry, window: str = "ram-lak", *, runtime=None) -
     Notes
     -----
     Works through the batch one backprojection launch at a time (filter, then backproject
-    up to :func:`groups_per_launch` groups of 16), so the host memory beyond input and
-    output stays at a few times :data:`LAUNCH_BYTES`.
+    :func:`groups_per_launch` groups of 16), so the host memory beyond input and output
+    stays at a few times V*C*128 bytes.
     """
     if window not in WINDOWS:
         raise ValueError(f"window = {window!r}: must be one of {', '.join(WINDOWS)}")

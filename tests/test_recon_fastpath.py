@@ -83,7 +83,7 @@ def test_filter_commutes_with_interpolation():
 def test_several_groups_per_launch_match_one(monkeypatch):
     q = np.random.default_rng(4).standard_normal((37, GEOM.n_views, GEOM.n_cols)).astype(np.float32)
     many = fbp.backproject(q, GEOM)
-    monkeypatch.setattr(fbp, "LAUNCH_BYTES", 1)  # one group per launch
+    monkeypatch.setattr(fbp, "LAUNCH_GROUPS", 1)  # one group per launch: the kernel's odd case
     assert fbp.groups_per_launch(GEOM) == 1
     one = fbp.backproject(q, GEOM)
     assert _rel(many, one) < TOL["launch_grouping"]
