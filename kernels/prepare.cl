@@ -27,30 +27,7 @@
 #define CUT_NONE 0
 #define CUT_INTERSECT 2
 
-// record layout (kernels/project.cl, clrecon/projector.py)
-#define REC 76
-#define R_FLAGS 0
-#define R_MU 1
-#define R_RECT 2
-#define R_UC 6
-#define R_VC 7
-#define R_TC 8
-#define R_DC 9
-#define R_EU 12
-#define R_EV 15
-#define R_WU 18
-#define R_WV 21
-#define R_W0 24
-#define R_BU 27
-#define R_BV 28
-#define R_B0 29
-#define R_OX 30
-#define R_OY 31
-#define R_OZ 64
-#define R_PLANE 32
-#define R_CUT 40
-#define CUT_STRIDE 12
-#define R_CUT_RECT 68
+#include "record.h"
 #define NO_SLAB 256
 
 // 3-vectors as double4 with w = 0: no undefined padding lane (Oclgrind's uninitialised-value
