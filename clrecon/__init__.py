@@ -1,11 +1,28 @@
 """clrecon: simulate helical CT of a breathing, beating thorax and reconstruct 5DCT.
 
-Pipeline (one module per stage): scene -> signals -> geometry (per-projection table)
--> phantom/projector -> noise -> store -> rebin (SSRB) -> interpolate (phase space)
--> fbp -> groundtruth/metrics -> report.
+The subpackages follow the pipeline (``docs/data-flow.md``)::
+
+    core -> config -> scan -> simulation -> reconstruction -> evaluation -> outputs -> pipeline
+
+Notebook API: :func:`load_scene`, :func:`run`, :func:`open_run` (see ``docs/api.md``).
 """
 
-__version__ = "0.1.0"
+from clrecon.core.versions import PROJECTOR_VERSION, __version__
 
-#: Bumped whenever the projector or phantom changes what a stored projection holds.
-PROJECTOR_VERSION = 2  # 2: the committed phantom + culled projector (1 was the pre-release skeleton)
+#: The notebook API (:mod:`clrecon.api`), imported on first use so that ``import clrecon``
+#: (and every command) stays light: ``from clrecon import load_scene, run, open_run``.
+_API = ("load_scene", "run", "open_run", "RunResult")
+
+__all__ = ["PROJECTOR_VERSION", "__version__", *_API]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        from clrecon import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'clrecon' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API))

@@ -1,6 +1,6 @@
 """Command line: ``python -m clrecon {run,scenes,view,export,bench}`` (a thin layer over the modules).
 
-User errors (:class:`clrecon.errors.ClreconError`) print one line and exit with status 2;
+User errors (:class:`clrecon.core.errors.ClreconError`) print one line and exit with status 2;
 ``--debug`` shows the traceback instead.
 """
 
@@ -12,7 +12,7 @@ import signal
 import sys
 import threading
 
-from .errors import ClreconError
+from clrecon.core.errors import ClreconError
 
 
 def _floats(text: str) -> list[float]:
@@ -37,8 +37,8 @@ def parse_slices(text: str):
 
 
 def cmd_run(args) -> int:
-    from .run import run
-    from .scene import load_scene
+    from clrecon.pipeline.run import run
+    from clrecon.config.scene import load_scene
 
     scene = load_scene(args.scene)
     methods = [m.strip() for m in args.methods.split(",")] if args.methods else None
@@ -49,14 +49,14 @@ def cmd_run(args) -> int:
     res = run(scene, out, methods=methods, cardiac=cardiac, resp=resp, slice_range=slices, pitches=pitches,
               cache_dir=args.cache, progress=not args.no_progress)
     print(f"wrote {out}/results.json, {out}/report.md, {out}/volumes.h5 in {res['total_seconds']:.1f} s")
-    from .report import summary_lines
+    from clrecon.outputs.report import summary_lines
     for line in summary_lines(res):
         print(line)
     return 0
 
 
 def cmd_scenes(args) -> int:
-    from .scene_info import describe_scenes
+    from clrecon.pipeline.costs import describe_scenes
 
     print(describe_scenes())
     return 0
@@ -82,7 +82,7 @@ def cmd_view(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from .export import export
+    from clrecon.outputs.export import export
 
     index = export(args.run_dir, args.format, method=args.method, pitch=args.pitch, variant=args.variant,
                    out=args.out)
@@ -93,7 +93,7 @@ def cmd_export(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import format_report, run_bench, write_json
+    from clrecon.bench.suite import format_report, run_bench, write_json
 
     only = [x.strip() for x in args.only.split(",") if x.strip()] if args.only else None
     res = run_bench(quick=args.quick, only=only, repeats=args.repeats)
@@ -112,7 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="simulate (or reuse) -> reconstruct 5DCT -> evaluate -> report")
     r.add_argument("--scene", default="demo", help="built-in scene name or TOML file (default: demo)")
     r.add_argument("--out", help="run directory (default: runs/<scene>)")
-    r.add_argument("--methods", help="comma list from barycentric,local_linear,r4dct,nearest,bin")
+    from clrecon.reconstruction.interpolation import METHODS  # the method registry
+
+    r.add_argument("--methods", help="comma list from " + ",".join(METHODS.names))
     r.add_argument("--targets", help="CARDIAC/RESP lists, e.g. 0,0.4/0.05,0.95 (empty side = the scene's)")
     r.add_argument("--slices", help="START:STOP slice index range (only the projections those need are simulated)")
     r.add_argument("--pitch", help="comma list of the scene's pitches to run")
@@ -138,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("export", help="write a run's 5D volumes as DICOM CT series or NIfTI files, one per target")
     e.add_argument("run_dir", help="run directory (with volumes.h5)")
-    e.add_argument("--format", required=True, choices=("dicom", "nifti"))
+    from clrecon.outputs.writers import WRITERS  # the one list of export formats
+    e.add_argument("--format", required=True, choices=WRITERS.names)
     e.add_argument("--method", help="reconstruction method, groundtruth or phantom (default: best method present)")
     e.add_argument("--pitch", help="pitch, e.g. 0.02 (default: the smallest present)")
     e.add_argument("--variant", help="noisy or noise-free (default: noisy if present)")

@@ -16,7 +16,7 @@
 //
 // Geometry comes in as kernel arguments, so one build serves every geometry; only the
 // local size LX x LY and the view chunk VCHUNK are compile-time constants (-D): PoCL
-// specialises its binaries per local size anyway (DESIGN.md, "Making kernels fast on PoCL").
+// specialises its binaries per local size anyway (docs/algorithms.md, "Making kernels fast on PoCL").
 //
 // PoCL notes (PoCL 3.0, LLVM target znver3 = AVX2 on this machine, so a float16 is two
 // ymm registers):
@@ -49,7 +49,7 @@ inline float fan_column(const float x, const float y, const float2 cs, const flo
 
 // Batched kernel: 16 filtered sinograms interleaved as [view][column][batch] and read as
 // one float16 per interpolation tap. The 16 lanes are the SIMD width; the geometry of a
-// (pixel, view) pair is computed once for all 16 (DESIGN.md "FBP": 3.9 vs 0.36 G
+// (pixel, view) pair is computed once for all 16 (docs/algorithms.md "Fan-beam FBP": 3.9 vs 0.36 G
 // updates/s for one sinogram per work-item). Each work-item does this for TWO groups of 16
 // (g = 2 gp and 2 gp + 1, each in its own [view][column][16] plane, so the layout is that of
 // clrecon.fbp.interleave_batch), sharing the geometry over 32 sinograms: measured 1.2x

@@ -1,4 +1,4 @@
-// Phase-space interpolation kernels (DESIGN.md "Phase-space interpolation"; 5DCT paper 2.2).
+// Phase-space interpolation kernels (docs/algorithms.md "Phase-space interpolation"; 5DCT paper 2.2).
 //
 // local_linear_weights: per row (one (slice, view, target)), the weights l of the local
 //   weighted linear regression  y ~ b0 + b1 dc + b2 da,  value b0 = l^T y.

@@ -1,5 +1,5 @@
 // Single-slice rebinning (SSRB) of flat-detector helical cone-beam projections
-// (Noo, Defrise, Clackdoyle & Kudo, Phys. Med. Biol. 44:561, 1999; DESIGN.md "SSRB").
+// (Noo, Defrise, Clackdoyle & Kudo, Phys. Med. Biol. 44:561, 1999; docs/algorithms.md "SSRB").
 //
 // For slice z and projection k (source at z_k), the oblique ray of column u that crosses
 // the slice plane where the fan ray passes closest to the rotation axis hits the detector

@@ -1,6 +1,6 @@
 """A small fake run directory (``volumes.h5`` + ``results.json``) for the viewer/figure/export tests.
 
-It has the exact on-disk format of :mod:`clrecon.run` but volumes made from a cheap analytic
+It has the exact on-disk format of :mod:`clrecon.pipeline.run` but volumes made from a cheap analytic
 "thorax" (body, lungs, spine, a heart that moves with breathing and beats) instead of a
 simulation, so the tests of the consumers of a run directory need no OpenCL and run in well
 under a second. Reconstructions are the ground truth plus method-dependent errors: ``nearest``
@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from clrecon import metrics
-from clrecon.conventions import voxel_coords
-from clrecon.scene import load_scene
-from clrecon.volumes import VolumeWriter, pitch_key
+from clrecon.evaluation import metrics
+from clrecon.core.conventions import voxel_coords
+from clrecon.config.scene import load_scene
+from clrecon.outputs.volumes import VolumeWriter, pitch_key
 
 METHODS = ("nearest", "barycentric", "local_linear", "r4dct")
 PITCHES = (0.02, 0.1)
@@ -96,7 +96,7 @@ def make_fake_run(out: Path, methods=METHODS, pitches=PITCHES, variants=VARIANTS
                 name = f"recon/{pk}/{v}/{m}"
                 w.create(name, shape, nz)
                 w.write(name, vol, np.arange(nz))
-                met[pk][v][m] = metrics.table2(vol, gt, scene)
+                met[pk][v][m] = metrics.table2(vol, gt, metrics.MetricsConfig.from_scene(scene))
                 secs[pk][v][m] = 0.5 + k + 3 * pitch
     w.close()
     results = {

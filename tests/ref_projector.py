@@ -9,7 +9,7 @@ narrowed by the clip half-spaces and the intersect cuts, minus the subtract cuts
 
 import numpy as np
 
-from clrecon import phantom as ph
+from clrecon.simulation.phantoms import analytic as ph
 
 
 def _quad_interval(q0, d, axes_mask):
@@ -87,7 +87,7 @@ def line_integrals(objects, src, points):
 
 
 def project_views_ref(objects, src, det_centre, e_u, e_v, u_mm, v_mm):
-    """Float64 reference of :func:`clrecon.projector.project_views`, (m, n_rows, n_cols)."""
+    """Float64 reference of :func:`clrecon.simulation.projector.project_views`, (m, n_rows, n_cols)."""
     objs = np.asarray(objects, np.float64)
     u, v = np.asarray(u_mm, np.float64), np.asarray(v_mm, np.float64)
     out = np.zeros((len(objs), len(v), len(u)))

@@ -7,7 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from clrecon import bench, fbp
+from clrecon.bench import suite as bench
+
+from clrecon.reconstruction import fbp
 from clrecon.cli import build_parser
 
 

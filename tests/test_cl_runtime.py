@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from clrecon import cl_runtime
-from clrecon.errors import OpenCLUnavailable
+from clrecon.core import runtime as cl_runtime
+from clrecon.core.errors import OpenCLUnavailable
 
 
 def test_kernel_dir_has_sources():

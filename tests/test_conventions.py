@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from clrecon.conventions import (circular_difference, collimation_iso_mm, detector_coords, detector_frames,
+from clrecon.core.conventions import (circular_difference, collimation_iso_mm, detector_coords, detector_frames,
                                  hu_to_mu, mu_to_hu)
 
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from clrecon.cli import main
-from clrecon.errors import ClreconError, StoreError
-from clrecon.export import export, hu_to_stored, resolve_source, target_tag
-from clrecon.volumes import open_volumes, read_volume
+from clrecon.core.errors import ClreconError, StoreError
+from clrecon.outputs.export import export, hu_to_stored, resolve_source, target_tag
+from clrecon.outputs.volumes import open_volumes, read_volume
 from fake_run_dir import fake_scene, make_fake_run
 
 pydicom = pytest.importorskip("pydicom")

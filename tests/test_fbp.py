@@ -3,7 +3,7 @@
 References (Kak & Slaney 1988, ch. 3): the discrete band-limited ramp kernel (eq. 61),
 convolved directly in float64; the weighted fan-beam backprojection (sec. 3.4.2) written
 out in float64 NumPy, with the kernel's interpolation and edge rule. Analytic sinograms of
-disks use the ray geometry of ``clrecon.conventions.detector_frames``, so orientation and
+disks use the ray geometry of ``clrecon.core.conventions.detector_frames``, so orientation and
 sign conventions are checked against the one place they are defined.
 """
 
@@ -15,9 +15,9 @@ import math
 import numpy as np
 import pytest
 
-from clrecon.bench_fbp import bench_backprojection
-from clrecon.conventions import MU_WATER_PER_MM, detector_frames, mu_to_hu
-from clrecon.fbp import (
+from clrecon.bench.fbp import bench_backprojection
+from clrecon.core.conventions import MU_WATER_PER_MM, detector_frames, mu_to_hu
+from clrecon.reconstruction.fbp import (
     WINDOWS,
     FanBeamGeometry,
     backproject,
@@ -30,7 +30,7 @@ from clrecon.fbp import (
     padded_length,
     ramp_filter_response,
 )
-from clrecon.scene import load_scene
+from clrecon.config.scene import load_scene
 
 # One table for every tolerance in this file: (quantity, why this size).
 TOL = {

@@ -7,7 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from clrecon import figures, report
+from clrecon.outputs import figures
+
+from clrecon.outputs import report
 from fake_run_dir import fake_scene, make_fake_run
 
 ALL = ("phase_space.png", "coronal.png", "motion_rows.png", "mae_per_target_small.png",
@@ -29,7 +31,7 @@ def full_run(tmp_path_factory):
 def test_write_report_makes_every_figure_and_html(full_run):
     d, results = full_run
     md = report.write_report(d, results).read_text()
-    expected = ALL if figures.phase_space_missing() is None else ALL[1:]
+    expected = ALL
     for name in expected:
         png = d / "figures" / name
         assert f"(figures/{name})" in md
@@ -42,7 +44,7 @@ def test_write_report_makes_every_figure_and_html(full_run):
 
 
 def test_phase_space_choices_follow_the_methods():
-    pytest.importorskip("clrecon.interpolate")
+    pytest.importorskip("clrecon.reconstruction.interpolation.weights")
     scene = fake_scene()
     s = figures.phase_space_sample(scene, 0.02, 0.0, 0, (0.4, 0.5))
     n = len(s["c"])

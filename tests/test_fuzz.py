@@ -1,6 +1,6 @@
 """Bad input: malformed or out-of-range scenes, NaN/inf, truncated or corrupt projection
 stores, missing run directories. Each gives a one-line error naming the file or key and
-what is allowed (a :class:`~clrecon.errors.ClreconError`), the CLI exits non-zero without a
+what is allowed (a :class:`~clrecon.core.errors.ClreconError`), the CLI exits non-zero without a
 traceback unless ``--debug``; fuzzed scene files and stores raise nothing else."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from clrecon.cli import main
-from clrecon.errors import ClreconError, SceneError, StoreError
-from clrecon.scene import SCENE_DIR, load_scene, scene_from_dict
-from clrecon.store import ProjectionStore
+from clrecon.core.errors import ClreconError, SceneError, StoreError
+from clrecon.config.scene import SCENE_DIR, load_scene, scene_from_dict
+from clrecon.simulation.store import ProjectionStore
 
 # Sizes of the fuzz loops (seeded: the same cases every run).
 N_SCENE_FUZZ = 400
@@ -123,7 +123,7 @@ def test_fuzzed_scene_dicts_raise_only_scene_errors():
     """Random values of every type in random keys of every section."""
     from dataclasses import fields
 
-    from clrecon.scene import SECTIONS
+    from clrecon.config.scene import SECTIONS
     rnd = random.Random(7)
     values = [0, 1, -1, 2 ** 63 - 1, -2 ** 63, 10 ** 30, 0.0, 1e308, -1e308, 1e-308, 5e-324, float("inf"),
               float("nan"), True, "x", [], [1], [1.0, 2.0], {}, {"a": 1}, 0.5, 3]

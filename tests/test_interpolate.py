@@ -9,8 +9,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import Delaunay
 
-from clrecon import interpolate as ip
-from clrecon.conventions import circular_difference
+from clrecon.reconstruction.interpolation import barycentric as ip_bary
+from clrecon.reconstruction.interpolation import weights as ip
+from clrecon.core.conventions import circular_difference
 
 # One table for every tolerance in this file: (what is compared, why it is not zero).
 TOL = {
@@ -175,10 +176,10 @@ def test_barycentric_margin_shortcut_is_exact(monkeypatch):
     """With a tiny margin many triangles found in the cut-down point set are not Delaunay
     in the full copied set: the circumcircle check must send those groups to a full
     triangulation, and the result must equal the plain full Delaunay."""
-    monkeypatch.setattr(ip, "DELAUNAY_MARGIN", 0.02)
+    monkeypatch.setattr(ip_bary, "DELAUNAY_MARGIN", 0.02)
     sizes = []
-    real = ip._delaunay_one
-    monkeypatch.setattr(ip, "_delaunay_one", lambda pts, tg: sizes.append(pts.shape[0]) or real(pts, tg))
+    real = ip_bary._delaunay_one
+    monkeypatch.setattr(ip_bary, "_delaunay_one", lambda pts, tg: sizes.append(pts.shape[0]) or real(pts, tg))
     rng = np.random.default_rng(8)
     n, G = 20, 6
     c, a = rng.random(n * G), rng.uniform(0.1, 0.9, n * G)
@@ -536,7 +537,7 @@ def test_local_linear_does_not_extrapolate_along_an_unbracketed_axis():
     """Every point below the target amplitude: the default fit is constant in amplitude
     (weights within [0, 1] when c is bracketed, exact for data depending on c only), while
     ``extrapolate=True`` (the paper's plain fit) reproduces linear data by extrapolating."""
-    import clrecon.interpolate as ip
+    import clrecon.reconstruction.interpolation.weights as ip
     c = np.array([0.30, 0.35, 0.45, 0.50, 0.38, 0.42])
     a = np.array([0.10, 0.20, 0.15, 0.05, 0.12, 0.18])
     target = np.array([[0.40, 0.60]])

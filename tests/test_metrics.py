@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from clrecon.metrics import abs_error_stats, blood_pool_volume_ml, fov_masks, table2
-from clrecon.scene import load_scene
+from clrecon.evaluation.metrics import MetricsConfig, abs_error_stats, blood_pool_volume_ml, fov_masks, table2
+from clrecon.config.scene import load_scene
 
 
 @pytest.fixture(scope="module")
@@ -18,8 +18,8 @@ def test_table2_matches_a_direct_computation(scene):
     shape = (2, 3, rc.nz, rc.ny, rc.nx)
     truth = rng.normal(0, 100, shape).astype(np.float32)
     recon = truth + rng.normal(5, 20, shape).astype(np.float32)
-    res = table2(recon, truth, scene)
-    for fov, m in fov_masks(scene).items():
+    res = table2(recon, truth, MetricsConfig.from_scene(scene))
+    for fov, m in fov_masks(MetricsConfig.from_scene(scene)).items():
         d = np.abs(recon - truth)[..., m].astype(np.float64)       # (2, 3, nz, n_in)
         assert res[fov]["mae_hu"] == pytest.approx(d.mean(), rel=1e-9)
         assert res[fov]["std_hu"] == pytest.approx(d.std(), rel=1e-6)
@@ -31,14 +31,14 @@ def test_table2_matches_a_direct_computation(scene):
 
 
 def test_masks(scene):
-    m = fov_masks(scene)
+    m = fov_masks(MetricsConfig.from_scene(scene))
     assert m["small"].sum() < m["large"].sum()
     assert not (m["small"] & ~m["large"]).any()
 
 
 def test_shape_mismatch_is_an_error(scene):
     with pytest.raises(ValueError, match="shape"):
-        table2(np.zeros((1, 1, 2, 3, 3)), np.zeros((1, 1, 2, 3, 4)), scene)
+        table2(np.zeros((1, 1, 2, 3, 3)), np.zeros((1, 1, 2, 3, 4)), MetricsConfig.from_scene(scene))
 
 
 def test_blood_pool_volume_counts_only_inside_the_region():
@@ -53,8 +53,8 @@ def test_blood_pool_volume_counts_only_inside_the_region():
 
 
 def test_lv_region_follows_the_phantom():
-    from clrecon.groundtruth import lv_region_mask
-    from clrecon.phantom import Phantom
+    from clrecon.evaluation.groundtruth import lv_region_mask
+    from clrecon.simulation.phantoms.analytic import Phantom
     ph = Phantom()
     x = y = (np.arange(96) - 47.5) * 2.0
     z = (np.arange(60) - 29.5) * 2.0

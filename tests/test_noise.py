@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from clrecon.noise import N_FLOOR, add_noise
-from clrecon.scene import NoiseConfig
+from clrecon.simulation.noise import N_FLOOR, add_noise
+from clrecon.config.scene import NoiseConfig
 
 # Flat field: M samples of a line integral P with I0 photons -> lam = I0 exp(-P) expected counts.
 I0, P, SIGMA_E = 1.0e4, 2.0, 20.0
@@ -77,7 +77,7 @@ def test_bad_inputs():
 
 
 # --- the generator: Philox4x64-10 streams, OpenCL kernel vs its float64 NumPy reference ------
-from clrecon import noise as noise_mod  # noqa: E402
+from clrecon.simulation import noise as noise_mod  # noqa: E402
 
 
 @pytest.mark.parametrize("counter, key", [((0, 0, 0, 0), (0, 0)), ((5, 7, 0, 0), (7, 123456)),

@@ -39,7 +39,7 @@ def _oclgrind_runtime(**plugins):
     """A Runtime on the Oclgrind device with the given plugin switches (read at context creation)."""
     import pyopencl as cl
 
-    from clrecon.cl_runtime import Runtime
+    from clrecon.core.runtime import Runtime
 
     if not any("oclgrind" in p.name.lower() for p in cl.get_platforms()):
         pytest.skip("Oclgrind is not installed: pip install 'pyopencl[oclgrind]'")
@@ -97,7 +97,7 @@ def test_oclgrind_reports_an_out_of_bounds_write_and_a_race(which, request, capf
 # kernels/interp.cl
 @pytest.mark.parametrize("precision", ["double", "single"])
 def test_local_linear_weights(grind, clean, precision):
-    from clrecon import interpolate as ip
+    from clrecon.reconstruction.interpolation import weights as ip
 
     rng = np.random.default_rng(1)
     n = 70                                     # > one work-group of 64, not a multiple
@@ -113,7 +113,7 @@ def test_local_linear_weights(grind, clean, precision):
 
 
 def test_apply_weights(grind, clean):
-    from clrecon import interpolate as ip
+    from clrecon.reconstruction.interpolation import weights as ip
 
     rng = np.random.default_rng(2)
     rows = rng.normal(size=(5, 70)).astype(np.float32)      # 70 columns: padded to 128
@@ -131,8 +131,8 @@ def test_apply_weights(grind, clean):
 # ---------------------------------------------------------------------------------------
 # kernels/ssrb.cl
 def test_ssrb_rows(grind, clean):
-    from clrecon import rebin
-    from clrecon.scene import ScannerConfig
+    from clrecon.reconstruction import rebin
+    from clrecon.config.scene import ScannerConfig
 
     sc = ScannerConfig(n_cols=70, n_rows=5, col_pitch_mm=8.0, row_pitch_mm=6.0, views_per_rotation=12)
     rng = np.random.default_rng(3)
@@ -148,8 +148,8 @@ def test_ssrb_rows(grind, clean):
 # ---------------------------------------------------------------------------------------
 # kernels/backproject.cl
 def test_backprojection_kernels(grind, clean):
-    from clrecon import fbp
-    from clrecon.cl_runtime import get_runtime
+    from clrecon.reconstruction import fbp
+    from clrecon.core.runtime import get_runtime
 
     geom = fbp.FanBeamGeometry(sid_mm=100.0, sdd_mm=200.0, n_cols=13, col_pitch_mm=6.0, n_views=6,
                                nx=11, ny=9, voxel_mm=4.0, beta0_rad=0.3)
@@ -170,17 +170,17 @@ def test_backprojection_kernels(grind, clean):
 # ---------------------------------------------------------------------------------------
 # kernels/project.cl and kernels/voxelise.cl (the cone-beam projector and the voxeliser)
 def _small_scene():
-    from clrecon.scene import load_scene
+    from clrecon.config.scene import load_scene
 
     return load_scene("tiny").replace(scanner={"n_cols": 37, "col_pitch_mm": 19.5, "n_rows": 3})
 
 
 def test_projector_kernels(grind_memcheck_races, clean):
-    from clrecon import projector
-    from clrecon.phantom import Phantom
-    from clrecon.cl_runtime import get_runtime
-    from clrecon.conventions import detector_coords, detector_frames
-    from clrecon.geometry import projection_table
+    from clrecon.simulation import projector
+    from clrecon.simulation.phantoms.analytic import Phantom
+    from clrecon.core.runtime import get_runtime
+    from clrecon.core.conventions import detector_coords, detector_frames
+    from clrecon.scan.table import projection_table
 
     s = _small_scene()
     table = projection_table(s, 0.1).take(np.array([0, 23, 61]))
@@ -199,14 +199,14 @@ def test_projector_kernels(grind_memcheck_races, clean):
 
 
 def test_voxeliser_kernel(grind_memcheck_races, clean):
-    from clrecon import projector
-    from clrecon.phantom import Phantom
-    from clrecon.cl_runtime import get_runtime
+    from clrecon.simulation import voxelise
+    from clrecon.simulation.phantoms.analytic import Phantom
+    from clrecon.core.runtime import get_runtime
 
     s = _small_scene()
     objs = Phantom(s.phantom).objects(0.3, 0.6)
     x, y, z = np.linspace(-150, 150, 11), np.linspace(-120, 120, 9), np.array([-5.0, 0.0])
-    got = projector.voxelise_objects(objs, x, y, z, supersample=2, rt=grind_memcheck_races)
-    ref = projector.voxelise_objects(objs, x, y, z, supersample=2, rt=get_runtime())
+    got = voxelise.voxelise_objects(objs, x, y, z, supersample=2, rt=grind_memcheck_races)
+    ref = voxelise.voxelise_objects(objs, x, y, z, supersample=2, rt=get_runtime())
     assert np.abs(got - ref).max() < TOL["f32"] * max(np.abs(ref).max(), 1e-3)
     clean()

@@ -1,16 +1,16 @@
 """The analytic thorax: parameter table, anatomy constraints, motion, volume curve, HU.
 
-Tolerances live in ``TOL``; ranges quoted from reference/phantom-and-signals.md are data,
+Tolerances live in ``TOL``; ranges quoted from the literature (docs/algorithms.md "Analytic phantom") are data,
 not tolerances.
 """
 
 import numpy as np
 import pytest
 
-from clrecon import phantom as ph
-from clrecon.conventions import hu_to_mu, mu_to_hu
-from clrecon.projector import voxelise_objects
-from clrecon.scene import PhantomConfig, load_scene
+from clrecon.simulation.phantoms import analytic as ph
+from clrecon.core.conventions import hu_to_mu, mu_to_hu
+from clrecon.simulation.voxelise import voxelise_objects
+from clrecon.config.scene import PhantomConfig, load_scene
 
 #: name -> (value, reason)
 TOL = {
@@ -292,7 +292,7 @@ def test_voxelise_shape_and_values(phantom):
 
 
 def test_default_small_fov_holds_the_heart(phantom):
-    from clrecon.scene import ReconConfig
+    from clrecon.config.scene import ReconConfig
     x0, x1, y0, y1 = ReconConfig().small_fov_mm
     b = phantom.heart_box_mm(margin=5.0)
     assert x0 <= b[0] and b[1] <= x1 and y0 <= b[2] and b[3] <= y1

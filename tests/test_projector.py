@@ -9,11 +9,11 @@ import pytest
 from ref_projector import line_integrals, project_views_ref
 from scipy.ndimage import map_coordinates
 
-from clrecon import phantom as ph
-from clrecon import projector
-from clrecon.conventions import MU_WATER_PER_MM, detector_coords, detector_frames, mu_to_hu
-from clrecon.geometry import projection_table
-from clrecon.scene import load_scene
+from clrecon.simulation.phantoms import analytic as ph
+from clrecon.simulation import projector, voxelise
+from clrecon.core.conventions import MU_WATER_PER_MM, detector_coords, detector_frames, mu_to_hu
+from clrecon.scan.table import projection_table
+from clrecon.config.scene import load_scene
 
 SID, SDD = 595.0, 1085.6
 EPS32 = float(np.finfo(np.float32).eps)
@@ -405,7 +405,7 @@ def test_input_validation():
     with pytest.raises(TypeError):
         projector.project_views(objs.astype(object), src, det, eu, ev, u, v)
     with pytest.raises(ValueError):
-        projector.voxelise_objects(objs[0], u, u, u, supersample=0)
+        voxelise.voxelise_objects(objs[0], u, u, u, supersample=0)
 
 
 # ---------------------------------------------------------------------------------------
@@ -428,7 +428,7 @@ def test_voxelise_matches_numpy_point_samples(ss):
     x = np.arange(-150.0, 150.0, 3.7)
     y = np.arange(-100.0, 100.0, 4.1)
     z = np.arange(-30.0, 42.0, 18.0)
-    got = projector.voxelise_objects(objs, x, y, z, supersample=ss)
+    got = voxelise.voxelise_objects(objs, x, y, z, supersample=ss)
     ref = _numpy_voxelise(objs, x, y, z, ss, 3.7, 4.1, 18.0)
     assert got.shape == (len(z), len(y), len(x)) and got.dtype == np.float32
     bad = np.abs(got - ref) > 1e-5
@@ -440,17 +440,17 @@ def test_voxelise_edge_grids():
     """Grids smaller than a work-item's 8 voxels, single-sample axes (1 mm thick), empty space."""
     objs = ph.Phantom().objects(0.0, 0.0)
     x = np.array([-100.0, -99.0, -98.0, -97.0, -96.0])            # 5 < VW voxels along x
-    got = projector.voxelise_objects(objs, x, np.array([20.0]), np.array([60.0]), supersample=2)
+    got = voxelise.voxelise_objects(objs, x, np.array([20.0]), np.array([60.0]), supersample=2)
     ref = _numpy_voxelise(objs, x, np.array([20.0]), np.array([60.0]), 2, 1.0, 1.0, 1.0)
     assert got.shape == (1, 1, 5)
     np.testing.assert_allclose(got, ref, atol=1e-7)
     assert np.all(mu_to_hu(got) < -700)                            # inside the right lung
-    outside = projector.voxelise_objects(objs, np.array([400.0]), np.array([0.0]), np.array([0.0]), supersample=1)
+    outside = voxelise.voxelise_objects(objs, np.array([400.0]), np.array([0.0]), np.array([0.0]), supersample=1)
     assert outside.shape == (1, 1, 1) and outside[0, 0, 0] == 0.0
 
 
 def test_bench_projector_runs_and_checks_its_reference():
-    from clrecon.bench_projector import bench_projector
+    from clrecon.bench.projector import bench_projector
 
     res = bench_projector(6, "tiny", reference_projections=2, repeats=1)
     assert res["projections"] == 6 and res["reference"]["projections"] == 2

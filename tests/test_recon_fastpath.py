@@ -1,15 +1,21 @@
 """The reconstruction's fast path: filter rows once, interpolate on the device into the
 backprojector's layout, backproject several groups per launch -- against the plain path
-(interpolate on the host layout, then :func:`clrecon.fbp.fbp_hu`)."""
+(interpolate on the host layout, then :func:`clrecon.reconstruction.fbp.fbp_hu`)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from clrecon import fbp, interpolate as ip, reconstruct, simulate
-from clrecon.geometry import projection_table
-from clrecon.scene import load_scene
+from clrecon.reconstruction import fbp
+
+from clrecon.reconstruction.interpolation import weights as ip
+
+from clrecon.reconstruction import reconstruct
+
+from clrecon.simulation import simulate
+from clrecon.scan.table import projection_table
+from clrecon.config.scene import load_scene
 
 # float32 kernels against float64 / float32 references, relative to max |reference|
 TOL = {"interleaved_apply": 1e-6, "filter_commutes": 1e-5, "launch_grouping": 1e-6}
@@ -96,13 +102,13 @@ def test_reconstruct_matches_plain_pipeline(tmp_path):
     table = projection_table(sc, pitch)
     z = reconstruct.slice_positions(sc)
     tg = reconstruct.Targets(tuple(sc.cardiac_targets), tuple(sc.resp_targets))
-    p = reconstruct.plan(sc, table, z, tg, sc.recon.methods)
+    p = reconstruct.plan(reconstruct.ReconstructionConfig.from_scene(sc), table, z, tg, sc.recon.methods)
     store = simulate.simulate(sc, pitch, needed=p.needed_projections(len(table)), cache_dir=tmp_path, progress=False)
-    vols = reconstruct.reconstruct(sc, store, p, variants=("noise-free",))
+    vols = reconstruct.reconstruct(reconstruct.ReconstructionConfig.from_scene(sc), store, p, variants=("noise-free",))
     geom = fbp.FanBeamGeometry.from_scene(sc)
     S = len(z)
     # plain path: rebin every needed (projection, slice) pair, weights on the host, FBP in HU
-    from clrecon import rebin
+    from clrecon.reconstruction import rebin
     for m, mp in p.methods.items():
         Sn, V, T, K = mp.proj_index.shape
         sino = np.zeros((S, V, T, sc.scanner.n_cols))
@@ -116,7 +122,7 @@ def test_reconstruct_matches_plain_pipeline(tmp_path):
                 r = rebin.ssrb_rows(data, np.arange(len(uniq), dtype=np.int32), dz, sc.scanner)
                 sino[s][live] += mp.weight[s, :, :, k][live][:, None] * r[inv.ravel()]
         sino = sino.transpose(0, 2, 1, 3).reshape(S * T, V, -1)
-        ref = reconstruct.fbp_batched(sino, geom, sc.recon.filter, sc.phantom.mu_water_per_mm)
+        ref = fbp.fbp_batched(sino, geom, sc.recon.filter, sc.phantom.mu_water_per_mm)
         ref = ref.reshape(S, mp.targets_shape[0], mp.targets_shape[1], sc.recon.ny, sc.recon.nx).transpose(1, 2, 0, 3, 4)
         got = vols[("noise-free", m)]
         assert got.shape == ref.shape
@@ -131,7 +137,7 @@ def _grind(capfd):
 
     import pyopencl as cl
 
-    from clrecon.cl_runtime import Runtime
+    from clrecon.core.runtime import Runtime
 
     if not any("oclgrind" in p.name.lower() for p in cl.get_platforms()):
         pytest.skip("Oclgrind is not installed: pip install 'pyopencl[oclgrind]'")
@@ -154,8 +160,8 @@ def _grind(capfd):
 
 
 def test_oclgrind_interleaved_apply_and_noise(capfd):
-    from clrecon import noise
-    from clrecon.scene import NoiseConfig
+    from clrecon.simulation import noise
+    from clrecon.config.scene import NoiseConfig
 
     rt, clean = _grind(capfd)
     rng = np.random.default_rng(1)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from clrecon.cli import main
-from clrecon.run import run
-from clrecon.scene import load_scene
-from clrecon.volumes import open_volumes, read_volume
+from clrecon.pipeline.run import run
+from clrecon.config.scene import load_scene
+from clrecon.outputs.volumes import open_volumes, read_volume
 
 
 @pytest.fixture(scope="module")

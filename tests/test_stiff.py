@@ -1,4 +1,4 @@
-"""Stiff and extreme interpolation cases (DESIGN.md section 5): every one has a defined,
+"""Stiff and extreme interpolation cases (docs/choices.md "Stiff and degenerate cases"): every one has a defined,
 finite result, and the float32 local-linear kernel agrees with the float64 reference.
 
 Local linear: collinear and duplicate phase points, all points at one amplitude, fewer than
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clrecon import interpolate as ip
-from clrecon.conventions import circular_difference
+from clrecon.reconstruction.interpolation import weights as ip
+from clrecon.core.conventions import circular_difference
 
 # One table for every tolerance in this file: (what is compared, why it is not zero).
 TOL = {

@@ -4,11 +4,11 @@ import h5py
 import numpy as np
 import pytest
 
-from clrecon.errors import StoreError
-from clrecon.geometry import projection_table
-from clrecon.scene import load_scene
-from clrecon.simulate import simulate
-from clrecon.store import ProjectionStore, default_cache_dir
+from clrecon.core.errors import StoreError
+from clrecon.scan.table import projection_table
+from clrecon.config.scene import load_scene
+from clrecon.simulation.simulate import simulate
+from clrecon.simulation.store import ProjectionStore, default_cache_dir
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +22,7 @@ def pitch(scene):
 
 
 class FakeProjector:
-    """Cheap stand-in for clrecon.projector.project: values encode index, angle, row, column.
+    """Cheap stand-in for clrecon.simulation.projector.project: values encode index, angle, row, column.
 
     ``fail_after`` raises on that call (0-based) to simulate an interrupted run.
     """

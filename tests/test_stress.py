@@ -8,10 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from clrecon import noise, rebin
-from clrecon.errors import SceneError
-from clrecon.geometry import projection_table
-from clrecon.scene import NoiseConfig, builtin_scene_names, load_scene, scene_from_dict
+from clrecon.simulation import noise
+
+from clrecon.reconstruction import rebin
+from clrecon.core.errors import SceneError
+from clrecon.scan.table import projection_table
+from clrecon.config.scene import NoiseConfig, builtin_scene_names, load_scene, scene_from_dict
 
 # One table for every tolerance in this file: (what is compared, why it is not zero).
 TOL = {
@@ -110,7 +112,7 @@ def cache(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def stress_run(tmp_path_factory, cache):
-    from clrecon.run import run
+    from clrecon.pipeline.run import run
 
     done = {}
 
@@ -124,7 +126,7 @@ def stress_run(tmp_path_factory, cache):
 
 
 def _volumes(out):
-    from clrecon.volumes import open_volumes
+    from clrecon.outputs.volumes import open_volumes
 
     vols = {}
     with open_volumes(out) as f:
@@ -179,7 +181,7 @@ def test_photon_starvation_is_finite_and_worse_than_noise_free(stress_run):
 
 
 def test_ectopic_scene_has_an_ectopic_beat_during_the_scan():
-    from clrecon import signals
+    from clrecon.scan import signals
 
     s = load_scene("stress-ectopic")
     duration = projection_table(s, 0.1).time_s[-1]

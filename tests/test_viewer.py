@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from clrecon.cli import main
-from clrecon.errors import ClreconError
+from clrecon.core.errors import ClreconError
 from fake_run_dir import make_fake_run
 
 pytest.importorskip("pyvista")

@@ -30,10 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from clrecon.errors import ClreconError
-from clrecon.export import (Source, describe_sources, open_run, resolve_source, run_axes, sources,
-                            target_tag)
-from clrecon.volumes import read_volume
+from clrecon.core.errors import ClreconError
+from clrecon.outputs.export import target_tag
+from clrecon.outputs.rundir import RunDirectory, Source
 
 #: Window presets: name -> (width, level) in HU.
 WINDOWS = {"lung": (1500.0, -600.0), "mediastinum": (400.0, 40.0), "cardiac": (800.0, 200.0)}
@@ -73,54 +72,31 @@ def parse_fraction(text) -> float | None:
         raise ClreconError(f"{text!r}: expected a fraction such as 0.4 or a percentage such as 40%") from None
 
 
-class RunData:
-    """The volumes of one run directory, read one target at a time.
+class RunData(RunDirectory):
+    """The volumes of one run directory, read one target at a time (the viewer's :class:`RunDirectory`).
 
     ``axes``: ``cardiac_phase`` (n_c,), ``resp_amplitude`` (n_r,), ``z_mm`` (nz,),
     ``y_mm`` (ny,), ``x_mm`` (nx,) (LPS, mm). ``sources``: every volume present.
+    Adds a small cache of target volumes and difference images.
     """
 
     def __init__(self, run_dir):
+        super().__init__(run_dir)
         self.run_dir = Path(run_dir)
-        self.f = open_run(self.run_dir)
-        self.axes = run_axes(self.f)
-        self.sources: list[Source] = sources(self.f)
         if not self.sources:
-            self.f.close()
+            self.close()
             raise ClreconError(f"{self.run_dir}: the volume store holds no volumes")
         self._cache: dict = {}
-
-    def close(self) -> None:
-        self.f.close()
-
-    @property
-    def has_groundtruth(self) -> bool:
-        return "groundtruth" in self.f
-
-    def describe(self) -> str:
-        return describe_sources(self.f)
-
-    def spacing(self) -> tuple[float, float, float]:
-        """(dx, dy, dz) in mm (1 along an axis of length 1)."""
-        out = []
-        for k in ("x_mm", "y_mm", "z_mm"):
-            v = self.axes[k]
-            out.append(float(v[1] - v[0]) if v.size > 1 else 1.0)
-        return tuple(out)
-
-    def origin(self) -> tuple[float, float, float]:
-        """Centre (x, y, z) of the first voxel, mm."""
-        return (float(self.axes["x_mm"][0]), float(self.axes["y_mm"][0]), float(self.axes["z_mm"][0]))
 
     def volume(self, source: Source, ci: int, ri: int, difference: bool = False) -> np.ndarray:
         """(nz, ny, nx) float32 HU of one target; ``difference``: source - ground truth."""
         key = (source.dataset, ci, ri, difference)
         if key not in self._cache:
-            vol = np.asarray(read_volume(self.f, source.dataset, (ci, ri)), np.float32)
+            vol = self.read_target(source, ci, ri)
             if difference:
                 if not self.has_groundtruth:
                     raise ClreconError("this run has no ground truth, so there is no difference image")
-                vol = vol - np.asarray(read_volume(self.f, "groundtruth", (ci, ri)), np.float32)
+                vol = vol - self.read_target("groundtruth", ci, ri)
             if len(self._cache) > 8:
                 self._cache.pop(next(iter(self._cache)))
             self._cache[key] = vol
@@ -161,7 +137,7 @@ def initial_state(data: RunData, method=None, pitch=None, variant=None, cardiac=
     """The start state from command-line choices (defaults: best method, middle targets, centre)."""
     if window not in WINDOWS:
         raise ClreconError(f"--window {window!r}: must be one of {', '.join(WINDOWS)}")
-    src = resolve_source(data.f, method, pitch, variant)
+    src = data.resolve(method, pitch, variant)
     si = [s.dataset for s in data.sources].index(src.dataset)
     if difference and src.dataset == "groundtruth":
         raise ClreconError("--difference: pick a reconstruction (--method) to compare with the ground truth")

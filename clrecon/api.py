@@ -1,0 +1,200 @@
+"""The Python API for notebooks: ``clrecon.load_scene``, ``clrecon.run``, ``clrecon.open_run``.
+
+See ``docs/api.md`` for a worked example. In short::
+
+    import clrecon
+
+    scene = clrecon.load_scene("tiny", recon={"nz": 2}, noise__enabled=False)
+    result = clrecon.run(scene, out="runs/tiny", methods=["nearest"], targets=([0.4], [0.25]))
+    ds = clrecon.open_run(result.path)          # lazy xarray.Dataset, dims (cardiac, resp, z, y, x)
+    err = ds["nearest_p0.100_noise-free"] - ds["groundtruth"]
+
+Errors a user can act on are :class:`clrecon.core.errors.ClreconError` (``SceneError`` for
+scene values, ``StoreError`` for run directories) with a one-line message.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from clrecon.config import scene as _scene
+from clrecon.config.scene import Scene
+from clrecon.core.errors import ClreconError, SceneError
+from clrecon.pipeline.run import run as run_pipeline
+from clrecon.outputs.dataset import open_dataset
+
+import xarray
+
+__all__ = ["RunResult", "load_scene", "open_run", "run"]
+
+PathLike = str | Path
+#: ``(cardiac_list, resp_list)`` (either may be None: the scene's) or ``{"cardiac": [...], "resp": [...]}``.
+TargetsLike = Sequence[Any] | Mapping[str, Any] | None
+#: ``(start, stop)`` slice indices or a ``slice`` (step 1).
+SlicesLike = Sequence[int] | slice | None
+
+
+# ----------------------------------------------------------------------------------------
+# scenes
+def _split_overrides(overrides: Mapping[str, Any]) -> dict:
+    """``{"recon": {...}, "recon__nz": 4, "recon.nx": 8, "name": "x"}`` -> ``{"recon": {...}, "name": "x"}``."""
+    sections = tuple(_scene.SECTIONS)
+    out: dict = {}
+    for key, value in overrides.items():
+        sep = "__" if "__" in key else ("." if "." in key else None)
+        if sep is not None:
+            sec, _, sub = key.partition(sep)
+            if sec not in sections or not sub or "__" in sub or "." in sub:
+                near = difflib.get_close_matches(sec, sections, n=1, cutoff=0.5)
+                hint = f"; did you mean {near[0]}__{sub}?" if near and sub else f"; sections: {', '.join(sections)}"
+                raise SceneError(f"override {key}: expected SECTION__KEY with SECTION one of the scene's "
+                                 f"sections{hint}")
+            out.setdefault(sec, {})[sub] = value
+        elif key in sections:
+            if not isinstance(value, Mapping):
+                raise SceneError(f"override {key}={value!r}: expected a dict of [{key}] keys, e.g. "
+                                 f"{key}={{...}} or {key}__KEY=VALUE")
+            out.setdefault(key, {}).update(value)
+        elif key in ("name", "description"):
+            out[key] = value
+        else:
+            near = difflib.get_close_matches(key, sections + ("name", "description"), n=1, cutoff=0.5)
+            hint = f"; did you mean {near[0]!r}?" if near else f"; valid: {', '.join(sections)}, name, description"
+            raise SceneError(f"override {key}: not a scene section{hint}")
+    return out
+
+
+def load_scene(name_or_path: PathLike | Scene, **overrides: Any) -> Scene:
+    """A scene by built-in name (``"tiny"``, ``"demo"``, ...) or TOML path, with overrides.
+
+    Overrides, any mix of (later ones win within a section):
+
+    - a section as a dict: ``recon={"nz": 4, "nx": 64}``, ``noise={"enabled": False}``;
+    - one key as ``SECTION__KEY=VALUE``: ``recon__nz=4``, ``scan__pitches=[0.1]``;
+    - the same with a dot through ``**``: ``**{"recon.nz": 4}``;
+    - ``name=...`` / ``description=...``.
+
+    Values are validated exactly as in a scene file (:class:`~clrecon.core.errors.SceneError`
+    naming the key, value and what is allowed). A :class:`Scene` is accepted too (overrides
+    applied to it). Builds on :func:`clrecon.config.scene.load_scene` and :meth:`Scene.replace`.
+    """
+    scene = name_or_path if isinstance(name_or_path, Scene) else _scene.load_scene(name_or_path)
+    if not overrides:
+        return scene
+    return scene.replace(**_split_overrides(overrides))
+
+
+# ----------------------------------------------------------------------------------------
+# runs
+@dataclass(frozen=True)
+class RunResult:
+    """What :func:`run` returns: the run directory ``path`` and its ``results`` (``results.json``)."""
+
+    path: Path
+    results: dict
+
+    def open(self) -> xarray.Dataset:
+        """:func:`open_run` of this run."""
+        return open_run(self.path)
+
+    def __repr__(self) -> str:
+        return f"RunResult(path={str(self.path)!r}, total_seconds={self.results.get('total_seconds')})"
+
+
+def _floats(values, what: str) -> list[float] | None:
+    if values is None:
+        return None
+    if isinstance(values, (int, float)) and not isinstance(values, bool):
+        return [float(values)]
+    try:
+        return [float(v) for v in values]
+    except (TypeError, ValueError):
+        raise ClreconError(f"targets: {what} {values!r}: expected a list of numbers") from None
+
+
+def _targets(targets: TargetsLike) -> tuple[list[float] | None, list[float] | None]:
+    if targets is None:
+        return None, None
+    if isinstance(targets, Mapping):
+        unknown = set(targets) - {"cardiac", "resp"}
+        if unknown:
+            raise ClreconError(f"targets: unknown key {sorted(unknown)[0]!r}; use 'cardiac' and 'resp'")
+        return _floats(targets.get("cardiac"), "cardiac"), _floats(targets.get("resp"), "resp")
+    if isinstance(targets, (str, bytes)) or len(targets) != 2:
+        raise ClreconError(f"targets {targets!r}: expected (cardiac_list, resp_list) or "
+                           f"{{'cardiac': [...], 'resp': [...]}}")
+    return _floats(targets[0], "cardiac"), _floats(targets[1], "resp")
+
+
+def _slices(slices: SlicesLike, nz: int) -> tuple[int, int] | None:
+    if slices is None:
+        return None
+    if isinstance(slices, slice):
+        if slices.step not in (None, 1):
+            raise ClreconError(f"slices {slices!r}: only step 1 is supported")
+        start, stop, _ = slices.indices(nz)
+        return start, stop
+    try:
+        start, stop = slices
+        return int(start), int(stop)
+    except (TypeError, ValueError):
+        raise ClreconError(f"slices {slices!r}: expected (start, stop) slice indices or a slice") from None
+
+
+def run(scene: Scene | PathLike, out: PathLike | None = None, *, methods: Sequence[str] | str | None = None,
+        targets: TargetsLike = None, slices: SlicesLike = None, pitches: Sequence[float] | float | None = None,
+        progress: bool = False, cache: PathLike | None = None, report: bool = True,
+        log: Callable[[str], Any] | None = None) -> RunResult:
+    """Simulate (or reuse) -> reconstruct -> evaluate -> report, like ``clrecon run``.
+
+    ``scene``: a :class:`Scene` or a built-in name / TOML path. ``out``: the run directory
+    (default ``runs/<scene name>``). ``methods``: list (or comma string) of methods, default
+    the scene's. ``targets``: ``(cardiac_list, resp_list)`` or ``{"cardiac": ..., "resp": ...}``,
+    either part None for the scene's. ``slices``: ``(start, stop)`` indices or ``slice(start,
+    stop)`` into the scene's ``recon.nz`` slices. ``pitches``: a number or list, default the
+    scene's. ``progress``: tqdm bars. ``cache``: the projection store folder (default
+    ``$CLRECON_CACHE`` or ``~/.cache/clrecon``). ``report``: write ``report.md`` and figures.
+    ``log``: called with each status line (default: silent).
+
+    Returns a :class:`RunResult` (``.path``, ``.results``, ``.open()``). Wraps
+    :func:`clrecon.pipeline.run.run`.
+    """
+
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    if isinstance(methods, str):
+        methods = [m.strip() for m in methods.split(",") if m.strip()]
+    if isinstance(pitches, (int, float)) and not isinstance(pitches, bool):
+        pitches = [float(pitches)]
+    cardiac, resp = _targets(targets)
+    slice_range = _slices(slices, scene.recon.nz)
+    path = Path(out) if out is not None else Path("runs") / scene.name
+    results = run_pipeline(scene, path, methods=list(methods) if methods else None, cardiac=cardiac, resp=resp,
+                           slice_range=slice_range, pitches=list(pitches) if pitches else None,
+                           cache_dir=None if cache is None else str(cache), progress=progress, report=report,
+                           log=log if log is not None else (lambda *a, **k: None))
+    return RunResult(path=path, results=results)
+
+
+# ----------------------------------------------------------------------------------------
+# reading
+def open_run(path: PathLike | RunResult) -> xarray.Dataset:
+    """A run directory as a lazily loaded :class:`xarray.Dataset` (nothing but axes read on open).
+
+    Dimensions ``cardiac``, ``resp``, ``z``, ``y``, ``x`` (coordinates: cardiac phase,
+    respiratory amplitude, voxel centres in mm, LPS); one float32 HU variable per
+    reconstruction, named ``<method>_<pitch key>_<variant>`` (``local_linear_p0.020_noisy``;
+    attrs ``method``, ``pitch``, ``pitch_key``, ``variant``, ``units``, pooled ``mae_hu_small``
+    / ``mae_hu_large``), plus ``groundtruth`` and ``phantom``. ``ds.attrs["results"]`` and
+    ``ds.attrs["metrics"]`` are ``results.json`` (and its metrics) as JSON strings. A scene
+    without cardiac motion or breathing has that dimension with length 1
+    (``ds.attrs["has_cardiac"]`` / ``["has_resp"]`` = 0). Close with ``ds.close()`` or ``with``.
+    Layout details: :mod:`clrecon.outputs.dataset`.
+    """
+    if isinstance(path, RunResult):
+        path = path.path
+    return open_dataset(path)

@@ -1,0 +1,112 @@
+"""Config sections that validate themselves: the base every stage's settings are built on.
+
+A section is a frozen, keyword-only dataclass whose fields carry their own check and a human
+description of what is allowed (:func:`field_of`). Construction coerces what TOML and Python
+users naturally pass (a list for a tuple, an int for a float) and then checks every field, so
+``ScannerConfig(sid_mm=-1.0)`` raises :class:`~clrecon.core.errors.SceneError` naming the key,
+the value and what is allowed, exactly as a scene file with that value would. The TOML loader
+(:mod:`clrecon.config.scene`) only maps keys onto sections.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import field, fields
+from typing import Any, ClassVar
+
+from clrecon.core.errors import SceneError
+
+
+def _pos(x):
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0
+
+
+def _nonneg(x):
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x >= 0
+
+
+def _num(x):
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _posint(x):
+    return isinstance(x, int) and not isinstance(x, bool) and x > 0
+
+
+def _nonnegint(x):
+    return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+
+
+def _bool(x):
+    return isinstance(x, bool)
+
+
+def _frac(x):
+    return _num(x) and 0 <= x <= 1
+
+
+#: (what is allowed, check) pairs for the common kinds of value.
+POS = ("a number > 0", _pos)
+NONNEG = ("a number >= 0", _nonneg)
+NUM = ("a finite number", _num)
+POSINT = ("an integer > 0", _posint)
+NONNEGINT = ("an integer >= 0", _nonnegint)
+BOOL = ("true or false", _bool)
+FRAC = ("a number in [0, 1]", _frac)
+
+
+def number_in(lo: float, hi: float):
+    """A finite number in [lo, hi]."""
+    return (f"a number in [{lo:g}, {hi:g}]", lambda x: _num(x) and lo <= x <= hi)
+
+
+def one_of(names):
+    """One of the given names (e.g. a registry's ``names``)."""
+    names = tuple(names)
+    return ("one of " + ", ".join(names), lambda x: x in names)
+
+
+def field_of(default, allowed: str, check, doc: str = ""):
+    """A dataclass field carrying its check, the text of what is allowed and its doc."""
+    return field(default=default, metadata={"allowed": allowed, "check": check, "doc": doc})
+
+
+def F(default, kind, doc: str = ""):
+    """:func:`field_of` with a ``(allowed, check)`` pair such as :data:`POS`."""
+    return field_of(default, kind[0], kind[1], doc)
+
+
+def _coerce(default: Any, value: Any) -> Any:
+    """What a TOML table or a Python caller gives -> the field's type (list -> tuple, int -> float)."""
+    if isinstance(value, list):
+        value = tuple(value)
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if (isinstance(default, tuple) and isinstance(value, tuple) and value and default
+            and isinstance(default[0], float)
+            and all(isinstance(x, int) and not isinstance(x, bool) for x in value)):
+        return tuple(float(x) for x in value)
+    return value
+
+
+class Section:
+    """Base of a frozen, keyword-only config dataclass that validates itself at construction.
+
+    Subclasses set ``SECTION`` (the TOML table name used in messages) and declare their
+    fields with :func:`F` / :func:`field_of`.
+    """
+
+    SECTION: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if "check" not in f.metadata:
+                continue
+            value = _coerce(f.default, getattr(self, f.name))
+            object.__setattr__(self, f.name, value)
+            if not f.metadata["check"](value):
+                raise SceneError(f"{self.SECTION}.{f.name} = {value!r}: must be {f.metadata['allowed']}")
+        self.check()
+
+    def check(self) -> None:
+        """Checks across this section's fields (override); raise :class:`SceneError`."""

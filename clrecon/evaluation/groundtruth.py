@@ -1,0 +1,124 @@
+"""Ground truth for each target (stage 9 of the pipeline, beside metrics).
+
+Two truths per target (c*, a*) (docs/algorithms.md "Ground truth and metrics"):
+
+- **ground truth CT** (what the metrics compare against): the phantom frozen at (c*, a*),
+  exact *in-plane* fan-beam line integrals of each slice (a one-row detector whose source
+  sits in the slice plane, all ``views_per_rotation`` views), reconstructed with the same FBP,
+  filter and grid as the 5DCT. This isolates motion and interpolation error from the
+  resolution of FBP itself.
+- **phantom truth**: the analytic phantom voxelised at (c*, a*) with sub-voxel supersampling,
+  in HU — the "XCAT phantom" column of the paper's figures.
+
+Arrays are ``(n_cardiac, n_resp, nz, ny, nx)`` float32 HU.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from clrecon.core.conventions import mu_to_hu, voxel_coords
+from clrecon.reconstruction.fbp import FanBeamGeometry, fbp_batched
+from clrecon.simulation import projector, voxelise
+from clrecon.simulation.phantom_sources import phantom_from_config
+from clrecon.simulation.phantoms import layout
+
+
+@dataclass(frozen=True, kw_only=True)
+class GroundTruthConfig:
+    """What the ground truth needs: the scanner's detector and views, the FBP, the phantom.
+
+    ``detector`` is the scene's detector model (:mod:`clrecon.core.detector`), ``views`` the
+    views per rotation, ``start_angle_deg`` the first view's gantry angle, ``fbp`` the
+    reconstruction geometry, ``filter`` the ramp window, ``phantom`` the phantom config (its
+    ``mu_water_per_mm`` converts to HU), ``supersample`` the phantom truth's sub-samples per axis.
+    """
+
+    detector: object
+    views: int
+    start_angle_deg: float
+    fbp: FanBeamGeometry
+    filter: str
+    phantom: object
+    supersample: int = 2
+
+    @classmethod
+    def from_scene(cls, scene) -> GroundTruthConfig:
+        return cls(detector=scene.scanner.detector_model, views=scene.scanner.views_per_rotation,
+                   start_angle_deg=scene.scan.start_angle_deg, fbp=FanBeamGeometry.from_scene(scene),
+                   filter=scene.recon.filter, phantom=scene.phantom)
+
+    @property
+    def mu_water_per_mm(self) -> float:
+        return self.phantom.mu_water_per_mm
+
+
+def groundtruth_sinograms(cfg: GroundTruthConfig, phantom, c: float, a: float, slices_z: np.ndarray,
+                          rt=None) -> np.ndarray:
+    """Exact in-plane fan-beam sinograms of the frozen phantom, (nz, V, C) float32.
+
+    All slices go to the projector in one call (nz * V one-row views) so the per-call set-up
+    is paid once per target.
+    """
+    det = cfg.detector
+    V = cfg.views
+    S = len(slices_z)
+    beta = np.deg2rad(cfg.start_angle_deg) + 2 * np.pi * np.arange(V) / V
+    objs = phantom.objects(c, a)
+    src, centre, e_u, e_v = det.frames(np.tile(beta, S), np.repeat(np.asarray(slices_z, float), V))
+    objs_v = np.broadcast_to(objs, (S * V,) + objs.shape)
+    out = projector.project_views(objs_v, src, centre, e_u, e_v, det.u_mm(), np.zeros(1), rt=rt)
+    return out.reshape(S, V, det.n_cols)
+
+
+def groundtruth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets, rt=None, progress=None, skip=()):
+    """Ground-truth CT of every target, yielded as ``(i, j, (nz, ny, nx) float32 HU)``.
+
+    One target at a time, so a caller can write it out and keep memory bounded; targets whose
+    flat index ``i * n_resp + j`` is in ``skip`` (already done) are left out.
+    """
+    phantom = phantom_from_config(cfg.phantom)
+    for i, c in enumerate(targets.cardiac):
+        for j, a in enumerate(targets.resp):
+            if i * len(targets.resp) + j in skip:
+                continue
+            sino = groundtruth_sinograms(cfg, phantom, c, a, slices_z, rt=rt)
+            yield i, j, fbp_batched(sino, cfg.fbp, cfg.filter, cfg.mu_water_per_mm)
+            if progress is not None:
+                progress.update(1)
+
+
+def phantom_truth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets, rt=None, skip=()):
+    """The phantom voxelised at every target, yielded as ``(i, j, (nz, ny, nx) float32 HU)``."""
+    phantom = phantom_from_config(cfg.phantom)
+    x = voxel_coords(cfg.fbp.nx, cfg.fbp.voxel_mm)
+    y = voxel_coords(cfg.fbp.ny, cfg.fbp.voxel_mm)
+    for i, c in enumerate(targets.cardiac):
+        for j, a in enumerate(targets.resp):
+            if i * len(targets.resp) + j in skip:
+                continue
+            mu = phantom.voxelise(c, a, x, y, np.asarray(slices_z), supersample=cfg.supersample, rt=rt)
+            yield i, j, mu_to_hu(mu, cfg.mu_water_per_mm).astype(np.float32)
+
+
+def lv_region_mask(phantom, c: float, a: float, x_mm, y_mm, z_mm, margin_mm: float = 6.0,
+                   rt=None) -> np.ndarray:
+    """The phantom's LV blood-pool object at (c, a) grown by ``margin_mm``, as a (nz, ny, nx) bool mask.
+
+    The region in which :func:`clrecon.evaluation.metrics.blood_pool_volume_ml` counts contrast-enhanced
+    voxels: it follows the heart as it breathes and beats, and the margin leaves room for a
+    reconstruction whose cavity is blurred or displaced by motion.
+    """
+    ph = layout
+    objs = phantom.objects(c, a)
+    row = objs[phantom.names.index("lv_blood")][None].copy()
+    row[0, ph.MU] = 1.0
+    row[0, ph.SEMI] += margin_mm
+    planes = row[0, ph.PLANES].reshape(ph.N_PLANES, 4)
+    active = np.linalg.norm(planes[:, :3], axis=1) > 0
+    planes[active, 3] += margin_mm * np.linalg.norm(planes[active, :3], axis=1)
+    row[0, ph.PLANES] = planes.ravel()
+    mu = voxelise.voxelise_objects(row, np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_mm), supersample=1, rt=rt)
+    return mu > 0.5

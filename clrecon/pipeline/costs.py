@@ -1,0 +1,61 @@
+"""``clrecon scenes``: what each built-in scene will simulate and reconstruct, and what it costs."""
+
+from __future__ import annotations
+
+from clrecon.pipeline.run import noise_variants
+from clrecon.reconstruction.rebin import slice_window_mm
+from clrecon.core.errors import SceneError
+from clrecon.config.scene import builtin_scene_names, load_scene
+
+GiB = 1024 ** 3
+
+
+def scene_costs(scene) -> dict:
+    """Sizes in bytes and counts: projections per pitch, store, volumes, peak memory estimate."""
+    sc, rc = scene.scanner, scene.recon
+    n_proj = {p: scene.scan.projection_count(sc, p) for p in scene.scan.pitches}
+    proj_bytes = sc.n_rows * sc.n_cols * 4
+    n_targets = len(scene.cardiac_targets) * len(scene.resp_targets)
+    vol_bytes = n_targets * rc.nz * rc.ny * rc.nx * 4
+    n_vols = len(scene.scan.pitches) * len(noise_variants(scene)) * len(rc.methods) + 2
+    # peak, as reconstruct.py walks it: one 512-projection read chunk (+ its noisy copy), one
+    # slab of rebinned rows (capped at 1.5 GB by the slab size), the slab's output volumes for
+    # every method and variant, one method's slab of sinograms, and one target's truth volume
+    radius = min(sc.fov_radius_mm, rc.fov_radius_mm)
+    feed = min(scene.scan.feed_mm(sc, p) for p in scene.scan.pitches)
+    rows_per_slice = 2 * slice_window_mm(sc, radius) / feed * sc.views_per_rotation
+    n_var = len(noise_variants(scene))
+    slab = int(max(1, min(rc.nz, 1.5e9 // (rows_per_slice * sc.n_cols * 4 * n_var))))
+    chunk = 512 * proj_bytes * (1 + n_var)
+    slab_rows = min(1.5e9, slab * rows_per_slice * sc.n_cols * 4 * n_var)
+    slab_vols = len(rc.methods) * n_var * n_targets * slab * rc.ny * rc.nx * 4
+    slab_sinos = n_targets * slab * sc.views_per_rotation * sc.n_cols * 4 * 2
+    peak = chunk + slab_rows + slab_vols + slab_sinos + 2 * rc.nz * rc.ny * rc.nx * 4
+    return {"projections": n_proj, "store_bytes": sum(n_proj.values()) * proj_bytes,
+            "volume_bytes": vol_bytes * n_vols, "n_volumes": n_vols, "n_targets": n_targets,
+            "peak_memory_bytes": peak, "slab_slices": slab}
+
+
+def describe_scenes() -> str:
+    lines = [f"{'scene':<12} {'pitch':>6} {'projections':>12} {'scan s':>7} {'detector':>10} {'volume':>16} "
+             f"{'targets':>7} {'store GiB':>9} {'volumes GiB':>11} {'peak mem GiB':>12}"]
+    for name in builtin_scene_names():
+        try:
+            s = load_scene(name)
+        except SceneError as e:  # a stress scene that is invalid by design (stress-high-pitch)
+            lines.append(f"{name:<12} invalid: {str(e).split(': ', 1)[-1]}")
+            continue
+        c = scene_costs(s)
+        sc, rc = s.scanner, s.recon
+        for i, p in enumerate(s.scan.pitches):
+            lines.append(
+                f"{name if i == 0 else '':<12} {p:>6.3f} {c['projections'][p]:>12,} "
+                f"{s.scan.duration_s(sc, p):>7.1f} {f'{sc.n_cols}x{sc.n_rows}':>10} "
+                f"{f'{rc.nx}x{rc.ny}x{rc.nz}':>16} {c['n_targets'] if i == 0 else '':>7} "
+                f"{c['projections'][p] * sc.n_rows * sc.n_cols * 4 / GiB:>9.2f} "
+                f"{c['volume_bytes'] / GiB if i == 0 else 0:>11.2f} {c['peak_memory_bytes'] / GiB if i == 0 else 0:>12.2f}")
+        if s.description:
+            lines.append(f"{'':<12} {s.description}")
+    lines.append("store: noise-free line integrals, float32, all projections (a run stores only those its slices use);"
+                 " volumes: every method x pitch x noise variant + ground truth + phantom, float32")
+    return "\n".join(lines)

@@ -1,0 +1,327 @@
+"""``clrecon run``: simulate (or reuse) -> reconstruct -> evaluate -> report, into a run directory.
+
+The run directory holds ``results.json`` (schema in README.md), ``volumes.h5``
+(:mod:`clrecon.outputs.volumes`) and ``report.md`` with its figures. Outputs are written under
+temporary names and renamed when complete, so an interrupted run never leaves files that
+look finished.
+
+Only what the scene and the request ask for is computed: no noise stage without noise, no
+cardiac axis without cardiac motion, no respiratory axis without breathing, only the
+projections the requested slices use, only the requested methods and targets; a second run
+with the same scan reuses the stored projections. ``results.json["stages"]`` says which
+stages ran, which were skipped and why.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from clrecon.core.versions import __version__
+
+from clrecon.scan import table as geometry
+
+from clrecon.evaluation import groundtruth
+
+from clrecon.evaluation import metrics
+
+from clrecon.reconstruction import interpolation, reconstruct
+
+from clrecon.simulation import simulate
+from clrecon.core.runtime import get_runtime
+from clrecon.core.errors import ClreconError
+from clrecon.reconstruction.reconstruct import StageTimes, Targets
+from clrecon.outputs.volumes import VolumeWriter, pitch_key
+from clrecon.simulation.phantoms.analytic import Phantom
+from clrecon.outputs.volumes import read_volume
+from clrecon.outputs import report as report_mod
+
+RESULTS_FORMAT = 1
+#: From the interpolation-method registry: the 5DCT methods, and those compared in the
+#: respiratory-only study (5DCT + the cardiac-blind, respiratory-grid methods such as r4dct).
+FIVE_D_METHODS = interpolation.five_d_methods()
+RESP_ONLY_METHODS = FIVE_D_METHODS + interpolation.resp_grid_methods()
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    from tqdm import tqdm
+
+    disable = (not enabled) or os.environ.get("CLRECON_NO_PROGRESS") == "1"
+    return tqdm(total=total, desc=desc, disable=disable, leave=False, dynamic_ncols=True)
+
+
+def resolve_targets(scene, cardiac=None, resp=None) -> Targets:
+    """Targets of the run: the scene's, narrowed by ``cardiac``/``resp`` lists if given."""
+    c = tuple(scene.cardiac_targets)
+    r = tuple(scene.resp_targets)
+    if cardiac:
+        if not scene.has_cardiac:
+            raise ClreconError("--targets: the scene has no cardiac motion, so there is no cardiac axis to select")
+        bad = [x for x in cardiac if not 0 <= x < 1]
+        if bad:
+            raise ClreconError(f"--targets: cardiac phase {bad[0]} outside [0, 1)")
+        c = tuple(float(x) for x in cardiac)
+    if resp:
+        if not scene.has_respiratory:
+            raise ClreconError("--targets: the scene has no breathing, so there is no respiratory axis to select")
+        bad = [x for x in resp if not 0 <= x <= 1]
+        if bad:
+            raise ClreconError(f"--targets: respiratory amplitude {bad[0]} outside [0, 1]")
+        r = tuple(float(x) for x in resp)
+    return Targets(cardiac=c, resp=r)
+
+
+def noise_variants(scene) -> tuple:
+    if not scene.noise.enabled:
+        return ("noise-free",)
+    return ("noisy", "noise-free") if scene.noise.also_noise_free else ("noisy",)
+
+
+def _versions() -> dict:
+    import h5py
+    import pyopencl
+    import scipy
+
+    return {"clrecon": __version__, "python": sys.version.split()[0], "numpy": np.__version__,
+            "scipy": scipy.__version__, "pyopencl": pyopencl.VERSION_TEXT, "h5py": h5py.__version__,
+            "platform": platform.platform()}
+
+
+def _write_json_atomic(path: Path, obj) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
+    tmp.replace(path)
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, tuple):
+        return list(o)
+    raise TypeError(type(o))
+
+
+def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None, pitches=None,
+        cache_dir=None, progress=True, report=True, log=print) -> dict:
+    """Run the whole job; returns the ``results.json`` dictionary."""
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rt = get_runtime()
+    methods = tuple(methods or scene.recon.methods)
+    unknown = [m for m in methods if m not in scene.recon.methods and m not in reconstruct_methods()]
+    if unknown:
+        raise ClreconError(f"--methods: unknown method {unknown[0]!r}; allowed: {', '.join(reconstruct_methods())}")
+    pitches = tuple(pitches or scene.scan.pitches)
+    targets = resolve_targets(scene, cardiac, resp)
+    nz = scene.recon.nz
+    if slice_range is not None:
+        i0, i1 = slice_range
+        if not (0 <= i0 < i1 <= nz):
+            raise ClreconError(f"--slices {i0}:{i1}: must satisfy 0 <= start < stop <= recon.nz = {nz}")
+    slices_z = reconstruct.slice_positions(scene, slice_range)
+    recon_cfg = reconstruct.ReconstructionConfig.from_scene(scene)
+    variants = noise_variants(scene)
+    times = StageTimes()
+    stages: dict = {}
+    rc = scene.recon
+    axes = {"cardiac_phase": targets.cardiac, "resp_amplitude": targets.resp, "z_mm": slices_z,
+            "y_mm": reconstruct.voxel_coords(rc.ny, rc.voxel_mm), "x_mm": reconstruct.voxel_coords(rc.nx, rc.voxel_mm)}
+    full_shape = targets.shape + (len(slices_z), rc.ny, rc.nx)
+    run_key = hashlib.sha256(json.dumps(
+        {"scene": scene.to_dict(), "methods": methods, "pitches": pitches, "variants": variants,
+         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT},
+        sort_keys=True, default=_json_default).encode()).hexdigest()
+    writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
+                          run_key=run_key)
+    if writer.resumed:
+        log("resuming an interrupted run: finished slices and targets are kept")
+    n_t = targets.shape[0] * targets.shape[1]
+    sim_info = {}
+    method_seconds: dict = {}
+    try:
+        for pitch in pitches:
+            pk = pitch_key(pitch)
+            names = [f"recon/{pk}/{v}/{m}" for v in variants for m in methods]
+            for name in names:
+                writer.create(name, full_shape, len(slices_z))
+            todo = np.flatnonzero(~np.logical_and.reduce([writer.done(n) for n in names]))
+            if todo.size == 0:
+                log(f"[{pk}] already reconstructed (resumed run)")
+                sim_info[pk] = {"projections_total": scene.scan.projection_count(scene.scanner, pitch),
+                                "projections_needed": 0, "projections_simulated": 0, "projections_reused": 0,
+                                "store": ""}
+                continue
+            log(f"[{pk}] planning {todo.size} slices x {n_t} targets x {len(methods)} methods")
+            t0 = time.perf_counter()
+            table = geometry.projection_table(scene, pitch)
+            times.add("signals", time.perf_counter() - t0)
+            plan = reconstruct.plan(recon_cfg, table, slices_z[todo], targets, methods)
+            times.add("plan", plan.seconds)
+            needed = plan.needed_projections(len(table))
+            t0 = time.perf_counter()
+            store = simulate.simulate(scene, pitch, needed=needed, cache_dir=cache_dir, progress=progress)
+            times.add("simulate", time.perf_counter() - t0)
+            sim_info[pk] = {"projections_total": len(table), "projections_needed": int(needed.sum()),
+                            "projections_simulated": int(getattr(store, "n_simulated", 0)),
+                            "projections_reused": int(getattr(store, "n_reused", 0)),
+                            "store": str(getattr(store, "path", ""))}
+
+            def on_slab(zs, slab, pk=pk, todo=todo):
+                for (v, m), vol in slab.items():
+                    vol = np.broadcast_to(vol, targets.shape + vol.shape[2:])  # r4dct: same for every c
+                    writer.write(f"recon/{pk}/{v}/{m}", vol, todo[zs])
+
+            bar = _progress(len(slices_z), f"reconstruct {pk}", progress)
+            ptimes = StageTimes()
+            reconstruct.reconstruct(recon_cfg, store, plan, variants=variants, rt=rt, times=ptimes, progress=bar,
+                                    on_slab=on_slab)
+            bar.close()
+            method_seconds[pk] = {}
+            for key, sec in ptimes.seconds.items():
+                if key.startswith("method:"):
+                    _, m, v = key.split(":")
+                    method_seconds[pk].setdefault(v, {})[m] = round(sec, 3)
+                else:
+                    times.add(key, sec)
+            if hasattr(store, "close"):
+                store.close()
+
+        log("ground truth")
+        gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
+        t0 = time.perf_counter()
+        for name in ("groundtruth", "phantom"):
+            writer.create(name, full_shape, n_t)
+        skip = set(np.flatnonzero(writer.done("groundtruth")))
+        bar = _progress(n_t - len(skip), "ground truth", progress)
+        for i, j, vol in groundtruth.groundtruth_volumes(gt_cfg, slices_z, targets, rt=rt, progress=bar, skip=skip):
+            writer.write_target("groundtruth", i, j, targets.shape[1], vol)
+        bar.close()
+        times.add("groundtruth", time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        skip = set(np.flatnonzero(writer.done("phantom")))
+        for i, j, vol in groundtruth.phantom_truth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
+            writer.write_target("phantom", i, j, targets.shape[1], vol)
+        times.add("phantom_truth", time.perf_counter() - t0)
+
+        log("metrics")
+        t0 = time.perf_counter()
+        met, resp_only = evaluate(scene, writer.f, targets, slices_z, pitches, variants, methods)
+        times.add("metrics", time.perf_counter() - t0)
+        # the previous run's results must not describe the new volumes, even for a moment
+        (out / "results.json").unlink(missing_ok=True)
+        writer.close()
+    except BaseException:
+        writer.abort()
+        raise
+
+    for name in ("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp", "groundtruth",
+                 "phantom_truth", "metrics"):
+        stages[name] = {"ran": name in times.seconds, "seconds": round(times.seconds.get(name, 0.0), 3)}
+    if not scene.noise.enabled:
+        stages["noise"]["skipped_because"] = "scene has noise.enabled = false"
+    total_sim = sum(v["projections_simulated"] for v in sim_info.values())
+    if total_sim == 0:
+        stages["simulate"]["ran"] = False
+        stages["simulate"]["skipped_because"] = "every needed projection was already in the projection store"
+    stages["simulate"].update(per_pitch=sim_info)
+    results = {
+        "format_version": RESULTS_FORMAT,
+        "scene": scene.to_dict(),
+        "scene_source": scene.source,
+        "versions": _versions(),
+        "device": rt.description,
+        "request": {"methods": list(methods), "pitches": list(pitches), "variants": list(variants),
+                    "targets": {"cardiac": list(targets.cardiac), "resp": list(targets.resp)},
+                    "slices": list(slice_range) if slice_range else [0, nz], "slices_z_mm": slices_z.tolist()},
+        "dimensions": {"cardiac": scene.has_cardiac, "resp": scene.has_respiratory},
+        "resumed": writer.resumed,
+        "stages": stages,
+        "metrics": met,
+        "method_seconds": method_seconds,
+        "respiratory_only": resp_only,
+        "outputs": {"volumes": "volumes.h5", "report": "report.md" if report else None},
+    }
+    if report:
+        t0 = time.perf_counter()
+        report_mod.write_report(out, results)
+        stages["report"] = {"ran": True, "seconds": round(time.perf_counter() - t0, 3)}
+    results["total_seconds"] = round(time.perf_counter() - t_start, 3)
+    _write_json_atomic(out / "results.json", results)
+    return results
+
+
+def reconstruct_methods():
+    return interpolation.method_names()
+
+
+def evaluate(scene, f, targets, slices_z, pitches, variants, methods):
+    """Table-2 metrics per pitch/variant/method and the respiratory-only comparison.
+
+    Reads one target's volumes at a time from the (open) volume file ``f``.
+    """
+
+    met: dict = {}
+    resp_only: dict = {}
+    phantom = Phantom(scene.phantom)
+    metrics_cfg = metrics.MetricsConfig.from_scene(scene)
+    masks = metrics.fov_masks(metrics_cfg)
+    n_c, n_r = targets.shape
+    gt = lambda i, j: read_volume(f, "groundtruth", (i, j))  # noqa: E731
+    want_ro = (any(m in methods for m in interpolation.resp_grid_methods())
+               and scene.has_cardiac and scene.has_respiratory)
+    rc = scene.recon
+    x, y = reconstruct.voxel_coords(rc.nx, rc.voxel_mm), reconstruct.voxel_coords(rc.ny, rc.voxel_mm)
+    voxel_ml = rc.voxel_mm ** 2 * (abs(slices_z[1] - slices_z[0]) if len(slices_z) > 1 else rc.slice_mm) / 1000.0
+    regions = ([[groundtruth.lv_region_mask(phantom, c, a, x, y, slices_z) for a in targets.resp]
+                for c in targets.cardiac] if want_ro else None)
+
+    def lv(vol, i, j):
+        return metrics.blood_pool_volume_ml(vol, regions[i][j], voxel_ml)
+
+    lv_gt = [[lv(gt(i, j), i, j) for j in range(n_r)] for i in range(n_c)] if want_ro else None
+    for pitch in pitches:
+        pk = pitch_key(pitch)
+        met[pk] = {}
+        resp_only[pk] = {}
+        for v in variants:
+            met[pk][v] = {}
+            ro_mae = {m: np.zeros((n_c, n_r)) for m in methods}
+            ro_lv = {m: np.zeros((n_c, n_r)) for m in methods}
+            for m in methods:
+                name = f"recon/{pk}/{v}/{m}"
+                acc = metrics.Table2(metrics_cfg, n_c, n_r)
+                for i in range(n_c):
+                    for j in range(n_r):
+                        vol, truth = read_volume(f, name, (i, j)), gt(i, j)
+                        acc.add(i, j, vol, truth)
+                        if want_ro and m in RESP_ONLY_METHODS:
+                            ro_mae[m][i, j] = metrics.abs_error_stats(vol, truth, masks["small"])["mae_hu"]
+                            ro_lv[m][i, j] = lv(vol, i, j)
+                met[pk][v][m] = acc.result()
+            if want_ro:
+                rows = []
+                for i, c in enumerate(targets.cardiac):
+                    row = {"cardiac_phase": c, "small_fov_mae_hu": {}, "lv_volume_ml": {"groundtruth": lv_gt[i]},
+                           "lv_volume_spread_ml": {"groundtruth": _spread(lv_gt[i])}}
+                    for m in [x for x in methods if x in RESP_ONLY_METHODS]:
+                        row["small_fov_mae_hu"][m] = float(ro_mae[m][i].mean())
+                        row["lv_volume_ml"][m] = ro_lv[m][i].tolist()
+                        row["lv_volume_spread_ml"][m] = _spread(ro_lv[m][i])
+                    rows.append(row)
+                resp_only[pk][v] = rows
+    return met, resp_only
+
+
+def _spread(values) -> float:
+    v = np.asarray(values, float)
+    return float(v.max() - v.min()) if v.size else 0.0

@@ -1,0 +1,157 @@
+"""Weighted sums of rebinned rows: the interpolation weights applied on the OpenCL device.
+
+:func:`apply_weights` (``apply_weights`` kernel, ``kernels/interp.cl``) and its float64
+reference :func:`apply_weights_reference`; :class:`DeviceRows` and
+:func:`apply_weights_interleaved` write whole sinograms straight into the batched
+backprojector's layout (:func:`clrecon.reconstruction.fbp.interleave_batch`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clrecon.core.runtime import get_runtime
+from clrecon.reconstruction.interpolation._common import LOCAL as _LOCAL
+
+
+def _check_apply(rows, index, weight):
+    rows = np.asarray(rows)
+    if rows.dtype.kind not in "fiu":
+        raise TypeError(f"rows: expected a real numeric array, got dtype {rows.dtype}")
+    index = np.asarray(index)
+    if index.dtype.kind not in "iu":
+        raise TypeError(f"index: expected an integer array, got dtype {index.dtype}")
+    weight = np.asarray(weight)
+    if weight.dtype.kind != "f":
+        raise TypeError(f"weight: expected a float array, got dtype {weight.dtype}")
+    if rows.ndim != 2 or index.ndim != 2 or weight.shape != index.shape:
+        raise ValueError(f"expected rows (P, C), index and weight (B, K) of equal shape, got "
+                         f"{rows.shape}, {index.shape}, {weight.shape}")
+    live = weight != 0
+    if np.any(live) and (index[live].min() < 0 or index[live].max() >= rows.shape[0]):
+        raise ValueError(f"index: entries with non-zero weight must lie in [0, {rows.shape[0]})")
+    return rows, np.where(live, index, 0), weight
+
+
+def apply_weights_reference(rows, index, weight) -> np.ndarray:
+    """Float64 NumPy reference of :func:`apply_weights`, shape (B, C)."""
+    rows, index, weight = _check_apply(rows, index, weight)
+    r = rows.astype(np.float64)
+    w = weight.astype(np.float64)
+    if r.shape[0] == 0:
+        return np.zeros((index.shape[0], r.shape[1]))
+    # zero weights do not touch their row (a NaN there must not leak through 0 * NaN)
+    return np.einsum("bk,bkc->bc", w, np.where((w != 0)[..., None], r[index], 0.0))
+
+
+def apply_weights(rows, index, weight, rt=None) -> np.ndarray:
+    """Weighted sums of rebinned rows on the OpenCL device (``apply_weights`` kernel).
+
+    Parameters
+    ----------
+    rows : array_like
+        (P, C) rebinned rows (converted to float32).
+    index : array_like of int
+        (B, K) row of ``rows`` for each slot; only slots with non-zero weight are read.
+    weight : array_like of float
+        (B, K) weights (converted to float32), e.g. ``Weights.weight.reshape(-1, K)``.
+    rt : Runtime, optional
+
+    Returns
+    -------
+    np.ndarray
+        float32 (B, C): ``out[b] = sum_k weight[b, k] * rows[index[b, k]]``.
+    """
+    rows, index, weight = _check_apply(rows, index, weight)
+    B, K = index.shape
+    C = rows.shape[1]
+    if B == 0 or C == 0:
+        return np.zeros((B, C), np.float32)
+    rt = rt or get_runtime()
+    knl = rt.kernel("interp.cl", "apply_weights")
+    d_rows = rt.to_device(rows, np.float32, "rows")
+    d_idx = rt.to_device(index, np.int32, "index")
+    d_w = rt.to_device(weight, np.float32, "weight")
+    d_out = rt.empty((B, C), np.float32)
+    ev = knl(rt.queue, (-(-C // _LOCAL) * _LOCAL, B), (_LOCAL, 1), d_rows, d_idx, d_w, d_out,
+             np.int32(B), np.int32(C), np.int32(K))
+    return rt.from_device(d_out, (B, C), np.float32, wait_for=[ev])
+
+
+class DeviceRows:
+    """Rebinned rows uploaded once, for several :func:`apply_weights_interleaved` calls.
+
+    ``rows`` (P, C) is converted to float32; :meth:`release` frees the device copy (on a
+    CPU device it is host memory too, so release it as soon as the slab is done).
+    """
+
+    def __init__(self, rows, rt=None):
+        rows = np.asarray(rows)
+        if rows.dtype.kind not in "fiu":
+            raise TypeError(f"rows: expected a real numeric array, got dtype {rows.dtype}")
+        if rows.ndim != 2:
+            raise ValueError(f"rows: expected shape (P, C), got {rows.shape}")
+        self.rt = rt or get_runtime()
+        self.shape = rows.shape
+        self.buf = self.rt.to_device(rows, np.float32, "rows")
+
+    def release(self) -> None:
+        if self.buf is not None:
+            self.buf.release()
+            self.buf = None
+
+
+def apply_weights_interleaved(rows: DeviceRows, index, weight, rt=None):
+    """:func:`apply_weights` for whole sinograms, written in the batched backprojector's layout.
+
+    Parameters
+    ----------
+    rows : DeviceRows
+        (P, C) rows on the device.
+    index : array_like of int
+        (B, V, K): row of ``rows`` for slot k of view v of sinogram b; only slots with
+        non-zero weight are read.
+    weight : array_like of float
+        (B, V, K) weights (converted to float32).
+    rt : Runtime, optional
+
+    Returns
+    -------
+    (buffer, n_groups)
+        Device buffer of (n_groups, V, C + 2, 16) float32, n_groups = ceil(B / 16): the
+        layout of :func:`clrecon.reconstruction.fbp.interleave_batch` (sinogram ``16 g + lane`` in lane
+        ``lane`` of group ``g``; lanes beyond B are zero), for
+        :func:`clrecon.reconstruction.fbp.backproject_interleaved`.
+    """
+    index = np.asarray(index)
+    weight = np.asarray(weight)
+    if index.dtype.kind not in "iu":
+        raise TypeError(f"index: expected an integer array, got dtype {index.dtype}")
+    if weight.dtype.kind != "f":
+        raise TypeError(f"weight: expected a float array, got dtype {weight.dtype}")
+    if index.ndim != 3 or weight.shape != index.shape:
+        raise ValueError(f"expected index and weight (B, V, K) of equal shape, got {index.shape}, {weight.shape}")
+    P, C = rows.shape
+    B, V, K = index.shape
+    live = weight != 0
+    if np.any(live) and (index[live].min() < 0 or index[live].max() >= P):
+        raise ValueError(f"index: entries with non-zero weight must lie in [0, {P})")
+    rt = rt or rows.rt
+    G = max(1, -(-B // 16))
+    idx = np.zeros((G * 16, V, K), np.int32)
+    wgt = np.zeros((G * 16, V, K), np.float32)
+    idx[:B] = np.where(live, index, 0)
+    wgt[:B] = weight
+    d_out = rt.empty((G, V, C + 2, 16), np.float32)
+    if B == 0 or P == 0 or C == 0 or V == 0 or K == 0:
+        rt.cl.enqueue_fill_buffer(rt.queue, d_out, np.float32(0), 0, G * V * (C + 2) * 16 * 4).wait()
+        return d_out, G
+    knl = rt.kernel("interp.cl", "apply_weights_interleaved16")
+    d_idx = rt.to_device(idx, np.int32, "index")
+    d_w = rt.to_device(wgt, np.float32, "weight")
+    ev = knl(rt.queue, (-(-(C + 2) // _LOCAL) * _LOCAL, V, G), (_LOCAL, 1, 1), rows.buf, d_idx, d_w, d_out,
+             np.int32(V), np.int32(C), np.int32(K))
+    ev.wait()
+    d_idx.release()
+    d_w.release()
+    return d_out, G

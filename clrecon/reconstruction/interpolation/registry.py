@@ -1,0 +1,57 @@
+"""The interpolation-method registry: the one list of methods (``docs/extending.md``).
+
+Each method module registers its :class:`~clrecon.reconstruction.interpolation.base.Method`
+with :func:`register_method`; the package ``__init__`` imports the modules, so registration
+order (= ``recon.methods`` default order) is the import order there. The helpers below give
+every derived list; nothing else in clrecon spells out method names as a list.
+"""
+
+from __future__ import annotations
+
+from clrecon.core.registry import Registry
+from clrecon.reconstruction.interpolation.base import Method
+
+METHODS: Registry[Method] = Registry("interpolation method")
+
+
+def register_method(*, name: str, label: str, neighbours: int | None, target_grid: str, axes: tuple,
+                    five_d: bool, marker: str, rank: int):
+    """Decorator registering a ``weights`` function as method ``name`` (see :class:`Method`)."""
+
+    def add(fn):
+        METHODS.register(name)(Method(name=name, label=label, neighbours=neighbours, target_grid=target_grid,
+                                      axes=tuple(axes), five_d=five_d, marker=marker, rank=rank, weights=fn))
+        return fn
+
+    return add
+
+
+def method_names() -> tuple[str, ...]:
+    """Every method, in registration order (the ``recon.methods`` default)."""
+    return METHODS.names
+
+
+def by_rank(names=None) -> tuple[str, ...]:
+    """``names`` (default: all) that are registered, best first (report tables, export default)."""
+    pool = METHODS.names if names is None else tuple(n for n in METHODS.names if n in set(names))
+    return tuple(sorted(pool, key=lambda n: METHODS[n].rank))
+
+
+def figure_order(names=None) -> tuple[str, ...]:
+    """``names`` (default: all) that are registered, simplest first (figure columns)."""
+    return tuple(reversed(by_rank(names)))
+
+
+def five_d_methods() -> tuple[str, ...]:
+    """The 5DCT methods, in registration order."""
+    return tuple(n for n, m in METHODS.items() if m.five_d)
+
+
+def resp_grid_methods() -> tuple[str, ...]:
+    """Methods solved on the respiratory-only target grid (cardiac-blind, r4DCT-like)."""
+    return tuple(n for n, m in METHODS.items() if m.target_grid == "resp")
+
+
+def markers() -> dict[str, str]:
+    """Figure marker per method."""
+    return {n: m.marker for n, m in METHODS.items()}

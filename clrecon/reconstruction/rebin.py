@@ -1,0 +1,269 @@
+"""Single-slice rebinning (SSRB) of helical cone-beam projections (pipeline stage: rebin).
+
+For every (slice, view) the candidates are the projections of that view, from every turn
+whose rays still reach the slice inside the detector (docs/algorithms.md "Candidate selection": 5DCT keeps all
+turns, each one is another sample in phase space). SSRB turns one candidate projection
+into one in-plane fan-beam row of the slice; :mod:`clrecon.reconstruction.interpolation.weights` then combines the
+rows of one (slice, view) in the (cardiac, respiratory) phase space.
+
+Geometry (Noo, Defrise, Clackdoyle & Kudo, Phys. Med. Biol. 44:561, 1999): the fan ray of
+flat-detector column u passes closest to the rotation axis at in-plane distance
+SID cos(gamma) from the source, gamma = atan(u / SDD). The oblique ray from the source at
+z_k through that point at height z hits the detector at row coordinate
+
+    v(u) = (u^2 + SDD^2) / (SID SDD) * (z - z_k)          (mm)
+
+and its line integral is converted to the in-plane one by the factor
+sqrt(SDD^2 + u^2) / sqrt(SDD^2 + u^2 + v^2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from clrecon.core.runtime import get_runtime
+from clrecon.core.conventions import detector_coords
+from clrecon.config.scene import ScannerConfig
+
+if TYPE_CHECKING:  # only for annotations: rebinning needs the table's arrays, not its builder
+    from clrecon.scan.table import ProjectionTable
+
+#: Work-group size along the detector columns (fixed: PoCL specialises per local size).
+_LOCAL_COLS = 64
+
+
+def _round_up(n: int, m: int) -> int:
+    return max(m, ((n + m - 1) // m) * m)
+
+
+def ssrb_v_mm(u_mm, dz_mm, scanner: ScannerConfig) -> np.ndarray:
+    """Detector row coordinate v(u) (mm) of the SSRB ray: :meth:`FlatDetector.ssrb_v_mm`.
+
+    ``u_mm`` flat-detector column coordinate (mm), ``dz_mm = slice_z - z_k`` (mm); float64,
+    broadcast of the inputs.
+    """
+    return scanner.detector_model.ssrb_v_mm(u_mm, dz_mm)
+
+
+def slice_window_mm(scanner: ScannerConfig, object_radius_mm: float) -> float:
+    """Largest |z - z_k| (mm) for which SSRB needs no row outside the detector.
+
+    The scanner's detector model defines it (:meth:`clrecon.core.detector.FlatDetector.slice_window_mm`).
+    """
+    return scanner.detector_model.slice_window_mm(object_radius_mm)
+
+
+def max_covering_pitch(scanner: ScannerConfig, object_radius_mm: float) -> float:
+    """Largest helical pitch for which every (slice, view) inside the scanned range has a candidate.
+
+    See :meth:`clrecon.core.detector.FlatDetector.max_covering_pitch`.
+    """
+    return scanner.detector_model.max_covering_pitch(object_radius_mm)
+
+
+def candidates(table: "ProjectionTable", slice_z_mm: float, scanner: ScannerConfig,
+               object_radius_mm: float) -> np.ndarray:
+    """Projections whose source is close enough to a slice for SSRB, all turns, every view.
+
+    Parameters
+    ----------
+    table : ProjectionTable
+    slice_z_mm : float
+        z of the slice plane (mm).
+    scanner : ScannerConfig
+    object_radius_mm : float
+        See :func:`slice_window_mm`.
+
+    Returns
+    -------
+    np.ndarray
+        int64 (n,), sorted: projection numbers ``table.index`` with
+        |slice_z - z_k| <= :func:`slice_window_mm`. Group them by ``index % N_views``
+        for the per-(slice, view) candidates, or use :func:`candidate_groups`.
+    """
+    w = slice_window_mm(scanner, object_radius_mm)
+    sel = np.abs(float(slice_z_mm) - table.source_z_mm) <= w
+    return np.sort(table.index[sel])
+
+
+@dataclass(frozen=True)
+class CandidateGroups:
+    """Candidates of many (slice, view) groups in compressed sparse-row form.
+
+    Group ``g = s * views_per_rotation + j`` is slice ``s`` (position in the ``slice_z_mm``
+    given) and view ``j``; its candidates are entries ``offsets[g]:offsets[g + 1]`` of the
+    flat arrays, in increasing projection number. Every (slice, view) has a group; a group
+    with no candidate (pitch too high for the object radius) has ``offsets[g] ==
+    offsets[g + 1]`` and shows in :attr:`empty`.
+
+    Attributes
+    ----------
+    offsets : int64 (G + 1,)
+    row : int64 (n,)           position of the candidate in the table (for c, a lookups)
+    projection : int64 (n,)    projection number ``table.index[row]``
+    dz_mm : float64 (n,)       slice_z - z_k (mm), the SSRB ``pair_dz_mm``
+    slice_z_mm : float64 (S,)
+    views_per_rotation : int
+    """
+
+    offsets: np.ndarray
+    row: np.ndarray
+    projection: np.ndarray
+    dz_mm: np.ndarray
+    slice_z_mm: np.ndarray
+    views_per_rotation: int
+
+    @property
+    def n_groups(self) -> int:
+        return int(self.offsets.shape[0] - 1)
+
+    @property
+    def counts(self) -> np.ndarray:
+        """Candidates per group, int64 (G,)."""
+        return np.diff(self.offsets)
+
+    @property
+    def empty(self) -> np.ndarray:
+        """bool (G,): groups without any candidate."""
+        return self.counts == 0
+
+    @property
+    def group_slice(self) -> np.ndarray:
+        """Slice position of each group, int64 (G,)."""
+        return np.arange(self.n_groups) // self.views_per_rotation
+
+    @property
+    def group_view(self) -> np.ndarray:
+        """View of each group, int64 (G,)."""
+        return np.arange(self.n_groups) % self.views_per_rotation
+
+
+def candidate_groups(table: "ProjectionTable", slice_z_mm, scanner: ScannerConfig,
+                     object_radius_mm: float) -> CandidateGroups:
+    """Candidates of every (slice, view) for a set of slices, vectorised.
+
+    Parameters
+    ----------
+    table : ProjectionTable
+        Full scan or any sub-table (rows need not be in z order).
+    slice_z_mm : array_like
+        (S,) slice positions (mm).
+    scanner : ScannerConfig
+    object_radius_mm : float
+        See :func:`slice_window_mm`.
+
+    Returns
+    -------
+    CandidateGroups
+        S * views_per_rotation groups, slice-major.
+    """
+    zs = np.atleast_1d(np.asarray(slice_z_mm, dtype=np.float64))
+    nv = int(table.views_per_rotation)
+    w = slice_window_mm(scanner, object_radius_mm)
+    zk = np.asarray(table.source_z_mm, dtype=np.float64)
+    # Sort the table once by z so each slice is a contiguous range (a helical table already is).
+    order = np.argsort(zk, kind="stable")
+    zsorted = zk[order]
+    view = np.asarray(table.view)
+    rows, dzs, counts = [], [], np.zeros(zs.size * nv, dtype=np.int64)
+    for s, z in enumerate(zs):
+        lo = np.searchsorted(zsorted, z - w, side="left")
+        hi = np.searchsorted(zsorted, z + w, side="right")
+        r = order[lo:hi]
+        # Within a slice: group by view, then by projection number (turn order).
+        r = r[np.lexsort((table.index[r], view[r]))]
+        rows.append(r)
+        dzs.append(z - zk[r])
+        counts[s * nv:(s + 1) * nv] = np.bincount(view[r], minlength=nv)
+    row = np.concatenate(rows) if rows else np.zeros(0, np.int64)
+    offsets = np.zeros(zs.size * nv + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    return CandidateGroups(offsets=offsets, row=row.astype(np.int64),
+                           projection=np.asarray(table.index)[row].astype(np.int64),
+                           dz_mm=np.concatenate(dzs) if dzs else np.zeros(0),
+                           slice_z_mm=zs, views_per_rotation=nv)
+
+
+# ---------------------------------------------------------------------------------------
+def _check_pairs(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig):
+    proj = np.asarray(projections)
+    if proj.dtype.kind not in "fiu":
+        raise TypeError(f"projections: expected a real numeric array, got dtype {proj.dtype}")
+    if proj.ndim != 3 or proj.shape[1:] != (scanner.n_rows, scanner.n_cols):
+        raise ValueError(f"projections: expected shape (m, {scanner.n_rows}, {scanner.n_cols}), "
+                         f"got {proj.shape}")
+    slot = np.asarray(pair_slot)
+    if slot.dtype.kind not in "iu":
+        raise TypeError(f"pair_slot: expected an integer array, got dtype {slot.dtype}")
+    dz = np.asarray(pair_dz_mm, dtype=np.float64)
+    if slot.ndim != 1 or dz.shape != slot.shape:
+        raise ValueError(f"pair_slot {slot.shape} and pair_dz_mm {dz.shape} must be 1-D of equal length")
+    if slot.size and (slot.min() < 0 or slot.max() >= proj.shape[0]):
+        raise ValueError(f"pair_slot: values must lie in [0, {proj.shape[0]}), "
+                         f"got [{slot.min()}, {slot.max()}]")
+    if not np.all(np.isfinite(dz)):
+        raise ValueError("pair_dz_mm: must be finite")
+    return proj, slot, dz
+
+
+def ssrb_rows_reference(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig) -> np.ndarray:
+    """Float64 NumPy reference of :func:`ssrb_rows` (same clamping), shape (p, C)."""
+    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner)
+    proj = proj.astype(np.float64)
+    n_rows, n_cols = scanner.n_rows, scanner.n_cols
+    u = detector_coords(n_cols, scanner.col_pitch_mm)                       # (C,)
+    q = u * u + scanner.sdd_mm ** 2
+    v = ssrb_v_mm(u[None, :], dz[:, None], scanner)                          # (p, C)
+    centre = 0.5 * (n_rows - 1)
+    fr = np.clip(v / scanner.row_pitch_mm + centre, 0.0, n_rows - 1)
+    r0 = np.minimum(np.floor(fr).astype(np.int64), max(n_rows - 2, 0))
+    r1 = np.minimum(r0 + 1, n_rows - 1)
+    t = fr - r0
+    cols = np.arange(n_cols)[None, :]
+    s = slot[:, None]
+    val = (1 - t) * proj[s, r0, cols] + t * proj[s, r1, cols]
+    vs = (fr - centre) * scanner.row_pitch_mm
+    return np.sqrt(q / (q + vs * vs)) * val
+
+
+def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=None) -> np.ndarray:
+    """Rebin helical cone-beam projections to in-plane fan-beam rows (OpenCL, ``kernels/ssrb.cl``).
+
+    Parameters
+    ----------
+    projections : array_like
+        (m, n_rows, n_cols) line integrals (converted to C-contiguous float32).
+    pair_slot : array_like of int
+        (p,) which projection each output row comes from, index into m.
+    pair_dz_mm : array_like
+        (p,) slice_z - z_k (mm) of each pair.
+    scanner : ScannerConfig
+    rt : Runtime, optional
+        Defaults to :func:`clrecon.core.runtime.get_runtime`.
+
+    Returns
+    -------
+    np.ndarray
+        float32 (p, n_cols): fan-beam line integrals of the slice plane at the projection's
+        gantry angle, one row per pair. Where v(u) falls outside the outer row centres the
+        outer row is used (clamped); candidates from :func:`candidates` never need that for
+        columns that see the object.
+    """
+    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner)
+    p, n_cols = slot.size, scanner.n_cols
+    if p == 0:
+        return np.zeros((0, n_cols), np.float32)
+    rt = rt or get_runtime()
+    d_proj = rt.to_device(proj, np.float32, "projections")
+    d_slot = rt.to_device(slot, np.int32, "pair_slot")
+    d_dz = rt.to_device(dz, np.float32, "pair_dz_mm")
+    d_out = rt.empty((p, n_cols), np.float32)
+    knl = rt.kernel("ssrb.cl", "ssrb_rows")
+    ev = knl(rt.queue, (_round_up(n_cols, _LOCAL_COLS), p), (_LOCAL_COLS, 1),
+             d_proj, d_slot, d_dz, d_out, np.int32(p), np.int32(scanner.n_rows), np.int32(n_cols),
+             np.float32(scanner.col_pitch_mm), np.float32(scanner.row_pitch_mm),
+             np.float32(scanner.sid_mm), np.float32(scanner.sdd_mm))
+    return rt.from_device(d_out, (p, n_cols), np.float32, wait_for=[ev])

@@ -1,0 +1,354 @@
+"""5DCT reconstruction: plan weights, stream the store slab by slab, rebin, interpolate, FBP.
+
+Stages 5-8 of the pipeline, for one scan (one pitch):
+
+1. **Plan** (no projection data needed): for each slice, the SSRB candidates (every turn
+   whose rows cover the slice, :func:`clrecon.reconstruction.rebin.candidates`), grouped by view; for each
+   method the phase-space weights per (slice, view, target)
+   (:func:`clrecon.reconstruction.interpolation.weights.method_weights`). The union of the (projection, slice) pairs
+   with a non-zero weight is all the data the reconstruction will ever touch, so the
+   simulator only needs to project those projections.
+2. **Stream**: projections are read from the store in index (= time = z) order, in chunks;
+   each chunk is rebinned only for the pairs it owns (:func:`clrecon.reconstruction.rebin.ssrb_rows`).
+   Noise, if asked for, is applied to the chunk once per read (seeded per projection).
+3. **Interpolate**: :func:`clrecon.reconstruction.interpolation.weights.apply_weights` turns rebinned rows into one
+   fan-beam sinogram per (slice, target).
+4. **FBP**: :func:`clrecon.reconstruction.fbp.fbp_hu`, batched over slices and targets.
+
+Slices are processed in slabs in z order so that only one slab's rebinned rows are held.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from clrecon.reconstruction import fbp as fbp_mod
+from clrecon.reconstruction import interpolation
+from clrecon.reconstruction.interpolation import weights as interpolate
+from clrecon.simulation import noise
+from clrecon.reconstruction import rebin
+from clrecon.core.conventions import voxel_coords
+from clrecon.core.errors import ClreconError
+from clrecon.scan.table import ProjectionTable
+
+
+@dataclass(frozen=True)
+class Targets:
+    """Target grid: ``cardiac`` (n_c,) phases in [0,1) x ``resp`` (n_r,) amplitudes in [0,1]."""
+
+    cardiac: tuple
+    resp: tuple
+
+    @property
+    def pairs(self) -> np.ndarray:
+        """(n_c * n_r, 2) array of (c*, a*), cardiac-major: row i*n_r + j = (cardiac[i], resp[j])."""
+        cc, rr = np.meshgrid(np.asarray(self.cardiac, float), np.asarray(self.resp, float), indexing="ij")
+        return np.stack([cc.ravel(), rr.ravel()], axis=1)
+
+    @property
+    def shape(self) -> tuple:
+        return (len(self.cardiac), len(self.resp))
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReconstructionConfig:
+    """What the reconstruction of one scan needs, and nothing else.
+
+    ``scanner`` (detector and views, :class:`clrecon.config.scene.ScannerConfig`),
+    ``object_radius_mm`` (the reconstruction circle SSRB must serve, mm), ``fbp`` (the
+    fan-beam geometry), ``filter`` (ramp window), ``mu_water_per_mm`` (HU conversion),
+    ``noise`` (:class:`clrecon.config.scene.NoiseConfig`, for the noisy variant), and the
+    interpolation options: ``kappa``, ``sigma`` (local-linear kernel widths), ``use_cardiac`` /
+    ``use_resp`` (which phase axes exist), ``resp_bin_width`` (the bin method's amplitude bin),
+    ``extrapolate`` (local linear's plain fit).
+    """
+
+    scanner: object
+    object_radius_mm: float
+    fbp: fbp_mod.FanBeamGeometry
+    filter: str
+    mu_water_per_mm: float
+    noise: object
+    kappa: float
+    sigma: float
+    use_cardiac: bool
+    use_resp: bool
+    resp_bin_width: float
+    extrapolate: bool
+
+    @classmethod
+    def from_scene(cls, scene) -> ReconstructionConfig:
+        rc = scene.recon
+        return cls(scanner=scene.scanner, object_radius_mm=object_radius_mm(scene),
+                   fbp=fbp_mod.FanBeamGeometry.from_scene(scene), filter=rc.filter,
+                   mu_water_per_mm=scene.phantom.mu_water_per_mm, noise=scene.noise, kappa=rc.kappa,
+                   sigma=rc.sigma, use_cardiac=scene.has_cardiac, use_resp=scene.has_respiratory,
+                   resp_bin_width=1.0 / rc.resp_bins, extrapolate=rc.local_linear_extrapolate)
+
+
+def slice_positions(scene, slice_range: tuple | None = None) -> np.ndarray:
+    """z (mm) of the reconstructed slices, (nz,), centred on the scan centre; optional [i0, i1) range."""
+    rc = scene.recon
+    z = voxel_coords(rc.nz, rc.slice_mm, scene.scan.z_centre_mm)
+    if slice_range is not None:
+        i0, i1 = slice_range
+        z = z[i0:i1]
+    return z
+
+
+def object_radius_mm(scene) -> float:
+    """Radius of the region whose rays SSRB must serve: the reconstruction circle."""
+    return min(scene.scanner.fov_radius_mm, scene.recon.fov_radius_mm)
+
+
+@dataclass
+class MethodPlan:
+    """Weights of one method over a set of slices: arrays (S, V, T, K)."""
+
+    proj_index: np.ndarray  # int64 global projection index
+    weight: np.ndarray      # float64, 0 in unused slots
+    targets_shape: tuple    # (n_c, n_r) of the targets actually solved (r4dct: (1, n_r))
+
+
+@dataclass
+class Plan:
+    slices_z: np.ndarray
+    methods: dict = field(default_factory=dict)  # name -> MethodPlan
+    seconds: float = 0.0
+
+    def needed_pairs(self):
+        """Unique (projection, slice) pairs with a non-zero weight, sorted by projection."""
+        keys = []
+        for mp in self.methods.values():
+            S = mp.proj_index.shape[0]
+            sl = np.broadcast_to(np.arange(S)[:, None, None, None], mp.proj_index.shape)
+            nz = mp.weight != 0
+            keys.append(mp.proj_index[nz].astype(np.int64) * S + sl[nz])
+        if not keys:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        u = np.unique(np.concatenate(keys))
+        S = len(self.slices_z)
+        return u // S, u % S
+
+    def needed_projections(self, n_total: int) -> np.ndarray:
+        proj, _ = self.needed_pairs()
+        mask = np.zeros(n_total, bool)
+        mask[proj] = True
+        return mask
+
+
+def plan(cfg: ReconstructionConfig, table: ProjectionTable, slices_z: np.ndarray, targets: Targets, methods) -> Plan:
+    """Weights of every method for every (slice, view, target); see the module docstring.
+
+    Raises :class:`clrecon.core.errors.ClreconError` naming the slice and view when a (slice, view)
+    has no SSRB candidate (slice outside the scanned range, or pitch too high for the rows).
+    """
+    t0 = time.perf_counter()
+    sc = cfg.scanner
+    nv = sc.views_per_rotation
+    p = Plan(slices_z=np.asarray(slices_z, float))
+    groups = rebin.candidate_groups(table, p.slices_z, sc, cfg.object_radius_mm)
+    if groups.empty.any():
+        g = int(np.flatnonzero(groups.empty)[0])
+        z = p.slices_z[g // nv]
+        zk = table.source_z_mm
+        raise ClreconError(
+            f"slice z = {z:.2f} mm, view {g % nv}: no projection covers it (scan covers source z "
+            f"{zk.min():.1f}..{zk.max():.1f} mm with an SSRB window of "
+            f"+-{rebin.slice_window_mm(sc, cfg.object_radius_mm):.2f} mm); reduce recon.nz/slice_mm or the pitch")
+    c = table.cardiac_phase[groups.row]
+    a = table.resp_amplitude[groups.row]
+    opts = weight_options(cfg, targets)
+    S = len(p.slices_z)
+    for m in methods:
+        tg, shape = method_targets(m, targets)
+        w = interpolate.batch_weights(m, c, a, groups.offsets, tg, **opts)
+        G, T, K = w.index.shape
+        proj = groups.projection[w.index].reshape(S, nv, T, K)
+        weight = np.where(w.weight != 0, w.weight, 0.0).reshape(S, nv, T, K)
+        p.methods[m] = MethodPlan(proj_index=proj, weight=weight, targets_shape=shape)
+    p.seconds = time.perf_counter() - t0
+    return p
+
+
+def method_targets(method: str, targets: Targets) -> tuple[np.ndarray, tuple]:
+    """The targets ``method`` is solved for: ``(pairs (T, 2), (n_c, n_r))`` by its ``target_grid``.
+
+    ``"5d"``: every (c*, a*); ``"resp"`` (cardiac-blind, e.g. r4dct): one per amplitude, shape
+    (1, n_r), the volume then standing for every cardiac phase.
+    """
+    m = interpolation.METHODS.get(method)  # an unknown name is batch_weights' error
+    if m is not None and m.target_grid == "resp":
+        return targets.pairs[:len(targets.resp)], (1, len(targets.resp))
+    return targets.pairs, targets.shape
+
+
+def weight_options(cfg: ReconstructionConfig, targets: Targets) -> dict:
+    """Keyword options of :func:`clrecon.reconstruction.interpolation.weights.batch_weights`."""
+    return dict(kappa=cfg.kappa, sigma=cfg.sigma, use_cardiac=cfg.use_cardiac, use_resp=cfg.use_resp,
+                cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=cfg.resp_bin_width,
+                extrapolate=cfg.extrapolate)
+
+
+def _cardiac_bin_width(targets: Targets) -> float:
+    c = np.sort(np.asarray(targets.cardiac, float))
+    if len(c) < 2:
+        return 0.2
+    gaps = np.diff(np.concatenate([c, [c[0] + 1.0]]))
+    return float(np.min(gaps))
+
+
+@dataclass
+class StageTimes:
+    seconds: dict = field(default_factory=dict)
+
+    def add(self, name: str, dt: float) -> None:
+        self.seconds[name] = self.seconds.get(name, 0.0) + dt
+
+
+def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-free",), rt=None, times: StageTimes | None = None,
+                progress=None, chunk: int = 512, on_slab=None, slab_size: int | None = None) -> dict:
+    """Reconstruct every planned method and noise variant.
+
+    Parameters
+    ----------
+    store : object with ``read_indices(indices, noisy=False) -> (m, R, C) float32`` and ``table``.
+    variants : iterable of ``"noise-free"`` / ``"noisy"``.
+    on_slab : optional callback ``(slice_slice, {(variant, method): (n_c, n_r, s, ny, nx)})`` that
+        receives each slab's volumes as it finishes (to write them out and free memory). If None,
+        whole volumes are returned.
+
+    Returns
+    -------
+    dict ``{(variant, method): volume (n_c, n_r, nz, ny, nx) float32 HU}`` (empty if ``on_slab``).
+    """
+    times = times or StageTimes()
+    geom = cfg.fbp
+    S = len(plan_.slices_z)
+    if slab_size is None:
+        slab_size = _slab_size(cfg, plan_)
+    results: dict = {}
+    for s0 in range(0, S, slab_size):
+        s1 = min(S, s0 + slab_size)
+        slab = _reconstruct_slab(cfg, store, plan_, s0, s1, variants, geom, rt, times, chunk, progress)
+        if on_slab is not None:
+            on_slab(slice(s0, s1), slab)
+        else:
+            for key, vol in slab.items():
+                if key not in results:
+                    results[key] = np.zeros(vol.shape[:2] + (S,) + vol.shape[3:], np.float32)
+                results[key][:, :, s0:s1] = vol
+    return results
+
+
+def _slab_size(cfg: ReconstructionConfig, plan_: Plan) -> int:
+    """Slices per slab so that the slab's rebinned rows stay under ~1.5 GB."""
+    proj, sl = plan_.needed_pairs()
+    S = max(len(plan_.slices_z), 1)
+    rows_per_slice = max(len(proj) / S, 1)
+    bytes_per_slice = rows_per_slice * cfg.scanner.n_cols * 4 * 2
+    return int(max(1, min(S, 1.5e9 // bytes_per_slice)))
+
+
+def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, variants, geom, rt, times, chunk,
+                      progress) -> dict:
+    sc = cfg.scanner
+    t0 = time.perf_counter()
+    sub = {m: (mp.proj_index[s0:s1], mp.weight[s0:s1], mp.targets_shape) for m, mp in plan_.methods.items()}
+    # (projection, slice) pairs of this slab, and each method's index into them
+    keys = []
+    Ssl = s1 - s0
+    for idx, w, _ in sub.values():
+        sl = np.broadcast_to(np.arange(Ssl)[:, None, None, None], idx.shape)
+        nzm = w != 0
+        keys.append(idx[nzm].astype(np.int64) * Ssl + sl[nzm])
+    ukeys = np.unique(np.concatenate(keys))
+    pair_proj = ukeys // Ssl
+    pair_slice = ukeys % Ssl
+    pair_dz = plan_.slices_z[s0:s1][pair_slice] - store.table.source_z_mm[pair_proj]
+    times.add("plan", time.perf_counter() - t0)
+
+    # stream the store in index order, rebinning only the pairs each chunk owns
+    rows = {v: np.empty((len(ukeys), sc.n_cols), np.float32) for v in variants}
+    bounds = np.unique(np.concatenate([np.arange(pair_proj.min(), pair_proj.max() + 1, chunk),
+                                       [pair_proj.max() + 1]])) if len(pair_proj) else np.zeros(1, int)
+    for b0, b1 in zip(bounds[:-1], bounds[1:]):
+        lo, hi = np.searchsorted(pair_proj, [b0, b1])
+        if lo == hi:
+            continue
+        wanted, slot = np.unique(pair_proj[lo:hi], return_inverse=True)
+        t1 = time.perf_counter()
+        clean = store.read_indices(wanted, noisy=False)
+        times.add("read", time.perf_counter() - t1)
+        for v in variants:
+            data = clean
+            if v == "noisy":
+                t1 = time.perf_counter()
+                data = noise.add_noise(clean, wanted, cfg.noise)
+                times.add("noise", time.perf_counter() - t1)
+            t1 = time.perf_counter()
+            rows[v][lo:hi] = rebin.ssrb_rows(data, slot.astype(np.int32).ravel(),
+                                            pair_dz[lo:hi].astype(np.float32), sc, rt=rt)
+            times.add("rebin", time.perf_counter() - t1)
+
+    # Cosine weighting and ramp filtering act on each row alone and linearly, so they commute
+    # with the interpolation (weighted sums of rows of the same view): each rebinned row is
+    # filtered once per variant instead of once per method and target, the filtered rows go
+    # to the device once per variant, and every method interpolates them straight into the
+    # backprojector's interleaved layout (no sinogram round trip through the host).
+    per_method = {}
+    for m, (idx, w, tshape) in sub.items():
+        t1 = time.perf_counter()
+        key = idx.astype(np.int64) * Ssl + np.arange(Ssl)[:, None, None, None]
+        pos = np.searchsorted(ukeys, key)
+        pos = np.where(w != 0, np.clip(pos, 0, len(ukeys) - 1), 0).astype(np.int32)
+        Sn, V, T, K = idx.shape
+        # sinogram b = s * T + t (slice-major, as the images are reshaped below), (B, V, K)
+        per_method[m] = (pos.transpose(0, 2, 1, 3).reshape(Sn * T, V, K),
+                         w.transpose(0, 2, 1, 3).reshape(Sn * T, V, K).astype(np.float32), tshape)
+        times.add("plan", time.perf_counter() - t1)
+    step = fbp_mod.groups_per_launch(geom) * fbp_mod.BATCH_LANES
+    mu_water = cfg.mu_water_per_mm
+    out = {}
+    for v in variants:
+        t1 = time.perf_counter()
+        fbp_mod.filter_rows(rows[v], geom, cfg.filter, out=rows[v])
+        t_filter = time.perf_counter() - t1
+        times.add("fbp", t_filter)
+        t1 = time.perf_counter()
+        d_rows = interpolate.DeviceRows(rows.pop(v), rt=rt)  # the host copy is not needed any more
+        t_upload = time.perf_counter() - t1
+        times.add("interpolate", t_upload)
+        try:
+            for m, (pos_b, w_b, tshape) in per_method.items():
+                B = pos_b.shape[0]
+                img = np.empty((B, geom.ny, geom.nx), np.float32)
+                t_interp = t_fbp = 0.0
+                for b0 in range(0, B, step):
+                    t1 = time.perf_counter()
+                    buf, G = interpolate.apply_weights_interleaved(d_rows, pos_b[b0:b0 + step], w_b[b0:b0 + step],
+                                                                   rt=rt)
+                    t2 = time.perf_counter()
+                    mu = fbp_mod.backproject_interleaved(buf, G, geom, runtime=rt)
+                    buf.release()
+                    n = min(step, B - b0)
+                    # HU = 1000 (mu - mu_w) / mu_w (conventions.mu_to_hu), in float32 in place
+                    np.multiply(mu[:n], np.float32(1000.0 / mu_water), out=img[b0:b0 + n])
+                    img[b0:b0 + n] -= np.float32(1000.0)
+                    t_interp += t2 - t1
+                    t_fbp += time.perf_counter() - t2
+                times.add("interpolate", t_interp)
+                times.add("fbp", t_fbp)
+                # per-method cost (weights are planned separately; the shared filtering and
+                # upload split evenly): the "error against run time" figure
+                times.add(f"method:{m}:{v}", t_interp + t_fbp + (t_filter + t_upload) / len(per_method))
+                img = img.reshape(Sn, tshape[0], tshape[1], geom.ny, geom.nx).transpose(1, 2, 0, 3, 4)
+                out[(v, m)] = np.ascontiguousarray(img)
+        finally:
+            d_rows.release()
+    if progress is not None:
+        progress.update(s1 - s0)
+    return out

@@ -1,0 +1,78 @@
+"""Helical scan geometry: the per-projection table (stage 2 of the pipeline).
+
+Turns a scene and one pitch into plain per-projection arrays (docs/conventions.md "Gantry and source"): index,
+time, gantry angle, source z, cardiac phase, respiratory amplitude and breathing direction.
+Projectors and the rebinner see only these arrays and the canonical vector form from
+:func:`clrecon.core.conventions.detector_frames`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from clrecon.scan import signals
+from clrecon.config.scene import Scene
+
+
+@dataclass(frozen=True)
+class ProjectionTable:
+    """Per-projection columns, each of shape (n,).
+
+    index          int64   projection number k in the helical scan (0-based)
+    time_s         float64 acquisition time t_k = k T_rot / N_views (s)
+    angle_rad      float64 gantry angle beta_k = beta0 + 2 pi k / N_views (rad, not wrapped)
+    source_z_mm    float64 source z_k = z_start + h k / N_views (mm)
+    cardiac_phase  float64 c in [0, 1): fraction of the current R-R interval (recorded)
+    resp_amplitude float64 a in [0, 1], 1 = end-inhale (recorded)
+    resp_direction int8    +1 inhaling, -1 exhaling (sign of da/dt)
+    state_cardiac  float64 cardiac phase the phantom is posed at (= cardiac_phase unless frames)
+    state_resp     float64 amplitude the phantom is posed at (= resp_amplitude unless frames)
+    """
+
+    index: np.ndarray
+    time_s: np.ndarray
+    angle_rad: np.ndarray
+    source_z_mm: np.ndarray
+    cardiac_phase: np.ndarray
+    resp_amplitude: np.ndarray
+    resp_direction: np.ndarray
+    state_cardiac: np.ndarray
+    state_resp: np.ndarray
+    views_per_rotation: int
+
+    COLUMNS = ("index", "time_s", "angle_rad", "source_z_mm", "cardiac_phase", "resp_amplitude",
+               "resp_direction", "state_cardiac", "state_resp")
+
+    def __len__(self) -> int:
+        return int(self.index.shape[0])
+
+    @property
+    def view(self) -> np.ndarray:
+        """View number within the rotation, k mod N_views, shape (n,)."""
+        return self.index % self.views_per_rotation
+
+    def take(self, sel) -> "ProjectionTable":
+        """Sub-table of the rows ``sel`` (indices or boolean mask)."""
+        return ProjectionTable(**{c: getattr(self, c)[sel] for c in self.COLUMNS},
+                               views_per_rotation=self.views_per_rotation)
+
+    def as_dict(self) -> dict:
+        return {c: getattr(self, c) for c in self.COLUMNS}
+
+
+def projection_table(scene: Scene, pitch: float) -> ProjectionTable:
+    """The whole helical scan of ``scene`` at ``pitch`` as a :class:`ProjectionTable`."""
+    sc, scan = scene.scanner, scene.scan
+    n = scan.projection_count(sc, pitch)
+    k = np.arange(n, dtype=np.int64)
+    nv = sc.views_per_rotation
+    t = k * (sc.rotation_time_s / nv)
+    beta = np.deg2rad(scan.start_angle_deg) + 2.0 * np.pi * k / nv
+    z = scan.z_start_mm(sc, pitch) + scan.feed_mm(sc, pitch) * k / nv
+    phys = signals.physiology(scene, t)
+    return ProjectionTable(index=k, time_s=t, angle_rad=beta, source_z_mm=z,
+                           cardiac_phase=phys.cardiac_phase, resp_amplitude=phys.resp_amplitude,
+                           resp_direction=phys.resp_direction, state_cardiac=phys.state_cardiac,
+                           state_resp=phys.state_resp, views_per_rotation=nv)

@@ -1,0 +1,98 @@
+"""Simulation driver: project the helical scan of a scene into its projection store.
+
+scene + pitch -> :func:`~clrecon.scan.table.projection_table` -> the store of that scan
+(:mod:`clrecon.simulation.store`) -> project only the needed projections that are not yet stored, in
+chunks, in index (= time) order. Noise is not added here: the store keeps noise-free line
+integrals and :meth:`ProjectionStore.read` adds noise on the way out.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from clrecon.scan.table import projection_table
+from clrecon.config.scene import Scene
+from clrecon.simulation.projector import project
+from clrecon.simulation.store import ProjectionStore
+
+
+def _progress_enabled(progress: bool) -> bool:
+    if not progress or os.environ.get("CLRECON_NO_PROGRESS", "") == "1":
+        return False
+    return bool(getattr(sys.stderr, "isatty", lambda: False)())
+
+
+def simulate(scene: Scene, pitch: float, needed=None, cache_dir=None, projector=None,
+             chunk: int = 256, progress: bool = True) -> ProjectionStore:
+    """Make sure the projections ``needed`` of ``(scene, pitch)`` are in the store.
+
+    Parameters
+    ----------
+    scene : Scene
+    pitch : float
+        Helical pitch, normally one of ``scene.scan.pitches``.
+    needed : ndarray of bool, shape (n,), optional
+        Projections that must be present (n = projections of the scan); None = all.
+    cache_dir : path-like, optional
+        Store folder; default ``$CLRECON_CACHE`` or ``~/.cache/clrecon``.
+    projector : callable, optional
+        ``projector(scene, table) -> (len(table), n_rows, n_cols)`` line integrals for a
+        sub-table of projections; default :func:`clrecon.simulation.projector.project`.
+    chunk : int
+        Projections per projector call (and per write).
+    progress : bool
+        Show a tqdm bar on stderr (never when stderr is not a TTY or ``CLRECON_NO_PROGRESS=1``).
+
+    Returns
+    -------
+    ProjectionStore
+        Finished (``.h5``) store, with ``n_simulated`` (projected in this call),
+        ``n_reused`` (needed and already present) and ``simulate_s`` (seconds projecting
+        and writing) set.
+
+    Raises
+    ------
+    StoreError
+        The existing store file is corrupt.
+    """
+    if not (isinstance(chunk, int) and chunk > 0):
+        raise ValueError(f"chunk = {chunk!r}: must be an integer > 0")
+    table = projection_table(scene, pitch)
+    n = len(table)
+    if needed is None:
+        needed = np.ones(n, dtype=bool)
+    else:
+        needed = np.asarray(needed)
+        if needed.dtype != bool:
+            raise TypeError(f"needed must be a boolean mask, got {needed.dtype}")
+        if needed.shape != (n,):
+            raise ValueError(f"needed has shape {needed.shape}, the scan has ({n},) projections")
+    if projector is None:
+        projector = project
+
+    store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table)
+    present = store.present
+    missing = np.flatnonzero(needed & ~present)
+    store.n_reused = int(np.count_nonzero(needed & present))
+    store.n_simulated = 0
+    if missing.size == 0 and store.state == "final":
+        return store
+
+    t0 = time.perf_counter()
+    with tqdm(total=int(missing.size), unit="proj", desc=f"simulate {scene.name} pitch {pitch:g}",
+              disable=not _progress_enabled(progress), leave=False) as bar:
+        # A .partial with nothing missing still goes through writing() to be finished.
+        with store.writing():
+            for lo in range(0, missing.size, chunk):
+                idx = missing[lo:lo + chunk]
+                data = projector(scene, table.take(idx))
+                store.write(idx, data)
+                store.n_simulated += int(idx.size)
+                bar.update(int(idx.size))
+    store.simulate_s = time.perf_counter() - t0
+    return store

@@ -1,0 +1,192 @@
+"""The notebook API (``clrecon.load_scene / run / open_run``): docs/api.md runs, open_run is lazy."""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from fake_run_dir import fake_scene, make_fake_run
+
+import clrecon
+from clrecon.api import _slices, _targets
+from clrecon.core.errors import ClreconError, SceneError
+from clrecon.outputs.rundir import RunDirectory
+from clrecon.outputs.volumes import open_volumes, read_volume
+
+pytest.importorskip("xarray")
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "api.md"
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("run")
+    make_fake_run(d, methods=("nearest", "local_linear"), pitches=(0.1,))
+    return d
+
+
+@pytest.fixture
+def h5_reads(monkeypatch):
+    """Names of the HDF5 datasets indexed (``Dataset.__getitem__``) while the fixture is active."""
+    seen: list[str] = []
+    orig = h5py.Dataset.__getitem__
+
+    def spy(self, *args, **kwargs):
+        seen.append(self.name)
+        return orig(self, *args, **kwargs)
+
+    monkeypatch.setattr(h5py.Dataset, "__getitem__", spy)
+    return seen
+
+
+def python_blocks(text: str) -> list[str]:
+    return re.findall(r"^```python\n(.*?)^```", text, re.S | re.M)
+
+
+def test_docs_example_runs(tmp_path, monkeypatch):
+    """Every python block of docs/api.md, in order, in one namespace (tiny scene, a few seconds)."""
+    monkeypatch.setenv("CLRECON_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("CLRECON_NO_PROGRESS", "1")
+    monkeypatch.chdir(tmp_path)
+    blocks = python_blocks(DOC.read_text())
+    assert len(blocks) >= 4
+    ns: dict = {}
+    t0 = time.perf_counter()
+    for k, code in enumerate(blocks):
+        exec(compile(code, f"{DOC}:block{k}", "exec"), ns)
+    assert time.perf_counter() - t0 < 120  # a few seconds normally; generous on shared CPUs
+    res = ns["result"]
+    assert isinstance(res, clrecon.RunResult) and (tmp_path / res.path / "results.json").exists()
+    assert res.results["request"]["methods"] == ["nearest"] and res.results["request"]["slices"] == [0, 1]
+    assert list((tmp_path / "cache").glob("*.h5")), "the projection store went to $CLRECON_CACHE"
+    assert ns["one"].shape == (1, 32, 32) and float(ns["one"].resp) == 0.25
+
+
+def test_open_run_is_lazy_and_reads_one_target(run_dir, h5_reads):
+    ds = clrecon.open_run(run_dir)
+    try:
+        assert all(name.startswith("/axes/") for name in h5_reads), h5_reads  # no voxel read on open
+        name = "nearest_p0.100_noisy"
+        repr(ds)
+        ds[name].attrs, ds[name].shape
+        part = ds[name].isel(cardiac=1, resp=2)
+        assert all(n.startswith("/axes/") for n in h5_reads)
+        h5_reads.clear()
+        values = part.values
+        assert h5_reads == ["/recon/p0.100/noisy/nearest"]  # one hyperslab read, of that volume only
+        with open_volumes(run_dir) as f:
+            np.testing.assert_array_equal(values, read_volume(f, "recon/p0.100/noisy/nearest", (1, 2)))
+    finally:
+        ds.close()
+
+
+def test_open_run_dims_coords_and_attrs(run_dir):
+    with clrecon.open_run(run_dir) as ds, RunDirectory(run_dir) as run:
+        assert tuple(ds.sizes) == ("cardiac", "resp", "z", "y", "x")
+        assert dict(ds.sizes) == dict(zip(("cardiac", "resp", "z", "y", "x"), run.shape, strict=True))
+        for dim, axis in (("cardiac", "cardiac_phase"), ("resp", "resp_amplitude"), ("z", "z_mm"), ("y", "y_mm"),
+                          ("x", "x_mm")):
+            np.testing.assert_array_equal(ds[dim].values, run.axes[axis])
+        assert ds.z.attrs["units"] == "mm"
+        assert set(ds.data_vars) == {"groundtruth", "phantom"} | {
+            f"{m}_p0.100_{v}" for m in ("nearest", "local_linear") for v in ("noisy", "noise-free")}
+        v = ds["local_linear_p0.100_noise-free"]
+        assert v.dims == ("cardiac", "resp", "z", "y", "x") and v.dtype == np.float32
+        assert (v.attrs["method"], v.attrs["pitch"], v.attrs["variant"], v.attrs["units"]) == (
+            "local_linear", 0.1, "noise-free", "HU")
+        met = json.loads(ds.attrs["metrics"])
+        assert v.attrs["mae_hu_small"] == met["p0.100"]["noise-free"]["local_linear"]["small"]["mae_hu"]
+        assert json.loads(ds.attrs["results"])["scene"]["name"] == "tiny"
+        assert ds.attrs["has_cardiac"] == 1 and ds.attrs["has_resp"] == 1
+        sel = ds["groundtruth"].sel(cardiac=0.45, resp=0.9, method="nearest")
+        assert (float(sel.cardiac), float(sel.resp)) == (0.4, float(run.resp[2]))
+        np.testing.assert_array_equal(sel.values, run.read("groundtruth", (1, 2)))
+        # basic, strided, reversed and list selections agree with numpy on the full array
+        full = run.read("phantom")
+        np.testing.assert_array_equal(ds["phantom"].isel(z=slice(None, None, -3), x=[5, 1, 2]).values,
+                                      full[:, :, ::-3][..., [5, 1, 2]])
+        np.testing.assert_array_equal(ds["phantom"].values, full)
+
+
+def test_open_run_without_cardiac_axis_keeps_five_dims(tmp_path):
+    scene = fake_scene().replace(phantom={"cardiac_motion": False})
+    make_fake_run(tmp_path, methods=("local_linear",), pitches=(0.1,), variants=("noise-free",), scene=scene)
+    with h5py.File(tmp_path / "volumes.h5") as f:
+        assert list(f["groundtruth"].attrs["dims"]) == ["resp", "z", "y", "x"]
+    with clrecon.open_run(tmp_path) as ds:
+        assert dict(ds.sizes)["cardiac"] == 1 and ds.cardiac.values.tolist() == [0.0]
+        assert ds.attrs["has_cardiac"] == 0 and ds.attrs["has_resp"] == 1
+        v = ds["local_linear_p0.100_noise-free"]
+        assert v.dims == ("cardiac", "resp", "z", "y", "x")
+        with open_volumes(tmp_path) as f:
+            np.testing.assert_array_equal(v.isel(cardiac=0, resp=1).values,
+                                          read_volume(f, "recon/p0.100/noise-free/local_linear", (0, 1)))
+            np.testing.assert_array_equal(v.values, read_volume(f, "recon/p0.100/noise-free/local_linear"))
+
+
+def test_open_run_bad_paths_are_one_line_errors(tmp_path):
+    with pytest.raises(ClreconError, match="no such run directory") as e:
+        clrecon.open_run(tmp_path / "nope")
+    assert "\n" not in str(e.value)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ClreconError, match="no volumes in this run directory"):
+        clrecon.open_run(tmp_path / "empty")
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(ClreconError, match="expected a run directory"):
+        clrecon.open_run(tmp_path / "notes.txt")
+    old = tmp_path / "old"
+    old.mkdir()
+    with h5py.File(old / "volumes.h5", "w") as f:
+        f.attrs["format_version"] = 0
+    with pytest.raises(ClreconError, match="volume format 0 .*re-run") as e:
+        clrecon.open_run(old)
+    assert "\n" not in str(e.value)
+
+
+def test_load_scene_overrides():
+    s = clrecon.load_scene("tiny", recon={"nz": 4, "nx": 8}, recon__nx=16, noise__seed=3, **{"scan.pitches": [0.1]})
+    assert (s.recon.nz, s.recon.nx, s.noise.seed, s.scan.pitches) == (4, 16, 3, (0.1,))
+    assert s == clrecon.load_scene("tiny").replace(recon={"nz": 4, "nx": 16}, noise={"seed": 3})
+    assert clrecon.load_scene(s) is s
+    with pytest.raises(SceneError, match="recon.nzz: unknown key; did you mean 'nz'"):
+        clrecon.load_scene("tiny", recon__nzz=4)
+    with pytest.raises(SceneError, match="did you mean 'recon'"):
+        clrecon.load_scene("tiny", recn={"nz": 4})
+    with pytest.raises(SceneError, match="recon.nz = 0"):
+        clrecon.load_scene("tiny", recon={"nz": 0})
+    with pytest.raises(SceneError, match="expected a dict"):
+        clrecon.load_scene("tiny", recon=4)
+
+
+def test_run_arguments():
+    assert _targets(None) == (None, None)
+    assert _targets(([0, 0.4], None)) == ([0.0, 0.4], None)
+    assert _targets({"resp": 0.25}) == (None, [0.25])
+    with pytest.raises(ClreconError, match="unknown key 'card'"):
+        _targets({"card": [0.1]})
+    with pytest.raises(ClreconError, match="cardiac_list, resp_list"):
+        _targets([0.1, 0.2, 0.3])
+    assert _slices((0, 1), 4) == (0, 1) and _slices(slice(1, None), 4) == (1, 4) and _slices(None, 4) is None
+    with pytest.raises(ClreconError, match="step 1"):
+        _slices(slice(0, 4, 2), 4)
+
+
+def test_run_directory_reader(run_dir, h5_reads):
+    with RunDirectory(run_dir) as run:
+        assert h5_reads == []  # axes and sources are read when first asked for
+        assert run.shape == (3, 3, 10, 36, 40) and run.results["scene"]["name"] == "tiny"
+        assert [s.label for s in run.sources][:2] == ["groundtruth", "phantom"]
+        src = run.resolve()
+        assert (src.method, src.pitch_key, src.variant, src.name) == ("local_linear", "p0.100", "noisy",
+                                                                      "local_linear_p0.100_noisy")
+        with pytest.raises(ClreconError, match="it has groundtruth, phantom; p0.100/noise-free"):
+            run.resolve(method="bin")
+        plane = run.read_part("groundtruth", cardiac=1, resp=0, y=7)
+        np.testing.assert_array_equal(plane, run.read("groundtruth", (1, 0))[:, 7, :])
+        assert run.pitches() == ["p0.100"] and run.dims(src) == ("cardiac", "resp", "z", "y", "x")
+    assert not run.h5  # closed

@@ -1,0 +1,139 @@
+"""The package's imports go one way: no cycles, and no imports inside functions to hide one.
+
+The graph is read from the source with ``ast`` (nothing is imported). An import of
+``clrecon.a.b`` is an edge to that module and to the package ``clrecon.a`` whose
+``__init__`` runs first, except a module's own enclosing packages (they are already running
+when it is imported). Imports inside functions count too: a cycle hidden behind one is still a
+cycle. Lazy imports are allowed only of optional heavy packages outside ``clrecon`` (pyvista,
+pydicom, nibabel, ...), for the CLI's subcommands, which are imported on demand so that
+``clrecon --help`` stays fast, and for the package's notebook API (``LAZY_OK``).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("clrecon", "viewer")
+#: modules allowed to import clrecon modules inside functions, and why
+LAZY_OK = {
+    "clrecon.cli": "each subcommand imports its stage on demand (fast --help)",
+    "clrecon": "the notebook API is imported on first attribute access (PEP 562), so `import clrecon` stays light",
+}
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")}
+
+
+def _imports(path: Path, name: str, known: set[str]):
+    """(target module, lineno, inside a function) for every import of a project module."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    is_pkg = path.name == "__init__.py"
+    out = []
+
+    def walk(node, in_func):
+        for child in ast.iter_child_nodes(node):
+            f = in_func or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+            if isinstance(child, ast.Import):
+                for a in child.names:
+                    out.append((a.name, child.lineno, in_func))
+            elif isinstance(child, ast.ImportFrom):
+                if child.level:
+                    base = name.split(".") if is_pkg else name.split(".")[:-1]
+                    base = base[:len(base) - child.level + 1]
+                    mod = ".".join(base + ([child.module] if child.module else []))
+                else:
+                    mod = child.module or ""
+                for a in child.names:
+                    sub = f"{mod}.{a.name}"
+                    out.append((sub if sub in known else mod, child.lineno, in_func))
+            elif isinstance(child, ast.If) and _is_type_checking(child.test):
+                continue  # annotations only: never executed
+            walk(child, f)
+
+    walk(tree, False)
+    return [(t, ln, f) for t, ln, f in out if t.split(".")[0] in PACKAGES]
+
+
+def _is_type_checking(test) -> bool:
+    return isinstance(test, ast.Name) and test.id == "TYPE_CHECKING"
+
+
+def _graph():
+    mods = _modules()
+    known = set(mods)
+    edges: dict[str, set[str]] = {m: set() for m in mods}
+    lazy = []
+    for m, path in mods.items():
+        ancestors = {".".join(m.split(".")[:i]) for i in range(1, m.count(".") + 1)}
+        for target, lineno, in_func in _imports(path, m, known):
+            parts = target.split(".")
+            for i in range(1, len(parts) + 1):
+                t = ".".join(parts[:i])
+                if t in known and t != m and t not in ancestors:
+                    edges[m].add(t)
+            if in_func and m not in LAZY_OK:
+                lazy.append(f"{path.relative_to(ROOT)}:{lineno} imports {target} inside a function")
+    return edges, lazy
+
+
+def _cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+    counter = [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in sorted(edges.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(edges):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_graph_is_read_from_the_real_tree():
+    edges, _ = _graph()
+    assert "clrecon.pipeline.run" in edges and "clrecon.evaluation.groundtruth" in edges["clrecon.pipeline.run"]
+
+
+def test_no_import_cycles():
+    edges, _ = _graph()
+    assert _cycles(edges) == []
+
+
+def test_cycle_detector_sees_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_project_imports_inside_functions():
+    _, lazy = _graph()
+    assert lazy == []
