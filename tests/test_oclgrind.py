@@ -210,3 +210,29 @@ def test_voxeliser_kernel(grind_memcheck_races, clean):
     ref = voxelise.voxelise_objects(objs, x, y, z, supersample=2, rt=get_runtime())
     assert np.abs(got - ref).max() < TOL["f32"] * max(np.abs(ref).max(), 1e-3)
     clean()
+
+
+# ---------------------------------------------------------------------------------------
+# kernels/voxel_project.cl (the voxel projector)
+def test_voxel_projector_kernel(grind_memcheck_races, clean):
+    from clrecon.core.conventions import detector_coords, detector_frames
+    from clrecon.core.runtime import get_runtime
+    from clrecon.simulation import voxel_projector as vp
+
+    rng = np.random.default_rng(12)
+    mu = rng.random((3, 4, 5)).astype(np.float32)
+    origin, spacing = (-8.0, -6.0, -3.0), (4.0, 4.0, 3.0)
+    src, det, eu, ev = detector_frames(np.array([0.2, 1.9]), np.array([0.0, 2.0]), 60.0, 120.0)
+    # a third view along z (dominant axis z), a fourth with its source inside the volume
+    src = np.vstack([src, [0.5, 0.3, -50.0], [1.0, -1.0, 0.5]])
+    det = np.vstack([det, [0.5, 0.3, 50.0], [1.0, 40.0, 0.5]])
+    eu = np.vstack([eu, [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    ev = np.vstack([ev, [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    u, v = detector_coords(7, 9.0), detector_coords(3, 7.0)          # outer cells miss the volume
+    for vol in (mu, mu[:1]):                                           # and a one-voxel-thick volume
+        got = vp.project_volume(vol, origin, spacing, src, det, eu, ev, u, v, rt=grind_memcheck_races,
+                                chunk_views=3)                         # two launches, the last partial
+        ref = vp.project_volume(vol, origin, spacing, src, det, eu, ev, u, v, rt=get_runtime())
+        assert np.any(ref == 0) and np.any(ref > 0)
+        assert np.abs(got - ref).max() <= TOL["f32"] * max(np.abs(ref).max(), 1.0)
+    clean()
