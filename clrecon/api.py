@@ -21,13 +21,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import xarray
+
 from clrecon.config import scene as _scene
 from clrecon.config.scene import Scene
 from clrecon.core.errors import ClreconError, SceneError
-from clrecon.pipeline.run import run as run_pipeline
 from clrecon.outputs.dataset import open_dataset
-
-import xarray
+from clrecon.pipeline.run import run as run_pipeline
 
 __all__ = ["RunResult", "load_scene", "open_run", "run"]
 

@@ -37,8 +37,8 @@ def parse_slices(text: str):
 
 
 def cmd_run(args) -> int:
-    from clrecon.pipeline.run import run
     from clrecon.config.scene import load_scene
+    from clrecon.pipeline.run import run
 
     scene = load_scene(args.scene)
     methods = [m.strip() for m in args.methods.split(",")] if args.methods else None

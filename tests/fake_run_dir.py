@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from clrecon.evaluation import metrics
-from clrecon.core.conventions import voxel_coords
 from clrecon.config.scene import load_scene
+from clrecon.core.conventions import voxel_coords
+from clrecon.evaluation import metrics
 from clrecon.outputs.volumes import VolumeWriter, pitch_key
 
 METHODS = ("nearest", "barycentric", "local_linear", "r4dct")

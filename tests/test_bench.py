@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from clrecon.bench import suite as bench
-
-from clrecon.reconstruction import fbp
 from clrecon.cli import build_parser
+from clrecon.reconstruction import fbp
 
 
 def test_disk_phantom_sinograms_are_exact_chords():

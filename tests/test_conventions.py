@@ -3,8 +3,14 @@
 import numpy as np
 import pytest
 
-from clrecon.core.conventions import (circular_difference, collimation_iso_mm, detector_coords, detector_frames,
-                                 hu_to_mu, mu_to_hu)
+from clrecon.core.conventions import (
+    circular_difference,
+    collimation_iso_mm,
+    detector_coords,
+    detector_frames,
+    hu_to_mu,
+    mu_to_hu,
+)
 
 
 def test_hu_round_trip():

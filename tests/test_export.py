@@ -5,12 +5,12 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
+from fake_run_dir import fake_scene, make_fake_run
 
 from clrecon.cli import main
 from clrecon.core.errors import ClreconError, StoreError
 from clrecon.outputs.export import export, hu_to_stored, resolve_source, target_tag
 from clrecon.outputs.volumes import open_volumes, read_volume
-from fake_run_dir import fake_scene, make_fake_run
 
 pydicom = pytest.importorskip("pydicom")
 nib = pytest.importorskip("nibabel")

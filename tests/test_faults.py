@@ -12,11 +12,11 @@ import h5py
 import numpy as np
 import pytest
 
-from clrecon.evaluation import groundtruth
 from clrecon.cli import main
-from clrecon.pipeline.run import run
 from clrecon.config.scene import load_scene
+from clrecon.evaluation import groundtruth
 from clrecon.outputs.volumes import VolumeWriter
+from clrecon.pipeline.run import run
 
 QUIET = dict(progress=False, log=lambda *a: None)
 

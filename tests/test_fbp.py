@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from clrecon.bench.fbp import bench_backprojection
+from clrecon.config.scene import load_scene
 from clrecon.core.conventions import MU_WATER_PER_MM, detector_frames, mu_to_hu
 from clrecon.reconstruction.fbp import (
     WINDOWS,
@@ -30,7 +31,6 @@ from clrecon.reconstruction.fbp import (
     padded_length,
     ramp_filter_response,
 )
-from clrecon.config.scene import load_scene
 
 # One table for every tolerance in this file: (quantity, why this size).
 TOL = {

@@ -6,11 +6,9 @@ import json
 
 import numpy as np
 import pytest
-
-from clrecon.outputs import figures
-
-from clrecon.outputs import report
 from fake_run_dir import fake_scene, make_fake_run
+
+from clrecon.outputs import figures, report
 
 ALL = ("phase_space.png", "coronal.png", "motion_rows.png", "mae_per_target_small.png",
        "mae_per_target_large.png", "error_vs_time.png")

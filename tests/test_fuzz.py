@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from clrecon.cli import main
-from clrecon.core.errors import ClreconError, SceneError, StoreError
 from clrecon.config.scene import SCENE_DIR, load_scene, scene_from_dict
+from clrecon.core.errors import ClreconError, SceneError, StoreError
 from clrecon.simulation.store import ProjectionStore
 
 # Sizes of the fuzz loops (seeded: the same cases every run).

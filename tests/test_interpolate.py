@@ -9,9 +9,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import Delaunay
 
+from clrecon.core.conventions import circular_difference
 from clrecon.reconstruction.interpolation import barycentric as ip_bary
 from clrecon.reconstruction.interpolation import weights as ip
-from clrecon.core.conventions import circular_difference
 
 # One table for every tolerance in this file: (what is compared, why it is not zero).
 TOL = {

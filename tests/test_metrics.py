@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from clrecon.evaluation.metrics import MetricsConfig, abs_error_stats, blood_pool_volume_ml, fov_masks, table2
 from clrecon.config.scene import load_scene
+from clrecon.evaluation.metrics import MetricsConfig, abs_error_stats, blood_pool_volume_ml, fov_masks, table2
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from clrecon.simulation.noise import N_FLOOR, add_noise
 from clrecon.config.scene import NoiseConfig
+from clrecon.simulation.noise import N_FLOOR, add_noise
 
 # Flat field: M samples of a line integral P with I0 photons -> lam = I0 exp(-P) expected counts.
 I0, P, SIGMA_E = 1.0e4, 2.0, 20.0

@@ -131,8 +131,8 @@ def test_apply_weights(grind, clean):
 # ---------------------------------------------------------------------------------------
 # kernels/ssrb.cl
 def test_ssrb_rows(grind, clean):
-    from clrecon.reconstruction import rebin
     from clrecon.config.scene import ScannerConfig
+    from clrecon.reconstruction import rebin
 
     sc = ScannerConfig(n_cols=70, n_rows=5, col_pitch_mm=8.0, row_pitch_mm=6.0, views_per_rotation=12)
     rng = np.random.default_rng(3)
@@ -148,8 +148,8 @@ def test_ssrb_rows(grind, clean):
 # ---------------------------------------------------------------------------------------
 # kernels/backproject.cl
 def test_backprojection_kernels(grind, clean):
-    from clrecon.reconstruction import fbp
     from clrecon.core.runtime import get_runtime
+    from clrecon.reconstruction import fbp
 
     geom = fbp.FanBeamGeometry(sid_mm=100.0, sdd_mm=200.0, n_cols=13, col_pitch_mm=6.0, n_views=6,
                                nx=11, ny=9, voxel_mm=4.0, beta0_rad=0.3)
@@ -176,11 +176,11 @@ def _small_scene():
 
 
 def test_projector_kernels(grind_memcheck_races, clean):
+    from clrecon.core.conventions import detector_coords, detector_frames
+    from clrecon.core.runtime import get_runtime
+    from clrecon.scan.table import projection_table
     from clrecon.simulation import projector
     from clrecon.simulation.phantoms.analytic import Phantom
-    from clrecon.core.runtime import get_runtime
-    from clrecon.core.conventions import detector_coords, detector_frames
-    from clrecon.scan.table import projection_table
 
     s = _small_scene()
     table = projection_table(s, 0.1).take(np.array([0, 23, 61]))
@@ -199,9 +199,9 @@ def test_projector_kernels(grind_memcheck_races, clean):
 
 
 def test_voxeliser_kernel(grind_memcheck_races, clean):
+    from clrecon.core.runtime import get_runtime
     from clrecon.simulation import voxelise
     from clrecon.simulation.phantoms.analytic import Phantom
-    from clrecon.core.runtime import get_runtime
 
     s = _small_scene()
     objs = Phantom(s.phantom).objects(0.3, 0.6)

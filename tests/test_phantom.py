@@ -7,10 +7,10 @@ not tolerances.
 import numpy as np
 import pytest
 
-from clrecon.simulation.phantoms import analytic as ph
-from clrecon.core.conventions import hu_to_mu, mu_to_hu
-from clrecon.simulation.voxelise import voxelise_objects
 from clrecon.config.scene import PhantomConfig, load_scene
+from clrecon.core.conventions import hu_to_mu, mu_to_hu
+from clrecon.simulation.phantoms import analytic as ph
+from clrecon.simulation.voxelise import voxelise_objects
 
 #: name -> (value, reason)
 TOL = {

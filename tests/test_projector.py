@@ -6,14 +6,14 @@ tolerance.
 
 import numpy as np
 import pytest
-from ref_projector import line_integrals, project_views_ref
+from ref_projector import project_views_ref
 from scipy.ndimage import map_coordinates
 
-from clrecon.simulation.phantoms import analytic as ph
-from clrecon.simulation import projector, voxelise
+from clrecon.config.scene import load_scene
 from clrecon.core.conventions import MU_WATER_PER_MM, detector_coords, detector_frames, mu_to_hu
 from clrecon.scan.table import projection_table
-from clrecon.config.scene import load_scene
+from clrecon.simulation import projector, voxelise
+from clrecon.simulation.phantoms import analytic as ph
 
 SID, SDD = 595.0, 1085.6
 EPS32 = float(np.finfo(np.float32).eps)

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clrecon.reconstruction import rebin
-from clrecon.core.conventions import detector_coords, detector_frames
-from clrecon.scan.table import ProjectionTable
 from clrecon.config.scene import ScannerConfig
+from clrecon.core.conventions import detector_coords, detector_frames
+from clrecon.reconstruction import rebin
+from clrecon.scan.table import ProjectionTable
 
 # One table for every tolerance in this file: (what is compared, why it is not zero).
 TOL = {

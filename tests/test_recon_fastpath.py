@@ -7,15 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clrecon.reconstruction import fbp
-
-from clrecon.reconstruction.interpolation import weights as ip
-
-from clrecon.reconstruction import reconstruct
-
-from clrecon.simulation import simulate
-from clrecon.scan.table import projection_table
 from clrecon.config.scene import load_scene
+from clrecon.reconstruction import fbp, reconstruct
+from clrecon.reconstruction.interpolation import weights as ip
+from clrecon.scan.table import projection_table
+from clrecon.simulation import simulate
 
 # float32 kernels against float64 / float32 references, relative to max |reference|
 TOL = {"interleaved_apply": 1e-6, "filter_commutes": 1e-5, "launch_grouping": 1e-6}
@@ -160,8 +156,8 @@ def _grind(capfd):
 
 
 def test_oclgrind_interleaved_apply_and_noise(capfd):
-    from clrecon.simulation import noise
     from clrecon.config.scene import NoiseConfig
+    from clrecon.simulation import noise
 
     rt, clean = _grind(capfd)
     rng = np.random.default_rng(1)

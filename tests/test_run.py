@@ -2,14 +2,13 @@
 
 import json
 
-import h5py
 import numpy as np
 import pytest
 
 from clrecon.cli import main
-from clrecon.pipeline.run import run
 from clrecon.config.scene import load_scene
 from clrecon.outputs.volumes import open_volumes, read_volume
+from clrecon.pipeline.run import run
 
 
 @pytest.fixture(scope="module")

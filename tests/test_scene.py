@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from clrecon.core.errors import SceneError
 from clrecon.config.scene import Scene, builtin_scene_names, load_scene, scene_from_dict
+from clrecon.core.errors import SceneError
 
 
 def test_builtins_load():

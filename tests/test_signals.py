@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from clrecon.config.scene import load_scene
 from clrecon.scan import signals
 from clrecon.scan.table import projection_table
-from clrecon.config.scene import load_scene
 
 
 @pytest.fixture(scope="module")

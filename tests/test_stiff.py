@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clrecon.reconstruction.interpolation import weights as ip
 from clrecon.core.conventions import circular_difference
+from clrecon.reconstruction.interpolation import weights as ip
 
 # One table for every tolerance in this file: (what is compared, why it is not zero).
 TOL = {

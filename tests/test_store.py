@@ -4,9 +4,9 @@ import h5py
 import numpy as np
 import pytest
 
+from clrecon.config.scene import load_scene
 from clrecon.core.errors import StoreError
 from clrecon.scan.table import projection_table
-from clrecon.config.scene import load_scene
 from clrecon.simulation.simulate import simulate
 from clrecon.simulation.store import ProjectionStore, default_cache_dir
 

@@ -8,12 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from clrecon.simulation import noise
-
-from clrecon.reconstruction import rebin
-from clrecon.core.errors import SceneError
-from clrecon.scan.table import projection_table
 from clrecon.config.scene import NoiseConfig, builtin_scene_names, load_scene, scene_from_dict
+from clrecon.core.errors import SceneError
+from clrecon.reconstruction import rebin
+from clrecon.scan.table import projection_table
+from clrecon.simulation import noise
 
 # One table for every tolerance in this file: (what is compared, why it is not zero).
 TOL = {

@@ -14,14 +14,13 @@ from concurrent.futures import ProcessPoolExecutor
 import h5py
 import numpy as np
 import pytest
+from fake_run_dir import make_fake_run
 
 from clrecon.cli import main
 from clrecon.core.errors import ClreconError
-from fake_run_dir import make_fake_run
 
 pytest.importorskip("pyvista")
-from viewer.app import (WINDOWS, RunData, Viewer, initial_state, nearest_index, parse_fraction,  # noqa: E402
-                        screenshot, window_clim)
+from viewer.app import WINDOWS, RunData, Viewer, initial_state, nearest_index, parse_fraction, screenshot, window_clim
 
 
 @pytest.fixture(scope="module")

@@ -30,12 +30,12 @@ import time
 
 import numpy as np
 
-from clrecon.core.runtime import get_runtime
+from clrecon.config.scene import load_scene
 from clrecon.core.conventions import detector_coords, detector_frames
+from clrecon.core.runtime import get_runtime
 from clrecon.scan.table import projection_table
 from clrecon.simulation.phantoms.analytic import Phantom
 from clrecon.simulation.projector import R_RECT, prepare_records, project
-from clrecon.config.scene import load_scene
 
 
 def _evaluated_pairs(scene, table) -> tuple:

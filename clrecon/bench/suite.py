@@ -59,20 +59,18 @@ import time
 from pathlib import Path
 
 import numpy as np
-from clrecon.core.versions import __version__
-from clrecon.core.runtime import get_runtime
-from clrecon.reconstruction import fbp
+
 from clrecon.bench.fbp import bench_backprojection
 from clrecon.bench.projector import bench_projector
-from clrecon.reconstruction.interpolation import weights as interpolate
-from clrecon.reconstruction import rebin
-from clrecon.reconstruction import reconstruct
-from clrecon.scan.table import projection_table
 from clrecon.config.scene import load_scene
-from clrecon.pipeline.run import run
-from clrecon.simulation import simulate
-from clrecon.pipeline.run import noise_variants
 from clrecon.core.errors import ClreconError
+from clrecon.core.runtime import get_runtime
+from clrecon.core.versions import __version__
+from clrecon.pipeline.run import noise_variants, run
+from clrecon.reconstruction import fbp, rebin, reconstruct
+from clrecon.reconstruction.interpolation import weights as interpolate
+from clrecon.scan.table import projection_table
+from clrecon.simulation import simulate
 
 SECTIONS = ("backprojection", "projector", "interpolation", "end-to-end", "memory", "scaling")
 

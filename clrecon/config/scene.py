@@ -24,8 +24,22 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib
 
-from clrecon.core.config import (BOOL, FRAC, NONNEG, NONNEGINT, NUM, POS, POSINT, F, Section, _num, _pos, _posint,
-                                 field_of, one_of)
+from clrecon.core.config import (
+    BOOL,
+    FRAC,
+    NONNEG,
+    NONNEGINT,
+    NUM,
+    POS,
+    POSINT,
+    F,
+    Section,
+    _num,
+    _pos,
+    _posint,
+    field_of,
+    one_of,
+)
 from clrecon.core.detector import DETECTORS, detector_for
 from clrecon.core.errors import SceneError
 from clrecon.core.versions import PROJECTOR_VERSION
@@ -277,7 +291,7 @@ class Scene:
                    "signal_trace_s": self.trace_duration_s}
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
-    def replace(self, **sections) -> "Scene":
+    def replace(self, **sections) -> Scene:
         """New scene with some sections' values replaced, e.g. ``replace(recon={"nz": 4})``."""
         d = self.to_dict()
         for sec, vals in sections.items():

@@ -54,8 +54,7 @@ from clrecon.outputs.rundir import open_volume_store as open_run  # noqa: F401 (
 from clrecon.outputs.volumes import FORMAT_VERSION, list_recons, open_volumes, read_volume  # noqa: F401
 from clrecon.outputs.writers import WRITERS
 from clrecon.outputs.writers.base import _file_tag, _spacing, source_stem, target_tag  # noqa: F401 (re-exported)
-from clrecon.outputs.writers.dicom import (CT_IMAGE_STORAGE, PRIVATE_CREATOR, PRIVATE_GROUP,  # noqa: F401
-                                           hu_to_stored)
+from clrecon.outputs.writers.dicom import CT_IMAGE_STORAGE, PRIVATE_CREATOR, PRIVATE_GROUP, hu_to_stored  # noqa: F401
 from clrecon.outputs.writers.nifti import nifti_affine  # noqa: F401 (re-exported)
 
 #: Export formats, in registry order (``clrecon.outputs.writers``).

@@ -32,10 +32,9 @@ import numpy as np
 
 from clrecon.outputs.rundir import RunDirectory
 from clrecon.reconstruction import interpolation as _methods
-from clrecon.scan import table as geometry
+from clrecon.reconstruction import rebin, reconstruct
 from clrecon.reconstruction.interpolation import weights as interpolate
-from clrecon.reconstruction import rebin
-from clrecon.reconstruction import reconstruct
+from clrecon.scan import table as geometry
 from clrecon.simulation.phantoms.analytic import Phantom
 
 #: Display windows (width, level) in HU.

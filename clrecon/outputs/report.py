@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from clrecon.reconstruction.interpolation import by_rank
 from clrecon.outputs import figures
+from clrecon.reconstruction.interpolation import by_rank
 
 #: Table order, best first: the interpolation methods by their registered ``rank``.
 METHOD_ORDER = by_rank()

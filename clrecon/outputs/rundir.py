@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
+from clrecon.config.scene import scene_from_dict
 from clrecon.core.errors import ClreconError, StoreError
 from clrecon.outputs.volumes import DIMS, FORMAT_VERSION, list_recons, open_volumes, read_volume
 from clrecon.reconstruction.interpolation import by_rank
-from clrecon.config.scene import scene_from_dict
 
 #: Preferred default source, best first (5DCT methods, then baselines).
 METHOD_PREFERENCE = by_rank()  # the interpolation methods by their registered ``rank``

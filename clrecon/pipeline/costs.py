@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+from clrecon.config.scene import builtin_scene_names, load_scene
+from clrecon.core.errors import SceneError
 from clrecon.pipeline.run import noise_variants
 from clrecon.reconstruction.rebin import slice_window_mm
-from clrecon.core.errors import SceneError
-from clrecon.config.scene import builtin_scene_names, load_scene
 
 GiB = 1024 ** 3
 

@@ -24,24 +24,17 @@ from pathlib import Path
 
 import numpy as np
 
-from clrecon.core.versions import __version__
-
-from clrecon.scan import table as geometry
-
-from clrecon.evaluation import groundtruth
-
-from clrecon.evaluation import metrics
-
-from clrecon.reconstruction import interpolation, reconstruct
-
-from clrecon.simulation import simulate
-from clrecon.core.runtime import get_runtime
 from clrecon.core.errors import ClreconError
-from clrecon.reconstruction.reconstruct import StageTimes, Targets
-from clrecon.outputs.volumes import VolumeWriter, pitch_key
-from clrecon.simulation.phantoms.analytic import Phantom
-from clrecon.outputs.volumes import read_volume
+from clrecon.core.runtime import get_runtime
+from clrecon.core.versions import __version__
+from clrecon.evaluation import groundtruth, metrics
 from clrecon.outputs import report as report_mod
+from clrecon.outputs.volumes import VolumeWriter, pitch_key, read_volume
+from clrecon.reconstruction import interpolation, reconstruct
+from clrecon.reconstruction.reconstruct import StageTimes, Targets
+from clrecon.scan import table as geometry
+from clrecon.simulation import simulate
+from clrecon.simulation.phantoms.analytic import Phantom
 
 RESULTS_FORMAT = 1
 #: From the interpolation-method registry: the 5DCT methods, and those compared in the

@@ -34,10 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
-from clrecon.core.runtime import get_runtime
-from clrecon.reconstruction.filters import FILTERS as _WINDOW_FUNCTIONS
 from clrecon.core.conventions import MU_WATER_PER_MM, detector_coords, mu_to_hu, voxel_coords
 from clrecon.core.detector import flat_fov_radius_mm
+from clrecon.core.runtime import get_runtime
+from clrecon.reconstruction.filters import FILTERS as _WINDOW_FUNCTIONS
 
 #: Ramp-filter windows, as in ``ReconConfig.filter`` (registry: :mod:`clrecon.reconstruction.filters`).
 WINDOWS = _WINDOW_FUNCTIONS.names
@@ -102,7 +102,7 @@ class FanBeamGeometry:
             raise ValueError(f"sdd_mm = {self.sdd_mm!r}: must be greater than sid_mm = {self.sid_mm!r}")
 
     @classmethod
-    def from_scene(cls, scene) -> "FanBeamGeometry":
+    def from_scene(cls, scene) -> FanBeamGeometry:
         """Geometry of a :class:`clrecon.config.scene.Scene`: its scanner, recon grid and start angle."""
         sc, rc = scene.scanner, scene.recon
         return cls(sid_mm=sc.sid_mm, sdd_mm=sc.sdd_mm, n_cols=sc.n_cols, col_pitch_mm=sc.col_pitch_mm,

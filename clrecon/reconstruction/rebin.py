@@ -24,9 +24,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from clrecon.core.runtime import get_runtime
-from clrecon.core.conventions import detector_coords
 from clrecon.config.scene import ScannerConfig
+from clrecon.core.conventions import detector_coords
+from clrecon.core.runtime import get_runtime
 
 if TYPE_CHECKING:  # only for annotations: rebinning needs the table's arrays, not its builder
     from clrecon.scan.table import ProjectionTable
@@ -64,7 +64,7 @@ def max_covering_pitch(scanner: ScannerConfig, object_radius_mm: float) -> float
     return scanner.detector_model.max_covering_pitch(object_radius_mm)
 
 
-def candidates(table: "ProjectionTable", slice_z_mm: float, scanner: ScannerConfig,
+def candidates(table: ProjectionTable, slice_z_mm: float, scanner: ScannerConfig,
                object_radius_mm: float) -> np.ndarray:
     """Projections whose source is close enough to a slice for SSRB, all turns, every view.
 
@@ -141,7 +141,7 @@ class CandidateGroups:
         return np.arange(self.n_groups) % self.views_per_rotation
 
 
-def candidate_groups(table: "ProjectionTable", slice_z_mm, scanner: ScannerConfig,
+def candidate_groups(table: ProjectionTable, slice_z_mm, scanner: ScannerConfig,
                      object_radius_mm: float) -> CandidateGroups:
     """Candidates of every (slice, view) for a set of slices, vectorised.
 

@@ -25,14 +25,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from clrecon.reconstruction import fbp as fbp_mod
-from clrecon.reconstruction import interpolation
-from clrecon.reconstruction.interpolation import weights as interpolate
-from clrecon.simulation import noise
-from clrecon.reconstruction import rebin
 from clrecon.core.conventions import voxel_coords
 from clrecon.core.errors import ClreconError
+from clrecon.reconstruction import fbp as fbp_mod
+from clrecon.reconstruction import interpolation, rebin
+from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.scan.table import ProjectionTable
+from clrecon.simulation import noise
 
 
 @dataclass(frozen=True)

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clrecon.scan import signals
 from clrecon.config.scene import Scene
+from clrecon.scan import signals
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ class ProjectionTable:
         """View number within the rotation, k mod N_views, shape (n,)."""
         return self.index % self.views_per_rotation
 
-    def take(self, sel) -> "ProjectionTable":
+    def take(self, sel) -> ProjectionTable:
         """Sub-table of the rows ``sel`` (indices or boolean mask)."""
         return ProjectionTable(**{c: getattr(self, c)[sel] for c in self.COLUMNS},
                                views_per_rotation=self.views_per_rotation)

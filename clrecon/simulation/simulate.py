@@ -15,8 +15,8 @@ import time
 import numpy as np
 from tqdm.auto import tqdm
 
-from clrecon.scan.table import projection_table
 from clrecon.config.scene import Scene
+from clrecon.scan.table import projection_table
 from clrecon.simulation.projector import project
 from clrecon.simulation.store import ProjectionStore
 

@@ -51,13 +51,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from clrecon.core.versions import PROJECTOR_VERSION
-
-from clrecon.core.versions import __version__
+from clrecon.config.scene import Scene
 from clrecon.core.errors import StoreError
+from clrecon.core.versions import PROJECTOR_VERSION, __version__
 from clrecon.scan.table import ProjectionTable, projection_table
 from clrecon.simulation.noise import add_noise
-from clrecon.config.scene import Scene
 
 FORMAT = "clrecon-projections"
 #: Target size of one HDF5 chunk of the projections dataset (bytes).
@@ -119,7 +117,7 @@ class ProjectionStore:
     # -- opening -----------------------------------------------------------------------
     @classmethod
     def open(cls, scene: Scene, pitch: float, cache_dir=None, table: ProjectionTable | None = None,
-             create: bool = True) -> "ProjectionStore":
+             create: bool = True) -> ProjectionStore:
         """Open the store of ``(scene, pitch)``, resuming a ``.partial`` file if one was left.
 
         Parameters

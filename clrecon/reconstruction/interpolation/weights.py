@@ -87,7 +87,7 @@ class Weights:
     index: np.ndarray
     weight: np.ndarray
 
-    def compact(self) -> tuple[np.ndarray, "Weights"]:
+    def compact(self) -> tuple[np.ndarray, Weights]:
         """Only the candidates that carry weight: ``(used (U,) int64, Weights into 0..U-1)``.
 
         Rebinning only ``used`` saves the SSRB of candidates no target needs.

@@ -43,10 +43,28 @@ import numpy as np
 
 from clrecon.core.config import BOOL, FRAC, POS, F, Section, number_in
 from clrecon.core.conventions import MU_WATER_PER_MM
-from clrecon.simulation.phantoms.layout import (AXES, CENTRE, CUT0, CUT_INTERSECT, CUT_LEN, CUT_NONE,  # noqa: F401
-                                                CUT_SUBTRACT, KIND, KIND_CYLINDER, KIND_ELLIPSOID, KIND_NONE, MU,
-                                                N_CUTS, N_PLANES, PLANES, SEMI, STRIDE, cut_fields)
+from clrecon.simulation.phantoms.layout import (  # noqa: F401
+    AXES,
+    CENTRE,
+    CUT0,
+    CUT_INTERSECT,
+    CUT_LEN,
+    CUT_NONE,
+    CUT_SUBTRACT,
+    KIND,
+    KIND_CYLINDER,
+    KIND_ELLIPSOID,
+    KIND_NONE,
+    MU,
+    N_CUTS,
+    N_PLANES,
+    PLANES,
+    SEMI,
+    STRIDE,
+    cut_fields,
+)
 from clrecon.simulation.voxelise import voxelise_objects
+
 
 # ---------------------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
