@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from fake_run_dir import fake_scene, make_fake_run
 
+from clrecon.core.conventions import circular_difference
 from clrecon.outputs import figures, report
 
 ALL = ("phase_space.png", "coronal.png", "motion_rows.png", "mae_per_target_small.png",
@@ -50,12 +51,12 @@ def test_phase_space_choices_follow_the_methods():
     b, ll = s["barycentric"], s["local_linear"]
     assert 1 <= len(b["index"]) <= 3 and np.all(b["weight"] > 0) and b["weight"].sum() == pytest.approx(1.0)
     assert 3 <= len(ll["index"]) <= 8 and ll["weight"].sum() == pytest.approx(1.0)
-    dc = figures.circular_diff(s["c"][ll["index"]], 0.4)
+    dc = circular_difference(s["c"][ll["index"]], 0.4)
     da = s["a"][ll["index"]] - 0.5
     quadrant = (dc >= 0).astype(int) * 2 + (da >= 0).astype(int)
     assert np.bincount(quadrant, minlength=4).max() <= 2  # two nearest per quadrant
     if len(b["index"]) == 3:  # the target lies inside the chosen triangle (unwrapped)
-        p = np.stack([0.4 + figures.circular_diff(s["c"][b["index"]], 0.4), s["a"][b["index"]]], 1)
+        p = np.stack([0.4 + circular_difference(s["c"][b["index"]], 0.4), s["a"][b["index"]]], 1)
         lam = np.linalg.solve(np.vstack([p.T, np.ones(3)]), [0.4, 0.5, 1.0])
         assert np.all(lam >= -1e-9)
 

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from clrecon.core.conventions import circular_difference
+from clrecon.core.errors import ClreconError
 from clrecon.outputs.rundir import RunDirectory
 from clrecon.reconstruction import interpolation as _methods
 from clrecon.reconstruction import rebin, reconstruct
@@ -69,11 +71,6 @@ def _pct(x: float) -> str:
     return f"{round(100 * x):02d}%"
 
 
-def circular_diff(c, c0):
-    """Signed cardiac-phase difference c - c0 wrapped to [-0.5, 0.5)."""
-    return (np.asarray(c, float) - c0 + 0.5) % 1.0 - 0.5
-
-
 # ---------------------------------------------------------------------------------------------
 # Run directory access
 class _Run(RunDirectory):
@@ -105,10 +102,10 @@ class _Run(RunDirectory):
     def heart_centre_mm(self, ci: int, ri: int) -> tuple[float, float, float]:
         """(x, y, z) mm of the LV blood pool (phantom), else the centre of the small-FOV box."""
         try:
-
             p = Phantom(self.scene.phantom).lv_blood_pool_centre(float(self.c[ci]), float(self.a[ri]))
             return float(p[0]), float(p[1]), float(p[2])
-        except Exception:  # phantom module absent or a scene it cannot pose: use the heart box
+        # no readable scene (StoreError, SceneError, KeyError) or no LV in it (ValueError): use the heart box
+        except (ClreconError, KeyError, ValueError):
             x0, x1, y0, y1 = self.results["scene"]["recon"]["small_fov_mm"]
             return (x0 + x1) / 2.0, (y0 + y1) / 2.0, float(np.median(self.z))
 
@@ -177,13 +174,13 @@ def plot_phase_space(path: Path, samples: list[tuple[str, dict]]) -> Path:
     plt = _plt()
     n = len(samples)
     fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 4.6), squeeze=False)
-    for ax, (title, s) in zip(axes[0], samples):
+    for ax, (title, s) in zip(axes[0], samples, strict=True):
         c0, a0 = s["target"]
         ax.scatter(s["c"], s["a"], s=14, c="tab:blue", alpha=0.6, label=f"candidates (n = {len(s['c'])})",
                    zorder=2)
         # chosen points drawn unwrapped next to the target (cardiac phase is periodic)
         b = s["barycentric"]
-        bc = c0 + circular_diff(s["c"][b["index"]], c0)
+        bc = c0 + circular_difference(s["c"][b["index"]], c0)
         ba = s["a"][b["index"]]
         if len(b["index"]) >= 3:
             ax.fill(bc, ba, facecolor="tab:green", alpha=0.25, edgecolor="tab:green", lw=1.5, zorder=3,
@@ -193,7 +190,7 @@ def plot_phase_space(path: Path, samples: list[tuple[str, dict]]) -> Path:
         ax.scatter(bc, ba, s=60, facecolor="tab:green", edgecolor="k", zorder=4,
                    label=f"barycentric points ({len(b['index'])})")
         ll = s["local_linear"]
-        lc = c0 + circular_diff(s["c"][ll["index"]], c0)
+        lc = c0 + circular_difference(s["c"][ll["index"]], c0)
         ax.scatter(lc, s["a"][ll["index"]], s=150, facecolor="none", edgecolor="tab:orange", lw=2, zorder=5,
                    label=f"local linear neighbours ({len(ll['index'])})")
         ax.axvline(c0, color="0.6", lw=0.6, ls=":")
@@ -429,14 +426,14 @@ def fig_error_vs_time(results: dict, path: Path) -> str:
             for m, s in bym.items():
                 if m not in met.get(pk, {}).get(v, {}):
                     continue
-                for ax, fov in zip(axes, ("large", "small")):
+                for ax, fov in zip(axes, ("large", "small"), strict=True):
                     mae = met[pk][v][m][fov]["mae_hu"]
                     ax.scatter([s], [mae], marker=markers.get(m, "x"), s=60, edgecolor=colours[pk],
                                    facecolor=colours[pk] if v == "noise-free" else "none", lw=1.5)
                     ax.annotate(m, (s, mae), fontsize=6, xytext=(4, 3), textcoords="offset points")
                 if m not in used:
                     used.append(m)
-    for ax, fov in zip(axes, ("large", "small")):
+    for ax, fov in zip(axes, ("large", "small"), strict=True):
         ax.set_xscale("log")
         ax.set_xlabel("reconstruction time of the method (s, this run's device)")
         ax.set_ylabel(f"MAE vs ground truth, {fov} FOV (HU)")
@@ -470,7 +467,7 @@ def write_figures(out_dir, results: dict) -> list[str]:
     run = None
     try:
         run = _Run(out_dir, results)
-    except Exception as e:
+    except (ClreconError, OSError) as e:  # StoreError: missing, unreadable or old volumes.h5
         return lines + [f"- Figures skipped: the run's volumes cannot be read ({e}).", ""]
 
     def add(name: str, title: str, fn, skip: str | None = None):
@@ -480,7 +477,7 @@ def write_figures(out_dir, results: dict) -> list[str]:
         path = fig_dir / name
         try:
             caption = fn(path)
-        except Exception as e:  # a figure must not cost the run its report
+        except Exception as e:  # noqa: BLE001 - a figure must not cost the run its report
             lines.extend([f"- *{title}: failed ({type(e).__name__}: {e}).*", ""])
             return
         lines.extend([f"### {title}", "", f"![{title}]({FIGURE_DIR}/{name})", "", caption, ""])
