@@ -1,6 +1,6 @@
 // Distance-weighted fan-beam backprojection for a flat detector, full 2*pi scan.
 // Kak & Slaney (1988), "Principles of Computerized Tomographic Imaging", sec. 3.4.2
-// (equally spaced collinear detectors), in the conventions of clrecon/conventions.py:
+// (equally spaced collinear detectors), in the conventions of clrecon/core/conventions.py:
 //   source at (R cos b, R sin b), detector columns along e_u = (-sin b, cos b),
 //   U = R - (x cos b + y sin b),  u = SDD (-x sin b + y cos b) / U,
 //   column index  c = u / col_pitch + (n_cols - 1) / 2,
@@ -52,7 +52,7 @@ inline float fan_column(const float x, const float y, const float2 cs, const flo
 // (pixel, view) pair is computed once for all 16 (docs/algorithms.md "Fan-beam FBP": 3.9 vs 0.36 G
 // updates/s for one sinogram per work-item). Each work-item does this for TWO groups of 16
 // (g = 2 gp and 2 gp + 1, each in its own [view][column][16] plane, so the layout is that of
-// clrecon.fbp.interleave_batch), sharing the geometry over 32 sinograms: measured 1.2x
+// clrecon.reconstruction.fbp.interleave_batch), sharing the geometry over 32 sinograms: measured 1.2x
 // (10.2 -> 12.5 G updates/s at 128^2, 9.8 -> 11.5 at 512^2, on an idle 2-core machine).
 // With an odd number of groups the last work-items read their group twice and store once.
 //

@@ -1,4 +1,4 @@
-// CT noise on line integrals (clrecon/noise.py, which holds the float64 NumPy reference of
+// CT noise on line integrals (clrecon/simulation/noise.py, which holds the float64 NumPy reference of
 // exactly this generator): N = Poisson(I0 exp(-p)) + Normal(0, sigma_e), p' = -log(max(N, floor) / I0).
 //
 // Random numbers: Philox4x64-10 (Salmon, Moraes, Dror & Shaw, "Parallel random numbers: as
@@ -170,7 +170,7 @@ INLINE double ptrs_attempt(const ulong xu, const ulong xv, const double lam, con
     return (fast || slow) ? kk : -1.0;
 }
 
-// The whole sampler (any lam), round-0 words r0 given: as poisson_reference in clrecon/noise.py.
+// The whole sampler (any lam), round-0 words r0 given: as poisson_reference in clrecon/simulation/noise.py.
 INLINE double poisson(const double lam, const words r0, const ulong k0, const ulong k1, const ulong cell)
 {
     if (!(lam > 0.0))

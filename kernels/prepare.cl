@@ -1,10 +1,10 @@
-// Per-view records for kernels/project.cl, in float64 (clrecon.projector).
+// Per-view records for kernels/project.cl, in float64 (clrecon.simulation.projector).
 //
-// One work-item per view loops over the view's objects (packed layout of clrecon.phantom),
+// One work-item per view loops over the view's objects (packed layout of clrecon.simulation.phantoms.layout),
 // culls them (bounding sphere against the pyramid of rays, then the object's detector
 // rectangle against the detector) and writes the records of the survivors, compacted and
 // in object order, as float32. It is the same computation as the NumPy reference
-// clrecon.projector.prepare_records, which the tests compare it with; see there for the
+// clrecon.simulation.projector.prepare_records, which the tests compare it with; see there for the
 // formulas. Defines: CULL (0: keep every active object, the unculled reference).
 
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -13,7 +13,7 @@
 #define CULL 1
 #endif
 
-// packed object layout (clrecon/phantom.py)
+// packed object layout (clrecon/simulation/phantoms/layout.py)
 #define STRIDE 57
 #define O_KIND 0
 #define O_MU 1

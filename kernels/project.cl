@@ -1,4 +1,4 @@
-// Exact line integrals of quadric primitives on a flat detector (clrecon.projector).
+// Exact line integrals of quadric primitives on a flat detector (clrecon.simulation.projector).
 //
 // One work-item = VW neighbouring detector columns of one row of one view (explicit
 // float vectors: PoCL vectorises across them directly, and the per-object branches stay
@@ -8,7 +8,7 @@
 // own VW cells.
 //
 // Per (view, object) the host precomputes, in float64, a record of REC floats (layout in
-// clrecon/projector.py, R_* below). Everything is expressed relative to the ray through the
+// clrecon/simulation/projector.py, R_* below). Everything is expressed relative to the ray through the
 // object's centre, parametrised x(tau) = s + (tc + tau)(p - s) with p the detector point, so
 // no float32 quantity cancels: for a cell at (u, v), with du = u - uc, dv = v - vc,
 //     e = du eu' + dv ev'             (local-frame offset per unit tau-shift)

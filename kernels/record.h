@@ -1,5 +1,5 @@
 // Per-(view, object) record written by prepare.cl and read by project.cl (and mirrored by
-// clrecon/projector.py): REC floats per record, field offsets below.
+// clrecon/simulation/projector.py): REC floats per record, field offsets below.
 #ifndef CLRECON_RECORD_H
 #define CLRECON_RECORD_H
 #define REC 76

@@ -9,7 +9,7 @@
 //
 // Outside the outer row centres the row coordinate is CLAMPED to the outer row (the scale
 // then uses the v actually sampled). The caller picks candidates with
-// clrecon.rebin.slice_window_mm so that this never happens for columns that see the object.
+// clrecon.reconstruction.rebin.slice_window_mm so that this never happens for columns that see the object.
 //
 // One work-item per (pair, column), column fastest: neighbouring work-items read
 // neighbouring detector cells (PoCL vectorises across work-items). Global size is padded

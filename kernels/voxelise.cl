@@ -1,10 +1,10 @@
-// Supersampled voxelisation of quadric primitives (clrecon.projector.voxelise_objects).
+// Supersampled voxelisation of quadric primitives (clrecon.simulation.voxelise.voxelise_objects).
 //
 // One work-item = VW neighbouring voxels along x of one (y, z) line; each voxel is the mean
 // of SS^3 point samples on a regular sub-grid. Objects come in per-slice lists (host culled
 // by z); a work-item skips objects whose axis-aligned box misses its voxels. Per object the
 // host sends (float32): the world-to-local map M = D^-1 R^T and centre, the clip planes and
-// up to two cut ellipsoids (layout below, must match clrecon/projector.py).
+// up to two cut ellipsoids (layout below, must match clrecon/simulation/voxelise.py).
 //
 // Defines: VW (1, 4, 8, 16), SS (samples per axis), LX, LY (work-group shape).
 

@@ -9,6 +9,7 @@ import pytest
 
 from clrecon.bench import suite as bench
 from clrecon.cli import build_parser
+from clrecon.core.errors import ClreconError
 from clrecon.reconstruction import fbp
 
 
@@ -69,5 +70,5 @@ def test_report_and_json(tmp_path):
 def test_cli_bench_arguments():
     a = build_parser().parse_args(["bench", "--quick", "--json", "x.json", "--only", "projector"])
     assert a.quick and a.json == "x.json" and a.only == "projector"
-    with pytest.raises(Exception):
+    with pytest.raises(ClreconError, match="--only 'nope'"):
         bench.run_bench(quick=True, only=["nope"])

@@ -58,7 +58,8 @@ def test_dicom_roundtrip_values_geometry_and_uids(run_dir, tmp_path):
             assert (ds.Rows, ds.Columns) == (ny, nx)
             # pixel (row r, column c) lies at IPP + c*dx*row_cosine + r*dy*column_cosine: a voxel centre
             r, c = ny - 2, 3
-            pos = ipp + c * float(ds.PixelSpacing[1]) * np.array([1, 0, 0]) + r * float(ds.PixelSpacing[0]) * np.array([0, 1, 0])
+            pos = (ipp + c * float(ds.PixelSpacing[1]) * np.array([1, 0, 0])
+                   + r * float(ds.PixelSpacing[0]) * np.array([0, 1, 0]))
             np.testing.assert_allclose(pos, [ax["x_mm"][c], ax["y_mm"][r], ax["z_mm"][k]], atol=1e-6)
             tag = target_tag(ax["cardiac_phase"][ci], ax["resp_amplitude"][ri])
             assert ds.SeriesDescription.startswith(f"5DCT barycentric {tag}")

@@ -77,7 +77,7 @@ def test_slice_window_shrinks_with_radius_and_saturates_at_the_detector_edge():
     sc = SCANNER
     assert sc.fov_radius_mm < 200.0
     ws = [rebin.slice_window_mm(sc, r) for r in (10.0, 50.0, 100.0, 150.0, 180.0)]
-    assert all(a > b for a, b in zip(ws, ws[1:]))
+    assert all(a > b for a, b in zip(ws[:-1], ws[1:], strict=True))
     # beyond the scanner FOV every column sees the object: the outer column binds
     u_outer = 0.5 * (sc.n_cols - 1) * sc.col_pitch_mm
     v_outer = 0.5 * (sc.n_rows - 1) * sc.row_pitch_mm

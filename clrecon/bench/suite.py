@@ -299,8 +299,8 @@ def bench_interpolation_section(quick: bool = False, repeats: int = 3, scene="de
         tg, _ = reconstruct.method_targets(m, targets)
         box = {}
 
-        def weights(m=m, tg=tg):
-            box["w"] = interpolate.batch_weights(m, c, a, groups.offsets, tg, rt=rt, **opts)
+        def weights(m=m, tg=tg, box=box):
+            box["w"] = interpolate.batch_weights(m, c, a, groups.offsets, tg, rt=rt, dz=groups.dz_mm, **opts)
 
         t_w, _ = _median_time(weights, max(1, repeats - 1), warmup=False)
         G, T, K = box["w"].index.shape
@@ -308,15 +308,19 @@ def bench_interpolation_section(quick: bool = False, repeats: int = 3, scene="de
         idx = box["w"].index.reshape(S, V, T, K).transpose(0, 2, 1, 3).reshape(S * T, V, K)
         wgt = box["w"].weight.reshape(S, V, T, K).transpose(0, 2, 1, 3).reshape(S * T, V, K).astype(np.float32)
 
-        def apply(idx=idx, wgt=wgt):
+        def apply(idx=idx, wgt=wgt, box=box):
             buf, n_groups = interpolate.apply_weights_interleaved(d_rows, idx, wgt, rt=rt)
             box["out"] = rt.from_device(buf, (n_groups, V, sc.scanner.n_cols + 2, 16))
             buf.release()
 
         t_a, _ = _median_time(apply, repeats)
         n_sino = max(1, min(S * T, reference_rows // V))  # whole sinograms, about reference_rows rows
-        t_ref, _ = _median_time(lambda: box.__setitem__("ref", interpolate.apply_weights_reference(
-            rows, idx[:n_sino].reshape(-1, K), wgt[:n_sino].reshape(-1, K))), 1, warmup=False)
+
+        def apply_ref(idx=idx, wgt=wgt, n_sino=n_sino, K=K, box=box):
+            box["ref"] = interpolate.apply_weights_reference(
+                rows, idx[:n_sino].reshape(-1, K), wgt[:n_sino].reshape(-1, K))
+
+        t_ref, _ = _median_time(apply_ref, 1, warmup=False)
         out_rows = G * T
         ref = box["ref"].reshape(n_sino, V, -1)
         got = box["out"].transpose(0, 3, 1, 2).reshape(-1, V, sc.scanner.n_cols + 2)[:n_sino, :, 1:-1]
@@ -395,7 +399,8 @@ def slab_memory_child(scene_name: str, n_slices: int, cardiac, resp, method: str
     t0 = time.perf_counter()
     p = reconstruct.plan(reconstruct.ReconstructionConfig.from_scene(sc), table, slices_z, targets, (method,))
     proj, _ = p.needed_pairs()
-    vols = reconstruct.reconstruct(reconstruct.ReconstructionConfig.from_scene(sc), store, p, variants=variants, rt=rt, slab_size=n_slices)
+    vols = reconstruct.reconstruct(reconstruct.ReconstructionConfig.from_scene(sc), store, p, variants=variants,
+                                   rt=rt, slab_size=n_slices)
     recon_s = time.perf_counter() - t0
     hwm = _status_kib("VmHWM")
     store.close() if hasattr(store, "close") else None
@@ -503,13 +508,15 @@ def bench_scaling_section(quick: bool = False, scene="demo", method: str = "loca
                 slices_z = reconstruct.slice_positions(sc)
                 targets = reconstruct.Targets(tuple(sc.cardiac_targets), tuple(sc.resp_targets))
                 table = projection_table(sc, pitch)
-                p = reconstruct.plan(reconstruct.ReconstructionConfig.from_scene(sc), table, slices_z, targets, (method,))
+                p = reconstruct.plan(reconstruct.ReconstructionConfig.from_scene(sc), table, slices_z, targets,
+                                     (method,))
                 needed = p.needed_projections(len(table))
                 t0 = time.perf_counter()
                 store = simulate.simulate(sc, pitch, needed=needed, cache_dir=Path(tmp), progress=False)
                 t_sim = time.perf_counter() - t0
                 t0 = time.perf_counter()
-                reconstruct.reconstruct(reconstruct.ReconstructionConfig.from_scene(sc), store, p, variants=("noise-free",), rt=rt)
+                reconstruct.reconstruct(reconstruct.ReconstructionConfig.from_scene(sc), store, p,
+                                        variants=("noise-free",), rt=rt)
                 t_rec = time.perf_counter() - t0
                 store.close() if hasattr(store, "close") else None
                 proj, _ = p.needed_pairs()
@@ -541,21 +548,24 @@ def format_report(res: dict) -> str:
     if bp:
         out.append("")
         out.append(f"1. backprojection {bp['nx']}^2 from {bp['n_views']} views x {bp['n_cols']} columns, "
-                   f"{bp['batch']} sinograms per call ({bp['fov_fraction']:.0%} of voxels in the FOV), load {bp['load_average_1min_before']}")
+                   f"{bp['batch']} sinograms per call ({bp['fov_fraction']:.0%} of voxels in the FOV), "
+                   f"load {bp['load_average_1min_before']}")
         out.append(f"   {'kernel':34s} {'G upd/s':>8s} {'in FOV':>8s} {'s':>8s}  notes")
         goal = "goal >= 4: " + ("met" if bp["batched_gups"] >= GOAL_BACKPROJECTION_GUPS else "NOT met")
-        out.append(f"   {'batched float16 (clrecon)':34s} {_f(bp['batched_gups']):>8s} {_f(bp['batched_gups_in_fov']):>8s} "
-                   f"{_f(bp['batched_s'], 3):>8s}  {goal}")
+        out.append(f"   {'batched float16 (clrecon)':34s} {_f(bp['batched_gups']):>8s} "
+                   f"{_f(bp['batched_gups_in_fov']):>8s} {_f(bp['batched_s'], 3):>8s}  {goal}")
         if "single_gups" in bp:
             out.append(f"   {'one sinogram / work-item (ref)':34s} {_f(bp['single_gups']):>8s} "
-                       f"{_f(bp['single_gups_in_fov']):>8s} {_f(bp['single_s'], 3):>8s}  {bp['reference_batch']} sinograms; "
+                       f"{_f(bp['single_gups_in_fov']):>8s} {_f(bp['single_s'], 3):>8s}  "
+                       f"{bp['reference_batch']} sinograms; "
                        f"batched {bp['speedup']:.1f}x; max rel diff {bp['max_rel_diff']:.1e}")
         a = bp.get("astra", {})
         if "gups" in a:
             ag = a["agreement"]
             out.append(f"   {'ASTRA ' + a['version'] + ' line_fanflat BP (CPU)':34s} {_f(a['gups']):>8s} "
                        f"{_f(a['gups'] * bp['fov_fraction']):>8s} {_f(a['seconds'], 3):>8s}  1 sinogram; "
-                       f"batched {a['speedup_ours_vs_astra']:.0f}x; after scale: rel RMS diff {ag['rel_rms_diff']:.1%}, "
+                       f"batched {a['speedup_ours_vs_astra']:.0f}x; after scale: "
+                       f"rel RMS diff {ag['rel_rms_diff']:.1%}, "
                        f"corr {ag['correlation']:.4f}")
         else:
             out.append(f"   ASTRA: skipped: {a.get('skipped', a.get('error', '?'))}")
@@ -563,7 +573,8 @@ def format_report(res: dict) -> str:
     if pj:
         ref = pj["reference"]
         out.append("")
-        out.append(f"2. projector {pj['scene']} ({pj['detector'][1]}x{pj['detector'][0]} cells, {pj['n_objects']} objects), "
+        out.append(f"2. projector {pj['scene']} ({pj['detector'][1]}x{pj['detector'][0]} cells, "
+                   f"{pj['n_objects']} objects), "
                    f"{pj['projections']} projections over the scan, load {pj['load_average_1min_before']:.2f}")
         out.append(f"   {'':22s} {'proj/s':>8s} {'Mrays/s':>8s} {'M ray.obj/s':>12s} {'whole scan':>12s}")
         ok = "met" if pj["projected_total_s"] < GOAL_SIMULATION_S else "NOT met"
@@ -602,14 +613,16 @@ def format_report(res: dict) -> str:
             out.append(f"   memory: child failed: {mem['error']}")
         else:
             fj = mem["full_job"]
-            out.append(f"   peak memory, one slab of {mem['scene']}: {mem['slices']} slices x {mem['targets']} targets x "
+            out.append(f"   peak memory, one slab of {mem['scene']}: {mem['slices']} slices x "
+                       f"{mem['targets']} targets x "
                        f"{mem['method']} x {len(mem['variants'])} variants ({mem['rebinned_rows']} rebinned rows; "
                        f"{mem['projections_simulated']} projections simulated first in {mem['simulate_s']:.0f} s)")
             out.append(f"   measured peak RSS {mem['peak_rss_mib']:.0f} MiB (process before the slab "
                        f"{mem['rss_before_mib']:.0f} MiB; before + modelled arrays {mem['model_small_mib']:.0f} MiB: "
                        f"the rest is fixed: kernel builds, buffer pools, the read chunk)")
             ok = "met" if fj["predicted_peak_gib"] < GOAL_PEAK_MEMORY_GIB else "NOT met"
-            out.append(f"   full job's slab ({fj['slab_slices']} slices x {fj['targets']} targets x {fj['methods']} methods, "
+            out.append(f"   full job's slab ({fj['slab_slices']} slices x {fj['targets']} targets x "
+                       f"{fj['methods']} methods, "
                        f"<= {fj['rows_per_slice_upper_bound']:.0f} rows/slice): measured + modelled growth "
                        f"{fj['predicted_peak_gib']:.1f} GiB "
                        f"(rows {fj['rebinned_rows_bytes_per_variant'] / 2 ** 30:.2f} GiB/variant, images "
@@ -617,7 +630,8 @@ def format_report(res: dict) -> str:
     scl = res.get("scaling")
     if scl:
         out.append("")
-        out.append(f"5. scaling ({scl['scene']} variants, {scl['method']}, noise-free; load {scl['load_average_1min_before']})")
+        out.append(f"5. scaling ({scl['scene']} variants, {scl['method']}, noise-free; "
+                   f"load {scl['load_average_1min_before']})")
         out.append(f"   {'axis':12s} {'slices':>6s} {'targets':>7s} {'pitch':>6s} {'proj':>6s} {'rows':>8s} "
                    f"{'plan s':>7s} {'sim s':>7s} {'recon s':>7s} {'ms/sino':>8s}")
         for r in scl["rows"]:

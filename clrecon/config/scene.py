@@ -5,7 +5,7 @@ reconstruction to run. Every section is a frozen dataclass; derived quantities (
 at the isocentre, table feed, number of projections) are properties, never stored twice.
 
 Errors name the key, the bad value and what is allowed; unknown keys are errors that
-suggest the nearest valid key. Built-in scenes live in ``clrecon/scenes/*.toml``.
+suggest the nearest valid key. Built-in scenes live in ``clrecon/config/scenes/*.toml``.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from clrecon.core.config import (
     field_of,
     one_of,
 )
-from clrecon.core.detector import DETECTORS, detector_for
+from clrecon.core.detector import DETECTORS, DetectorModel, detector_for
 from clrecon.core.errors import SceneError
 from clrecon.core.versions import PROJECTOR_VERSION
 from clrecon.simulation.phantom_sources import PHANTOM_SOURCES, PhantomConfig
@@ -82,7 +82,7 @@ class ScannerConfig(Section):
     detector: str = F("flat", one_of(DETECTORS.names), "detector model (clrecon.core.detector)")
 
     @property
-    def detector_model(self):
+    def detector_model(self) -> DetectorModel:
         """The detector model (:mod:`clrecon.core.detector`) every stage asks for geometry."""
         return detector_for(self)
 
@@ -207,7 +207,7 @@ class ReconConfig(Section):
                              "box around the heart (mm, LPS): the phantom's epicardial fat at every state + 10 mm")
 
     @property
-    def resp_targets(self) -> tuple:
+    def resp_targets(self) -> tuple[float, ...]:
         """Target amplitudes: midpoints of ``resp_bins`` equal bins of [0, 1]."""
         return tuple((i + 0.5) / self.resp_bins for i in range(self.resp_bins))
 
@@ -252,15 +252,15 @@ class Scene:
         return self.phantom.respiratory_motion and not self.signals.breath_hold
 
     @property
-    def cardiac_targets(self) -> tuple:
+    def cardiac_targets(self) -> tuple[float, ...]:
         return self.recon.cardiac_phases if self.has_cardiac else (0.0,)
 
     @property
-    def resp_targets(self) -> tuple:
+    def resp_targets(self) -> tuple[float, ...]:
         return self.recon.resp_targets if self.has_respiratory else (self.signals.breath_hold_amplitude
                                                                      if self.signals.breath_hold else 0.5,)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         d = {"name": self.name, "description": self.description}
         for sec in SECTIONS:
             d[sec] = {k: (list(v) if isinstance(v, tuple) else v)
@@ -291,7 +291,7 @@ class Scene:
                    "signal_trace_s": self.trace_duration_s}
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
-    def replace(self, **sections) -> Scene:
+    def replace(self, **sections: Any) -> Scene:
         """New scene with some sections' values replaced, e.g. ``replace(recon={"nz": 4})``."""
         d = self.to_dict()
         for sec, vals in sections.items():
@@ -329,7 +329,7 @@ def _build_section(cls, raw: Any, where: str):
     return cls(**raw)
 
 
-def scene_from_dict(raw: dict, source: str = "") -> Scene:
+def scene_from_dict(raw: dict[str, Any], source: str = "") -> Scene:
     """Validate a parsed TOML document into a :class:`Scene`."""
     prefix = f"{source}: " if source else ""
     if not isinstance(raw, dict):
@@ -373,7 +373,8 @@ def _check_consistency(s: Scene, prefix: str) -> None:
         raise SceneError(f"{prefix}scanner (sid_mm = {sc.sid_mm}, sdd_mm = {sc.sdd_mm}, n_cols = {sc.n_cols}, "
                          f"col_pitch_mm = {sc.col_pitch_mm}, n_rows = {sc.n_rows}, row_pitch_mm = "
                          f"{sc.row_pitch_mm}), scan and recon sizes: the derived geometry (field of view, "
-                         f"collimation, SSRB window, projection count) is not finite; use the mm sizes of a real scanner")
+                         f"collimation, SSRB window, projection count) is not finite; "
+                         f"use the mm sizes of a real scanner")
     too_high = [p for p in s.scan.pitches if p > p_max * (1.0 + 1e-9)]
     if too_high:
         raise SceneError(f"{prefix}scan.pitches = {list(s.scan.pitches)}: pitch {too_high[0]:g} leaves "

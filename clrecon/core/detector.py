@@ -15,14 +15,37 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from clrecon.core.conventions import collimation_iso_mm, detector_coords, detector_frames
 from clrecon.core.registry import Registry
 
 #: Detector models by the name a scene gives in ``scanner.detector``.
 DETECTORS: Registry[type] = Registry("detector model")
+
+
+class DetectorModel(Protocol):
+    """What every stage asks of a detector model (:class:`FlatDetector` is the one today)."""
+
+    name: str
+    n_cols: int
+    n_rows: int
+
+    def u_mm(self) -> np.ndarray: ...
+    def v_mm(self) -> np.ndarray: ...
+    def frames(self, angle_rad: ArrayLike, source_z_mm: ArrayLike
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]: ...
+    @property
+    def collimation_iso_mm(self) -> float: ...
+    @property
+    def fov_radius_mm(self) -> float: ...
+    def ssrb_v_mm(self, u_mm: ArrayLike, dz_mm: ArrayLike) -> np.ndarray: ...
+    def object_half_width_u_mm(self, object_radius_mm: float) -> float: ...
+    def slice_window_mm(self, object_radius_mm: float) -> float: ...
+    def max_covering_pitch(self, object_radius_mm: float) -> float: ...
 
 
 def flat_fov_radius_mm(sid_mm: float, sdd_mm: float, half_width_mm: float) -> float:
@@ -52,7 +75,7 @@ class FlatDetector:
     name = "flat"
 
     @classmethod
-    def from_scanner(cls, scanner) -> FlatDetector:
+    def from_scanner(cls, scanner: Any) -> FlatDetector:
         return cls(sid_mm=scanner.sid_mm, sdd_mm=scanner.sdd_mm, n_cols=scanner.n_cols, n_rows=scanner.n_rows,
                    col_pitch_mm=scanner.col_pitch_mm, row_pitch_mm=scanner.row_pitch_mm)
 
@@ -65,7 +88,8 @@ class FlatDetector:
         """Row centres (n_rows,) mm."""
         return detector_coords(self.n_rows, self.row_pitch_mm)
 
-    def frames(self, angle_rad, source_z_mm):
+    def frames(self, angle_rad: ArrayLike, source_z_mm: ArrayLike
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Per-view ``(source, detector_centre, e_u, e_v)``, each (n, 3) mm."""
         return detector_frames(angle_rad, source_z_mm, self.sid_mm, self.sdd_mm)
 
@@ -80,7 +104,7 @@ class FlatDetector:
         return flat_fov_radius_mm(self.sid_mm, self.sdd_mm, self.n_cols * self.col_pitch_mm / 2.0)
 
     # -- single-slice rebinning -------------------------------------------------------
-    def ssrb_v_mm(self, u_mm, dz_mm) -> np.ndarray:
+    def ssrb_v_mm(self, u_mm: ArrayLike, dz_mm: ArrayLike) -> np.ndarray:
         """Row coordinate v(u) (mm) of the SSRB ray for column ``u_mm`` and ``dz = z_slice - z_k``.
 
         The fan ray of column u passes closest to the axis at in-plane distance SID cos(gamma)
@@ -129,6 +153,6 @@ class FlatDetector:
         return 2.0 * self.slice_window_mm(object_radius_mm) / self.collimation_iso_mm
 
 
-def detector_for(scanner):
+def detector_for(scanner: Any) -> DetectorModel:
     """The detector model a scanner config names (``scanner.detector``, default flat)."""
     return DETECTORS[getattr(scanner, "detector", "flat")].from_scanner(scanner)

@@ -24,7 +24,7 @@ class UnknownEntry(ClreconError, KeyError):
 class Registry(Mapping, Generic[T]):
     """Name -> entry, in registration order; ``kind`` names the registry in errors."""
 
-    def __init__(self, kind: str):
+    def __init__(self, kind: str) -> None:
         self.kind = kind
         self._entries: dict[str, T] = {}
 

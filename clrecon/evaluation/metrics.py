@@ -65,7 +65,7 @@ def abs_error_stats(recon: np.ndarray, truth: np.ndarray, mask2d: np.ndarray) ->
     s2 = 0.0
     r2 = recon.reshape((-1,) + recon.shape[-2:])
     t2 = truth.reshape((-1,) + truth.shape[-2:])
-    for a, b in zip(r2, t2):
+    for a, b in zip(r2, t2, strict=True):
         d = np.abs(a[mask2d].astype(np.float64) - b[mask2d])
         n += d.size
         s1 += d.sum()

@@ -28,10 +28,11 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
 
-from clrecon.config.scene import scene_from_dict
+from clrecon.config.scene import Scene, scene_from_dict
 from clrecon.core.errors import ClreconError, StoreError
 from clrecon.outputs.volumes import DIMS, FORMAT_VERSION, list_recons, open_volumes, read_volume
 from clrecon.reconstruction.interpolation import by_rank
@@ -41,6 +42,14 @@ METHOD_PREFERENCE = by_rank()  # the interpolation methods by their registered `
 VARIANT_PREFERENCE = ("noisy", "noise-free")
 REFERENCE_VOLUMES = ("groundtruth", "phantom")
 AXIS_NAMES = ("cardiac_phase", "resp_amplitude", "z_mm", "y_mm", "x_mm")
+
+if TYPE_CHECKING:
+    import h5py
+
+#: An open ``volumes.h5`` or a :class:`RunDirectory` (the module-level functions take either).
+VolumeFile: TypeAlias = "h5py.File | RunDirectory"
+#: A pitch as a number (0.02), a number string or a key (``"p0.020"``).
+PitchLike: TypeAlias = float | str | None
 
 
 @dataclass(frozen=True)
@@ -77,11 +86,11 @@ class Source:
 
 # ----------------------------------------------------------------------------------------
 # functions over an open volume file (or a RunDirectory)
-def _h5(f):
+def _h5(f: VolumeFile) -> h5py.File:
     return f.h5 if isinstance(f, RunDirectory) else f
 
 
-def open_volume_store(run_dir):
+def open_volume_store(run_dir: str | Path) -> h5py.File:
     """Open a run directory's ``volumes.h5`` (h5py.File) with one-line errors for wrong paths."""
     p = Path(run_dir)
     if not p.exists():
@@ -104,7 +113,7 @@ def open_volume_store(run_dir):
     return open_volumes(p)
 
 
-def normalise_pitch(pitch) -> str | None:
+def normalise_pitch(pitch: PitchLike) -> str | None:
     """``0.02``, ``"0.02"`` or ``"p0.020"`` -> ``"p0.020"`` (None stays None)."""
     if pitch is None:
         return None
@@ -115,7 +124,7 @@ def normalise_pitch(pitch) -> str | None:
         raise ClreconError(f"--pitch {pitch!r}: expected a number such as 0.02 or a key such as p0.020") from None
 
 
-def sources(f) -> list[Source]:
+def sources(f: VolumeFile) -> list[Source]:
     """Every volume of the run: ground truth, phantom, then each (pitch, variant, method)."""
     f = _h5(f)
     out = [Source(name, name) for name in REFERENCE_VOLUMES if name in f]
@@ -123,7 +132,7 @@ def sources(f) -> list[Source]:
     return out
 
 
-def describe_sources(f) -> str:
+def describe_sources(f: VolumeFile) -> str:
     """One line naming what a run holds, e.g. ``groundtruth, phantom; p0.020/noisy: local_linear, nearest``."""
     f = _h5(f)
     refs = [n for n in REFERENCE_VOLUMES if n in f]
@@ -135,7 +144,8 @@ def describe_sources(f) -> str:
     return "; ".join(parts) if groups else parts[0] + "; no reconstructions"
 
 
-def resolve_source(f, method: str | None = None, pitch=None, variant: str | None = None) -> Source:
+def resolve_source(f: VolumeFile, method: str | None = None, pitch: PitchLike = None,
+                   variant: str | None = None) -> Source:
     """The source asked for, with defaults filled in; a ClreconError naming what exists otherwise.
 
     ``method``: a reconstruction method, ``groundtruth`` or ``phantom``; default the best
@@ -169,7 +179,7 @@ def resolve_source(f, method: str | None = None, pitch=None, variant: str | None
     return Source(f"recon/{p}/{v}/{m}", m, p, v)
 
 
-def run_axes(f) -> dict:
+def run_axes(f: VolumeFile) -> dict[str, np.ndarray]:
     """``{cardiac_phase, resp_amplitude, z_mm, y_mm, x_mm}`` as float64 arrays."""
     f = _h5(f)
     return {k: np.asarray(f[f"axes/{k}"][()], np.float64) for k in AXIS_NAMES}
@@ -188,7 +198,7 @@ class RunDirectory:
     ``y_mm``, ``x_mm``; float64, LPS mm), ``sources`` (:class:`Source` list).
     """
 
-    def __init__(self, path, results: dict | None = None):
+    def __init__(self, path: str | Path, results: dict[str, Any] | None = None) -> None:
         p = Path(path)
         self.h5 = open_volume_store(p)
         self.dir = p.parent if p.is_file() else p
@@ -198,7 +208,7 @@ class RunDirectory:
         self._scene = None
 
     @property
-    def f(self):
+    def f(self) -> h5py.File:
         """The open ``h5py.File`` (alias of :attr:`h5`)."""
         return self.h5
 
@@ -209,7 +219,7 @@ class RunDirectory:
     def __enter__(self) -> RunDirectory:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def __repr__(self) -> str:
@@ -225,7 +235,7 @@ class RunDirectory:
         return self._results is not None or self.results_path.exists()
 
     @property
-    def results(self) -> dict:
+    def results(self) -> dict[str, Any]:
         """The ``results.json`` dictionary (StoreError if missing or unreadable)."""
         if self._results is None:
             p = self.results_path
@@ -241,7 +251,7 @@ class RunDirectory:
         return self._results
 
     @property
-    def scene(self):
+    def scene(self) -> Scene:
         """The run's :class:`~clrecon.config.scene.Scene` (from ``results["scene"]``)."""
         if self._scene is None:
 
@@ -250,7 +260,7 @@ class RunDirectory:
 
     # -- axes ----------------------------------------------------------------------------
     @property
-    def axes(self) -> dict:
+    def axes(self) -> dict[str, np.ndarray]:
         if self._axes is None:
             self._axes = run_axes(self.h5)
         return self._axes
@@ -309,7 +319,7 @@ class RunDirectory:
     def describe(self) -> str:
         return describe_sources(self.h5)
 
-    def resolve(self, method: str | None = None, pitch=None, variant: str | None = None) -> Source:
+    def resolve(self, method: str | None = None, pitch: PitchLike = None, variant: str | None = None) -> Source:
         """:func:`resolve_source` on this run."""
         return resolve_source(self.h5, method, pitch, variant)
 
@@ -331,23 +341,23 @@ class RunDirectory:
         vs = self.variants(pk)
         return "noisy" if "noisy" in vs else vs[0]
 
-    def dims(self, source) -> tuple[str, ...]:
+    def dims(self, source: Source | str) -> tuple[str, ...]:
         """The axes a volume has on disk (a subset of ``cardiac, resp, z, y, x``)."""
         return tuple(str(d) for d in self.h5[_dataset(source)].attrs["dims"])
 
     # -- volumes -------------------------------------------------------------------------
-    def read(self, source, index=None) -> np.ndarray:
+    def read(self, source: Source | str, index: tuple[int, int] | None = None) -> np.ndarray:
         """A volume (:class:`Source` or dataset name) as ``(n_c, n_r, nz, ny, nx)``, or one target.
 
         ``index``: (cardiac_index, resp_index) -> ``(nz, ny, nx)`` (only that target is read).
         """
         return read_volume(self.h5, _dataset(source), index)
 
-    def read_target(self, source, ci: int, ri: int) -> np.ndarray:
+    def read_target(self, source: Source | str, ci: int, ri: int) -> np.ndarray:
         """``(nz, ny, nx)`` float32 HU of target (ci, ri)."""
         return np.asarray(self.read(source, (ci, ri)), np.float32)
 
-    def read_part(self, source, **index) -> np.ndarray:
+    def read_part(self, source: Source | str, **index: int | slice) -> np.ndarray:
         """Part of a volume by axis name, e.g. ``read_part(src, cardiac=0, resp=1, y=12)`` -> (nz, nx).
 
         Axes not named are read whole; an index for an axis the volume lacks on disk (length 1)
@@ -361,5 +371,5 @@ class RunDirectory:
         return np.asarray(ds[sel])
 
 
-def _dataset(source) -> str:
+def _dataset(source: Source | str) -> str:
     return source.dataset if isinstance(source, Source) else str(source)

@@ -63,7 +63,7 @@ class VolumeWriter:
                 self.f[f"axes/{k}"] = np.asarray(v, np.float64)
 
     def _dims(self):
-        return tuple(d for d, keep in zip(DIMS, self.keep + (True, True, True)) if keep)
+        return tuple(d for d, keep in zip(DIMS, self.keep + (True, True, True), strict=True) if keep)
 
     def _squeeze(self, vol: np.ndarray) -> np.ndarray:
         drop = tuple(i for i, keep in enumerate(self.keep) if not keep)
@@ -100,7 +100,7 @@ class VolumeWriter:
 
     def write_target(self, name: str, i: int, j: int, n_resp: int, vol: np.ndarray) -> None:
         """Write one target's ``(nz, ny, nx)`` volume at cardiac index ``i``, respiratory index ``j``."""
-        sel = tuple(k for k, keep in zip((i, j), self.keep) if keep)
+        sel = tuple(k for k, keep in zip((i, j), self.keep, strict=True) if keep)
         self.f[name][sel] = vol
         self._mark(name, i * n_resp + j)
 
@@ -111,7 +111,7 @@ class VolumeWriter:
     def abort(self) -> None:
         try:
             self.f.close()
-        except Exception:
+        except Exception:  # noqa: BLE001 - best-effort cleanup on a failing run: the original error matters
             pass
 
 

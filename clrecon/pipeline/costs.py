@@ -53,7 +53,8 @@ def describe_scenes() -> str:
                 f"{s.scan.duration_s(sc, p):>7.1f} {f'{sc.n_cols}x{sc.n_rows}':>10} "
                 f"{f'{rc.nx}x{rc.ny}x{rc.nz}':>16} {c['n_targets'] if i == 0 else '':>7} "
                 f"{c['projections'][p] * sc.n_rows * sc.n_cols * 4 / GiB:>9.2f} "
-                f"{c['volume_bytes'] / GiB if i == 0 else 0:>11.2f} {c['peak_memory_bytes'] / GiB if i == 0 else 0:>12.2f}")
+                f"{c['volume_bytes'] / GiB if i == 0 else 0:>11.2f} "
+                f"{c['peak_memory_bytes'] / GiB if i == 0 else 0:>12.2f}")
         if s.description:
             lines.append(f"{'':<12} {s.description}")
     lines.append("store: noise-free line integrals, float32, all projections (a run stores only those its slices use);"

@@ -341,7 +341,7 @@ def project_views(objects, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, *, cu
         Source, detector centre, column and row unit directions per view (mm).
     u_mm : (n_cols,) column centres; v_mm : (n_rows,) row centres (mm).
     rt : Runtime, optional
-        OpenCL runtime (default :func:`clrecon.cl_runtime.get_runtime`).
+        OpenCL runtime (default :func:`clrecon.core.runtime.get_runtime`).
     cull : bool
         False: every ray visits every object (the reference of the culling test; slow).
     chunk_views : int, optional

@@ -294,7 +294,7 @@ class ProjectionStore:
         ds = self._writer["projections"]
         # Contiguous runs become slice writes: HDF5 point selections are slow.
         breaks = np.flatnonzero(np.diff(idx) != 1) + 1
-        for lo, hi in zip(np.concatenate([[0], breaks]), np.concatenate([breaks, [idx.size]])):
+        for lo, hi in zip(np.concatenate([[0], breaks]), np.concatenate([breaks, [idx.size]]), strict=True):
             ds[idx[lo]:idx[hi - 1] + 1] = arr[lo:hi]
         self._writer.flush()
         self._present[idx] = True
