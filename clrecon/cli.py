@@ -1,4 +1,4 @@
-"""Command line: ``python -m clrecon {run,scenes,view,export,bench}`` (a thin layer over the modules).
+"""Command line: ``python -m clrecon {run,scenes,view,export,phantom,bench}`` (a thin layer over the modules).
 
 User errors (:class:`clrecon.core.errors.ClreconError`) print one line and exit with status 2;
 ``--debug`` shows the traceback instead.
@@ -49,8 +49,9 @@ def cmd_run(args) -> int:
     res = run(scene, out, methods=methods, cardiac=cardiac, resp=resp, slice_range=slices, pitches=pitches,
               cache_dir=args.cache, progress=not args.no_progress)
     print(f"wrote {out}/results.json, {out}/report.md, {out}/volumes.h5 in {res['total_seconds']:.1f} s")
+    from clrecon.evaluation.claims import claim_summary_lines
     from clrecon.outputs.report import summary_lines
-    for line in summary_lines(res):
+    for line in summary_lines(res) + claim_summary_lines(res):
         print(line)
     return 0
 
@@ -86,7 +87,8 @@ def cmd_export(args) -> int:
 
     index = export(args.run_dir, args.format, method=args.method, pitch=args.pitch, variant=args.variant,
                    out=args.out)
-    what = index["method"] if index["pitch_key"] is None else f"{index['method']} {index['pitch_key']} {index['variant']}"
+    what = (index["method"] if index["pitch_key"] is None
+            else f"{index['method']} {index['pitch_key']} {index['variant']}")
     n_files = sum(len(t["files"]) for t in index["targets"])
     print(f"wrote {len(index['targets'])} targets of {what} as {args.format} ({n_files} files) to {index['out']}")
     return 0
@@ -101,6 +103,31 @@ def cmd_bench(args) -> int:
     if args.json:
         write_json(res, args.json)
         print(f"wrote {args.json}")
+    return 0
+
+
+def parse_grid(text: str):
+    """``NCxNA`` (e.g. ``5x3``) -> (5, 3)."""
+    try:
+        nc, na = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ClreconError(f"--grid {text!r}: expected NCxNA, counts of cardiac phases and amplitudes, "
+                           f"e.g. 5x3") from None
+    return nc, na
+
+
+def cmd_phantom(args) -> int:
+    from clrecon.config.scene import load_scene
+    from clrecon.simulation.phantom_export import export_phantom
+
+    scene = load_scene(args.scene)
+    grid = parse_grid(args.grid) if args.grid else None
+    if grid is None and args.frames is None:
+        raise ClreconError("phantom export: give --frames N (a time series) or --grid NCxNA (NIfTI)")
+    res = export_phantom(scene, args.out, args.format, args.frames or 0, voxel_mm=args.voxel_mm, grid=grid)
+    nz, ny, nx = res["shape"]
+    print(f"wrote {len(res['files'])} {args.format} frames of {nx} x {ny} x {nz} voxels of {res['voxel_mm']:g} mm "
+          f"and {res['header']} to {res['out']}; scene table: {res['phantom_toml']}")
     return 0
 
 
@@ -148,10 +175,23 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", help="output folder (default: RUN_DIR/export/FORMAT/SOURCE)")
     e.set_defaults(func=cmd_export)
 
+    ph = sub.add_parser("phantom", help="voxel phantoms: export the analytic phantom as XCAT or NIfTI frames")
+    phs = ph.add_subparsers(dest="phantom_cmd", required=True)
+    pe = phs.add_parser("export", help="write the scene's analytic phantom as 4D frames "
+                                       "(for [phantom] kind = \"voxel\")")
+    pe.add_argument("out", help="output folder (frames, the XCAT log or frames.toml, and phantom.toml)")
+    pe.add_argument("--format", required=True, choices=("xcat", "nifti"))
+    pe.add_argument("--frames", type=int, help="frames along the scene's time trajectory (over its longest scan)")
+    pe.add_argument("--grid", help="NIfTI only: frames on a cardiac x amplitude grid instead, e.g. 5x3")
+    pe.add_argument("--scene", default="demo", help="built-in scene name or TOML file (default: demo)")
+    pe.add_argument("--voxel-mm", type=float, help="cubic voxel size (default: half the scene's recon voxel)")
+    pe.set_defaults(func=cmd_phantom)
+
     b = sub.add_parser("bench", help="throughput figures, each with a reference measured in the same run")
     b.add_argument("--quick", action="store_true", help="smaller sizes and one repeat (about a minute)")
     b.add_argument("--json", metavar="FILE", help="also write every number and the machine description here")
-    b.add_argument("--only", help="comma list from backprojection,projector,interpolation,end-to-end,memory,scaling")
+    b.add_argument("--only", help="comma list from backprojection,projector,voxel-projector,interpolation,"
+                   "end-to-end,memory,scaling; also tradeoff (error against run time, ~20 min: only when named)")
     b.add_argument("--repeats", type=int, help="timed repeats per figure (default 3; --quick 1); the median is shown")
     b.set_defaults(func=cmd_bench)
     return p

@@ -1,7 +1,8 @@
 // Phase-space interpolation kernels (docs/algorithms.md "Phase-space interpolation"; 5DCT paper 2.2).
 //
 // local_linear_weights: per row (one (slice, view, target)), the weights l of the local
-//   weighted linear regression  y ~ b0 + b1 dc + b2 da,  value b0 = l^T y.
+//   weighted linear regression  y ~ b0 + b1 dc + b2 da,  value b0 = l^T y; a per-row guard
+//   flag drops the dc and/or da slope column (extrapolation guard).
 // apply_weights: rows of the output = weighted sums of rebinned rows.
 //
 // Build options: USE_DOUBLE (compute the 3x3 solve in double; needs cl_khr_fp64),
@@ -46,11 +47,19 @@ typedef float real;
 // same), so float32 underflow never changes which points take part. The cardiac term
 // kappa (cos 2 pi x - 1) is evaluated as -2 kappa sin^2(pi x) (no cancellation near x = 0).
 //
+// Extrapolation guard: bit 1 of guard[i] drops the dc slope column, bit 2 the da slope column
+// (the host sets them where every selected point lies on one side of the target along that
+// axis). The weights w are computed from the true differences first; a guarded axis' coordinate
+// is then set to 0 for every point, so the solve below fits y ~ b0 + b2 da, y ~ b0 + b1 dc or
+// the weighted mean, with the same conditioning tests on the remaining column. guard = 0 runs
+// the same operations as the plain fit.
+//
 // Layout (structure of arrays, row fastest): dc[k * n + i], da[k * n + i], l[k * n + i].
 // Slots k >= count[i] are ignored and get l = 0.
 __kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) signed circular dc
                                    __global const real *da,    // (K_SLOTS, n) a - a*
                                    __global const int *count,  // (n,) valid slots, first ones
+                                   __global const int *guard,  // (n,) bit 1: drop dc slope, bit 2: da
                                    __global real *l_out,       // (K_SLOTS, n) weights
                                    const int n,
                                    const real kappa,
@@ -63,6 +72,7 @@ __kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) s
     if (i >= n)
         return;
     const int cnt = clamp(count[i], 0, K_SLOTS);
+    const int gd = guard[i];
 
     real x[K_SLOTS], y[K_SLOTS], w[K_SLOTS];
     real lmax = -INFINITY;
@@ -73,6 +83,11 @@ __kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) s
         w[k] = (real)-2 * kappa * sp * sp - y[k] * y[k] * inv_two_sigma2;
         if (k < cnt)
             lmax = fmax(lmax, w[k]);
+        // guarded axis: out of the fit from here on (its kernel weight above stays)
+        if (gd & 1)
+            x[k] = (real)0;
+        if (gd & 2)
+            y[k] = (real)0;
     }
     real s0 = 0, sx = 0, sy = 0;
     for (int k = 0; k < K_SLOTS; ++k) {
@@ -151,7 +166,7 @@ __kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinn
     out[(size_t)b * (size_t)n_cols + (size_t)col] = acc;
 }
 
-// apply_weights straight into the batched backprojector's layout (clrecon.fbp.interleave_batch):
+// apply_weights straight into the batched backprojector's layout (clrecon.reconstruction.fbp.interleave_batch):
 // out16[g][v][cp][lane] = sum_k weight[b, v, k] * rows[index[b, v, k], clamp(cp - 1, 0, C - 1)]
 // with b = 16 g + lane, cp = 0 .. n_cols + 1 (one replica of each edge column on either side).
 // The sinograms never go back to the host: (filtered) rows in, backprojector input out.

@@ -17,7 +17,7 @@ import numpy as np
 
 from clrecon.config.scene import load_scene
 from clrecon.core.conventions import voxel_coords
-from clrecon.evaluation import metrics
+from clrecon.evaluation import metrics, motion
 from clrecon.outputs.volumes import VolumeWriter, pitch_key
 
 METHODS = ("nearest", "barycentric", "local_linear", "r4dct")
@@ -77,12 +77,14 @@ def make_fake_run(out: Path, methods=METHODS, pitches=PITCHES, variants=VARIANTS
     w.write("groundtruth", gt, np.arange(nz))
     w.create("phantom", shape, nz)
     w.write("phantom", gt, np.arange(nz))
-    met, secs = {}, {}
+    met, secs, mot = {}, {}, {}
+    mcfg = motion.MotionConfig.from_scene(scene, z)
     for pitch in pitches:
         pk = pitch_key(pitch)
-        met[pk], secs[pk] = {}, {}
+        met[pk], secs[pk], mot[pk] = {}, {}, {}
         for v in variants:
             met[pk][v], secs[pk][v] = {}, {}
+            mot[pk][v] = {"groundtruth": fake_motion(mcfg, shape[:2], 0.0, 0.0, reference=True)}
             noise = 25.0 if v == "noisy" else 3.0
             for k, m in enumerate(methods):
                 if m == "nearest":  # axial misalignment: every other slice from a neighbouring target
@@ -98,6 +100,7 @@ def make_fake_run(out: Path, methods=METHODS, pitches=PITCHES, variants=VARIANTS
                 w.write(name, vol, np.arange(nz))
                 met[pk][v][m] = metrics.table2(vol, gt, metrics.MetricsConfig.from_scene(scene))
                 secs[pk][v][m] = 0.5 + k + 3 * pitch
+                mot[pk][v][m] = fake_motion(mcfg, shape[:2], 1.0 + k + 10 * pitch, noise * (1 + k))
     w.close()
     results = {
         "format_version": 1, "scene": scene.to_dict(), "scene_source": "fake", "versions": {"clrecon": "test"},
@@ -106,8 +109,24 @@ def make_fake_run(out: Path, methods=METHODS, pitches=PITCHES, variants=VARIANTS
                                       "slices": [0, rc.nz], "slices_z_mm": z.tolist()},
         "dimensions": {"cardiac": scene.has_cardiac, "resp": scene.has_respiratory},
         "stages": {"simulate": {"ran": False, "seconds": 0.0, "skipped_because": "fake run"}},
-        "metrics": met, "method_seconds": secs, "respiratory_only": {},
+        "metrics": met, "method_seconds": secs, "respiratory_only": {}, "motion": mot,
+        "motion_definitions": motion.definitions(mcfg),
         "outputs": {"volumes": "volumes.h5", "report": "report.md"},
     }
     (out / "results.json").write_text(json.dumps(results, indent=1))
     return results
+
+
+def fake_motion(cfg, targets_shape, blur: float, noise: float, reference: bool = False) -> dict:
+    """A ``results.json["motion"]`` entry (:class:`clrecon.evaluation.motion.MotionMetrics`) with made-up
+    numbers: edges ``blur`` mm wider than 3 mm, lesions ``blur / 2`` mm off, noise std ``noise`` HU."""
+    acc = motion.MotionMetrics(cfg, *targets_shape)
+    acc.edge[:] = 3.0 + blur
+    acc.n_prof[:] = cfg.n_profiles - 2
+    acc.lv_ml[:] = 100.0 - 2.0 * blur
+    acc.vec[:] = (0.5 * blur, 0.0, 0.1)
+    acc.reference = reference
+    if not reference:
+        acc.lv_err[:] = -2.0 * blur
+        acc.noise[:] = noise
+    return acc.result()

@@ -12,7 +12,7 @@ from clrecon.core.conventions import circular_difference
 from clrecon.outputs import figures, report
 
 ALL = ("phase_space.png", "coronal.png", "motion_rows.png", "mae_per_target_small.png",
-       "mae_per_target_large.png", "error_vs_time.png")
+       "mae_per_target_large.png", "error_vs_time.png", "motion_metrics.png")
 
 
 def _img(path):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from scipy.spatial import Delaunay
+from scipy.spatial import Delaunay, QhullError
 
 from clrecon.core.conventions import circular_difference
 from clrecon.reconstruction.interpolation import barycentric as ip_bary
@@ -45,7 +45,7 @@ def _scale(W):
 
 def _as_dict(W, t):
     d = {}
-    for i, w in zip(W.index[t], W.weight[t]):
+    for i, w in zip(W.index[t], W.weight[t], strict=True):
         if w != 0:
             d[int(i)] = d.get(int(i), 0.0) + float(w)
     return d
@@ -87,7 +87,7 @@ def test_linear_sinogram_rows_through_apply_weights(method):
 def test_constant_rows_reproduced_by_every_method(method):
     rng = np.random.default_rng(2)
     c, a = rng.random(40), rng.random(40)
-    W = ip.method_weights(method, c, a, TARGETS)
+    W = ip.method_weights(method, c, a, TARGETS, dz=rng.random(40) * 10)   # dz (mm): helical reads it
     rows = np.full((40, 33), 2.5, np.float32)
     out = ip.apply_weights(rows, W.index, W.weight.astype(np.float32))
     assert out.shape == (TARGETS.shape[0], 33)
@@ -129,18 +129,24 @@ def test_bin_averages_the_bin_across_the_seam_and_falls_back_to_nearest():
 # ---------------------------------------------------------------------------------------
 # barycentric: agreement with a plain full Delaunay, fallbacks, degenerate input
 def _barycentric_reference(c, a, targets):
-    """Paper algorithm written plainly: full copied Delaunay, else two nearest / nearest."""
+    """Paper algorithm written plainly: full copied Delaunay, else two nearest / nearest.
+    A triangle with a vertex of non-zero coordinate (> 1e-9) farther than 0.3 from the target
+    in circular c is not used (the |dc| limit, docs/choices.md "Barycentric details")."""
     n = c.size
     P = np.concatenate([np.stack([c + s, a], axis=1) for s in (0.0, -1.0, 1.0)])
     tri = Delaunay(P)
     simp = tri.find_simplex(targets)
     out = []
     for t, s in enumerate(simp):
-        if s >= 0:
+        use = s >= 0
+        if use:
             b = tri.transform[s, :2] @ (targets[t] - tri.transform[s, 2])
             lam = [b[0], b[1], 1 - b.sum()]
+            far = np.abs(circular_difference(c[tri.simplices[s] % n], targets[t, 0])) > 0.3 + 1e-12
+            use = not np.any(far & (np.array(lam) > 1e-9))
+        if use:
             d = {}
-            for v, l in zip(tri.simplices[s] % n, lam):
+            for v, l in zip(tri.simplices[s] % n, lam, strict=True):
                 d[int(v)] = d.get(int(v), 0.0) + l
             out.append(d)
             continue
@@ -252,9 +258,14 @@ def test_no_breathing_barycentric_gap_rule():
 
 
 def test_no_motion_at_all_takes_the_first_candidate():
+    """Every phase-space method sees one point when nothing moves; the phase-blind ``helical``
+    keeps its own rule (the turn nearest in z)."""
+    from clrecon.reconstruction.interpolation import METHODS as REGISTRY
     for method in ip.METHODS:
-        W = ip.method_weights(method, [0.3, 0.1], [0.2, 0.9], TARGETS, use_cardiac=False, use_resp=False)
-        assert np.all(W.index[:, 0] == 0) and np.all(W.weight[:, 0] == 1.0)
+        W = ip.method_weights(method, [0.3, 0.1], [0.2, 0.9], TARGETS, use_cardiac=False, use_resp=False,
+                              dz=[5.0, 1.0])
+        first = 1 if not REGISTRY[method].axes else 0
+        assert np.all(W.index[:, 0] == first) and np.all(W.weight[:, 0] == 1.0), method
 
 
 # ---------------------------------------------------------------------------------------
@@ -352,8 +363,13 @@ def test_local_linear_reference_equals_the_normal_equations_when_well_posed():
 
 
 def test_local_linear_solve_rejects_bad_shapes():
+    # K slots come from the shape (1..LL_MAX_SLOTS); dc and da must agree
     with pytest.raises(ValueError):
-        ip.local_linear_solve(np.zeros((3, 7)), np.zeros((3, 7)), np.ones(3, int), 1.0, 0.15)
+        ip.local_linear_solve(np.zeros((3, 7)), np.zeros((3, 8)), np.ones(3, int), 1.0, 0.15)
+    with pytest.raises(ValueError):
+        ip.local_linear_solve(np.zeros((3, 33)), np.zeros((3, 33)), np.ones(3, int), 1.0, 0.15)
+    with pytest.raises(ValueError, match="count"):
+        ip.local_linear_solve(np.zeros((3, 5)), np.zeros((3, 5)), np.full(3, 6), 1.0, 0.15)
     with pytest.raises(ValueError, match="count"):
         ip.local_linear_solve(np.zeros((3, 8)), np.zeros((3, 8)), np.full(3, 9), 1.0, 0.15)
     with pytest.raises(ValueError, match="precision"):
@@ -401,10 +417,11 @@ def test_batch_weights_equal_per_group_weights(method):
     counts = np.array([1, 2, 3, 17, 40, 5])
     off = np.concatenate([[0], np.cumsum(counts)])
     c, a = rng.random(off[-1]), rng.random(off[-1])
-    B = ip.batch_weights(method, c, a, off, TARGETS, chunk_groups=4)
+    dz = rng.uniform(-10, 10, off[-1])
+    B = ip.batch_weights(method, c, a, off, TARGETS, chunk_groups=4, dz=dz)
     assert B.index.shape[:2] == (counts.size, TARGETS.shape[0]) and B.index.dtype == np.int32
     for g in range(counts.size):
-        W = ip.method_weights(method, c[off[g]:off[g + 1]], a[off[g]:off[g + 1]], TARGETS)
+        W = ip.method_weights(method, c[off[g]:off[g + 1]], a[off[g]:off[g + 1]], TARGETS, dz=dz[off[g]:off[g + 1]])
         K = W.index.shape[-1]
         np.testing.assert_allclose(B.weight[g, :, :K], W.weight, atol=1e-12)
         assert np.all(B.weight[g, :, K:] == 0)
@@ -463,7 +480,8 @@ def test_weights_are_finite_and_sum_to_one(pts, targets, method, use_cardiac, us
     c, a = p[:, 0] % 1.0, p[:, 1]
     if same_amplitude:
         a = np.full_like(a, a[0])
-    W = ip.method_weights(method, c, a, np.array(targets), use_cardiac=use_cardiac, use_resp=use_resp)
+    dz = np.arange(c.size, 0, -1) % 3.0   # mm, with ties
+    W = ip.method_weights(method, c, a, np.array(targets), use_cardiac=use_cardiac, use_resp=use_resp, dz=dz)
     assert np.all(np.isfinite(W.weight))
     assert np.all((W.index >= 0) & (W.index < c.size))
     assert np.all(np.abs(W.weight.sum(-1) - 1) < TOL["weights_f64"] * _scale(W))
@@ -479,7 +497,7 @@ def _inside_copied_hull(c, a, targets):
     try:
         # bruteforce: the directed walk can cycle forever on degenerate (lattice) triangulations
         return Delaunay(P).find_simplex(targets, bruteforce=True, tol=-1e-9) >= 0
-    except Exception:  # Qhull: fewer than three distinct points, or all collinear
+    except (QhullError, ValueError):  # fewer than three distinct points, or all collinear
         return np.zeros(len(targets), dtype=bool)
 
 
@@ -489,7 +507,8 @@ def _inside_copied_hull(c, a, targets):
        kernel=st.sampled_from([(1.0, 0.15), (10.0, 0.05), (100.0, 0.01)]),
        n_dup=st.integers(0, 3), collinear=st.booleans())
 def test_linear_data_reproduced_where_the_method_promises_it(pts, targets, method, kernel, n_dup, collinear):
-    """Barycentric inside the hull of the copied points (in some consistent unwrapping of c),
+    """Barycentric inside the hull of the copied points (in some consistent unwrapping of c)
+    where the triangle is used (its |dc| limit),
     local linear where its weighted points are well conditioned (>= 3, not collinear), r4dct
     in amplitude inside the sampled range; weights always finite and summing to one."""
     p = np.array(pts, dtype=np.float64)
@@ -511,7 +530,12 @@ def test_linear_data_reproduced_where_the_method_promises_it(pts, targets, metho
         inside = (tg[:, 1] >= a.min()) & (tg[:, 1] <= a.max())
         assert np.all(np.abs(ma[inside]) < tol[inside])
     elif method == "barycentric":
+        # inside the hull, where the containing triangle is used: always when every point lies
+        # within BARY_MAX_DC of the target in c (no vertex can break the triangle |dc| limit),
+        # else where the method reports the triangle branch
         inside = _inside_copied_hull(c, a, tg % [1.0, 2.0])
+        near = np.all(np.abs(circular_difference(c[None, :], tg[:, None, 0])) <= ip.BARY_MAX_DC, axis=1)
+        inside &= near | (W.branch == ip_bary.BRANCH_TRIANGLE)
         assert np.all(np.abs(ma[inside]) < tol[inside])
         # c is periodic: each slot's vertex is the point or one of its copies at +-1
         shifts = np.array(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T  # (27, 3)
@@ -551,3 +575,173 @@ def test_local_linear_does_not_extrapolate_along_an_unbracketed_axis():
     assert plain.weight[0] @ lin_ca[plain.index[0]] == pytest.approx(3.0, abs=1e-9)
     assert abs(plain.weight[0]).sum() > 2.0                       # it extrapolates
     assert guarded.weight[0].sum() == pytest.approx(1.0)
+
+
+# ---------------------------------------------------------------------------------------
+# the extrapolation guard keeps the kernel weights of the guarded axis (issue 10)
+def _wls_value(y, dc, da, cols, kappa=1.0, sigma=0.15):
+    """b0 of the weighted least squares y ~ b0 + (slopes of ``cols``), with the paper's kernel
+    weights of the true (dc, da): the normal equations written out, independent of the solver."""
+    w = np.exp(kappa * (np.cos(2 * np.pi * dc) - 1)) * np.exp(-da ** 2 / (2 * sigma ** 2))
+    X = np.stack([np.ones_like(dc)] + [{"dc": dc, "da": da}[k] for k in cols], axis=1)
+    return np.linalg.solve(X.T @ (w[:, None] * X), X.T @ (w * y))[0]
+
+
+def test_local_linear_guard_keeps_the_amplitude_kernel_weights():
+    """Issue 10 probe: every point below the target amplitude (guard along a), c bracketed.
+
+    The expected value is b0 of y ~ b0 + b1 dc (the amplitude slope column dropped) with the
+    full kernel weights of the true (dc, da), from the normal equations (``_wls_value``):
+    0.5599. The old guard zeroed da before the weights, so every amplitude weight was 1: the
+    same two-column fit with da = 0 in the kernel gives 0.5116. With the amplitude kernel the
+    point nearest in amplitude (a = 0.6) weighs most, so the value moves towards the
+    nearest-amplitude clamp 0.60. (It does not lie between the clamp and the kernel-weighted
+    mean 0.5759, as the issue expected: the fit keeps its slope in c, and these rows fall
+    with c, the points left of the target having the larger amplitudes.)"""
+    c = np.array([0.35, 0.45, 0.30, 0.50])
+    a = np.array([0.6, 0.4, 0.55, 0.5])
+    target = np.array([[0.4, 0.95]])
+    dc, da = c - 0.4, a - 0.95
+    expected = _wls_value(a, dc, da, ["dc"])
+    old = _wls_value(a, dc, 0.0 * da, ["dc"])
+    clamp = a[np.argmin(np.abs(da))]
+    for precision in ("double", "single"):
+        W = ip.method_weights("local_linear", c, a, target, precision=precision)
+        got = W.weight[0] @ a[W.index[0]]
+        tol = TOL[f"ll_kernel_{precision}"] * max(1.0, np.abs(W.weight[0]).sum())
+        assert got == pytest.approx(expected, abs=tol), precision
+        assert abs(got - old) > 10 * tol                            # the old 0.512 is gone
+        assert abs(got - clamp) < abs(old - clamp)                   # nearer the clamp than before
+        assert a.min() <= got <= a.max()                             # no extrapolation in a
+    # no cardiac motion (1-D in a): the two nearest points below the target, no slope left:
+    # the mean weighted by the amplitude kernel (the old guard gave the plain mean, 0.575)
+    W = ip.method_weights("local_linear", c, a, target, precision="double", use_cardiac=False)
+    near = np.argsort(np.abs(da))[:2]
+    w = np.exp(-da[near] ** 2 / (2 * 0.15 ** 2))
+    assert W.weight[0] @ a[W.index[0]] == pytest.approx(w @ a[near] / w.sum(), abs=TOL["weights_f64"])
+    assert abs(W.weight[0] @ a[W.index[0]] - a[near].mean()) > 1e-3
+
+
+def test_local_linear_guard_reproduces_the_cardiac_slope_and_is_constant_in_amplitude():
+    """Rows y = f(c) + g(a), both linear, every point below the target amplitude: the fit is
+    y ~ b0 + b1 dc with the full kernel weights, so f is reproduced exactly (sum l = 1,
+    sum l dc = 0) while g enters only through the weighted fit, with no amplitude slope (its
+    value is the two-column fit of g, within the sampled amplitudes); the plain fit
+    (``extrapolate=True``) instead reproduces g by extrapolating."""
+    c = np.array([0.30, 0.35, 0.45, 0.50])   # two per lower quadrant: all four selected
+    a = np.array([0.10, 0.30, 0.15, 0.05])
+    t = np.array([0.40, 0.60])
+    dc, da = circular_difference(c, t[0]), a - t[1]
+    f = 3.0 + 2.0 * dc                       # linear in c
+    g = 5.0 * da                             # linear in a
+    W = ip.method_weights("local_linear", c, a, t[None], precision="double")
+    l, idx = W.weight[0], W.index[0]
+    assert sorted(idx[l != 0]) == [0, 1, 2, 3]
+    tol = TOL["weights_f64"] * max(1.0, np.abs(l).sum())
+    assert l.sum() == pytest.approx(1.0, abs=tol)
+    assert abs(l @ dc[idx]) < tol                                   # the c-slope is reproduced
+    assert l @ (f + g)[idx] == pytest.approx(3.0 + _wls_value(g, dc, da, ["dc"]), abs=tol)
+    assert g.min() <= l @ g[idx] <= g.max()                         # constant in a: no extrapolation
+    plain = ip.method_weights("local_linear", c, a, t[None], precision="double", extrapolate=True)
+    assert plain.weight[0] @ (f + g)[plain.index[0]] == pytest.approx(3.0, abs=tol)
+    # guard along c instead (every point left of the target), a bracketed: the mirror image
+    t2 = np.array([0.55, 0.12])
+    dc2, da2 = circular_difference(c, t2[0]), a - t2[1]
+    W2 = ip.method_weights("local_linear", c, a, t2[None], precision="double")
+    l2, idx2 = W2.weight[0], W2.index[0]
+    assert abs(l2 @ da2[idx2]) < tol and l2.sum() == pytest.approx(1.0, abs=tol)
+    assert l2 @ (2.0 * dc2)[idx2] == pytest.approx(_wls_value(2.0 * dc2, dc2, da2, ["da"]), abs=tol)
+
+
+def _guard_flags(rng, n):
+    return rng.integers(0, 4, n)             # bits ip.LL_GUARD_CARDIAC, ip.LL_GUARD_RESP
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+def test_local_linear_kernel_matches_reference_with_guard_flags(precision):
+    rng = np.random.default_rng(22)
+    dc, da, count = _ll_rows(rng, 3000)
+    guard = _guard_flags(rng, count.size)
+    ref = ip.local_linear_solve_reference(dc, da, count, 1.0, 0.15, guard=guard)
+    got = ip.local_linear_solve(dc, da, count, 1.0, 0.15, precision=precision, guard=guard)
+    scale = np.maximum(1.0, np.abs(ref).sum(1))
+    assert np.all(np.isfinite(got))
+    assert np.all(np.abs(got - ref).max(1) / scale < TOL[f"ll_kernel_{precision}"])
+    live = count > 0
+    assert np.all(np.abs(ref[live].sum(1) - 1) < TOL["weights_f64"] * scale[live])
+    # guard 0 is the plain solve, bit for bit
+    zero = guard == 0
+    np.testing.assert_array_equal(ref[zero], ip.local_linear_solve_reference(dc, da, count, 1.0, 0.15)[zero])
+
+
+def test_local_linear_reference_with_guard_equals_the_reduced_normal_equations():
+    """Well-posed rows: the reference with guard flags is the normal-equation solution with
+    the guarded slope columns left out and the kernel weights of the true differences."""
+    rng = np.random.default_rng(8)
+    n = 300
+    dc, da = rng.normal(0, 0.1, (n, 8)), rng.normal(0, 0.2, (n, 8))
+    guard = _guard_flags(rng, n)
+    got = ip.local_linear_solve_reference(dc, da, np.full(n, 8), 1.0, 0.15, guard=guard)
+    for i in range(n):
+        cols = [x for bit, x in ((ip.LL_GUARD_CARDIAC, dc[i]), (ip.LL_GUARD_RESP, da[i])) if not guard[i] & bit]
+        X = np.stack([np.ones(8)] + cols, axis=1)
+        w = np.exp(np.cos(2 * np.pi * dc[i]) - 1) * np.exp(-da[i] ** 2 / (2 * 0.15 ** 2))
+        XtW = X.T * w
+        l = np.linalg.solve(XtW @ X, XtW)[0]
+        np.testing.assert_allclose(got[i], l, atol=TOL["weights_f64"] * max(1, np.abs(l).sum()))
+
+
+def test_local_linear_solve_rejects_bad_guard_flags():
+    z = np.zeros((3, 8))
+    with pytest.raises(ValueError, match="guard"):
+        ip.local_linear_solve(z, z, np.ones(3, int), 1.0, 0.15, guard=np.full(3, 4))
+    with pytest.raises(ValueError, match="guard"):
+        ip.local_linear_solve_reference(z, z, np.ones(3, int), 1.0, 0.15, guard=np.zeros(2, int))
+
+
+# ---------------------------------------------------------------------------------------
+# barycentric: the triangle |dc| limit and the branch report (issue 10)
+def test_barycentric_rejects_a_triangle_with_a_vertex_far_in_cardiac_phase():
+    """A sliver along the top of the sampled amplitudes: the target (0.4, 0.75) lies in the
+    Delaunay triangle (0.35, 0.70), (0.45, 0.78), (0.75, 0.76), whose vertex at c = 0.75 is
+    0.35 away in c (> BARY_MAX_DC): the segment fallback of the two nearest points is taken
+    instead (both within 0.3). A target inside a triangle of near vertices keeps it."""
+    c = np.array([0.35, 0.45, 0.75, 0.40, 0.10, 0.60, 0.90])
+    a = np.array([0.70, 0.78, 0.76, 0.20, 0.10, 0.15, 0.10])
+    targets = np.array([[0.4, 0.75], [0.4, 0.4]])
+    P = np.concatenate([np.stack([c + s, a], axis=1) for s in (0.0, -1.0, 1.0)])
+    tri = Delaunay(P)
+    s = tri.find_simplex(targets[:1])[0]
+    assert sorted(tri.simplices[s] % c.size) == [0, 1, 2]           # the sliver holds the target
+    W = ip.method_weights("barycentric", c, a, targets)
+    assert W.branch[0] == ip_bary.BRANCH_SEGMENT
+    dc = circular_difference(c, 0.4)
+    da = a - 0.75
+    i1, i2 = np.argsort(dc ** 2 + da ** 2)[:2]
+    e = np.array([dc[i2] - dc[i1], da[i2] - da[i1]])
+    t = np.clip(-(np.array([dc[i1], da[i1]]) @ e) / (e @ e), 0, 1)
+    assert _as_dict(W, 0) == pytest.approx({int(i1): 1 - t, int(i2): t})
+    used = W.weight[0] != 0
+    assert np.all(np.abs(circular_difference(c[W.index[0][used]], 0.4)) <= ip.BARY_MAX_DC)
+    # (0.4, 0.4) lies in the triangle (0.35, 0.70), (0.40, 0.20), (0.60, 0.15), all within 0.3: kept
+    assert W.branch[1] == ip_bary.BRANCH_TRIANGLE
+
+
+def test_barycentric_branch_report_does_not_change_the_weights_and_names_each_branch():
+    rng = np.random.default_rng(12)
+    n, G = 25, 8
+    c, a = rng.random(n * G), rng.uniform(0.1, 0.7, n * G)
+    W = ip.batch_weights("barycentric", c, a, np.arange(G + 1) * n, TARGETS)
+    assert W.branch.shape == W.weight.shape[:2] and W.branch.dtype == np.int8
+    assert set(np.unique(W.branch)) <= {ip_bary.BRANCH_TRIANGLE, ip_bary.BRANCH_SEGMENT, ip_bary.BRANCH_NEAREST}
+    live = (W.weight != 0).sum(-1)
+    # nearest: one point; segment: at most two slots; triangle: the target in the convex hull
+    # of its (up to three) weighted points
+    assert np.all(live[W.branch == ip_bary.BRANCH_NEAREST] == 1)
+    assert np.all(W.weight[..., 2][W.branch != ip_bary.BRANCH_TRIANGLE] == 0)
+    assert {0, 1, 2} <= set(np.unique(W.branch).tolist())           # every branch occurs here
+    for g in range(G):                                               # per group = batched
+        Wg = ip.method_weights("barycentric", c[g * n:(g + 1) * n], a[g * n:(g + 1) * n], TARGETS)
+        np.testing.assert_array_equal(Wg.branch, W.branch[g])
+        np.testing.assert_array_equal(Wg.weight, W.weight[g])
+    assert ip.method_weights("nearest", c[:n], a[:n], TARGETS).branch is None

@@ -95,18 +95,20 @@ def test_oclgrind_reports_an_out_of_bounds_write_and_a_race(which, request, capf
 
 # ---------------------------------------------------------------------------------------
 # kernels/interp.cl
-@pytest.mark.parametrize("precision", ["double", "single"])
-def test_local_linear_weights(grind, clean, precision):
+@pytest.mark.parametrize("precision,K", [("double", 8), ("single", 8), ("single", 5)])
+def test_local_linear_weights(grind, clean, precision, K):
     from clrecon.reconstruction.interpolation import weights as ip
 
     rng = np.random.default_rng(1)
     n = 70                                     # > one work-group of 64, not a multiple
-    dc, da = rng.normal(0, 0.1, (n, 8)), rng.normal(0, 0.2, (n, 8))
-    count = rng.integers(0, 9, n)              # includes 0 (no points) and 8 (all slots)
+    # K slots per row: 8 (two per quadrant, the default build), 5 (recon.local_linear_points = "nearest")
+    dc, da = rng.normal(0, 0.1, (n, K)), rng.normal(0, 0.2, (n, K))
+    count = rng.integers(0, K + 1, n)          # includes 0 (no points) and K (all slots)
     dc[:4] = 0.1                               # coinciding points
     da[4:8] = 0.3                              # one amplitude
-    got = ip.local_linear_solve(dc, da, count, 100.0, 0.01, rt=grind, precision=precision)
-    ref = ip.local_linear_solve_reference(dc, da, count, 100.0, 0.01)
+    guard = np.arange(n) % 4                   # extrapolation-guard flags: none, dc, da, both
+    got = ip.local_linear_solve(dc, da, count, 100.0, 0.01, rt=grind, precision=precision, guard=guard)
+    ref = ip.local_linear_solve_reference(dc, da, count, 100.0, 0.01, guard=guard)
     tol = TOL["f64"] if precision == "double" else TOL["ll_f32"]
     assert np.abs(got - ref).max() / max(1.0, np.abs(ref).sum(1).max()) < tol
     clean()

@@ -241,7 +241,7 @@ def test_hu_at_known_points(phantom):
     mw = phantom.cfg.mu_water_per_mm
     for c, a in ((0.0, 0.0), (0.38, 1.0)):
         objs = phantom.objects(c, a)
-        hu = lambda p: float(mu_to_hu(ph.mu_at(objs, np.asarray(p, float)), mw))  # noqa: E731
+        hu = lambda p, objs=objs: float(mu_to_hu(ph.mu_at(objs, np.asarray(p, float)), mw))  # noqa: E731
         assert hu(phantom.lv_blood_pool_centre(c, a)) == pytest.approx(ph.P["hu_blood_left"], abs=tol("hu"))
         lung = ph.P["hu_lung_exhale"] + (ph.P["hu_lung_inhale"] - ph.P["hu_lung_exhale"]) * a
         assert hu([-100.0, 20.0, 60.0]) == pytest.approx(lung, abs=tol("hu"))
@@ -298,3 +298,57 @@ def test_default_small_fov_holds_the_heart(phantom):
     assert x0 <= b[0] and b[1] <= x1 and y0 <= b[2] and b[3] <= y1
     # and it is a box around the heart, not the whole chest
     assert (x1 - x0) * (y1 - y0) < 0.4 * (2 * ph.P["body_semi_lr"]) * (2 * ph.P["body_semi_ap"])
+
+
+# ---------------------------------------------------------------------------------------
+# the LV-wall target lesion (clrecon.evaluation.motion's localisation metric)
+def test_lesion_rides_on_the_lv_wall(phantom):
+    """Over the beat and the breath the lesion's centre stays in the LV wall: its distance from
+    the LV centre minus its radius clears the cavity, plus its radius stays inside the epicardium,
+    it sits in the equatorial plane, and every point of the sphere is myocardium, not blood."""
+    r = ph.P["lesion_radius"]
+    xi = ph.heart_axes()[0]
+    i_myo, i_blood = phantom.names.index("lv_myocardium"), phantom.names.index("lv_blood")
+    i_les = phantom.names.index("lesion")
+    assert phantom.parents[i_les] == "lv_myocardium"
+    rng = np.random.default_rng(3)
+    shell = rng.normal(size=(400, 3))
+    shell /= np.linalg.norm(shell, axis=1, keepdims=True)
+    ball = shell * r * rng.uniform(0, 1, (400, 1)) ** (1 / 3)
+    positions = []
+    for c in np.linspace(0, 1, 21)[:-1]:
+        for a in (0.0, 0.5, 1.0):
+            _, b, _, b_out = (float(v) for v in ph.lv_shape(c))
+            p, lv = phantom.lesion_centre(c, a), phantom.lv_blood_pool_centre(c, a)
+            d = np.linalg.norm(p - lv)
+            assert b + r < d < b_out - r, (c, a, d, b, b_out)
+            assert abs(np.dot(p - lv, xi)) < 1e-9          # on the equator
+            objs = phantom.objects(c, a)
+            pts = np.concatenate([p + shell * (r - 1e-6), p + ball])
+            assert ph.inside(objs[i_les], pts).all()
+            assert ph.inside(objs[i_myo], pts).all() and not ph.inside(objs[i_blood], pts).any()
+            hu = mu_to_hu(ph.mu_at(objs, p), phantom.cfg.mu_water_per_mm)
+            assert float(hu) == pytest.approx(ph.P["hu_lesion"], abs=tol("hu"))
+            positions.append(p)
+    positions = np.array(positions)
+    # it moves: with the wall (beat) and with the heart (breathing)
+    assert np.ptp(positions, axis=0).max() > 5.0
+    np.testing.assert_allclose(phantom.lesion_centre(0.2, 1.0) - phantom.lesion_centre(0.2, 0.0),
+                               phantom.lv_blood_pool_centre(0.2, 1.0) - phantom.lv_blood_pool_centre(0.2, 0.0),
+                               atol=1e-9)
+
+
+def test_lesion_is_inside_the_demo_slab_and_small_fov(phantom):
+    """The demo's slab and small FOV hold the whole lesion at every state, and the lesion stays
+    clear of the slice nearest the LV centre (where the edge-width profiles are cast)."""
+    s = load_scene("demo")
+    half = 0.5 * (s.recon.nz - 1) * s.recon.slice_mm
+    z0, z1 = s.scan.z_centre_mm - half, s.scan.z_centre_mm + half      # first and last slice centres
+    x0, x1, y0, y1 = s.recon.small_fov_mm
+    r = ph.P["lesion_radius"]
+    for c in np.linspace(0, 1, 41)[:-1]:
+        for a in (0.0, 1.0):
+            p = phantom.lesion_centre(c, a)
+            assert z0 + r < p[2] < z1 - r and x0 + r < p[0] < x1 - r and y0 + r < p[1] < y1 - r, (c, a, p)
+            lv_z = phantom.lv_blood_pool_centre(c, a)[2]
+            assert abs(p[2] - lv_z) - r > 0.5 * s.recon.slice_mm, (c, a)

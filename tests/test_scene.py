@@ -1,5 +1,6 @@
 """Scenes: validation errors name key, value and what is allowed; built-ins follow Table 1."""
 
+import dataclasses
 import math
 
 import pytest
@@ -99,7 +100,7 @@ def test_int_for_float_and_replace():
 
 def test_scene_is_immutable_and_round_trips():
     s = load_scene("demo")
-    with pytest.raises(Exception):
+    with pytest.raises(dataclasses.FrozenInstanceError):
         s.scanner.sid_mm = 1.0
     assert scene_from_dict(s.to_dict()) == s
 

@@ -36,7 +36,7 @@ TARGETS = np.array([[c, a] for c in (0.0, 0.2, 0.4, 0.6, 0.8, 0.999) for a in np
 
 def _as_dict(W, t):
     d = {}
-    for i, w in zip(W.index[t], W.weight[t]):
+    for i, w in zip(W.index[t], W.weight[t], strict=True):
         if w != 0:
             d[int(i)] = d.get(int(i), 0.0) + float(w)
     return d
@@ -277,3 +277,29 @@ def test_barycentric_fallback_with_coinciding_nearest_points():
     assert np.all(np.isfinite(W.weight))
     assert sum(_as_dict(W, 0).values()) == pytest.approx(1.0)
     assert sum(_as_dict(W, 1).values()) == pytest.approx(1.0)
+
+
+_KINDS = ["random", "collinear", "near_collinear", "duplicates", "one_amplitude", "fewer_than_three"]
+
+
+@pytest.mark.parametrize("kappa,sigma", KERNELS)
+@pytest.mark.parametrize("kind", _KINDS)
+def test_local_linear_kernel_with_guard_flags_matches_the_reference(kind, kappa, sigma):
+    """The extrapolation guard's per-row flags (drop the dc and/or da slope column) on rows of
+    every degenerate kind: single and double kernels against the float64 reference, which
+    sums to one; guard 0 rows equal the unguarded solve exactly."""
+    rng = np.random.default_rng([_KINDS.index(kind), int(kappa), int(1000 * sigma)])
+    dc, da, count = _stiff_rows(kind, rng)
+    guard = rng.integers(0, 4, count.size)
+    ref = ip.local_linear_solve_reference(dc, da, count, kappa, sigma, guard=guard)
+    scale = _scale(ref)
+    assert np.all(np.isfinite(ref))
+    assert np.all(np.abs(ref.sum(1) - 1) < TOL["weights_f64"] * scale)
+    zero = guard == 0
+    np.testing.assert_array_equal(ref[zero], ip.local_linear_solve_reference(dc, da, count, kappa, sigma)[zero])
+    for precision in ("double", "single"):
+        got = ip.local_linear_solve(dc, da, count, kappa, sigma, precision=precision, guard=guard)
+        assert np.all(np.isfinite(got)), precision
+        err = np.abs(got - ref).max(1) / scale
+        tol = TOL["ll_double"] if precision == "double" else TOL["ll_single_raw"]
+        assert err.max() < tol, (precision, err.max())

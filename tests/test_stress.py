@@ -1,4 +1,4 @@
-"""Stress scenes (``clrecon/scenes/stress-*.toml``) end to end at tiny size, and the pitch
+"""Stress scenes (``clrecon/config/scenes/stress-*.toml``) end to end at tiny size, and the pitch
 limit: the largest pitch for which every (slice, view) has an SSRB candidate."""
 
 from __future__ import annotations
@@ -145,7 +145,7 @@ def test_stress_scene_runs_end_to_end_with_finite_volumes(stress_run, name):
     assert np.all(np.isfinite(gt))
     expected = {f"recon/p0.100/{v}/{m}" for v in res["request"]["variants"] for m in s.recon.methods}
     assert set(vols) == expected
-    for key, (vol, dims) in vols.items():
+    for key, (vol, _dims) in vols.items():
         assert np.all(np.isfinite(vol)), key
     for v in res["request"]["variants"]:
         for m in s.recon.methods:
@@ -158,7 +158,7 @@ def test_breath_hold_has_no_respiratory_axis(stress_run):
     assert res["dimensions"] == {"cardiac": True, "resp": False}
     assert res["request"]["targets"]["resp"] == [0.5]
     vols, _ = _volumes(out)
-    for vol, dims in vols.values():
+    for _vol, dims in vols.values():
         assert dims == ["cardiac", "z", "y", "x"]
 
 
@@ -166,7 +166,7 @@ def test_no_cardiac_has_no_cardiac_axis(stress_run):
     out, res = stress_run("stress-no-cardiac")
     assert res["dimensions"] == {"cardiac": False, "resp": True}
     vols, _ = _volumes(out)
-    for vol, dims in vols.values():
+    for _vol, dims in vols.values():
         assert dims == ["resp", "z", "y", "x"]
 
 

@@ -167,7 +167,8 @@ def test_one_line_errors(run_dir, tmp_path, capsys):
     assert "no such run directory" in err and "\n" not in err
     assert main(["view", str(run_dir), "--screenshot", png, "--method", "barycentric"]) == 2
     err = capsys.readouterr().err.strip()
-    assert "it has groundtruth, phantom; p0.100/noise-free: local_linear, nearest; p0.100/noisy" in err and "\n" not in err
+    assert "it has groundtruth, phantom; p0.100/noise-free: local_linear, nearest; p0.100/noisy" in err
+    assert "\n" not in err
     old = tmp_path / "old"
     old.mkdir()
     with h5py.File(old / "volumes.h5", "w") as f:

@@ -105,7 +105,7 @@ class RunData(RunDirectory):
     def probe(self, vol: np.ndarray, xyz_mm) -> tuple[int, int, int, float] | None:
         """Nearest voxel (iz, iy, ix) and its value at the point (x, y, z) mm; None if outside."""
         idx = []
-        for k, p in zip(("z_mm", "y_mm", "x_mm"), (xyz_mm[2], xyz_mm[1], xyz_mm[0])):
+        for k, p in zip(("z_mm", "y_mm", "x_mm"), (xyz_mm[2], xyz_mm[1], xyz_mm[0]), strict=True):
             ax = self.axes[k]
             d = float(ax[1] - ax[0]) if ax.size > 1 else 1.0
             i = int(round((p - ax[0]) / d))
@@ -151,7 +151,7 @@ def initial_state(data: RunData, method=None, pitch=None, variant=None, cardiac=
     ri = nearest_index(ax["resp_amplitude"], a, "resp") if a is not None else len(ax["resp_amplitude"]) // 2
     centre = [float(np.median(ax[k])) for k in ("x_mm", "y_mm", "z_mm")]
     if slice_mm is not None:
-        centre = [float(v) if v is not None else c0 for v, c0 in zip(slice_mm, centre)]
+        centre = [float(v) if v is not None else c0 for v, c0 in zip(slice_mm, centre, strict=True)]
     return ViewState(source=si, cardiac=ci, resp=ri, difference=difference, window=window,
                      x_mm=centre[0], y_mm=centre[1], z_mm=centre[2])
 
@@ -195,7 +195,7 @@ class Viewer:
         try:
             self.p = pv.Plotter(shape=(2, 2), off_screen=off_screen, window_size=list(window_size),
                                 border=True)
-        except Exception as e:  # no usable OpenGL context
+        except Exception as e:  # noqa: BLE001 - no usable OpenGL context: VTK/pyvista raise various types
             raise ClreconError(f"cannot open a render window ({e}); offscreen rendering needs the VTK wheel's "
                                f"EGL or OSMesa support") from None
         self.p.set_background("black")
@@ -230,7 +230,6 @@ class Viewer:
 
     def refresh(self) -> None:
         """Re-draw every viewport for the current state."""
-        pv = self.pv
         s = self.state
         vol = self.current_volume()
         self.grid.point_data["HU"] = np.ascontiguousarray(vol, np.float32).ravel()  # x fastest = [z,y,x]

@@ -21,6 +21,11 @@ Sections (``--only`` picks some):
     :func:`clrecon.bench.projector.bench_projector` on ``paper-p002`` (900 x 64 cells):
     rays/s, ray-object pairs/s, projections/s, the whole simulation's projected time (goal
     < 10 minutes) against the same kernel without culling.
+``voxel-projector``
+    :func:`clrecon.bench.voxel_projector.bench_voxel_projector`: rays/s and Joseph plane
+    samples/s of the voxel projector (the path of ``[phantom] kind = "voxel"``) on the demo
+    detector and a 128^3 volume (``--quick``: tiny, 32^3), against its float64 NumPy
+    reference and the analytic projector on the same rays.
 ``interpolation``
     Output rows/s (one rebinned row per (slice, view, target)) through the neighbour search
     and weights (:func:`clrecon.reconstruction.interpolation.weights.batch_weights`) and the kernel that applies
@@ -38,6 +43,11 @@ Sections (``--only`` picks some):
 ``scaling``
     Plan and reconstruct seconds of demo-sized scenes against slices, targets and
     projections (via :meth:`clrecon.config.scene.Scene.replace`).
+``tradeoff`` (only with ``--only tradeoff``: not in the default set, about 20 minutes)
+    :func:`clrecon.bench.tradeoff.run_tradeoff`: per method, the knobs that trade seconds for
+    error (local-linear neighbours, kappa, sigma; candidate turns; views; grid) swept on demo
+    at pitch 0.02, small/large-FOV MAE against the method's seconds, each method's Pareto
+    front; ``tradeoff.json`` and ``tradeoff.png`` in a kept temporary folder (the report says where).
 
 ``--json FILE`` writes every number and the machine (CPU model, cores, load averages,
 OpenCL device). ``--quick`` shrinks every section (about a minute on an idle 2-core machine).
@@ -62,6 +72,9 @@ import numpy as np
 
 from clrecon.bench.fbp import bench_backprojection
 from clrecon.bench.projector import bench_projector
+from clrecon.bench.tradeoff import format_table as tradeoff_table
+from clrecon.bench.tradeoff import run_tradeoff
+from clrecon.bench.voxel_projector import bench_voxel_projector
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import get_runtime
@@ -72,7 +85,9 @@ from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate
 
-SECTIONS = ("backprojection", "projector", "interpolation", "end-to-end", "memory", "scaling")
+SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling")
+#: Sections run only when ``--only`` names them (long).
+EXTRA_SECTIONS = ("tradeoff",)
 
 #: Goals of the issue (bench output marks them).
 GOAL_BACKPROJECTION_GUPS = 4.0
@@ -585,6 +600,22 @@ def format_report(res: dict) -> str:
                    f"{_f(ref['rays_per_s'] / 1e6):>8s} {_f(ref['intersections_per_s'] / 1e6, 1):>12s} "
                    f"{ref['projected_total_s'] / 60:>9.1f} min  culled {pj['speedup']:.1f}x; "
                    f"max abs diff {pj['max_abs_diff_vs_reference']:.1e}")
+    vp = res.get("voxel-projector")
+    if vp:
+        out.append("")
+        nz = vp["volume"]
+        out.append(f"2b. voxel projector (Joseph) {vp['scene']} ({vp['detector'][1]}x{vp['detector'][0]} cells, "
+                   f"{vp['views']} views), {nz[0]}^3 voxels of {vp['voxel_mm']:g} mm, "
+                   f"load {vp['load_average_1min']:.2f}")
+        out.append(f"   {'':22s} {'Mrays/s':>8s} {'Msamples/s':>11s}  notes")
+        out.append(f"   {'OpenCL (clrecon)':22s} {_f(vp['rays_per_s'] / 1e6):>8s} "
+                   f"{_f(vp['samples_per_s'] / 1e6):>11s}  {vp['samples_per_ray']:.0f} samples/ray; "
+                   f"max abs diff vs reference {vp['max_abs_diff_vs_reference']:.1e}")
+        out.append(f"   {'float64 NumPy (ref)':22s} {_f(vp['reference_rays_per_s'] / 1e6, 3):>8s} {'':>11s}  "
+                   f"OpenCL {vp['speedup_vs_reference']:.0f}x")
+        out.append(f"   {'analytic projector':22s} {_f(vp['analytic_rays_per_s'] / 1e6):>8s} {'':>11s}  "
+                   f"voxel/analytic speed {vp['speed_vs_analytic']:.2f}; rel RMS vs analytic "
+                   f"{vp['rel_rms_vs_analytic']:.1%} (voxelisation at {vp['voxel_mm']:g} mm)")
     ip = res.get("interpolation")
     if ip:
         out.append("")
@@ -639,27 +670,38 @@ def format_report(res: dict) -> str:
                        f"{r['projections_needed']:>6d} {r['rebinned_rows']:>8d} {r['plan_s']:>7.2f} "
                        f"{r['simulate_s']:>7.2f} {r['reconstruct_s']:>7.2f} "
                        f"{1e3 * r['reconstruct_s'] / r['sinograms']:>8.1f}")
+    tr = res.get("tradeoff")
+    if tr:
+        ld = tr["load_average_1min"]
+        out.append("")
+        out.append(f"6. error against run time: {tr['scene']} pitch {tr['pitch']:g}, slices "
+                   f"{tr['slices'][0]}:{tr['slices'][1]}, {len(tr['points'])} points in {tr['sweep_seconds']:.0f} s "
+                   f"(load {ld['min']:.2f}..{ld['max']:.2f}, median {ld['median']:.2f}); "
+                   f"{tr['out_dir']}/tradeoff.png; * = on the method's Pareto front")
+        out.extend("   " + line for line in tradeoff_table(tr).splitlines())
     return "\n".join(out)
 
 
 def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=print) -> dict:
     """Run the selected sections; returns every number (see the module docstring)."""
     only = tuple(only or SECTIONS)
-    bad = [s for s in only if s not in SECTIONS]
+    bad = [s for s in only if s not in SECTIONS + EXTRA_SECTIONS]
     if bad:
-        raise ClreconError(f"--only {bad[0]!r}: sections are {', '.join(SECTIONS)}")
+        raise ClreconError(f"--only {bad[0]!r}: sections are {', '.join(SECTIONS + EXTRA_SECTIONS)}")
     repeats = repeats or (1 if quick else 3)
     res = {"quick": quick, "repeats": repeats, "machine": machine()}
     t_all = time.perf_counter()
     fns = {
         "backprojection": lambda: bench_backprojection_section(quick, repeats),
         "projector": lambda: bench_projector_section(quick, max(1, repeats - 1)),
+        "voxel-projector": lambda: bench_voxel_projector(repeats, quick),
         "interpolation": lambda: bench_interpolation_section(quick, repeats),
         "end-to-end": lambda: bench_end_to_end_section(quick),
         "memory": lambda: bench_memory_section(quick),
         "scaling": lambda: bench_scaling_section(quick),
+        "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
     }
-    for name in SECTIONS:
+    for name in SECTIONS + EXTRA_SECTIONS:
         if name in only:
             log(f"bench: {name} ...", file=sys.stderr)
             t0 = time.perf_counter()
@@ -686,7 +728,7 @@ def main(argv=None) -> int:  # pragma: no cover - the CLI's bench command is the
     p = argparse.ArgumentParser(prog="python -m clrecon.bench.suite", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--json", metavar="FILE")
-    p.add_argument("--only", help="comma list from " + ",".join(SECTIONS))
+    p.add_argument("--only", help="comma list from " + ",".join(SECTIONS + EXTRA_SECTIONS))
     a = p.parse_args(argv)
     res = run_bench(a.quick, a.only.split(",") if a.only else None)
     print(format_report(res))

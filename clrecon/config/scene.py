@@ -55,6 +55,7 @@ TRACE_MARGIN_S = 5.0
 # clrecon.reconstruction.filters); those packages import only clrecon.core
 from clrecon.reconstruction.filters import FILTERS as _FILTER_REGISTRY  # noqa: E402
 from clrecon.reconstruction.interpolation import METHODS as _METHOD_REGISTRY  # noqa: E402
+from clrecon.reconstruction.interpolation.local_linear import LL_MAX_SLOTS, LL_POINT_RULES  # noqa: E402
 
 METHODS = _METHOD_REGISTRY.names
 FILTERS = _FILTER_REGISTRY.names
@@ -200,11 +201,24 @@ class ReconConfig(Section):
     sigma: float = F(0.15, POS, "Gaussian width of the local-linear amplitude kernel")
     local_linear_extrapolate: bool = F(False, BOOL, "true: the paper's plain local-linear fit, which extrapolates "
                                        "along an axis the points do not bracket; false: locally constant there")
+    local_linear_points: str = F("quadrants", one_of(LL_POINT_RULES), "local-linear neighbour selection: "
+                                 "'quadrants' (local_linear_count nearest per quadrant, the paper's text) or "
+                                 "'nearest' (the local_linear_count nearest overall, the paper's Figure 2B caption)")
+    local_linear_count: int = _f(2, f"an integer in 1..{LL_MAX_SLOTS}", lambda x: _posint(x) and x <= LL_MAX_SLOTS,
+                                 "local-linear points per quadrant ('quadrants': 4 x count slots) or in all "
+                                 "('nearest')")
+    max_turns: int = F(0, NONNEGINT, "0: every candidate turn within the SSRB window; N > 0: only the N candidates "
+                       "nearest in z per (slice, view), for every method")
     filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
     small_fov_mm: tuple = _f((-70.0, 85.0, -100.0, 40.0), "[x_min, x_max, y_min, y_max] with min < max",
                              lambda v: isinstance(v, tuple) and len(v) == 4 and all(_num(x) for x in v)
                              and v[0] < v[1] and v[2] < v[3],
                              "box around the heart (mm, LPS): the phantom's epicardial fat at every state + 10 mm")
+
+    def check(self) -> None:
+        if self.local_linear_points == "quadrants" and 4 * self.local_linear_count > LL_MAX_SLOTS:
+            raise SceneError(f"recon.local_linear_count = {self.local_linear_count}: with local_linear_points = "
+                             f"'quadrants' must be at most {LL_MAX_SLOTS // 4} (4 x count <= {LL_MAX_SLOTS} slots)")
 
     @property
     def resp_targets(self) -> tuple[float, ...]:
@@ -284,6 +298,8 @@ class Scene:
         # were made with (flat detector, analytic phantom), so earlier stores stay valid.
         scanner = {k: v for k, v in d["scanner"].items() if not (k == "detector" and v == "flat")}
         phantom = {k: v for k, v in d["phantom"].items() if not (k == "kind" and v == "analytic")}
+        if hasattr(self.phantom, "content_hash"):  # a phantom read from files: their content, not only their path
+            phantom["content"] = self.phantom.content_hash()
         # The amplitude normalisation spans the whole signal trace, whose length depends on
         # the longest scan over *all* the scene's pitches: part of what a projection shows.
         payload = {"scanner": scanner, "scan": {**d["scan"], "pitches": [pitch]},
@@ -292,10 +308,16 @@ class Scene:
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
     def replace(self, **sections: Any) -> Scene:
-        """New scene with some sections' values replaced, e.g. ``replace(recon={"nz": 4})``."""
+        """New scene with some sections' values replaced, e.g. ``replace(recon={"nz": 4})``.
+
+        A ``phantom`` table with another ``kind`` replaces the whole section (the kinds have
+        different keys).
+        """
         d = self.to_dict()
         for sec, vals in sections.items():
-            if sec in SECTIONS:
+            if sec == "phantom" and vals.get("kind", d[sec]["kind"]) != d[sec]["kind"]:
+                d[sec] = dict(vals)
+            elif sec in SECTIONS:
                 d[sec].update(vals)
             else:
                 d[sec] = vals
@@ -318,6 +340,17 @@ def _section_class(sec: str, raw: dict):
     return PHANTOM_SOURCES[kind].config
 
 
+def _resolve_paths(cls, raw: Any, source: str):
+    """A section's path keys (``cls.PATH_KEYS``, e.g. a voxel phantom's ``frames``) that are
+    relative, made relative to the scene file's folder (unchanged without a scene file)."""
+    keys = getattr(cls, "PATH_KEYS", ())
+    if not (keys and source and isinstance(raw, dict)):
+        return raw
+    base = Path(source).parent
+    return {k: (str(base / v) if k in keys and isinstance(v, str) and v.strip() and not Path(v).is_absolute() else v)
+            for k, v in raw.items()}
+
+
 def _build_section(cls, raw: Any, where: str):
     """Map a TOML table's keys onto the section ``cls``, which validates itself."""
     if not isinstance(raw, dict):
@@ -338,8 +371,10 @@ def scene_from_dict(raw: dict[str, Any], source: str = "") -> Scene:
         if key not in TOP_KEYS:
             raise SceneError(f"{prefix}{key}: unknown key{_suggest(key, TOP_KEYS)}")
     try:
-        parts = {sec: _build_section(_section_class(sec, raw.get(sec, {})), raw.get(sec, {}), sec)
-                 for sec in SECTIONS}
+        parts = {}
+        for sec in SECTIONS:
+            cls = _section_class(sec, raw.get(sec, {}))
+            parts[sec] = _build_section(cls, _resolve_paths(cls, raw.get(sec, {}), source), sec)
     except SceneError as e:
         raise SceneError(f"{prefix}{e}") from None
     for k in ("name", "description"):

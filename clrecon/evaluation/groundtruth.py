@@ -15,7 +15,7 @@ Arrays are ``(n_cardiac, n_resp, nz, ny, nx)`` float32 HU.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,7 +33,8 @@ class GroundTruthConfig:
     ``detector`` is the scene's detector model (:mod:`clrecon.core.detector`), ``views`` the
     views per rotation, ``start_angle_deg`` the first view's gantry angle, ``fbp`` the
     reconstruction geometry, ``filter`` the ramp window, ``phantom`` the phantom config (its
-    ``mu_water_per_mm`` converts to HU), ``supersample`` the phantom truth's sub-samples per axis.
+    ``mu_water_per_mm`` converts to HU), ``supersample`` the phantom truth's sub-samples per axis,
+    ``scene`` the scene (a voxel phantom timed by the scene's signals needs it; optional).
     """
 
     detector: object
@@ -43,12 +44,17 @@ class GroundTruthConfig:
     filter: str
     phantom: object
     supersample: int = 2
+    scene: object = field(default=None, compare=False)
 
     @classmethod
     def from_scene(cls, scene) -> GroundTruthConfig:
         return cls(detector=scene.scanner.detector_model, views=scene.scanner.views_per_rotation,
                    start_angle_deg=scene.scan.start_angle_deg, fbp=FanBeamGeometry.from_scene(scene),
-                   filter=scene.recon.filter, phantom=scene.phantom)
+                   filter=scene.recon.filter, phantom=scene.phantom, scene=scene)
+
+    def source(self):
+        """The phantom source (frame states bound from the scene's signals where a voxel phantom needs them)."""
+        return projector.phantom_for_scene(self.scene) if self.scene is not None else phantom_from_config(self.phantom)
 
     @property
     def mu_water_per_mm(self) -> float:
@@ -66,8 +72,12 @@ def groundtruth_sinograms(cfg: GroundTruthConfig, phantom, c: float, a: float, s
     V = cfg.views
     S = len(slices_z)
     beta = np.deg2rad(cfg.start_angle_deg) + 2 * np.pi * np.arange(V) / V
-    objs = phantom.objects(c, a)
     src, centre, e_u, e_v = det.frames(np.tile(beta, S), np.repeat(np.asarray(slices_z, float), V))
+    if getattr(phantom, "carries_projector", False):        # a voxel phantom: the state blended from its frames
+        out = phantom.project(np.full(S * V, float(c)), np.full(S * V, float(a)), src, centre, e_u, e_v, det.u_mm(),
+                              np.zeros(1), rt=rt)
+        return out.reshape(S, V, det.n_cols)
+    objs = phantom.objects(c, a)
     objs_v = np.broadcast_to(objs, (S * V,) + objs.shape)
     out = projector.project_views(objs_v, src, centre, e_u, e_v, det.u_mm(), np.zeros(1), rt=rt)
     return out.reshape(S, V, det.n_cols)
@@ -79,7 +89,7 @@ def groundtruth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets, r
     One target at a time, so a caller can write it out and keep memory bounded; targets whose
     flat index ``i * n_resp + j`` is in ``skip`` (already done) are left out.
     """
-    phantom = phantom_from_config(cfg.phantom)
+    phantom = cfg.source()
     for i, c in enumerate(targets.cardiac):
         for j, a in enumerate(targets.resp):
             if i * len(targets.resp) + j in skip:
@@ -91,8 +101,12 @@ def groundtruth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets, r
 
 
 def phantom_truth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets, rt=None, skip=()):
-    """The phantom voxelised at every target, yielded as ``(i, j, (nz, ny, nx) float32 HU)``."""
-    phantom = phantom_from_config(cfg.phantom)
+    """The phantom voxelised at every target, yielded as ``(i, j, (nz, ny, nx) float32 HU)``.
+
+    For a voxel phantom: the frames' state at the target resampled to the grid (trilinear,
+    ``supersample`` samples per axis per voxel).
+    """
+    phantom = cfg.source()
     x = voxel_coords(cfg.fbp.nx, cfg.fbp.voxel_mm)
     y = voxel_coords(cfg.fbp.ny, cfg.fbp.voxel_mm)
     for i, c in enumerate(targets.cardiac):
@@ -101,6 +115,12 @@ def phantom_truth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets,
                 continue
             mu = phantom.voxelise(c, a, x, y, np.asarray(slices_z), supersample=cfg.supersample, rt=rt)
             yield i, j, mu_to_hu(mu, cfg.mu_water_per_mm).astype(np.float32)
+
+
+def offers_lv_region(phantom) -> bool:
+    """Whether the phantom source has an LV blood-pool object for :func:`lv_region_mask`
+    (the analytic thorax; a voxel phantom has no labelled LV)."""
+    return "lv_blood" in getattr(phantom, "names", ())
 
 
 def lv_region_mask(phantom, c: float, a: float, x_mm, y_mm, z_mm, margin_mm: float = 6.0,

@@ -15,6 +15,8 @@ The figures reproduce the paper's (Wang et al., 5DCT; ``docs/README.md`` "The pa
   (fixed a, every c) parts of the 5DCT against r4DCT, coronal through the heart;
 - ``mae_per_target_{small,large}.png``: MAE per (cardiac, respiratory) target, per method;
 - ``error_vs_time.png``: pooled MAE against reconstruction seconds per method, pitch, variant.
+- ``motion_metrics.png``: edge width, LV volume error, target localisation error and noise std
+  (:mod:`clrecon.evaluation.motion`) per method, pitch and variant.
 
 Everything is matplotlib with the Agg backend (no display). Display conventions: coronal
 images with patient right on the left (+x, patient left, to the right) and superior up;
@@ -102,6 +104,8 @@ class _Run(RunDirectory):
     def heart_centre_mm(self, ci: int, ri: int) -> tuple[float, float, float]:
         """(x, y, z) mm of the LV blood pool (phantom), else the centre of the small-FOV box."""
         try:
+            if self.scene.phantom.kind != "analytic":
+                raise ValueError("a voxel phantom has no LV model")
             p = Phantom(self.scene.phantom).lv_blood_pool_centre(float(self.c[ci]), float(self.a[ri]))
             return float(p[0]), float(p[1]), float(p[2])
         # no readable scene (StoreError, SceneError, KeyError) or no LV in it (ValueError): use the heart box
@@ -156,11 +160,15 @@ def phase_space_sample(scene, pitch: float, slice_z_mm: float, view: int, target
     sel = cand[table.view[cand] == view]
     if sel.size == 0:
         raise ValueError(f"slice z = {slice_z_mm:.1f} mm, view {view}: no candidate projection")
+    cfg = reconstruct.ReconstructionConfig.from_scene(scene)
+    if cfg.max_turns > 0:  # recon.max_turns: the turns nearest in z, as reconstruct.limit_turns keeps them
+        near = np.lexsort((np.arange(sel.size), np.abs(float(slice_z_mm) - table.source_z_mm[sel])))
+        sel = sel[np.sort(near[:cfg.max_turns])]
     c = table.cardiac_phase[sel]
     a = table.resp_amplitude[sel]
     tg = np.asarray(target, float).reshape(1, 2)
     targets = reconstruct.Targets(tuple(scene.cardiac_targets), tuple(scene.resp_targets))
-    opts = reconstruct.weight_options(reconstruct.ReconstructionConfig.from_scene(scene), targets)
+    opts = reconstruct.weight_options(cfg, targets)
     out = {"c": c, "a": a, "index": sel, "target": tg[0]}
     for m in FIVE_D:
         w = interpolate.method_weights(m, c, a, tg, **opts)
@@ -413,12 +421,19 @@ def fig_mae_per_target(run_results: dict, path: Path, fov: str) -> str:
 # ---------------------------------------------------------------------------------------------
 # error vs run time
 def fig_error_vs_time(results: dict, path: Path) -> str:
+    """Pooled MAE against each method's seconds (``results["method_seconds"]``: plan +
+    interpolation + FBP), large and small FOV side by side; colour = pitch, marker = method,
+    filled = noise-free, open = noisy. Constrained layout, legend outside the axes, plain
+    tick labels (no per-point text: it overlapped where methods take similar time)."""
     plt = _plt()
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
     met = results["metrics"]
     secs = results["method_seconds"]
     markers = MARKERS
     colours = {}
-    fig, axes = plt.subplots(1, 2, figsize=(11.5, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(11.0, 4.3), layout="constrained")
     used = []
     for pk, byv in secs.items():
         colours.setdefault(pk, f"C{len(colours)}")
@@ -429,28 +444,91 @@ def fig_error_vs_time(results: dict, path: Path) -> str:
                 for ax, fov in zip(axes, ("large", "small"), strict=True):
                     mae = met[pk][v][m][fov]["mae_hu"]
                     ax.scatter([s], [mae], marker=markers.get(m, "x"), s=60, edgecolor=colours[pk],
-                                   facecolor=colours[pk] if v == "noise-free" else "none", lw=1.5)
-                    ax.annotate(m, (s, mae), fontsize=6, xytext=(4, 3), textcoords="offset points")
+                               facecolor=colours[pk] if v == "noise-free" else "none", lw=1.5)
                 if m not in used:
                     used.append(m)
     for ax, fov in zip(axes, ("large", "small"), strict=True):
         ax.set_xscale("log")
-        ax.set_xlabel("reconstruction time of the method (s, this run's device)")
-        ax.set_ylabel(f"MAE vs ground truth, {fov} FOV (HU)")
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.tick_params(labelsize=8)
+        ax.set_xlabel("seconds of the method (plan + interpolation + FBP)", fontsize=8)
+        ax.set_ylabel("MAE vs ground truth (HU)", fontsize=8)
         ax.set_title(f"{fov} FOV", fontsize=9)
         ax.grid(alpha=0.3, which="both")
-    from matplotlib.lines import Line2D
-
-    leg = [Line2D([], [], ls="", marker="o", color=col, label=f"pitch {float(pk[1:]):g}") for pk, col in colours.items()]
+    leg = [Line2D([], [], ls="", marker="o", color=col, label=f"pitch {float(pk[1:]):g}")
+           for pk, col in colours.items()]
     leg += [Line2D([], [], ls="", marker="o", markeredgecolor="k", markerfacecolor="k", label="noise-free"),
             Line2D([], [], ls="", marker="o", markeredgecolor="k", markerfacecolor="none", label="noisy")]
-    leg += [Line2D([], [], ls="", marker=markers.get(m, "x"), color="0.3", label=m) for m in used]
-    axes[1].legend(handles=leg, fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
-    fig.suptitle(f"Error against run time (device: {results.get('device', '?')})", fontsize=9)
+    leg += [Line2D([], [], ls="", marker=markers.get(m, "x"), color="0.3", label=_label(m)) for m in used]
+    fig.legend(handles=leg, fontsize=7, loc="outside right center")
+    device = str(results.get("device", "?"))
+    fig.suptitle(f"Error against run time (device: {device[:70] + ('...' if len(device) > 70 else '')})",
+                 fontsize=9)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return ("MAE (HU, pooled over all targets) against the seconds each method took (its plan, interpolation "
+            "and FBP), per pitch and variant.")
+
+
+def _label(method: str) -> str:
+    """The registry's human label of ``method`` (the name itself when unregistered)."""
+    m = _methods.METHODS.get(method)
+    return m.label if m is not None else method
+
+
+# ---------------------------------------------------------------------------------------------
+# motion metrics
+MOTION_PANELS = (("edge_width_mm", "edge width 10–90 % (mm)"), ("lv_volume_error_ml", "LV volume − ground truth (mL)"),
+                 ("target_error_mm", "target localisation error (mm)"), ("noise_std_hu", "noise std (HU)"))
+
+
+def fig_motion_metrics(results: dict, path: Path) -> str:
+    """Dots per method for the four motion metrics (means over targets), one colour per pitch,
+    filled = noise-free, open = noisy; the ground truth's own value (the floor) as a dashed line."""
+    plt = _plt()
+    mot = results["motion"]
+    cols = [(pk, v) for pk in mot for v in mot[pk]]
+    present = {m for pk, v in cols for m in mot[pk][v]} - {"groundtruth"}
+    methods = [m for m in COMPARE_ORDER if m in present] + sorted(present - set(COMPARE_ORDER))
+    colours = {pk: f"C{k}" for k, pk in enumerate(mot)}
+    fig, axes = plt.subplots(1, 4, figsize=(4.0 * 4, 3.8))
+    offs = np.linspace(-0.25, 0.25, len(cols)) if len(cols) > 1 else np.zeros(1)
+    for ax, (key, label) in zip(axes, MOTION_PANELS, strict=True):
+        ref = None
+        for k, (pk, v) in enumerate(cols):
+            g = (mot[pk][v].get("groundtruth") or {}).get(key) or {}
+            ref = g.get("mean") if ref is None else ref
+            for x, m in enumerate(methods):
+                d = (mot[pk][v].get(m) or {}).get(key) or {}
+                if d.get("mean") is None:
+                    continue
+                ax.scatter([x + offs[k]], [d["mean"]], s=40, marker=MARKERS.get(m, "o"), edgecolor=colours[pk],
+                           facecolor=colours[pk] if v == "noise-free" else "none", lw=1.4)
+        if key in ("lv_volume_error_ml",):
+            ax.axhline(0.0, color="0.5", lw=0.8)
+        if ref is not None and key in ("edge_width_mm", "target_error_mm"):
+            ax.axhline(ref, color="k", ls="--", lw=0.9, label="ground truth")
+            ax.legend(fontsize=7, loc="best")
+        ax.set_xticks(range(len(methods)))
+        ax.set_xticklabels(methods, rotation=30, fontsize=7, ha="right")
+        ax.set_title(label, fontsize=9)
+        ax.grid(alpha=0.3)
+    from matplotlib.lines import Line2D
+
+    leg = [Line2D([], [], ls="", marker="o", color=col, label=f"pitch {float(pk[1:]):g}")
+           for pk, col in colours.items()]
+    leg += [Line2D([], [], ls="", marker="o", markeredgecolor="k", markerfacecolor="k", label="noise-free"),
+            Line2D([], [], ls="", marker="o", markeredgecolor="k", markerfacecolor="none", label="noisy")]
+    axes[-1].legend(handles=leg, fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    fig.suptitle("Motion metrics, means over targets", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    return "MAE (HU, pooled over all targets) against the seconds each method took, per pitch and variant."
+    return ("Means over targets of the LV edge width, the LV blood-pool volume error, the lesion localisation "
+            "error and the noise std per method, pitch (colour) and variant (filled: noise-free, open: noisy); "
+            "dashed: the ground truth's own value.")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -499,6 +577,9 @@ def write_figures(out_dir, results: dict) -> list[str]:
         has_secs = any(bym for byv in results.get("method_seconds", {}).values() for bym in byv.values())
         add("error_vs_time.png", "Error against run time", lambda p: fig_error_vs_time(results, p),
             None if has_secs else "results.json has no method_seconds")
+        has_motion = any(byv for byv in (results.get("motion") or {}).values())
+        add("motion_metrics.png", "Motion metrics", lambda p: fig_motion_metrics(results, p),
+            None if has_motion else "results.json has no motion metrics")
     finally:
         run.close()
     return lines

@@ -20,21 +20,26 @@ import os
 import platform
 import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from clrecon.config.scene import Scene
 from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
-from clrecon.evaluation import groundtruth, metrics
+from clrecon.evaluation import claims, groundtruth, metrics, motion
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key, read_volume
-from clrecon.reconstruction import interpolation, reconstruct
+from clrecon.reconstruction import interpolation, rebin, reconstruct
+from clrecon.reconstruction.diagnostics import weight_diagnostics
 from clrecon.reconstruction.reconstruct import StageTimes, Targets
+from clrecon.scan import sampling as sampling_mod
 from clrecon.scan import table as geometry
 from clrecon.simulation import simulate
-from clrecon.simulation.phantoms.analytic import Phantom
+from clrecon.simulation.phantom_sources import phantom_from_config
 
 RESULTS_FORMAT = 1
 #: From the interpolation-method registry: the 5DCT methods, and those compared in the
@@ -50,7 +55,8 @@ def _progress(total: int, desc: str, enabled: bool):
     return tqdm(total=total, desc=desc, disable=disable, leave=False, dynamic_ncols=True)
 
 
-def resolve_targets(scene, cardiac=None, resp=None) -> Targets:
+def resolve_targets(scene: Scene, cardiac: Sequence[float] | None = None,
+                    resp: Sequence[float] | None = None) -> Targets:
     """Targets of the run: the scene's, narrowed by ``cardiac``/``resp`` lists if given."""
     c = tuple(scene.cardiac_targets)
     r = tuple(scene.resp_targets)
@@ -103,8 +109,11 @@ def _json_default(o):
     raise TypeError(type(o))
 
 
-def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None, pitches=None,
-        cache_dir=None, progress=True, report=True, log=print) -> dict:
+def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
+        cardiac: Sequence[float] | None = None, resp: Sequence[float] | None = None,
+        slice_range: tuple[int, int] | None = None, pitches: Sequence[float] | None = None,
+        cache_dir: str | Path | None = None, progress: bool = True, report: bool = True,
+        log: Callable[..., Any] = print) -> dict[str, Any]:
     """Run the whole job; returns the ``results.json`` dictionary."""
     t_start = time.perf_counter()
     out = Path(out_dir)
@@ -141,6 +150,9 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
     n_t = targets.shape[0] * targets.shape[1]
     sim_info = {}
     method_seconds: dict = {}
+    method_plan_seconds: dict = {}  # pitch key -> method -> planning seconds (in method_seconds too)
+    diagnostics: dict = {}  # pitch key -> method -> per-target weight diagnostics (cardiac-major)
+    sampling: dict = {}  # per pitch: distinct cardiac phases and candidates per (slice, view)
     try:
         for pitch in pitches:
             pk = pitch_key(pitch)
@@ -160,6 +172,9 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
             times.add("signals", time.perf_counter() - t0)
             plan = reconstruct.plan(recon_cfg, table, slices_z[todo], targets, methods)
             times.add("plan", plan.seconds)
+            diagnostics[pk] = weight_diagnostics(plan, table, targets)
+            sampling[pk] = sampling_mod.sampling_summary(
+                table, rebin.candidate_groups(table, slices_z, scene.scanner, recon_cfg.object_radius_mm))
             needed = plan.needed_projections(len(table))
             t0 = time.perf_counter()
             store = simulate.simulate(scene, pitch, needed=needed, cache_dir=cache_dir, progress=progress)
@@ -171,7 +186,8 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
 
             def on_slab(zs, slab, pk=pk, todo=todo):
                 for (v, m), vol in slab.items():
-                    vol = np.broadcast_to(vol, targets.shape + vol.shape[2:])  # r4dct: same for every c
+                    # r4dct (1, n_r): the same for every c; helical (1, 1): the same for every target
+                    vol = np.broadcast_to(vol, targets.shape + vol.shape[2:])
                     writer.write(f"recon/{pk}/{v}/{m}", vol, todo[zs])
 
             bar = _progress(len(slices_z), f"reconstruct {pk}", progress)
@@ -180,11 +196,19 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
                                     on_slab=on_slab)
             bar.close()
             method_seconds[pk] = {}
+            # a method's cost per variant: its interpolation + FBP of that variant plus its whole
+            # plan (made once for every variant: a run of one variant pays it in full)
+            plan_s = dict(plan.method_seconds)
+            for key, sec in ptimes.seconds.items():
+                if key.startswith("plan:"):
+                    m = key.split(":", 1)[1]
+                    plan_s[m] = plan_s.get(m, 0.0) + sec
+            method_plan_seconds[pk] = {m: round(sec, 3) for m, sec in plan_s.items()}
             for key, sec in ptimes.seconds.items():
                 if key.startswith("method:"):
                     _, m, v = key.split(":")
-                    method_seconds[pk].setdefault(v, {})[m] = round(sec, 3)
-                else:
+                    method_seconds[pk].setdefault(v, {})[m] = round(sec + plan_s.get(m, 0.0), 3)
+                elif not key.startswith("plan:"):
                     times.add(key, sec)
             if hasattr(store, "close"):
                 store.close()
@@ -208,7 +232,7 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
 
         log("metrics")
         t0 = time.perf_counter()
-        met, resp_only = evaluate(scene, writer.f, targets, slices_z, pitches, variants, methods)
+        met, resp_only, motion_res = evaluate(scene, writer.f, targets, slices_z, pitches, variants, methods)
         times.add("metrics", time.perf_counter() - t0)
         # the previous run's results must not describe the new volumes, even for a moment
         (out / "results.json").unlink(missing_ok=True)
@@ -227,6 +251,9 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
         stages["simulate"]["ran"] = False
         stages["simulate"]["skipped_because"] = "every needed projection was already in the projection store"
     stages["simulate"].update(per_pitch=sim_info)
+    if not groundtruth.offers_lv_region(phantom_from_config(scene.phantom)):
+        stages["metrics"]["respiratory_only_skipped_because"] = (
+            f"phantom.kind = {scene.phantom.kind!r} has no LV blood-pool model (the LV volume needs it)")
     results = {
         "format_version": RESULTS_FORMAT,
         "scene": scene.to_dict(),
@@ -241,9 +268,15 @@ def run(scene, out_dir, methods=None, cardiac=None, resp=None, slice_range=None,
         "stages": stages,
         "metrics": met,
         "method_seconds": method_seconds,
+        "method_plan_seconds": method_plan_seconds,
+        "diagnostics": diagnostics,
+        "sampling": sampling,
         "respiratory_only": resp_only,
+        "motion": motion_res,
+        "motion_definitions": motion.definitions(motion.MotionConfig.from_scene(scene, slices_z)),
         "outputs": {"volumes": "volumes.h5", "report": "report.md" if report else None},
     }
+    results["claims"] = claims.evaluate_claims(results)  # the paper's claims, measured
     if report:
         t0 = time.perf_counter()
         report_mod.write_report(out, results)
@@ -258,20 +291,22 @@ def reconstruct_methods():
 
 
 def evaluate(scene, f, targets, slices_z, pitches, variants, methods):
-    """Table-2 metrics per pitch/variant/method and the respiratory-only comparison.
+    """Table-2 metrics, the respiratory-only comparison and the motion metrics per pitch/variant/method.
 
-    Reads one target's volumes at a time from the (open) volume file ``f``.
+    Reads one target's volumes at a time from the (open) volume file ``f``. Returns
+    ``(metrics, respiratory_only, motion)``; ``motion[pitch][variant][method]`` is
+    :meth:`clrecon.evaluation.motion.MotionMetrics.result`, with a ``groundtruth`` reference entry.
     """
 
     met: dict = {}
     resp_only: dict = {}
-    phantom = Phantom(scene.phantom)
+    phantom = phantom_from_config(scene.phantom)
     metrics_cfg = metrics.MetricsConfig.from_scene(scene)
     masks = metrics.fov_masks(metrics_cfg)
     n_c, n_r = targets.shape
     gt = lambda i, j: read_volume(f, "groundtruth", (i, j))  # noqa: E731
     want_ro = (any(m in methods for m in interpolation.resp_grid_methods())
-               and scene.has_cardiac and scene.has_respiratory)
+               and scene.has_cardiac and scene.has_respiratory and groundtruth.offers_lv_region(phantom))
     rc = scene.recon
     x, y = reconstruct.voxel_coords(rc.nx, rc.voxel_mm), reconstruct.voxel_coords(rc.ny, rc.voxel_mm)
     voxel_ml = rc.voxel_mm ** 2 * (abs(slices_z[1] - slices_z[0]) if len(slices_z) > 1 else rc.slice_mm) / 1000.0
@@ -282,25 +317,46 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods):
         return metrics.blood_pool_volume_ml(vol, regions[i][j], voxel_ml)
 
     lv_gt = [[lv(gt(i, j), i, j) for j in range(n_r)] for i in range(n_c)] if want_ro else None
+    # motion metrics (the analytic phantom knows its LV and lesion): the phantom's truth per target
+    # (small: the LV region cropped) and the ground truth's own reference row
+    want_mot = motion.offers_truth(phantom)
+    mcfg = motion.MotionConfig.from_scene(scene, slices_z)
+    geoms = ([[motion.target_geometry(phantom, c, a, mcfg) for a in targets.resp] for c in targets.cardiac]
+             if want_mot else None)
+    mot_gt = motion.MotionMetrics(mcfg, n_c, n_r)
+    for i in range(n_c if want_mot else 0):
+        for j in range(n_r):
+            mot_gt.add(i, j, gt(i, j), None, geoms[i][j])
+    mot_ref = mot_gt.result()
+    mot: dict = {}
     for pitch in pitches:
         pk = pitch_key(pitch)
         met[pk] = {}
         resp_only[pk] = {}
+        if want_mot:
+            mot[pk] = {}
         for v in variants:
             met[pk][v] = {}
+            if want_mot:
+                mot[pk][v] = {"groundtruth": mot_ref}
             ro_mae = {m: np.zeros((n_c, n_r)) for m in methods}
             ro_lv = {m: np.zeros((n_c, n_r)) for m in methods}
             for m in methods:
                 name = f"recon/{pk}/{v}/{m}"
                 acc = metrics.Table2(metrics_cfg, n_c, n_r)
+                macc = motion.MotionMetrics(mcfg, n_c, n_r)
                 for i in range(n_c):
                     for j in range(n_r):
                         vol, truth = read_volume(f, name, (i, j)), gt(i, j)
                         acc.add(i, j, vol, truth)
+                        if want_mot:
+                            macc.add(i, j, vol, truth, geoms[i][j], mot_gt.lv_ml[i, j])
                         if want_ro and m in RESP_ONLY_METHODS:
                             ro_mae[m][i, j] = metrics.abs_error_stats(vol, truth, masks["small"])["mae_hu"]
                             ro_lv[m][i, j] = lv(vol, i, j)
                 met[pk][v][m] = acc.result()
+                if want_mot:
+                    mot[pk][v][m] = macc.result()
             if want_ro:
                 rows = []
                 for i, c in enumerate(targets.cardiac):
@@ -312,7 +368,7 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods):
                         row["lv_volume_spread_ml"][m] = _spread(ro_lv[m][i])
                     rows.append(row)
                 resp_only[pk][v] = rows
-    return met, resp_only
+    return met, resp_only, mot
 
 
 def _spread(values) -> float:

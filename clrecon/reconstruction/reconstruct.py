@@ -62,7 +62,10 @@ class ReconstructionConfig:
     ``noise`` (:class:`clrecon.config.scene.NoiseConfig`, for the noisy variant), and the
     interpolation options: ``kappa``, ``sigma`` (local-linear kernel widths), ``use_cardiac`` /
     ``use_resp`` (which phase axes exist), ``resp_bin_width`` (the bin method's amplitude bin),
-    ``extrapolate`` (local linear's plain fit).
+    ``extrapolate`` (local linear's plain fit), ``local_linear_points`` / ``local_linear_count``
+    (local linear's neighbours: ``count`` per quadrant or ``count`` nearest), and ``max_turns``
+    (0: every candidate turn in the SSRB window; N > 0: the N nearest in z per (slice, view),
+    :func:`limit_turns`, for every method).
     """
 
     scanner: object
@@ -77,6 +80,9 @@ class ReconstructionConfig:
     use_resp: bool
     resp_bin_width: float
     extrapolate: bool
+    local_linear_points: str = "quadrants"
+    local_linear_count: int = 2
+    max_turns: int = 0
 
     @classmethod
     def from_scene(cls, scene) -> ReconstructionConfig:
@@ -85,7 +91,9 @@ class ReconstructionConfig:
                    fbp=fbp_mod.FanBeamGeometry.from_scene(scene), filter=rc.filter,
                    mu_water_per_mm=scene.phantom.mu_water_per_mm, noise=scene.noise, kappa=rc.kappa,
                    sigma=rc.sigma, use_cardiac=scene.has_cardiac, use_resp=scene.has_respiratory,
-                   resp_bin_width=1.0 / rc.resp_bins, extrapolate=rc.local_linear_extrapolate)
+                   resp_bin_width=1.0 / rc.resp_bins, extrapolate=rc.local_linear_extrapolate,
+                   local_linear_points=rc.local_linear_points, local_linear_count=rc.local_linear_count,
+                   max_turns=rc.max_turns)
 
 
 def slice_positions(scene, slice_range: tuple | None = None) -> np.ndarray:
@@ -109,7 +117,8 @@ class MethodPlan:
 
     proj_index: np.ndarray  # int64 global projection index
     weight: np.ndarray      # float64, 0 in unused slots
-    targets_shape: tuple    # (n_c, n_r) of the targets actually solved (r4dct: (1, n_r))
+    targets_shape: tuple    # (n_c, n_r) of the targets actually solved (r4dct: (1, n_r), helical: (1, 1))
+    branch: np.ndarray | None = None  # int8 (S, V, T) branch taken (barycentric: Weights.branch), else None
 
 
 @dataclass
@@ -117,6 +126,9 @@ class Plan:
     slices_z: np.ndarray
     methods: dict = field(default_factory=dict)  # name -> MethodPlan
     seconds: float = 0.0
+    #: name -> seconds of planning that method: its weights, plus an equal share of the shared
+    #: candidate search (the whole plan's ``seconds`` is their sum)
+    method_seconds: dict = field(default_factory=dict)
 
     def needed_pairs(self):
         """Unique (projection, slice) pairs with a non-zero weight, sorted by projection."""
@@ -158,30 +170,65 @@ def plan(cfg: ReconstructionConfig, table: ProjectionTable, slices_z: np.ndarray
             f"slice z = {z:.2f} mm, view {g % nv}: no projection covers it (scan covers source z "
             f"{zk.min():.1f}..{zk.max():.1f} mm with an SSRB window of "
             f"+-{rebin.slice_window_mm(sc, cfg.object_radius_mm):.2f} mm); reduce recon.nz/slice_mm or the pitch")
+    if cfg.max_turns > 0:
+        groups = limit_turns(groups, cfg.max_turns)
     c = table.cardiac_phase[groups.row]
     a = table.resp_amplitude[groups.row]
     opts = weight_options(cfg, targets)
     S = len(p.slices_z)
+    t_shared = time.perf_counter() - t0
     for m in methods:
+        t1 = time.perf_counter()
         tg, shape = method_targets(m, targets)
-        w = interpolate.batch_weights(m, c, a, groups.offsets, tg, **opts)
+        w = interpolate.batch_weights(m, c, a, groups.offsets, tg, dz=groups.dz_mm, **opts)
         G, T, K = w.index.shape
         proj = groups.projection[w.index].reshape(S, nv, T, K)
         weight = np.where(w.weight != 0, w.weight, 0.0).reshape(S, nv, T, K)
-        p.methods[m] = MethodPlan(proj_index=proj, weight=weight, targets_shape=shape)
+        branch = None if w.branch is None else w.branch.reshape(S, nv, T)
+        p.methods[m] = MethodPlan(proj_index=proj, weight=weight, targets_shape=shape, branch=branch)
+        p.method_seconds[m] = time.perf_counter() - t1
+    for m in p.method_seconds:
+        p.method_seconds[m] += t_shared / len(p.method_seconds)
     p.seconds = time.perf_counter() - t0
     return p
+
+
+def limit_turns(groups: rebin.CandidateGroups, max_turns: int) -> rebin.CandidateGroups:
+    """Only the ``max_turns`` candidates nearest in z (smallest |slice_z - z_k|) of each (slice, view).
+
+    A view's candidates are one per turn, so this keeps the ``max_turns`` turns nearest the
+    slice (ties: the earlier projection). The kept candidates stay in projection order; a
+    group with fewer keeps them all. ``max_turns <= 0`` returns ``groups`` unchanged.
+    """
+    if max_turns <= 0:
+        return groups
+    counts = groups.counts
+    n = groups.row.size
+    g = np.repeat(np.arange(counts.size), counts)
+    pos = np.arange(n)
+    order = np.lexsort((pos, np.abs(groups.dz_mm), g))  # by group, then |dz|, then projection order
+    rank = np.empty(n, np.int64)
+    rank[order] = pos - groups.offsets[g[order]]
+    keep = rank < max_turns
+    offsets = np.zeros_like(groups.offsets)
+    np.cumsum(np.bincount(g[keep], minlength=counts.size), out=offsets[1:])
+    return rebin.CandidateGroups(offsets=offsets, row=groups.row[keep], projection=groups.projection[keep],
+                                 dz_mm=groups.dz_mm[keep], slice_z_mm=groups.slice_z_mm,
+                                 views_per_rotation=groups.views_per_rotation)
 
 
 def method_targets(method: str, targets: Targets) -> tuple[np.ndarray, tuple]:
     """The targets ``method`` is solved for: ``(pairs (T, 2), (n_c, n_r))`` by its ``target_grid``.
 
     ``"5d"``: every (c*, a*); ``"resp"`` (cardiac-blind, e.g. r4dct): one per amplitude, shape
-    (1, n_r), the volume then standing for every cardiac phase.
+    (1, n_r), the volume then standing for every cardiac phase; ``"none"`` (phase-blind, e.g.
+    helical): the first target only, shape (1, 1), the volume standing for every target.
     """
     m = interpolation.METHODS.get(method)  # an unknown name is batch_weights' error
     if m is not None and m.target_grid == "resp":
         return targets.pairs[:len(targets.resp)], (1, len(targets.resp))
+    if m is not None and m.target_grid == "none":
+        return targets.pairs[:1], (1, 1)
     return targets.pairs, targets.shape
 
 
@@ -189,7 +236,8 @@ def weight_options(cfg: ReconstructionConfig, targets: Targets) -> dict:
     """Keyword options of :func:`clrecon.reconstruction.interpolation.weights.batch_weights`."""
     return dict(kappa=cfg.kappa, sigma=cfg.sigma, use_cardiac=cfg.use_cardiac, use_resp=cfg.use_resp,
                 cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=cfg.resp_bin_width,
-                extrapolate=cfg.extrapolate)
+                extrapolate=cfg.extrapolate, local_linear_points=cfg.local_linear_points,
+                local_linear_count=cfg.local_linear_count)
 
 
 def _cardiac_bin_width(targets: Targets) -> float:
@@ -208,8 +256,9 @@ class StageTimes:
         self.seconds[name] = self.seconds.get(name, 0.0) + dt
 
 
-def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-free",), rt=None, times: StageTimes | None = None,
-                progress=None, chunk: int = 512, on_slab=None, slab_size: int | None = None) -> dict:
+def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-free",), rt=None,
+                times: StageTimes | None = None, progress=None, chunk: int = 512, on_slab=None,
+                slab_size: int | None = None) -> dict:
     """Reconstruct every planned method and noise variant.
 
     Parameters
@@ -274,7 +323,7 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
     rows = {v: np.empty((len(ukeys), sc.n_cols), np.float32) for v in variants}
     bounds = np.unique(np.concatenate([np.arange(pair_proj.min(), pair_proj.max() + 1, chunk),
                                        [pair_proj.max() + 1]])) if len(pair_proj) else np.zeros(1, int)
-    for b0, b1 in zip(bounds[:-1], bounds[1:]):
+    for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True):
         lo, hi = np.searchsorted(pair_proj, [b0, b1])
         if lo == hi:
             continue
@@ -309,6 +358,7 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
         per_method[m] = (pos.transpose(0, 2, 1, 3).reshape(Sn * T, V, K),
                          w.transpose(0, 2, 1, 3).reshape(Sn * T, V, K).astype(np.float32), tshape)
         times.add("plan", time.perf_counter() - t1)
+        times.add(f"plan:{m}", time.perf_counter() - t1)  # the method's share of "plan"
     step = fbp_mod.groups_per_launch(geom) * fbp_mod.BATCH_LANES
     mu_water = cfg.mu_water_per_mm
     out = {}

@@ -3,7 +3,8 @@
 A source is registered in :data:`PHANTOM_SOURCES` under the name a scene gives in
 ``[phantom] kind``, with its own config section (the ``[phantom]`` table's keys) and the class
 that builds it from that config. The class gives the projector packed quadric objects per
-state (``objects_batch(c, a)``) and the ground truth what it needs (``docs/extending.md``).
+state (``objects_batch(c, a)``) and the ground truth what it needs (``docs/extending.md``), or
+carries its own projector (``carries_projector``: the voxel phantom, ``docs/voxel-phantoms.md``).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import dataclass
 
 from clrecon.core.registry import Registry
 from clrecon.simulation.phantoms.analytic import Phantom, PhantomConfig
+from clrecon.simulation.phantoms.voxel import VoxelPhantom, VoxelPhantomConfig
 
 
 @dataclass(frozen=True)
@@ -28,6 +30,8 @@ class PhantomSource:
 PHANTOM_SOURCES: Registry[PhantomSource] = Registry("phantom source")
 PHANTOM_SOURCES.register("analytic")(PhantomSource(
     "analytic", PhantomConfig, Phantom, "the built-in analytic thorax of quadrics (exact line integrals)"))
+PHANTOM_SOURCES.register("voxel")(PhantomSource(
+    "voxel", VoxelPhantomConfig, VoxelPhantom, "4D voxel frames (XCAT or NIfTI), projected by Joseph's method"))
 
 
 

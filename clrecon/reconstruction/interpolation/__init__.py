@@ -16,6 +16,7 @@ from clrecon.reconstruction.interpolation import local_linear
 from clrecon.reconstruction.interpolation import r4dct
 from clrecon.reconstruction.interpolation import nearest
 from clrecon.reconstruction.interpolation import bin
+from clrecon.reconstruction.interpolation import helical
 # isort: on
 
 from clrecon.reconstruction.interpolation.apply import (
@@ -40,6 +41,6 @@ from clrecon.reconstruction.interpolation.weights import NoCandidatesError, Weig
 __all__ = [
     "METHODS", "DeviceRows", "Method", "NoCandidatesError", "Options", "Weights", "apply_weights",
     "apply_weights_interleaved", "apply_weights_reference", "barycentric", "batch_weights", "bin", "by_rank",
-    "figure_order", "five_d_methods", "local_linear", "markers", "method_names", "method_weights", "nearest",
-    "r4dct", "register_method", "resp_grid_methods",
+    "figure_order", "five_d_methods", "helical", "local_linear", "markers", "method_names", "method_weights",
+    "nearest", "r4dct", "register_method", "resp_grid_methods",
 ]

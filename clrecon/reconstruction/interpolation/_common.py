@@ -10,7 +10,8 @@ from clrecon.reconstruction.interpolation.base import Chunk
 LOCAL = 64  # fixed work-group size of the interp.cl kernels (PoCL specialises binaries per local size)
 
 
-def chunk(c, a, off, g0, g1) -> Chunk:
+def chunk(c, a, off, g0, g1, dz=None) -> Chunk:
+    """Groups g0..g1 of the flat (n,) ``c``, ``a`` (and optional ``dz``, mm) padded to (g, N)."""
     counts = np.diff(off[g0:g1 + 1])
     n = max(int(counts.max(initial=0)), 2)  # >= 2: argpartition(kth=1) needs two columns
     j = np.arange(n)
@@ -18,7 +19,8 @@ def chunk(c, a, off, g0, g1) -> Chunk:
     flat = np.minimum(off[g0:g1, None] + j[None, :], max(c.size - 1, 0))
     cc = np.where(valid, c[flat] if c.size else 0.0, 0.0)
     aa = np.where(valid, a[flat] if a.size else 0.0, 0.0)
-    return Chunk(c=cc, a=aa, valid=valid, counts=counts, start=off[g0:g1])
+    zz = None if dz is None else np.where(valid, dz[flat] if dz.size else 0.0, np.inf)
+    return Chunk(c=cc, a=aa, valid=valid, counts=counts, start=off[g0:g1], dz=zz)
 
 
 def deltas(ch: Chunk, targets, use_cardiac: bool, use_resp: bool):
@@ -45,11 +47,12 @@ def nearest(d2):
     return idx, np.ones(idx.shape)
 
 
-def bracket(x, valid, max_gap=None):
+def bracket(x, valid, max_gap=None, with_both=False):
     """1-D linear interpolation at x = 0 between the bracketing points, (g, T, 2).
 
     Outside the sampled range (one side empty) or, with ``max_gap``, when a bracketing point
-    is farther than ``max_gap``: the nearest point.
+    is farther than ``max_gap``: the nearest point. ``with_both``: also return the (g, T)
+    bool array, True where the two bracketing points were used (False: the nearest).
     """
     v = valid[:, None, :] if valid.ndim == 2 else valid
     lo_val = np.where(v & (x <= 0), x, -np.inf)
@@ -68,4 +71,6 @@ def bracket(x, valid, max_gap=None):
     first = np.where(both | near_lo, lo, hi)
     idx = np.stack([first, hi], axis=-1)
     w = np.stack([np.where(both, 1.0 - t, 1.0), np.where(both, t, 0.0)], axis=-1)
+    if with_both:
+        return idx, w, both
     return idx, w

@@ -20,22 +20,30 @@ from typing import Any
 
 import numpy as np
 
-#: ``target_grid`` values: every (cardiac, amplitude) target, or one cardiac-blind target per
-#: amplitude (the method ignores c*; the volume is the same for every cardiac phase).
-TARGET_GRIDS = ("5d", "resp")
+#: ``target_grid`` values: every (cardiac, amplitude) target, one cardiac-blind target per
+#: amplitude (the method ignores c*; the volume is the same for every cardiac phase), or one
+#: phase-blind target (the method ignores c* and a*; one volume stands for every target).
+TARGET_GRIDS = ("5d", "resp", "none")
 #: ``axes`` values: the phase-space axes a method uses.
 AXES = ("cardiac", "resp")
 
 
 @dataclass
 class Chunk:
-    """Groups g0..g1 padded to (g, N); candidates first, ``valid`` marks them."""
+    """Groups g0..g1 padded to (g, N); candidates first, ``valid`` marks them.
+
+    ``c``, ``a`` (g, N) cardiac phase and amplitude (0 in padding); ``dz`` (g, N) the
+    candidate's z distance |z_slice - z_k| in mm (inf in padding), or None when the caller
+    gave no ``dz`` to ``batch_weights``; ``counts`` (g,) candidates per group; ``start`` (g,)
+    flat offset of each group's first candidate.
+    """
 
     c: np.ndarray
     a: np.ndarray
     valid: np.ndarray
     counts: np.ndarray
     start: np.ndarray  # flat offset of each group's first candidate
+    dz: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -52,12 +60,16 @@ class Options:
     rt: Any = None
     precision: str | None = None
     extrapolate: bool = False
+    local_linear_points: str = "quadrants"
+    local_linear_count: int = 2
 
 
 #: ``weights(ch, targets, dc, da, d2, opts) -> (index (g, T, K) int, weight (g, T, K) float64)``:
 #: ``targets`` (T, 2) with c in [0, 1); ``dc``, ``da``, ``d2`` (g, T, N) signed circular cardiac
 #: difference, amplitude difference and squared distance (inf for padding), with dc = 0 where
-#: the cardiac axis is off and da = 0 where the respiratory axis is off.
+#: the cardiac axis is off and da = 0 where the respiratory axis is off. A method may return a
+#: third element, ``branch`` (g, T) int8, the branch each (group, target) took (diagnostics:
+#: ``Weights.branch``; barycentric reports triangle / segment / nearest).
 WeightsFn = Callable[[Chunk, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Options], tuple]
 
 
@@ -76,10 +88,12 @@ class Method:
         largest bin count).
     target_grid : str
         ``"5d"``: solved for every (c*, a*) target; ``"resp"``: one cardiac-blind target per
-        amplitude (the reconstruction broadcasts it over the cardiac targets).
+        amplitude (the reconstruction broadcasts it over the cardiac targets); ``"none"``: one
+        phase-blind target (broadcast over every (c*, a*) target).
     axes : tuple of str
         Phase-space axes the method uses (``"cardiac"``, ``"resp"``); the cardiac difference
-        is not computed for a method without ``"cardiac"``.
+        is not computed for a method without ``"cardiac"``. Empty only for a ``"none"`` grid
+        (a phase-blind method, e.g. ``helical``, which sees the candidates' ``dz`` instead).
     five_d : bool
         A 5DCT method (interpolates in both axes; compared with r4DCT in the
         respiratory-only study and drawn in the phase-space figure).
@@ -106,5 +120,6 @@ class Method:
         if self.target_grid not in TARGET_GRIDS:
             raise ValueError(f"method {self.name!r}: target_grid = {self.target_grid!r}: must be one of "
                              f"{', '.join(TARGET_GRIDS)}")
-        if not self.axes or any(x not in AXES for x in self.axes):
-            raise ValueError(f"method {self.name!r}: axes = {self.axes!r}: a non-empty tuple from {', '.join(AXES)}")
+        if any(x not in AXES for x in self.axes) or (not self.axes) != (self.target_grid == "none"):
+            raise ValueError(f"method {self.name!r}: axes = {self.axes!r}: a tuple from {', '.join(AXES)}, "
+                             f"empty exactly when target_grid = 'none'")

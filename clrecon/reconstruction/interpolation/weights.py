@@ -11,7 +11,8 @@ section 2.2): :mod:`~clrecon.reconstruction.interpolation.barycentric`,
 :mod:`~clrecon.reconstruction.interpolation.local_linear`,
 :mod:`~clrecon.reconstruction.interpolation.r4dct`,
 :mod:`~clrecon.reconstruction.interpolation.nearest`,
-:mod:`~clrecon.reconstruction.interpolation.bin`; adding one is described in
+:mod:`~clrecon.reconstruction.interpolation.bin`,
+:mod:`~clrecon.reconstruction.interpolation.helical`; adding one is described in
 ``docs/extending.md``.
 
 The respiratory direction (inhale/exhale) is not used: the targets are amplitudes.
@@ -19,8 +20,9 @@ The respiratory direction (inhale/exhale) is not used: the targets are amplitude
 Reduced problems: ``use_cardiac=False`` (no cardiac motion) sets every dc to 0 and ignores
 the targets' c, ``use_resp=False`` (breath hold, no breathing) sets every da to 0; the
 methods then interpolate in 1-D exactly (barycentric = linear between the bracketing
-points, the 0.3 rule still applying in c). With both off, every method returns the first
-candidate.
+points, the 0.3 rule still applying in c). With both off, every phase-space method returns
+the first candidate; ``helical``, which uses no phase axis, keeps its own rule (the turn
+nearest in z) whatever moves.
 
 Candidate sets come in compressed sparse-row form (``offsets``) so that many (slice, view)
 groups are handled at once; everything but the per-group Delaunay triangulation is
@@ -51,6 +53,8 @@ from clrecon.reconstruction.interpolation.barycentric import (  # noqa: F401
 )
 from clrecon.reconstruction.interpolation.base import Options
 from clrecon.reconstruction.interpolation.local_linear import (  # noqa: F401
+    LL_GUARD_CARDIAC,
+    LL_GUARD_RESP,
     LL_LOG_WEIGHT_FLOOR,
     LL_PER_QUADRANT,
     LL_RCOND,
@@ -59,6 +63,7 @@ from clrecon.reconstruction.interpolation.local_linear import (  # noqa: F401
     LL_WEIGHT_FLOOR,
     local_linear_solve,
     local_linear_solve_reference,
+    slot_count,
 )
 
 #: Registered method names, in registration order (the ``recon.methods`` default).
@@ -82,10 +87,15 @@ class Weights:
         float64 (..., T, K): weights; each (..., t) sums to one. Unused slots have weight 0
         and index 0. An index may appear twice in a row (barycentric triangles through a
         point and its periodic copy); the weights then add.
+    branch : np.ndarray or None
+        int8 (..., T): which branch of the method each (group, target) took, for methods
+        that report it (barycentric: ``BRANCH_NAMES`` triangle 0, segment 1, nearest 2;
+        -1 for an empty group), else None. Diagnostic only: the weights do not depend on it.
     """
 
     index: np.ndarray
     weight: np.ndarray
+    branch: np.ndarray | None = None
 
     def compact(self) -> tuple[np.ndarray, Weights]:
         """Only the candidates that carry weight: ``(used (U,) int64, Weights into 0..U-1)``.
@@ -96,7 +106,7 @@ class Weights:
         used, inv = np.unique(self.index[live], return_inverse=True)
         idx = np.zeros_like(self.index)
         idx[live] = inv.astype(self.index.dtype)
-        return used.astype(np.int64), Weights(index=idx, weight=self.weight)
+        return used.astype(np.int64), Weights(index=idx, weight=self.weight, branch=self.branch)
 
 
 # ---------------------------------------------------------------------------------------
@@ -120,6 +130,17 @@ def _as_targets(targets) -> np.ndarray:
     return t
 
 
+def _as_dz(dz, n: int):
+    if dz is None:
+        return None
+    d = np.asarray(dz, dtype=np.float64).ravel()
+    if d.shape != (n,):
+        raise ValueError(f"dz: expected ({n},) like c, got {np.shape(dz)}")
+    if not np.all(np.isfinite(d)):
+        raise ValueError("dz: must be finite")
+    return np.abs(d)
+
+
 def _as_points(c, a, offsets):
     c = np.asarray(c, dtype=np.float64).ravel()
     a = np.asarray(a, dtype=np.float64).ravel()
@@ -138,7 +159,8 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
                   cardiac_bin_width: float = 0.2, resp_bin_width: float = 0.1,
                   use_cardiac: bool = True, use_resp: bool = True, allow_empty: bool = False,
                   chunk_groups: int = 1024, workers: int | None = None, rt=None,
-                  precision: str | None = None, extrapolate: bool = False) -> Weights:
+                  precision: str | None = None, extrapolate: bool = False, dz=None,
+                  local_linear_points: str = "quadrants", local_linear_count: int = 2) -> Weights:
     """Interpolation weights for many (slice, view) groups at once.
 
     Parameters
@@ -172,72 +194,98 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
         For the local-linear kernel.
     precision : str, optional
         Local-linear kernel precision, see :func:`local_linear_solve`.
+    extrapolate : bool
+        Local linear: the paper's plain fit (no extrapolation guard).
+    local_linear_points, local_linear_count : str, int
+        Local-linear neighbours: ``"quadrants"`` (``count`` nearest per quadrant, K = 4 count;
+        default 2, K = 8) or ``"nearest"`` (the ``count`` nearest, K = count), see
+        :mod:`~clrecon.reconstruction.interpolation.local_linear`.
+    dz : array_like, optional
+        (n,) like ``c``: each candidate's z distance from its group's slice, |z_slice - z_k|
+        in mm (a sign is dropped; :attr:`clrecon.reconstruction.rebin.CandidateGroups.dz_mm`).
+        Only the phase-blind methods read it (``helical``, which requires it); the phase
+        methods' weights do not depend on it.
 
     Returns
     -------
     Weights
         index int32 (G, T, K) into the flat candidate arrays, weight float64 (G, T, K).
-        K = the method's ``neighbours``: 3 barycentric, 8 local_linear, 2 r4dct, 1 nearest,
-        largest bin count for bin.
+        K = the method's ``neighbours``: 3 barycentric, 8 local_linear (4 x count or count:
+        ``local_linear_points``), 2 r4dct, 1 nearest,
+        largest bin count for bin, 1 helical. ``branch`` int8 (G, T) for methods that report
+        their branch (barycentric), else None.
     """
     _check_method(method)
     c, a, off = _as_points(c, a, offsets)
+    dz = _as_dz(dz, c.size)
     targets = _as_targets(targets)
     if not (kappa > 0 and sigma > 0 and cardiac_bin_width > 0 and resp_bin_width > 0):
         raise ValueError(f"kappa = {kappa}, sigma = {sigma}, cardiac_bin_width = {cardiac_bin_width}, "
                          f"resp_bin_width = {resp_bin_width}: must all be > 0")
+    slot_count(local_linear_points, local_linear_count)  # raises ValueError naming a bad rule or count
     G, T = off.size - 1, targets.shape[0]
     counts = np.diff(off)
     if not allow_empty and np.any(counts == 0):
         bad = np.flatnonzero(counts == 0)
         raise NoCandidatesError(f"{bad.size} of {G} (slice, view) groups have no candidate projection "
                                 f"(first: group {bad[0]}); lower the pitch or widen the slice window")
-    if not (use_cardiac or use_resp):
-        method = "nearest"  # no motion: every candidate is as good; take the first
+    if not (use_cardiac or use_resp) and _registry.METHODS[method].axes:
+        method = "nearest"  # no motion: every phase-space method sees one point; take the first
     workers = 1 if workers is None else max(int(workers), 1)
     chunk_groups = max(int(chunk_groups), 1)
 
     m = _registry.METHODS[method]
     opts = Options(kappa=kappa, sigma=sigma, cardiac_bin_width=cardiac_bin_width, resp_bin_width=resp_bin_width,
                    use_cardiac=use_cardiac, use_resp=use_resp, workers=workers, rt=rt, precision=precision,
-                   extrapolate=extrapolate)
+                   extrapolate=extrapolate, local_linear_points=local_linear_points,
+                   local_linear_count=int(local_linear_count))
     # differences along an axis the method does not use are left at zero (not computed)
     use_c, use_r = use_cardiac and "cardiac" in m.axes, use_resp and "resp" in m.axes
 
     parts = []
     for g0 in range(0, G, chunk_groups):
         g1 = min(G, g0 + chunk_groups)
-        ch = _chunk(c, a, off, g0, g1)
+        ch = _chunk(c, a, off, g0, g1, dz)
         dc, da, d2 = _deltas(ch, targets, use_c, use_r)
-        idx, w = m.weights(ch, targets, dc, da, d2, opts)
+        res = m.weights(ch, targets, dc, da, d2, opts)
+        idx, w = res[0], res[1]
+        br = res[2] if len(res) > 2 else None  # optional branch report (g, T)
         empty = ch.counts == 0
         w = np.where(empty[:, None, None], 0.0, w)
         gidx = np.where(w != 0, idx + ch.start[:, None, None], 0)
-        parts.append((gidx, w))
+        if br is not None:
+            br = np.where(empty[:, None], -1, br).astype(np.int8)
+        parts.append((gidx, w, br))
     K = max(p[0].shape[-1] for p in parts) if parts else 1
     index = np.zeros((G, T, K), dtype=np.int32)
     weight = np.zeros((G, T, K), dtype=np.float64)
+    branch = np.full((G, T), -1, dtype=np.int8) if parts and all(p[2] is not None for p in parts) else None
     g0 = 0
-    for gidx, w in parts:
+    for gidx, w, br in parts:
         g1 = g0 + gidx.shape[0]
         index[g0:g1, :, :gidx.shape[-1]] = gidx
         weight[g0:g1, :, :w.shape[-1]] = w
+        if branch is not None:
+            branch[g0:g1] = br
         g0 = g1
-    return Weights(index=index, weight=weight)
+    return Weights(index=index, weight=weight, branch=branch)
 
 
 def method_weights(method: str, c, a, targets, *, kappa: float = 1.0, sigma: float = 0.15,
                    cardiac_bin_width: float = 0.2, resp_bin_width: float = 0.1,
                    use_cardiac: bool = True, use_resp: bool = True, rt=None,
-                   precision: str | None = None, extrapolate: bool = False) -> Weights:
+                   precision: str | None = None, extrapolate: bool = False, dz=None,
+                   local_linear_points: str = "quadrants", local_linear_count: int = 2) -> Weights:
     """Interpolation weights for one (slice, view): candidates (n,) -> Weights (T, K) into 0..n-1.
 
-    See :func:`batch_weights` for the parameters; raises :class:`NoCandidatesError` for n = 0.
+    See :func:`batch_weights` for the parameters (``dz`` (n,) mm); raises
+    :class:`NoCandidatesError` for n = 0.
     """
     c = np.asarray(c, dtype=np.float64).ravel()
     w = batch_weights(method, c, a, [0, c.size], targets, kappa=kappa, sigma=sigma,
                       cardiac_bin_width=cardiac_bin_width, resp_bin_width=resp_bin_width,
                       use_cardiac=use_cardiac, use_resp=use_resp, workers=1, rt=rt, precision=precision,
-                      extrapolate=extrapolate)
-    return Weights(index=w.index[0], weight=w.weight[0])
+                      extrapolate=extrapolate, dz=dz, local_linear_points=local_linear_points,
+                      local_linear_count=local_linear_count)
+    return Weights(index=w.index[0], weight=w.weight[0], branch=None if w.branch is None else w.branch[0])
 

@@ -1,1 +1,2 @@
-"""Phantom sources: one module per kind (``analytic``), registered in :mod:`clrecon.simulation.phantom_sources`."""
+"""Phantom sources: one module per kind (``analytic``, ``voxel`` with its reader ``frames``),
+registered in :mod:`clrecon.simulation.phantom_sources`."""

@@ -252,6 +252,14 @@ PARAMETERS: tuple = (
        " azimuth near the base ..."),
     _R("lad_azimuth_apex", -92.0, "deg", "design", "... and near the apex (0 = towards the RV)"),
     _R("lcx_azimuth", -145.0, "deg", "design", "left AV groove, lateral-posterior"),
+    # -- target lesion in the LV wall (the localisation metric, clrecon.evaluation.motion) --
+    _R("hu_lesion", 1000, "HU", "design", "hyperdense (calcified-scar-like) target, 600 HU above the contrast "
+       "blood next to it: a threshold between the two isolates it (a +150 HU lesion, 240 HU, would sit "
+       "below the 400 HU blood pool and could not be told from it)"),
+    _R("lesion_radius", 4.5, "mm", "design", "9 mm sphere (~10 mm target): 0.5 mm inside the 10 mm "
+       "end-diastolic wall, whose thinnest state it is"),
+    _R("lesion_azimuth", -145.0, "deg", "design", "lateral (LCx-territory) wall at the LV equator, mid-wall: "
+       "its centre 12-14 mm above the LV centre, inside the demo slab (|z| <= 30) at every state"),
     # -- metal insert --------------------------------------------------------------------
     _R("metal_radius", 3.0, "mm", "design", "pedicle-screw-like cylinder r ~3 mm"),
     _R("metal_half_length", 9.0, "mm", "design", "AP axis, inside the vertebral body at z = 0"),
@@ -467,6 +475,15 @@ class Phantom:
         """Centre of the LV cavity (x, y, z) mm at state (c, a): a seed inside the LV blood pool."""
         return self.objects(c, a)[self.names.index("lv_blood"), CENTRE].copy()
 
+    def lesion_centre(self, c: float, a: float) -> np.ndarray:
+        """Centre (x, y, z) mm of the LV-wall target lesion at state (c, a); its radius is ``P["lesion_radius"]``.
+
+        The lesion is a sphere at the LV equator, mid-wall, at azimuth ``lesion_azimuth`` about
+        the long axis (0 = towards the RV): it moves with the LV wall through the beat and
+        with the heart through breathing (honours ``cardiac_motion`` / ``respiratory_motion``).
+        """
+        return self.objects(c, a)[self.names.index("lesion"), CENTRE].copy()
+
     def heart_box_mm(self, margin: float = 10.0, grid_mm: float = 3.0) -> tuple:
         """Axial box (x_min, x_max, y_min, y_max) mm holding the epicardial fat at every state.
 
@@ -522,7 +539,7 @@ class Phantom:
         c = np.mod(c, 1.0) if cfg.cardiac_motion else np.zeros(m)
         a = np.clip(a, 0.0, 1.0) if cfg.respiratory_motion else np.zeros(m)
         objs: list = []
-        zeros, ones = np.zeros(m), np.ones(m)
+        ones = np.ones(m)
 
         def add(name, parent, kind, hu, centre, axes, semi, planes=(), cuts=()):
             objs.append(_Obj(name, parent, kind, np.asarray(hu, dtype=np.float64), np.asarray(centre, float),
@@ -576,8 +593,9 @@ class Phantom:
             z_post = (k - (npairs - 1) / 2) * P["rib_spacing"] + 0.5 * P["rib_drop"]
             for side, sname in ((-1.0, "right"), (1.0, "left")):
                 drop = P["rib_drop"] * 0.5 * (1.0 - np.cos(np.pi * (theta - theta[0]) / (theta[-1] - theta[0])))
-                pts = [vec(side * P["rib_ellipse_lr"] * np.sin(t), chest_y(P["rib_ellipse_ap"] * np.cos(t)), z_post - dz)
-                       for t, dz in zip(theta, drop)]
+                pts = [vec(side * P["rib_ellipse_lr"] * np.sin(t), chest_y(P["rib_ellipse_ap"] * np.cos(t)),
+                           z_post - dz)
+                       for t, dz in zip(theta, drop, strict=True)]
                 for s, seg in enumerate(mitred_chain(pts, P["rib_radius"])):
                     add(f"rib_{sname}_{k}_{s}", "body_muscle", KIND_CYLINDER, P["hu_rib"], *seg)
 
@@ -638,6 +656,14 @@ class Phantom:
             lv_out_semi, planes=[vent_plane])
         add("lv_blood", "lv_myocardium", KIND_ELLIPSOID, P["hu_blood_left"], lv_centre, h_axes,
             np.stack([a_cav, b_cav, b_cav], -1), planes=[vent_plane])
+        # target lesion: a sphere riding on the LV wall, at the LV equator (the cavity's centre
+        # plane across the long axis), mid-wall: the wall's normal there is radial, so the sphere
+        # keeps (b_out - b) / 2 - radius >= 0.5 mm from the cavity and the epicardium at every phase
+        phi = np.deg2rad(P["lesion_azimuth"])
+        r_les = P["lesion_radius"]
+        add("lesion", "lv_myocardium", KIND_ELLIPSOID, P["hu_lesion"],
+            lv_centre + col(0.5 * (b_cav + b_out)) * (np.cos(phi) * eta + np.sin(phi) * zeta), _EYE,
+            vec(r_les, r_les, r_les))
 
         # RV crescent; its centre sits mid-ventricle and follows half of the base descent
         # (free wall depth beyond the LV epicardium interpolated by the RV volume curve)
