@@ -106,12 +106,10 @@ def test_interrupted_write_resumes_identically(scene, pitch, tmp_path):
     n = len(projection_table(scene, pitch))
     with pytest.raises(RuntimeError, match="projector died"):
         simulate(scene, pitch, cache_dir=tmp_path, projector=FakeProjector(fail_after=3), chunk=40, progress=False)
-    # Nothing that looks finished: only the .partial, flagged incomplete, 3 chunks present.
+    # Nothing that looks finished: only the units folder, with the 3 finished chunks.
     h = scene.scan_hash(pitch)
-    assert _files(tmp_path) == [f"{h}.h5.partial"]
-    with h5py.File(tmp_path / f"{h}.h5.partial", "r") as f:
-        assert not f.attrs["complete"]
-        assert int(f["present"][...].sum()) == 120
+    assert _files(tmp_path) == [f"{h}.h5.units"]
+    assert len(_files(tmp_path / f"{h}.h5.units")) == 3
     half = ProjectionStore.open(scene, pitch, cache_dir=tmp_path)
     assert half.state == "partial" and not half.complete
     with pytest.raises(StoreError, match="not finished"):
@@ -126,14 +124,14 @@ def test_interrupted_write_resumes_identically(scene, pitch, tmp_path):
 
 
 def test_interrupting_an_extension_of_a_finished_store(scene, pitch, tmp_path):
-    """Adding projections to an existing .h5 renames it to .partial first."""
+    """Adding projections to an existing .h5 leaves the .h5 untouched until the new one is assembled."""
     n = len(projection_table(scene, pitch))
     needed = np.zeros(n, dtype=bool)
     needed[:50] = True
     simulate(scene, pitch, needed=needed, cache_dir=tmp_path, projector=FakeProjector(), progress=False)
     with pytest.raises(RuntimeError):
         simulate(scene, pitch, cache_dir=tmp_path, projector=FakeProjector(fail_after=1), chunk=30, progress=False)
-    assert [p.suffix for p in tmp_path.iterdir()] == [".partial"]
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".h5", ".units"]
     store = simulate(scene, pitch, cache_dir=tmp_path, projector=FakeProjector(), progress=False)
     assert store.n_reused == 80 and store.complete
 
@@ -163,11 +161,31 @@ def test_wrong_hash_inside_is_corrupt(scene, pitch, tmp_path):
         ProjectionStore.open(scene, pitch, cache_dir=tmp_path)
 
 
-def test_corrupt_partial_is_restarted(scene, pitch, tmp_path):
+def test_torn_assembly_partial_is_discarded(scene, pitch, tmp_path):
+    """A .partial is only ever an assembly in progress: the next open discards it and rebuilds."""
     (tmp_path / f"{scene.scan_hash(pitch)}.h5.partial").write_bytes(b"garbage")
-    with pytest.warns(UserWarning, match="unreadable interrupted store"):
+    with pytest.warns(UserWarning, match="unfinished assembly"):
         store = simulate(scene, pitch, cache_dir=tmp_path, projector=FakeProjector(), progress=False)
     assert store.complete and store.n_simulated == len(store)
+
+
+def test_damaged_unit_is_detected_and_redone(scene, pitch, tmp_path):
+    n = len(projection_table(scene, pitch))
+    with pytest.raises(RuntimeError, match="projector died"):
+        simulate(scene, pitch, cache_dir=tmp_path, projector=FakeProjector(fail_after=3), chunk=40, progress=False)
+    folder = tmp_path / f"{scene.scan_hash(pitch)}.h5.units"
+    unit = sorted(folder.iterdir())[1]
+    raw = bytearray(unit.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF                                   # one flipped byte in the data
+    unit.write_bytes(bytes(raw))
+    (folder / ".p000000120-000000159.123.tmp").write_bytes(b"torn")  # a unit killed mid-write
+    fake = FakeProjector()
+    with pytest.warns(UserWarning, match="damaged unit"):
+        resumed = simulate(scene, pitch, cache_dir=tmp_path, projector=fake, chunk=40, progress=False)
+    assert (resumed.n_simulated, resumed.n_reused) == (n - 80, 80)  # the damaged chunk is simulated again
+    assert resumed.complete and _files(tmp_path) == [f"{scene.scan_hash(pitch)}.h5"]
+    ref = simulate(scene, pitch, cache_dir=tmp_path / "ref", projector=FakeProjector(), chunk=40, progress=False)
+    np.testing.assert_array_equal(resumed.read(0, n), ref.read(0, n))
 
 
 def test_stale_table_is_resimulated(scene, pitch, tmp_path):

@@ -20,17 +20,22 @@ Layout
   ``clrecon_version``, ``projector_version``, ``views_per_rotation``, ``complete`` (all n
   projections present and the file closed cleanly).
 
-Interruption safety
--------------------
-While a run writes, the file is named ``<hash>.h5.partial`` (an existing ``.h5`` is first
-renamed to it); each block's data is written and flushed before its ``present`` entries are
-set and flushed, so ``present`` never claims data that is not on disk. On success the file is
-renamed back to ``<hash>.h5``. A ``.partial`` file left by an interrupted run is resumed on
-the next run (its ``present`` mask is trusted) and is never read as a finished store. A
-``.partial`` that HDF5 cannot open (process killed mid-write) is discarded with a warning;
-a ``.h5`` that cannot be read raises :class:`~clrecon.core.errors.StoreError`. A store whose
-table no longer matches what the current code computes for the scene (signal model changed
-without a ``PROJECTOR_VERSION`` bump) is stale: it is discarded with a warning.
+Interruption safety (crash-safe at any instant, SIGKILL included)
+-----------------------------------------------------------------
+HDF5 has no journal, so nothing is written into an HDF5 file while projecting. Each chunk of
+projections (a *unit*) becomes its own file in ``<hash>.h5.units/``, written under a temporary
+name, fsync'd and renamed with its BLAKE2b checksum in its name (:mod:`clrecon.core.units`).
+When the projecting is done the store is *assembled*: the existing ``<hash>.h5`` (if any) is
+copied to ``<hash>.h5.partial`` (or a new file is created there), the units are written into
+it with their ``present`` entries, it is fsync'd and renamed to ``<hash>.h5``, and the units
+folder is removed. So the finished ``.h5`` is never written in place, a SIGKILL at any
+instant can only tear the unit being written (a ``.tmp`` file, deleted on the next open) or
+the assembly copy (``.partial``, always discarded and rebuilt on the next open), and a
+unit damaged later fails its checksum, is dropped with a warning and simulated again. The
+``present`` mask of an open store is the file's mask plus the intact units. A ``.h5`` that
+cannot be read raises :class:`~clrecon.core.errors.StoreError`. A store whose table no
+longer matches what the current code computes for the scene (signal model changed without a
+``PROJECTOR_VERSION`` bump) is stale: it is discarded (with its units) with a warning.
 
 Integrity: every dataset carries HDF5 Fletcher-32 chunk checksums, and :meth:`ProjectionStore.read`
 refuses NaN or inf line integrals; both raise :class:`~clrecon.core.errors.StoreError` naming the
@@ -45,6 +50,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import warnings
 from pathlib import Path
 
@@ -52,6 +58,7 @@ import h5py
 import numpy as np
 
 from clrecon.config.scene import Scene
+from clrecon.core import faults, units
 from clrecon.core.errors import StoreError
 from clrecon.core.versions import PROJECTOR_VERSION, __version__
 from clrecon.scan.table import ProjectionTable, projection_table
@@ -86,7 +93,9 @@ class ProjectionStore:
     path : Path
         The finished file, ``<cache_dir>/<scan_hash>.h5``.
     partial_path : Path
-        The name the file has while being written, ``<scan_hash>.h5.partial``.
+        The name the file has while being assembled, ``<scan_hash>.h5.partial``.
+    units_path : Path
+        Folder of the finished, not yet assembled chunks, ``<scan_hash>.h5.units``.
     shape : tuple
         (n, R, C): projections, detector rows, detector columns.
     n_simulated, n_reused : int
@@ -104,6 +113,8 @@ class ProjectionStore:
         self.cache_dir = Path(cache_dir)
         self.path = self.cache_dir / f"{self.scan_hash}.h5"
         self.partial_path = self.path.with_name(self.path.name + ".partial")
+        self.units_path = self.path.with_name(self.path.name + ".units")
+        self._units: list[tuple[Path, dict]] = []
         self._table = table
         self.shape = (len(table), scene.scanner.n_rows, scene.scanner.n_cols)
         self._present = np.zeros(len(table), dtype=bool)
@@ -113,6 +124,8 @@ class ProjectionStore:
         self.n_simulated = 0
         self.n_reused = 0
         self.simulate_s = 0.0
+        #: unit files written by this process (chunks of projections)
+        self.units_written = 0
 
     # -- opening -----------------------------------------------------------------------
     @classmethod
@@ -141,22 +154,36 @@ class ProjectionStore:
         if table is None:
             table = projection_table(scene, pitch)
         store = cls(scene, pitch, table, cache_dir)
-        final, partial = store.path.exists(), store.partial_path.exists()
-        if final and partial:
-            raise StoreError(f"{store.path}: both it and {store.partial_path.name} exist; "
-                             f"delete one of them")
-        if final:
-            if store._load(store.path, corrupt_ok=False):
-                store._state = "final"
-        elif partial:
-            if store._load(store.partial_path, corrupt_ok=True):
-                store._state = "partial"
+        if store.partial_path.exists():
+            # an assembly cut short (or a .partial of an older clrecon): rebuilt from the units
+            warnings.warn(f"{store.partial_path}: unfinished assembly of an interrupted run; discarded "
+                          f"(kept: {store.path.name} and the finished chunks in {store.units_path.name}/)",
+                          stacklevel=2)
+            store.partial_path.unlink()
+        if store.path.exists():
+            if not store._load(store.path):
+                shutil.rmtree(store.units_path, ignore_errors=True)
+        store._scan_units()
+        if store.path.exists():
+            store._state = "partial" if store._units else "final"
+        elif store._units:
+            store._state = "partial"
         if store._state == "absent" and not create:
             raise StoreError(f"{store.path}: no projection store for this scan; run simulate first")
         return store
 
-    def _load(self, path: Path, corrupt_ok: bool) -> bool:
-        """Validate ``path`` and read its present mask. False if it was discarded."""
+    def _scan_units(self) -> None:
+        """Add the intact unit files to ``present`` (damaged ones are dropped by scan_units)."""
+        self._units = []
+        for p, meta in units.scan_units(self.units_path):
+            if meta.get("scan_hash") != self.scan_hash:
+                p.unlink()
+                continue
+            self._units.append((p, meta))
+            self._present[np.asarray(meta["indices"], np.int64)] = True
+
+    def _load(self, path: Path) -> bool:
+        """Validate ``path`` and read its present mask. False if it was discarded (stale)."""
         try:
             with h5py.File(path, "r") as f:
                 if f.attrs.get("format") != FORMAT:
@@ -171,11 +198,6 @@ class ProjectionStore:
                     raise ValueError(f"present mask is {present.dtype}{present.shape}")
                 stored = {c: f["table"][c][...] for c in ProjectionTable.COLUMNS}
         except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
-            if corrupt_ok:
-                warnings.warn(f"{path}: unreadable interrupted store ({_one_line(e)}); starting it again",
-                              stacklevel=3)
-                path.unlink()
-                return False
             raise StoreError(f"{path}: corrupt or truncated projection store ({_one_line(e)}); "
                              f"delete it to simulate again") from None
         bad = [c for c in ProjectionTable.COLUMNS if not self._column_matches(c, stored[c])]
@@ -247,36 +269,58 @@ class ProjectionStore:
     # -- writing -----------------------------------------------------------------------
     @contextlib.contextmanager
     def writing(self):
-        """Context in which :meth:`write` may be called; the file is ``.partial`` meanwhile.
+        """Context in which :meth:`write` may be called; the store is ``partial`` meanwhile.
 
-        On normal exit the file is renamed to ``.h5``; on an exception (or interrupt) it is
-        closed and left as ``.partial`` for the next run to resume, and the error propagates.
+        Each :meth:`write` is a durable unit file. On normal exit the store is assembled into
+        ``<hash>.h5`` (see the module's *Interruption safety*); on an exception (or interrupt,
+        or SIGKILL) the finished units stay for the next run to resume, and the error propagates.
         """
         if self._writer is not None:
             raise RuntimeError("already writing")
         self.close()
-        if self._state == "final":
-            os.replace(self.path, self.partial_path)
-        elif self._state == "absent":
-            self._create(self.partial_path)
         self._state = "partial"
-        f = h5py.File(self.partial_path, "r+", rdcc_nbytes=CACHE_BYTES)
+        self._writer = True
         try:
-            f.attrs["complete"] = False
-            f.flush()
-            self._writer = f
             yield self
-            f.attrs["complete"] = bool(self._present.all())
         finally:
             self._writer = None
-            f.close()
-        os.replace(self.partial_path, self.path)
+        self._assemble()
         self._state = "final"
+
+    def _assemble(self) -> None:
+        """Copy the .h5 (or a new file) to .partial, write the units in, fsync, rename, drop the units."""
+        if self.path.exists():
+            shutil.copyfile(self.path, self.partial_path)
+        else:
+            self._create(self.partial_path)
+        present = np.zeros(self.shape[0], dtype=bool)
+        with h5py.File(self.partial_path, "r+", rdcc_nbytes=CACHE_BYTES) as f:
+            ds = f["projections"]
+            present |= f["present"][...]
+            for p, _ in self._units:
+                arrays, _meta = units.read_unit(p)  # checksum checked again: raises if damaged since
+                idx, arr = arrays["indices"], arrays["data"]
+                breaks = np.flatnonzero(np.diff(idx) != 1) + 1
+                for lo, hi in zip(np.concatenate([[0], breaks]), np.concatenate([breaks, [idx.size]]),
+                                  strict=True):
+                    ds[idx[lo]:idx[hi - 1] + 1] = arr[lo:hi]
+                present[idx] = True
+                faults.point("assemble-store")
+            f["present"][...] = present
+            f.attrs["complete"] = bool(present.all())
+        units.fsync_file(self.partial_path)
+        faults.point("rename-store")
+        os.replace(self.partial_path, self.path)
+        units.fsync_dir(self.cache_dir)
+        shutil.rmtree(self.units_path, ignore_errors=True)
+        self._units = []
+        self._present = present
 
     def write(self, indices, data) -> None:
         """Store projections ``indices`` (increasing ints, shape (m,)) = ``data`` (m, R, C).
 
-        Only inside :meth:`writing`. The data is flushed before ``present`` is updated.
+        Only inside :meth:`writing`. One durable, checksummed unit file; ``present`` is set
+        once it is renamed into place.
         """
         if self._writer is None:
             raise RuntimeError("ProjectionStore.write outside `with store.writing():`")
@@ -291,16 +335,12 @@ class ProjectionStore:
         if np.any(np.diff(idx) <= 0) or idx[0] < 0 or idx[-1] >= self.shape[0]:
             raise ValueError(f"indices must increase strictly within [0, {self.shape[0]})")
         arr = np.ascontiguousarray(arr, dtype=np.float32)
-        ds = self._writer["projections"]
-        # Contiguous runs become slice writes: HDF5 point selections are slow.
-        breaks = np.flatnonzero(np.diff(idx) != 1) + 1
-        for lo, hi in zip(np.concatenate([[0], breaks]), np.concatenate([breaks, [idx.size]]), strict=True):
-            ds[idx[lo]:idx[hi - 1] + 1] = arr[lo:hi]
-        self._writer.flush()
+        meta = {"scan_hash": self.scan_hash, "indices": idx.tolist()}
+        p = units.write_unit(self.units_path, f"p{idx[0]:09d}-{idx[-1]:09d}", {"indices": idx, "data": arr},
+                             meta, fault="simulate")
+        self._units.append((p, meta))
         self._present[idx] = True
-        a, b = int(idx[0]), int(idx[-1]) + 1
-        self._writer["present"][a:b] = self._present[a:b]
-        self._writer.flush()
+        self.units_written += 1
 
     # -- reading -----------------------------------------------------------------------
     def read(self, start: int, stop: int, noisy: bool = False) -> np.ndarray:
