@@ -58,10 +58,11 @@ def test_signal_mid_run_then_resume(tmp_path, sig):
     assert proc.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
     assert not (out / "results.json").exists() and not (out / "volumes.h5").exists()
+    assert not (out / "volumes.h5.partial").exists()
     # resume: same command, completes
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert done.returncode == 0, done.stderr
-    assert (out / "results.json").exists() and not list(out.glob("*.partial"))
+    assert (out / "results.json").exists() and not list(out.glob("*.partial")) and not list(out.glob("*.units"))
     ref_out = tmp_path / "ref"
     run(load_scene("tiny"), ref_out, cache_dir=tmp_path / "cache2", **QUIET)
     _assert_same(out, ref_out)
@@ -81,9 +82,10 @@ def test_interrupt_during_ground_truth_resumes_only_the_rest(tmp_path, reference
     monkeypatch.setattr(groundtruth, "groundtruth_sinograms", flaky)
     with pytest.raises(KeyboardInterrupt):
         run(load_scene("tiny"), tmp_path, cache_dir=cache, **QUIET)
-    assert (tmp_path / "volumes.h5.partial").exists() and not (tmp_path / "results.json").exists()
-    with h5py.File(tmp_path / "volumes.h5.partial", "r") as f:
-        assert list(f["groundtruth"].attrs["done"]) == [1, 1, 0, 0]
+    assert (tmp_path / "volumes.h5.units").is_dir() and not (tmp_path / "results.json").exists()
+    assert not (tmp_path / "volumes.h5").exists()
+    done = sorted(p.name.split(".")[1] for p in (tmp_path / "volumes.h5.units").glob("groundtruth.*.unit"))
+    assert done == ["t00000", "t00001"]
     calls["n"] = 100                                     # no more interruptions
     res = run(load_scene("tiny"), tmp_path, cache_dir=cache, **QUIET)
     assert res["resumed"] is True

@@ -17,11 +17,14 @@ cardiac axis on disk (its 5D volume is 4D), one without breathing no respiratory
 
 from __future__ import annotations
 
+import json
+import shutil
 from pathlib import Path
 
 import h5py
 import numpy as np
 
+from clrecon.core import faults, units
 from clrecon.core.errors import StoreError
 
 DIMS = ("cardiac", "resp", "z", "y", "x")
@@ -33,34 +36,45 @@ def pitch_key(pitch: float) -> str:
 
 
 class VolumeWriter:
-    """Writes ``volumes.h5`` as ``volumes.h5.partial`` and renames it when closed cleanly.
+    """Writes ``volumes.h5`` crash-safely: unit files first, one HDF5 file assembled at the end.
 
-    Resumable: every finished block is marked in a ``done`` attribute (slices for
-    reconstructions, targets for truths) after it is written and flushed. A later run with
-    the same ``run_key`` (hash of scene and request) reopens the partial file and skips what
-    is marked; any other key starts afresh.
+    Every finished block (a slab of one reconstruction, one target of a truth) is written as
+    its own atomic, checksummed unit file in ``volumes.h5.units/`` (:mod:`clrecon.core.units`);
+    nothing is written into HDF5 while computing, so a SIGKILL at any instant can only lose
+    the block being written. :meth:`assemble` builds ``volumes.h5.partial`` from the units
+    (``f`` is then open on it for reading); :meth:`close` fsyncs it, renames it to
+    ``volumes.h5`` and removes the units. A later run with the same ``run_key`` (hash of
+    scene and request, kept in ``volumes.h5.units/run.json``) keeps the intact units and
+    skips what they hold; a damaged unit is dropped with a warning and redone; a leftover
+    ``.partial`` (an assembly cut short) is discarded and rebuilt; any other key starts afresh.
     """
 
     def __init__(self, path: Path, axes: dict, keep_cardiac: bool, keep_resp: bool, run_key: str = ""):
         self.path = Path(path)
         self.partial = self.path.with_name(self.path.name + ".partial")
+        self.units_dir = self.path.with_name(self.path.name + ".units")
         self.keep = (keep_cardiac, keep_resp)
+        self.axes = {k: np.asarray(v, np.float64) for k, v in axes.items()}
         self.resumed = False
-        if self.partial.exists():
-            try:
-                f = h5py.File(self.partial, "a")
-                if f.attrs.get("run_key") == run_key and f.attrs.get("format_version") == FORMAT_VERSION:
-                    self.f, self.resumed = f, True
-                else:
-                    f.close()
-            except OSError:  # a partial file too damaged to open: start again
-                pass
-        if not self.resumed:
-            self.f = h5py.File(self.partial, "w")
-            self.f.attrs["format_version"] = FORMAT_VERSION
-            self.f.attrs["run_key"] = run_key
-            for k, v in axes.items():
-                self.f[f"axes/{k}"] = np.asarray(v, np.float64)
+        self.f = None
+        self.units_written = {"recon": 0, "truth": 0}
+        self._specs: dict[str, tuple[tuple, int]] = {}  # name -> (on-disk shape, done size)
+        self._done: dict[str, np.ndarray] = {}
+        self._units: dict[str, list[tuple[Path, dict]]] = {}
+        self.partial.unlink(missing_ok=True)  # only ever an assembly in progress: rebuilt from the units
+        meta_path = self.units_dir / "run.json"
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (OSError, ValueError):
+            meta = None
+        if (meta and meta.get("run_key") == run_key and meta.get("format_version") == FORMAT_VERSION):
+            self.resumed = True
+            for p, m in units.scan_units(self.units_dir):
+                self._units.setdefault(m["name"], []).append((p, m))
+        else:
+            shutil.rmtree(self.units_dir, ignore_errors=True)
+            self.units_dir.mkdir(parents=True)
+            units.write_json_atomic(meta_path, {"run_key": run_key, "format_version": FORMAT_VERSION})
 
     def _dims(self):
         return tuple(d for d, keep in zip(DIMS, self.keep + (True, True, True), strict=True) if keep)
@@ -70,49 +84,96 @@ class VolumeWriter:
         return vol.reshape(tuple(s for i, s in enumerate(vol.shape) if i not in drop))
 
     def create(self, name: str, full_shape: tuple, done_size: int) -> None:
-        """Create dataset ``name`` (kept as it is when resuming) with a ``done`` mask of ``done_size``."""
-        if name in self.f:
+        """Declare dataset ``name`` with a ``done`` mask of ``done_size`` (slices or flattened targets)."""
+        if name in self._specs:
             return
         shape = self._squeeze(np.empty(full_shape, np.bool_)).shape
-        chunks = tuple(1 for _ in shape[:-3]) + (1,) + tuple(shape[-2:])
-        ds = self.f.create_dataset(name, shape=shape, dtype=np.float32, chunks=chunks)
-        ds.attrs["dims"] = list(self._dims())
-        ds.attrs["units"] = "HU"
-        ds.attrs["done"] = np.zeros(done_size, np.uint8)
+        self._specs[name] = (shape, done_size)
+        done = np.zeros(done_size, bool)
+        kept = []
+        for p, m in self._units.get(name, []):
+            sel = np.asarray(m["z"] if "z" in m else [m["target"]], np.int64)
+            if tuple(m["shape"]) != shape or sel.max(initial=-1) >= done_size or done[sel].any():
+                p.unlink(missing_ok=True)  # from another layout, or overlapping: redo
+                continue
+            done[sel] = True
+            kept.append((p, m))
+        self._units[name] = kept
+        self._done[name] = done
 
     def done(self, name: str) -> np.ndarray:
         """Boolean mask of the finished blocks of ``name`` (slices or flattened targets)."""
-        return np.asarray(self.f[name].attrs["done"], bool)
+        return self._done[name].copy()
 
-    def _mark(self, name: str, which) -> None:
-        self.f.flush()  # data first, then the mark: a crash between them only redoes work
-        d = np.asarray(self.f[name].attrs["done"], np.uint8)
-        d[which] = 1
-        self.f[name].attrs["done"] = d
-        self.f.flush()
+    def _unit(self, name: str, vol: np.ndarray, meta: dict, fault: str, stem: str) -> None:
+        meta = dict(meta, name=name, shape=list(self._specs[name][0]))
+        p = units.write_unit(self.units_dir, stem, {"data": np.ascontiguousarray(vol, np.float32)}, meta, fault)
+        self._units[name].append((p, meta))
+        self.units_written[fault] += 1
 
     def write(self, name: str, vol: np.ndarray, z_index) -> None:
-        """Write a full-axis block ``(n_c, n_r, s, ny, nx)`` into slice indices ``z_index`` (increasing)."""
+        """Write a full-axis block ``(n_c, n_r, s, ny, nx)`` into slice indices ``z_index`` (increasing).
+
+        Slices already done are skipped (a resumed run never writes a unit twice).
+        """
         v = self._squeeze(vol)
-        z = np.asarray(z_index)
-        self.f[name][(slice(None),) * (v.ndim - 3) + (list(z),)] = v
-        self._mark(name, z)
+        z = np.asarray(z_index, np.int64)
+        new = ~self._done[name][z]
+        if not new.any():
+            return
+        v, z = v[(slice(None),) * (v.ndim - 3) + (new,)], z[new]
+        self._unit(name, v, {"z": z.tolist()}, "recon", f"{name.replace('/', '~')}.z{z[0]:05d}-{z[-1]:05d}")
+        self._done[name][z] = True
 
     def write_target(self, name: str, i: int, j: int, n_resp: int, vol: np.ndarray) -> None:
         """Write one target's ``(nz, ny, nx)`` volume at cardiac index ``i``, respiratory index ``j``."""
-        sel = tuple(k for k, keep in zip((i, j), self.keep, strict=True) if keep)
-        self.f[name][sel] = vol
-        self._mark(name, i * n_resp + j)
+        k = i * n_resp + j
+        if self._done[name][k]:
+            return
+        sel = [int(x) for x, keep in zip((i, j), self.keep, strict=True) if keep]
+        self._unit(name, vol, {"target": k, "sel": sel}, "truth", f"{name.replace('/', '~')}.t{k:05d}")
+        self._done[name][k] = True
+
+    def assemble(self) -> h5py.File:
+        """Build ``volumes.h5.partial`` from the units; returns it open for reading (also ``self.f``)."""
+        with h5py.File(self.partial, "w") as f:
+            f.attrs["format_version"] = FORMAT_VERSION
+            for k, v in self.axes.items():
+                f[f"axes/{k}"] = v
+            for name, (shape, _) in self._specs.items():
+                chunks = tuple(1 for _ in shape[:-3]) + (1,) + tuple(shape[-2:])
+                ds = f.create_dataset(name, shape=shape, dtype=np.float32, chunks=chunks)
+                ds.attrs["dims"] = list(self._dims())
+                ds.attrs["units"] = "HU"
+                ds.attrs["done"] = self._done[name].astype(np.uint8)
+                for p, m in self._units[name]:
+                    data = units.read_unit(p)[0]["data"]  # checksum checked again
+                    if "z" in m:
+                        ds[(slice(None),) * (len(shape) - 3) + (list(m["z"]),)] = data
+                    else:
+                        ds[tuple(m["sel"])] = data
+                    faults.point("assemble-volumes")
+        units.fsync_file(self.partial)
+        self.f = h5py.File(self.partial, "r")
+        return self.f
 
     def close(self) -> None:
+        """Assemble (if not yet), rename to ``volumes.h5`` and remove the units."""
+        if self.f is None:
+            self.assemble()
         self.f.close()
+        faults.point("rename-volumes")
         self.partial.replace(self.path)
+        units.fsync_dir(self.path.parent)
+        shutil.rmtree(self.units_dir, ignore_errors=True)
 
     def abort(self) -> None:
-        try:
-            self.f.close()
-        except Exception:  # noqa: BLE001 - best-effort cleanup on a failing run: the original error matters
-            pass
+        """Close the assembly file if open; the units stay for the next run."""
+        if self.f is not None:
+            try:
+                self.f.close()
+            except Exception:  # noqa: BLE001 - best-effort cleanup on a failing run: the original error matters
+                pass
 
 
 def open_volumes(path) -> h5py.File:

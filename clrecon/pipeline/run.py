@@ -153,24 +153,30 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     method_plan_seconds: dict = {}  # pitch key -> method -> planning seconds (in method_seconds too)
     diagnostics: dict = {}  # pitch key -> method -> per-target weight diagnostics (cardiac-major)
     sampling: dict = {}  # per pitch: distinct cardiac phases and candidates per (slice, view)
+    units_written = {"projections": 0}  # unit files written by this process (a resumed run: only the rest)
     try:
         for pitch in pitches:
             pk = pitch_key(pitch)
             names = [f"recon/{pk}/{v}/{m}" for v in variants for m in methods]
             for name in names:
                 writer.create(name, full_shape, len(slices_z))
-            todo = np.flatnonzero(~np.logical_and.reduce([writer.done(n) for n in names]))
+            # a resumed run redoes only the units (slab x variant x method) not yet written:
+            # the methods with an unfinished unit, on the slices one of them lacks
+            run_methods = tuple(m for m in methods if not all(writer.done(f"recon/{pk}/{v}/{m}").all()
+                                                                 for v in variants))
+            todo = np.flatnonzero(~np.logical_and.reduce(
+                [writer.done(f"recon/{pk}/{v}/{m}") for v in variants for m in run_methods] or [True]))
             if todo.size == 0:
                 log(f"[{pk}] already reconstructed (resumed run)")
                 sim_info[pk] = {"projections_total": scene.scan.projection_count(scene.scanner, pitch),
                                 "projections_needed": 0, "projections_simulated": 0, "projections_reused": 0,
                                 "store": ""}
                 continue
-            log(f"[{pk}] planning {todo.size} slices x {n_t} targets x {len(methods)} methods")
+            log(f"[{pk}] planning {todo.size} slices x {n_t} targets x {len(run_methods)} methods")
             t0 = time.perf_counter()
             table = geometry.projection_table(scene, pitch)
             times.add("signals", time.perf_counter() - t0)
-            plan = reconstruct.plan(recon_cfg, table, slices_z[todo], targets, methods)
+            plan = reconstruct.plan(recon_cfg, table, slices_z[todo], targets, run_methods)
             times.add("plan", plan.seconds)
             diagnostics[pk] = weight_diagnostics(plan, table, targets)
             sampling[pk] = sampling_mod.sampling_summary(
@@ -183,6 +189,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                             "projections_simulated": int(getattr(store, "n_simulated", 0)),
                             "projections_reused": int(getattr(store, "n_reused", 0)),
                             "store": str(getattr(store, "path", ""))}
+            units_written["projections"] += int(getattr(store, "units_written", 0))
 
             def on_slab(zs, slab, pk=pk, todo=todo):
                 for (v, m), vol in slab.items():
@@ -232,7 +239,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
 
         log("metrics")
         t0 = time.perf_counter()
-        met, resp_only, motion_res = evaluate(scene, writer.f, targets, slices_z, pitches, variants, methods)
+        vol_file = writer.assemble()
+        met, resp_only, motion_res = evaluate(scene, vol_file, targets, slices_z, pitches, variants, methods)
         times.add("metrics", time.perf_counter() - t0)
         # the previous run's results must not describe the new volumes, even for a moment
         (out / "results.json").unlink(missing_ok=True)
@@ -265,6 +273,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                     "slices": list(slice_range) if slice_range else [0, nz], "slices_z_mm": slices_z.tolist()},
         "dimensions": {"cardiac": scene.has_cardiac, "resp": scene.has_respiratory},
         "resumed": writer.resumed,
+        "units_written": dict(units_written, **writer.units_written),
         "stages": stages,
         "metrics": met,
         "method_seconds": method_seconds,
