@@ -148,7 +148,7 @@ def _slices(slices: SlicesLike, nz: int) -> tuple[int, int] | None:
 def run(scene: Scene | PathLike, out: PathLike | None = None, *, methods: Sequence[str] | str | None = None,
         targets: TargetsLike = None, slices: SlicesLike = None, pitches: Sequence[float] | float | None = None,
         progress: bool = False, cache: PathLike | None = None, report: bool = True,
-        log: Callable[[str], Any] | None = None) -> RunResult:
+        log: Callable[[str], Any] | None = None, force: bool = False) -> RunResult:
     """Simulate (or reuse) -> reconstruct -> evaluate -> report, like ``clrecon run``.
 
     ``scene``: a :class:`Scene` or a built-in name / TOML path. ``out``: the run directory
@@ -158,7 +158,8 @@ def run(scene: Scene | PathLike, out: PathLike | None = None, *, methods: Sequen
     stop)`` into the scene's ``recon.nz`` slices. ``pitches``: a number or list, default the
     scene's. ``progress``: tqdm bars. ``cache``: the projection store folder (default
     ``$CLRECON_CACHE`` or ``~/.cache/clrecon``). ``report``: write ``report.md`` and figures.
-    ``log``: called with each status line (default: silent).
+    ``log``: called with each status line (default: silent). ``force``: run even if the
+    pre-flight check (modelled peak memory and disk need against the machine) says it will not fit.
 
     Returns a :class:`RunResult` (``.path``, ``.results``, ``.open()``). Wraps
     :func:`clrecon.pipeline.run.run`.
@@ -176,7 +177,7 @@ def run(scene: Scene | PathLike, out: PathLike | None = None, *, methods: Sequen
     results = run_pipeline(scene, path, methods=list(methods) if methods else None, cardiac=cardiac, resp=resp,
                            slice_range=slice_range, pitches=list(pitches) if pitches else None,
                            cache_dir=None if cache is None else str(cache), progress=progress, report=report,
-                           log=log if log is not None else (lambda *a, **k: None))
+                           log=log if log is not None else (lambda *a, **k: None), force=force)
     return RunResult(path=path, results=results)
 
 

@@ -47,7 +47,7 @@ def cmd_run(args) -> int:
     pitches = _floats(args.pitch) if args.pitch else None
     out = args.out or f"runs/{scene.name}"
     res = run(scene, out, methods=methods, cardiac=cardiac, resp=resp, slice_range=slices, pitches=pitches,
-              cache_dir=args.cache, progress=not args.no_progress)
+              cache_dir=args.cache, progress=not args.no_progress, force=args.force)
     print(f"wrote {out}/results.json, {out}/report.md, {out}/volumes.h5 in {res['total_seconds']:.1f} s")
     from clrecon.evaluation.claims import claim_summary_lines
     from clrecon.outputs.report import summary_lines
@@ -147,6 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--pitch", help="comma list of the scene's pitches to run")
     r.add_argument("--cache", help="projection store folder (default: $CLRECON_CACHE or ~/.cache/clrecon)")
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
+    r.add_argument("--force", action="store_true",
+                   help="run even if the pre-flight check says the memory or disk will not suffice")
     r.set_defaults(func=cmd_run)
 
     s = sub.add_parser("scenes", help="list the built-in scenes with their size, disk and memory")
@@ -222,7 +224,14 @@ def main(argv=None) -> int:
         print(f"clrecon: error: {what} ({e.strerror or e}{': ' + str(e.filename) if e.filename else ''}); "
               f"outputs of earlier runs are kept; run again to resume", file=sys.stderr)
         return 2
+    except MemoryError:
+        if args.debug:
+            raise
+        print("clrecon: error: out of memory; `clrecon scenes` shows each scene's modelled peak memory: "
+              "narrow --slices/--targets/--methods; finished outputs are kept", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
-        print("clrecon: interrupted; finished outputs are kept and unfinished ones keep their .partial names: "
+        print("clrecon: interrupted; finished outputs and finished units of work are kept, unfinished files keep "
+              ".partial names: "
               "run the same command again to resume", file=sys.stderr)
         return 130

@@ -87,7 +87,7 @@ class VolumeWriter:
         """Declare dataset ``name`` with a ``done`` mask of ``done_size`` (slices or flattened targets)."""
         if name in self._specs:
             return
-        shape = self._squeeze(np.empty(full_shape, np.bool_)).shape
+        shape = tuple(n for i, n in enumerate(full_shape) if i >= 2 or self.keep[i])
         self._specs[name] = (shape, done_size)
         done = np.zeros(done_size, bool)
         kept = []

@@ -12,28 +12,48 @@ GiB = 1024 ** 3
 
 def scene_costs(scene) -> dict:
     """Sizes in bytes and counts: projections per pitch, store, volumes, peak memory estimate."""
+    return run_costs(scene)
+
+
+def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, pitches=None) -> dict:
+    """:func:`scene_costs` of one run: the scene narrowed to ``methods``, targets, slices, ``pitches``.
+
+    ``projections_needed`` models the projections the slices use (those within the SSRB slice
+    window of a slice, plus one rotation); ``volume_bytes`` is what ``volumes.h5`` holds (every
+    reconstruction on the full target grid: r4dct and helical are broadcast on disk).
+    """
     sc, rc = scene.scanner, scene.recon
-    n_proj = {p: scene.scan.projection_count(sc, p) for p in scene.scan.pitches}
+    methods = tuple(methods or rc.methods)
+    pitches = tuple(pitches or scene.scan.pitches)
+    n_c = len(scene.cardiac_targets) if n_cardiac is None else n_cardiac
+    n_r = len(scene.resp_targets) if n_resp is None else n_resp
+    nz = rc.nz if slices_z is None else len(slices_z)
+    n_proj = {p: scene.scan.projection_count(sc, p) for p in pitches}
     proj_bytes = sc.n_rows * sc.n_cols * 4
-    n_targets = len(scene.cardiac_targets) * len(scene.resp_targets)
-    vol_bytes = n_targets * rc.nz * rc.ny * rc.nx * 4
-    n_vols = len(scene.scan.pitches) * len(noise_variants(scene)) * len(rc.methods) + 2
+    n_targets = n_c * n_r
+    vol_bytes = n_targets * nz * rc.ny * rc.nx * 4
+    n_var = len(noise_variants(scene))
+    n_vols = len(pitches) * n_var * len(methods) + 2
+    radius = min(sc.fov_radius_mm, rc.fov_radius_mm)
+    window = slice_window_mm(sc, radius)
+    z_extent = (max(slices_z) - min(slices_z)) if slices_z is not None and len(slices_z) else (nz - 1) * rc.slice_mm
+    needed = {p: int(min(n_proj[p], ((z_extent + 2 * window) / scene.scan.feed_mm(sc, p) + 1)
+                         * sc.views_per_rotation)) for p in pitches}
     # peak, as reconstruct.py walks it: one 512-projection read chunk (+ its noisy copy), one
     # slab of rebinned rows (capped at 1.5 GB by the slab size), the slab's output volumes for
     # every method and variant, one method's slab of sinograms, and one target's truth volume
-    radius = min(sc.fov_radius_mm, rc.fov_radius_mm)
-    feed = min(scene.scan.feed_mm(sc, p) for p in scene.scan.pitches)
-    rows_per_slice = 2 * slice_window_mm(sc, radius) / feed * sc.views_per_rotation
-    n_var = len(noise_variants(scene))
-    slab = int(max(1, min(rc.nz, 1.5e9 // (rows_per_slice * sc.n_cols * 4 * n_var))))
+    feed = min(scene.scan.feed_mm(sc, p) for p in pitches)
+    rows_per_slice = 2 * window / feed * sc.views_per_rotation
+    slab = int(max(1, min(nz, 1.5e9 // (rows_per_slice * sc.n_cols * 4 * n_var))))
     chunk = 512 * proj_bytes * (1 + n_var)
     slab_rows = min(1.5e9, slab * rows_per_slice * sc.n_cols * 4 * n_var)
-    slab_vols = len(rc.methods) * n_var * n_targets * slab * rc.ny * rc.nx * 4
+    slab_vols = len(methods) * n_var * n_targets * slab * rc.ny * rc.nx * 4
     slab_sinos = n_targets * slab * sc.views_per_rotation * sc.n_cols * 4 * 2
-    peak = chunk + slab_rows + slab_vols + slab_sinos + 2 * rc.nz * rc.ny * rc.nx * 4
-    return {"projections": n_proj, "store_bytes": sum(n_proj.values()) * proj_bytes,
+    peak = chunk + slab_rows + slab_vols + slab_sinos + 2 * nz * rc.ny * rc.nx * 4
+    return {"projections": n_proj, "projections_needed": needed, "store_bytes": sum(n_proj.values()) * proj_bytes,
+            "needed_store_bytes": sum(needed.values()) * proj_bytes,
             "volume_bytes": vol_bytes * n_vols, "n_volumes": n_vols, "n_targets": n_targets,
-            "peak_memory_bytes": peak, "slab_slices": slab}
+            "peak_memory_bytes": int(peak), "slab_slices": slab}
 
 
 def describe_scenes() -> str:

@@ -113,8 +113,13 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         cardiac: Sequence[float] | None = None, resp: Sequence[float] | None = None,
         slice_range: tuple[int, int] | None = None, pitches: Sequence[float] | None = None,
         cache_dir: str | Path | None = None, progress: bool = True, report: bool = True,
-        log: Callable[..., Any] = print) -> dict[str, Any]:
-    """Run the whole job; returns the ``results.json`` dictionary."""
+        log: Callable[..., Any] = print, force: bool = False) -> dict[str, Any]:
+    """Run the whole job; returns the ``results.json`` dictionary.
+
+    Before any work, :func:`clrecon.pipeline.preflight.check` compares the run's modelled peak
+    memory and disk need with the machine and raises a one-line :class:`ClreconError` if it
+    will not fit; ``force=True`` skips that check.
+    """
     t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,6 +136,14 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         if not (0 <= i0 < i1 <= nz):
             raise ClreconError(f"--slices {i0}:{i1}: must satisfy 0 <= start < stop <= recon.nz = {nz}")
     slices_z = reconstruct.slice_positions(scene, slice_range)
+    from clrecon.pipeline import costs as costs_mod  # costs imports this module
+    from clrecon.pipeline import preflight
+    from clrecon.simulation.store import default_cache_dir
+
+    run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches)
+    cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    need = (preflight.needs(scene, run_costs, cache_path, out) if force
+            else preflight.check(scene, run_costs, cache_path, out))
     recon_cfg = reconstruct.ReconstructionConfig.from_scene(scene)
     variants = noise_variants(scene)
     times = StageTimes()
@@ -273,6 +286,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                     "slices": list(slice_range) if slice_range else [0, nz], "slices_z_mm": slices_z.tolist()},
         "dimensions": {"cardiac": scene.has_cardiac, "resp": scene.has_respiratory},
         "resumed": writer.resumed,
+        "preflight": {"forced": bool(force), "needs_bytes": need},
         "units_written": dict(units_written, **writer.units_written),
         "stages": stages,
         "metrics": met,

@@ -1,0 +1,103 @@
+"""Pre-flight: before any work, the run's modelled peak memory and disk need against the machine.
+
+:func:`check` compares :func:`clrecon.pipeline.costs.run_costs` (narrowed to the run's
+methods, targets, slices and pitches) with what is free: disk at the projection-store folder
+and at the run directory (``shutil.disk_usage`` of the nearest existing folder; one sum when
+both are on one file system) and available memory (``MemAvailable`` of ``/proc/meminfo``, else
+``os.sysconf``). Beyond it: one :class:`~clrecon.core.errors.ClreconError` line naming both
+numbers and the override (``--force`` / ``force=True``).
+
+Disk need, from the crash-safe layout (:mod:`clrecon.core.units`): projection units of the
+needed projections (raw float32) plus the assembled store (the old ``.h5`` copied, plus the
+new projections; LZF-compressed, counted raw), i.e. 2 x needed + the existing store, or
+nothing when the existing store is complete; volume units plus the assembled ``volumes.h5``
+(2 x the volumes), less the units an interrupted run already left.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+from clrecon.core.errors import ClreconError
+
+GiB = 1024 ** 3
+
+
+def free_disk_bytes(path: Path) -> int:
+    """Free bytes of the file system holding ``path`` (or its nearest existing parent)."""
+    p = Path(path).expanduser().absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return int(shutil.disk_usage(p).free)
+
+
+def _device(path: Path) -> int:
+    p = Path(path).expanduser().absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return os.stat(p).st_dev
+
+
+def available_memory_bytes() -> int:
+    """MemAvailable from /proc/meminfo; else free pages x page size."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+
+
+def _dir_bytes(path: Path) -> int:
+    if not path.is_dir():
+        return 0
+    return sum(p.stat().st_size for p in path.iterdir() if p.is_file())
+
+
+def _gib(b: float) -> str:
+    return f"{b / GiB:.2f} GiB" if b < 1000 * GiB else f"{b / GiB:,.0f} GiB"
+
+
+def needs(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
+    """Bytes this run needs: ``memory``, ``cache_disk``, ``out_disk``."""
+    import h5py
+
+    proj_bytes = scene.scanner.n_rows * scene.scanner.n_cols * 4
+    cache = 0
+    for p, n_needed in costs["projections_needed"].items():
+        h = Path(cache_dir) / f"{scene.scan_hash(p)}.h5"
+        existing = h.stat().st_size if h.exists() else 0
+        if existing:
+            try:
+                with h5py.File(h, "r") as f:
+                    if bool(f.attrs.get("complete")):
+                        continue
+            except OSError:
+                pass
+        cache += 2 * n_needed * proj_bytes + existing
+    out = max(0, 2 * costs["volume_bytes"] - _dir_bytes(Path(out_dir) / "volumes.h5.units"))
+    return {"memory": costs["peak_memory_bytes"], "cache_disk": cache, "out_disk": out}
+
+
+def check(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
+    """Raise a one-line :class:`ClreconError` when the run will not fit; returns the needs."""
+    need = needs(scene, costs, cache_dir, out_dir)
+    force = "pass --force (clrecon run) or force=True (clrecon.api.run) to run anyway"
+    mem = available_memory_bytes()
+    if need["memory"] > mem:
+        raise ClreconError(f"pre-flight: the run needs about {_gib(need['memory'])} of memory (modelled peak), "
+                           f"the machine has {_gib(mem)} available; narrow --slices/--targets/--methods or {force}")
+    disks = [("the projection store", cache_dir, need["cache_disk"]), ("the run directory", out_dir, need["out_disk"])]
+    if _device(cache_dir) == _device(out_dir):
+        disks = [(f"the projection store and the run directory ({cache_dir})", out_dir,
+                  need["cache_disk"] + need["out_disk"])]
+    for what, path, b in disks:
+        free = free_disk_bytes(path)
+        if b > free:
+            raise ClreconError(f"pre-flight: {what} needs about {_gib(b)} of disk, {path} has {_gib(free)} free; "
+                               f"free some space, narrow the run or {force}")
+    return need

@@ -1,0 +1,89 @@
+"""Pre-flight: the run's modelled memory and disk need against the machine, before any work."""
+
+import numpy as np
+import pytest
+
+from clrecon import api
+from clrecon.cli import main
+from clrecon.config.scene import load_scene
+from clrecon.core.errors import ClreconError
+from clrecon.pipeline import preflight
+from clrecon.pipeline.costs import run_costs, scene_costs
+from clrecon.pipeline.run import run
+
+GiB = 1024 ** 3
+QUIET = dict(progress=False, log=lambda *a: None)
+
+
+@pytest.fixture
+def roomy(monkeypatch):
+    monkeypatch.setattr(preflight, "available_memory_bytes", lambda: 64 * GiB)
+    monkeypatch.setattr(preflight, "free_disk_bytes", lambda path: 500 * GiB)
+
+
+def test_huge_volume_is_a_one_line_error_not_a_memory_error(tmp_path, roomy, capsys):
+    toml = tmp_path / "huge.toml"
+    src = load_scene("tiny").source
+    text = open(src).read().replace("nx = 32", "nx = 100000").replace("ny = 32", "ny = 100000")
+    toml.write_text(text.replace('name = "tiny"', 'name = "huge"'))
+    rc = main(["run", "--scene", str(toml), "--out", str(tmp_path / "run"), "--cache", str(tmp_path / "c"),
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert err.startswith("clrecon: error: pre-flight:") and "of memory" in err
+    assert "64.00 GiB available" in err and "--force" in err and "force=True" in err
+    assert not (tmp_path / "run" / "volumes.h5.units").exists()   # nothing was started
+
+
+def test_not_enough_memory_then_force(tmp_path, monkeypatch):
+    need = run_costs(load_scene("tiny"), methods=["nearest"])["peak_memory_bytes"]
+    monkeypatch.setattr(preflight, "available_memory_bytes", lambda: need // 2)
+    with pytest.raises(ClreconError, match=r"pre-flight: the run needs about .* of memory .* available") as e:
+        api.run("tiny", tmp_path / "run", methods="nearest", cache=tmp_path / "c", report=False)
+    assert "\n" not in str(e.value) and "force=True" in str(e.value)
+    res = api.run("tiny", tmp_path / "run", methods="nearest", cache=tmp_path / "c", report=False, force=True)
+    assert res.results["preflight"]["forced"] is True
+
+
+def test_not_enough_disk_names_both_numbers(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(preflight, "available_memory_bytes", lambda: 64 * GiB)
+    monkeypatch.setattr(preflight, "free_disk_bytes", lambda path: 1000)
+    argv = ["run", "--scene", "tiny", "--methods", "nearest", "--out", str(tmp_path / "run"),
+            "--cache", str(tmp_path / "c"), "--no-progress"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "of disk" in err and "0.00 GiB free" in err and "--force" in err
+    assert main(argv + ["--force"]) == 0
+
+
+def test_separate_file_systems_are_checked_separately(tmp_path, monkeypatch):
+    scene = load_scene("tiny")
+    costs = run_costs(scene)
+    monkeypatch.setattr(preflight, "available_memory_bytes", lambda: 64 * GiB)
+    monkeypatch.setattr(preflight, "_device", lambda p: 1 if "cache" in str(p) else 2)
+    need = preflight.needs(scene, costs, tmp_path / "cache", tmp_path / "out")
+    assert need["cache_disk"] == 2 * costs["needed_store_bytes"] and need["out_disk"] == 2 * costs["volume_bytes"]
+    free = {"cache": need["cache_disk"] - 1, "out": 10 * GiB}
+    monkeypatch.setattr(preflight, "free_disk_bytes", lambda p: free["cache" if "cache" in str(p) else "out"])
+    with pytest.raises(ClreconError, match="the projection store needs"):
+        preflight.check(scene, costs, tmp_path / "cache", tmp_path / "out")
+    free["cache"] = 10 * GiB
+    preflight.check(scene, costs, tmp_path / "cache", tmp_path / "out")
+
+
+def test_costs_follow_the_narrowing_and_bound_what_is_written(tmp_path, roomy):
+    scene = load_scene("tiny")
+    full = scene_costs(scene)
+    narrow = run_costs(scene, methods=["nearest", "helical"], n_cardiac=1, n_resp=2, slices_z=np.array([0.0]))
+    assert narrow["volume_bytes"] < full["volume_bytes"] and narrow["peak_memory_bytes"] < full["peak_memory_bytes"]
+    assert narrow["n_volumes"] == 2 * 2 + 2
+    res = run(scene, tmp_path / "run", methods=["nearest", "helical"], cardiac=[0.0], slice_range=(0, 1),
+              cache_dir=tmp_path / "c", report=False, **QUIET)
+    written = (tmp_path / "run" / "volumes.h5").stat().st_size
+    assert written <= narrow["volume_bytes"] * 1.1 + 200_000           # + HDF5 metadata and axes
+    store = res["stages"]["simulate"]["per_pitch"]["p0.100"]
+    assert store["projections_needed"] <= narrow["projections_needed"][0.1]
+    need = res["preflight"]["needs_bytes"]
+    assert need["out_disk"] == 2 * narrow["volume_bytes"] and need["memory"] == narrow["peak_memory_bytes"]
+    if store["projections_needed"] == store["projections_total"]:  # the store is complete: no more cache disk
+        assert preflight.needs(scene, full, tmp_path / "c", tmp_path / "run2")["cache_disk"] == 0
