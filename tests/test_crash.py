@@ -59,6 +59,7 @@ def _assert_identical(out, ref):
 # totals P, R, T: tiny has 384 projections = 2 chunks of 256, 6 methods x 2 variants x 1 slab, 4 targets x 2 truths
 CASES = {
     "simulate:2": lambda P, R, T: (P - 1, R, T),     # mid-write of the 2nd chunk of projections
+    "assemble-store:1": lambda P, R, T: (0, R, T),   # store .partial torn mid-assembly
     "rename-store:1": lambda P, R, T: (0, R, T),     # store assembled, not yet renamed
     "recon:5": lambda P, R, T: (0, R - 4, T),        # mid-write of the 5th reconstruction unit
     "truth:3": lambda P, R, T: (0, 0, T - 2),        # mid-write of the 3rd truth target
