@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from clrecon.core import faults
+from clrecon.core.errors import StoreError
 
 SUFFIX = ".unit"
 
@@ -73,8 +74,8 @@ def read_unit(path: Path) -> tuple[dict, dict]:
     """(arrays, meta) of a unit file; ValueError if its checksum does not match its name."""
     data = Path(path).read_bytes()
     want = Path(path).name[:-len(SUFFIX)].rsplit(".", 1)[-1]
-    if _digest(data) != want:
-        raise ValueError(f"{path}: checksum mismatch (damaged unit file)")
+    if _digest(data) != want:  # StoreError is an OSError: scan_units drops it; elsewhere one line
+        raise StoreError(f"{path}: checksum mismatch (damaged unit file); run again: it is computed again")
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files if k != "meta"}
         meta = json.loads(z["meta"].tobytes().decode())
