@@ -79,7 +79,8 @@ from clrecon.config.scene import load_scene
 from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
-from clrecon.pipeline.run import noise_variants, run
+from clrecon.pipeline.run import run
+from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import fbp, rebin, reconstruct
 from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.scan.table import projection_table

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from clrecon.config.scene import builtin_scene_names, load_scene
 from clrecon.core.errors import SceneError
-from clrecon.pipeline.run import noise_variants
+from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction.rebin import slice_window_mm
 
 GiB = 1024 ** 3

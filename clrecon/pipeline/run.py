@@ -33,6 +33,9 @@ from clrecon.core.versions import __version__
 from clrecon.evaluation import claims, groundtruth, metrics, motion
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key, read_volume
+from clrecon.pipeline import costs as costs_mod
+from clrecon.pipeline import preflight
+from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, rebin, reconstruct
 from clrecon.reconstruction.diagnostics import weight_diagnostics
 from clrecon.reconstruction.reconstruct import StageTimes, Targets
@@ -40,6 +43,7 @@ from clrecon.scan import sampling as sampling_mod
 from clrecon.scan import table as geometry
 from clrecon.simulation import simulate
 from clrecon.simulation.phantom_sources import phantom_from_config
+from clrecon.simulation.store import default_cache_dir
 
 RESULTS_FORMAT = 1
 #: From the interpolation-method registry: the 5DCT methods, and those compared in the
@@ -75,12 +79,6 @@ def resolve_targets(scene: Scene, cardiac: Sequence[float] | None = None,
             raise ClreconError(f"--targets: respiratory amplitude {bad[0]} outside [0, 1]")
         r = tuple(float(x) for x in resp)
     return Targets(cardiac=c, resp=r)
-
-
-def noise_variants(scene) -> tuple:
-    if not scene.noise.enabled:
-        return ("noise-free",)
-    return ("noisy", "noise-free") if scene.noise.also_noise_free else ("noisy",)
 
 
 def _versions() -> dict:
@@ -136,10 +134,6 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         if not (0 <= i0 < i1 <= nz):
             raise ClreconError(f"--slices {i0}:{i1}: must satisfy 0 <= start < stop <= recon.nz = {nz}")
     slices_z = reconstruct.slice_positions(scene, slice_range)
-    from clrecon.pipeline import costs as costs_mod  # costs imports this module
-    from clrecon.pipeline import preflight
-    from clrecon.simulation.store import default_cache_dir
-
     run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches)
     cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     need = (preflight.needs(scene, run_costs, cache_path, out) if force
