@@ -127,3 +127,15 @@ def test_report_has_a_claims_section():
     assert "| local linear at or below barycentric | pitch 0.1, noise-free, large FOV | yes | 30.0 <= 35.0 HU |" in body
     assert "| skipped | the run has one pitch (0.1) |" in body
     assert claims_markdown({"metrics": {}}) == []
+
+
+def test_respiratory_only_claims_give_the_runs_own_skip_reason():
+    """A run that skipped the respiratory-only study (e.g. a voxel phantom without an LV model)
+    records why; the claims repeat that reason instead of a generic one."""
+    t = {"p0.100": {"noise-free": {"local_linear": (18.0, 20.3), "barycentric": (26.0, 24.0)}}}
+    why = "phantom.kind = 'voxel' has no LV blood-pool model (the LV volume needs it)"
+    res = {"metrics": _metrics(t), "stages": {"metrics": {"respiratory_only_skipped_because": why}}}
+    ro = [c for c in claims.evaluate_claims(res) if c["claim"].startswith("respiratory-only")]
+    assert ro and all(c["holds"] is None and c["skipped"] == why for c in ro)
+    generic = [c for c in claims.evaluate_claims({"metrics": _metrics(t)}) if c["claim"].startswith("respiratory-only")]
+    assert all(c["skipped"] != why for c in generic)

@@ -201,8 +201,13 @@ def _error_spread(row: dict, m: str) -> float:
     return _spread([x - t for x, t in zip(v[m], v["groundtruth"], strict=True)])
 
 
-def claim_resp_only(ro) -> list[dict]:
-    """(d) respiratory-only 5DCT below r4DCT (small FOV) and (e1) less LV-volume variation."""
+def claim_resp_only(ro, skipped_because: str | None = None) -> list[dict]:
+    """(d) respiratory-only 5DCT below r4DCT (small FOV) and (e1) less LV-volume variation.
+
+    ``skipped_because``: the run's own reason when it skipped the respiratory-only study
+    (``results["stages"]["metrics"]["respiratory_only_skipped_because"]``, e.g. a voxel phantom
+    without an LV model); it replaces the generic reason.
+    """
     t_mae = "respiratory-only 5DCT below r4DCT in the heart"
     t_lv = "respiratory-only 5DCT LV blood-pool volume error varies less across amplitudes than r4DCT's"
     out_mae, out_lv = [], []
@@ -220,8 +225,8 @@ def claim_resp_only(ro) -> list[dict]:
                                      "spread of V - V_truth " + _cmp(sa, sb, unit="mL")
                                      + f" (truth's own spread {_fmt(gt)} mL; mean over cardiac phases)",
                                      pk, v, "small", m))
-    why = (f"needs the respiratory-only comparison: {' or '.join(_resp_grid_methods())} with a 5DCT method, "
-           "on a scene with cardiac and respiratory motion")
+    why = skipped_because or (f"needs the respiratory-only comparison: {' or '.join(_resp_grid_methods())} "
+                              "with a 5DCT method, on a scene with cardiac and respiratory motion")
     return (out_mae or [_skipped(t_mae, why)]) + (out_lv or [_skipped(t_lv, why)])
 
 
@@ -275,7 +280,8 @@ def evaluate_claims(results: dict) -> list[dict]:
     met = results.get("metrics") or {}
     met = {pk: byv for pk, byv in met.items() if byv}
     ro = results.get("respiratory_only") or {}
-    return (claim_interpolation(met) + claim_pitch(met) + claim_ll_vs_bary(met) + claim_resp_only(ro)
+    ro_skip = ((results.get("stages") or {}).get("metrics") or {}).get("respiratory_only_skipped_because")
+    return (claim_interpolation(met) + claim_pitch(met) + claim_ll_vs_bary(met) + claim_resp_only(ro, ro_skip)
             + claim_ll_gain_at_low_pitch(met) + claim_best_combination(met))
 
 
