@@ -34,12 +34,13 @@ import numpy as np
 
 from clrecon.core.conventions import circular_difference
 from clrecon.core.errors import ClreconError
+from clrecon.evaluation.groundtruth import offers_lv_region
 from clrecon.outputs.rundir import RunDirectory
 from clrecon.reconstruction import interpolation as _methods
 from clrecon.reconstruction import rebin, reconstruct
 from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.scan import table as geometry
-from clrecon.simulation.phantoms.analytic import Phantom
+from clrecon.simulation.phantom_sources import phantom_from_config
 
 #: Display windows (width, level) in HU.
 WINDOWS = {"lung": (1500.0, -600.0), "mediastinum": (400.0, 40.0), "cardiac": (800.0, 200.0)}
@@ -104,9 +105,10 @@ class _Run(RunDirectory):
     def heart_centre_mm(self, ci: int, ri: int) -> tuple[float, float, float]:
         """(x, y, z) mm of the LV blood pool (phantom), else the centre of the small-FOV box."""
         try:
-            if self.scene.phantom.kind != "analytic":
-                raise ValueError("a voxel phantom has no LV model")
-            p = Phantom(self.scene.phantom).lv_blood_pool_centre(float(self.c[ci]), float(self.a[ri]))
+            phantom = phantom_from_config(self.scene.phantom)
+            if not offers_lv_region(phantom):
+                raise ValueError(f"phantom.kind = {self.scene.phantom.kind!r} has no LV model")
+            p = phantom.lv_blood_pool_centre(float(self.c[ci]), float(self.a[ri]))
             return float(p[0]), float(p[1]), float(p[2])
         # no readable scene (StoreError, SceneError, KeyError) or no LV in it (ValueError): use the heart box
         except (ClreconError, KeyError, ValueError):

@@ -247,7 +247,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         log("metrics")
         t0 = time.perf_counter()
         vol_file = writer.assemble()
-        met, resp_only, motion_res = evaluate(scene, vol_file, targets, slices_z, pitches, variants, methods)
+        phantom = phantom_from_config(scene.phantom)
+        met, resp_only, motion_res = evaluate(scene, vol_file, targets, slices_z, pitches, variants, methods,
+                                              phantom)
         times.add("metrics", time.perf_counter() - t0)
         # the previous run's results must not describe the new volumes, even for a moment
         (out / "results.json").unlink(missing_ok=True)
@@ -266,7 +268,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         stages["simulate"]["ran"] = False
         stages["simulate"]["skipped_because"] = "every needed projection was already in the projection store"
     stages["simulate"].update(per_pitch=sim_info)
-    if not groundtruth.offers_lv_region(phantom_from_config(scene.phantom)):
+    if not groundtruth.offers_lv_region(phantom):
         stages["metrics"]["respiratory_only_skipped_because"] = (
             f"phantom.kind = {scene.phantom.kind!r} has no LV blood-pool model (the LV volume needs it)")
     results = {
@@ -307,17 +309,17 @@ def reconstruct_methods():
     return interpolation.method_names()
 
 
-def evaluate(scene, f, targets, slices_z, pitches, variants, methods):
+def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom):
     """Table-2 metrics, the respiratory-only comparison and the motion metrics per pitch/variant/method.
 
     Reads one target's volumes at a time from the (open) volume file ``f``. Returns
     ``(metrics, respiratory_only, motion)``; ``motion[pitch][variant][method]`` is
     :meth:`clrecon.evaluation.motion.MotionMetrics.result`, with a ``groundtruth`` reference entry.
+    ``phantom`` is the scene's phantom source, built once by the caller (the LV-based parts need
+    one that :func:`clrecon.evaluation.groundtruth.offers_lv_region`).
     """
-
     met: dict = {}
     resp_only: dict = {}
-    phantom = phantom_from_config(scene.phantom)
     metrics_cfg = metrics.MetricsConfig.from_scene(scene)
     masks = metrics.fov_masks(metrics_cfg)
     n_c, n_r = targets.shape
