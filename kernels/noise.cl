@@ -216,6 +216,7 @@ __kernel void add_noise(__global const float *p,          // (m, cells) noise-fr
                         __global float *out,              // (m, cells)
                         __global uchar *rest,             // (m, cells) 1 = left to add_noise_rest
                         const int cells,
+                        const long cell0,                 // detector cell of column 0 of the block
                         const ulong seed,
                         const double i0,
                         const double sigma,
@@ -226,7 +227,7 @@ __kernel void add_noise(__global const float *p,          // (m, cells) noise-fr
     // no bounds check: the host pads cells to a multiple of the local size (an early return
     // keeps PoCL from vectorising the work-item loop)
     const size_t at = (size_t)j * (size_t)cells + (size_t)cell;
-    const words r0 = philox4x64_10((ulong)cell, 0UL, seed, (ulong)proj_index[j]);
+    const words r0 = philox4x64_10((ulong)(cell0 + cell), 0UL, seed, (ulong)proj_index[j]);
     const double lam = i0 * EXP(-(double)p[at]);
     // the fast acceptance test of the first PTRS attempt only (ptrs_attempt's first branch,
     // same expressions); lam_p keeps the unused lanes finite
@@ -251,6 +252,7 @@ __kernel void add_noise_rest(__global const float *p,
                              __global float *out,
                              __global const uchar *rest,
                              const int cells,
+                             const long cell0,
                              const ulong seed,
                              const double i0,
                              const double sigma,
@@ -264,7 +266,8 @@ __kernel void add_noise_rest(__global const float *p,
     if (!rest[at])
         return;
     const ulong k1 = (ulong)proj_index[j];
-    const words r0 = philox4x64_10((ulong)cell, 0UL, seed, k1);
+    const ulong c = (ulong)(cell0 + cell);
+    const words r0 = philox4x64_10(c, 0UL, seed, k1);
     const double lam = i0 * EXP(-(double)p[at]);
-    out[at] = noisy_value(poisson(lam, r0, seed, k1, (ulong)cell), r0, i0, sigma, n_floor);
+    out[at] = noisy_value(poisson(lam, r0, seed, k1, c), r0, i0, sigma, n_floor);
 }

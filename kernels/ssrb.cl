@@ -15,12 +15,14 @@
 // neighbouring detector cells (PoCL vectorises across work-items). Global size is padded
 // to the fixed local size, hence the bounds check.
 
-__kernel void ssrb_rows(__global const float *proj,      // (m, n_rows, n_cols) line integrals
+__kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_cols): rows first_row..
                         __global const int *pair_slot,   // (n_pairs,) index into m
                         __global const float *pair_dz,   // (n_pairs,) slice_z - z_k, mm
                         __global float *out,             // (n_pairs, n_cols) in-plane rows
                         const int n_pairs,
-                        const int n_rows,
+                        const int n_rows,                // rows of the whole detector
+                        const int first_row,             // detector row of the block's row 0
+                        const int block_rows,            // rows held per projection
                         const int n_cols,
                         const float col_pitch_mm,
                         const float row_pitch_mm,
@@ -43,10 +45,11 @@ __kernel void ssrb_rows(__global const float *proj,      // (m, n_rows, n_cols) 
     const int r1 = min(r0 + 1, n_rows - 1);
     const float t = fr - (float)r0;
 
-    // size_t: m * n_rows * n_cols exceeds 2^31 for a paper-scale slab.
-    const size_t base = (size_t)pair_slot[p] * (size_t)n_rows * (size_t)n_cols + (size_t)col;
-    const float a0 = proj[base + (size_t)r0 * (size_t)n_cols];
-    const float a1 = proj[base + (size_t)r1 * (size_t)n_cols];
+    // size_t: m * n_rows * n_cols exceeds 2^31 for a paper-scale slab. The host checks that
+    // the block holds every row the pairs read (clrecon.reconstruction.rebin.ssrb_row_range).
+    const size_t base = (size_t)pair_slot[p] * (size_t)block_rows * (size_t)n_cols + (size_t)col;
+    const float a0 = proj[base + (size_t)(r0 - first_row) * (size_t)n_cols];
+    const float a1 = proj[base + (size_t)(r1 - first_row) * (size_t)n_cols];
 
     const float vs = (fr - centre) * row_pitch_mm;           // v actually sampled
     const float scale = sqrt(q / (q + vs * vs));

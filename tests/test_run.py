@@ -10,6 +10,7 @@ from clrecon.config.scene import load_scene
 from clrecon.outputs.volumes import open_volumes, read_volume
 from clrecon.pipeline.run import run
 from clrecon.reconstruction import interpolation
+from clrecon.reconstruction.interpolation import METHODS
 
 
 @pytest.fixture(scope="module")
@@ -46,8 +47,15 @@ def test_run_directory_is_complete_and_valid(tiny_run):
         assert np.allclose(f["axes/cardiac_phase"][()], [0.0, 0.4])
         for v in ("noisy", "noise-free"):
             for m in s.recon.methods:
-                vol = f[f"recon/p0.100/{v}/{m}"][()]
-                assert vol.shape == shape and np.isfinite(vol).all()
+                name = f"recon/p0.100/{v}/{m}"
+                vol = read_volume(f, name)
+                assert vol.shape == shape and vol.dtype == np.float32 and np.isfinite(vol).all()
+                # r4dct is stored once per amplitude, helical once (attribute "broadcast")
+                grid = METHODS[m].target_grid
+                assert f[name].shape == {"resp": (1, 2), "none": (1, 1)}.get(grid, (2, 2)) + shape[2:]
+                assert list(f[name].attrs["broadcast"]) == {"resp": ["cardiac"], "none": ["cardiac", "resp"]}.get(
+                    grid, [])
+                assert np.array_equal(read_volume(f, name, (1, 0)), vol[1, 0])
         gt = f["groundtruth"][()]
     # the ground truth looks like a thorax: air outside, soft tissue and lung inside, contrast blood
     assert gt.min() < -900 and gt.max() > 200

@@ -210,6 +210,9 @@ class ReconConfig(Section):
     max_turns: int = F(0, NONNEGINT, "0: every candidate turn within the SSRB window; N > 0: only the N candidates "
                        "nearest in z per (slice, view), for every method")
     filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
+    volume_dtype: str = F("float32", one_of(("float32", "float16")), "on-disk dtype of the run's volumes: "
+                          "'float16' halves volumes.h5 (values within 2^-11 relative, <= 0.5 HU below 2048 HU; "
+                          "the metrics are computed from what is stored)")
     small_fov_mm: tuple = _f((-70.0, 85.0, -100.0, 40.0), "[x_min, x_max, y_min, y_max] with min < max",
                              lambda v: isinstance(v, tuple) and len(v) == 4 and all(_num(x) for x in v)
                              and v[0] < v[1] and v[2] < v[3],

@@ -36,7 +36,7 @@ from xarray.core import indexing
 
 from clrecon.core.errors import StoreError
 from clrecon.outputs.rundir import RunDirectory, Source
-from clrecon.outputs.volumes import DIMS, FORMAT_VERSION
+from clrecon.outputs.volumes import DIMS, FORMAT_VERSION, read_part
 
 _COORD_ATTRS = {
     "cardiac": {"long_name": "cardiac phase of the target", "units": "fraction of the R-R interval"},
@@ -56,9 +56,10 @@ class VolumeArray(BackendArray):
         self.run = run
         self.dataset = dataset
         self.disk_dims = tuple(str(d) for d in ds.attrs["dims"])
+        bc = {str(d) for d in ds.attrs.get("broadcast", [])}
         self.shape = run.shape
-        self.dtype = np.dtype(ds.dtype)
-        want = tuple(n for d, n in zip(DIMS, self.shape, strict=True) if d in self.disk_dims)
+        self.dtype = np.dtype(np.float32)  # float16 on disk is read as float32
+        want = tuple(1 if d in bc else n for d, n in zip(DIMS, self.shape, strict=True) if d in self.disk_dims)
         if tuple(ds.shape) != want or not set(self.disk_dims) <= set(DIMS):
             raise StoreError(f"{run.dir}: volume {dataset} has shape {tuple(ds.shape)} on axes "
                              f"{list(self.disk_dims)}, not that of the run's axes {self.shape}")
@@ -71,8 +72,8 @@ class VolumeArray(BackendArray):
         out_shape = tuple(len(range(n)[k]) for n, k in zip(self.shape, key, strict=True) if isinstance(k, slice))
         if 0 in out_shape:
             return np.empty(out_shape, self.dtype)
-        disk_key = tuple(k for d, k in zip(DIMS, key, strict=True) if d in self.disk_dims)  # absent axes have length 1
-        return np.asarray(self.run.h5[self.dataset][disk_key]).reshape(out_shape)
+        # absent axes have length 1; broadcast ones are restored by read_part
+        return read_part(self.run.h5, self.dataset, dict(zip(DIMS, key, strict=True))).reshape(out_shape)
 
 
 def _variable_attrs(run: RunDirectory, src: Source) -> dict:

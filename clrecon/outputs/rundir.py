@@ -34,7 +34,7 @@ import numpy as np
 
 from clrecon.config.scene import Scene, scene_from_dict
 from clrecon.core.errors import ClreconError, StoreError
-from clrecon.outputs.volumes import DIMS, FORMAT_VERSION, list_recons, open_volumes, read_volume
+from clrecon.outputs.volumes import DIMS, FORMAT_VERSION, list_recons, open_volumes, read_part, read_volume
 from clrecon.reconstruction.interpolation import by_rank
 
 #: Preferred default source, best first (5DCT methods, then baselines).
@@ -366,9 +366,7 @@ class RunDirectory:
         unknown = set(index) - set(DIMS)
         if unknown:
             raise ClreconError(f"read_part: unknown axis {sorted(unknown)[0]!r}; axes: {', '.join(DIMS)}")
-        ds = self.h5[_dataset(source)]
-        sel = tuple(index.get(str(d), slice(None)) for d in ds.attrs["dims"])
-        return np.asarray(ds[sel])
+        return read_part(self.h5, _dataset(source), index, full=False)
 
 
 def _dataset(source: Source | str) -> str:

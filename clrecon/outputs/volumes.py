@@ -9,10 +9,20 @@ Layout (HDF5)::
     /phantom                      voxelised analytic phantom
     /recon/<pitch>/<variant>/<method>     e.g. /recon/p0.020/noise-free/local_linear
 
-Every volume dataset is float32 HU with attribute ``dims``: the axis names of its shape, a
-subset of ``("cardiac", "resp", "z", "y", "x")`` — a scene without cardiac motion has no
-cardiac axis on disk (its 5D volume is 4D), one without breathing no respiratory axis.
-:func:`read_volume` always returns the full 5-axis array (size-1 axes restored).
+Every volume dataset is HU, float32 or (``recon.volume_dtype = "float16"``, the paper-scale
+scenes) IEEE half precision, with attribute ``dims``: the axis names of its shape, a subset of
+``("cardiac", "resp", "z", "y", "x")`` — a scene without cardiac motion has no cardiac axis
+on disk (its 5D volume is 4D), one without breathing no respiratory axis. Attribute
+``broadcast`` (possibly empty) names the axes a volume has at length 1 because it stands for
+every target along them: the cardiac-blind ``r4dct`` (one volume per amplitude) and the
+phase-blind ``helical`` (one volume) are stored once, not once per target.
+:func:`read_volume` (and every reader of the run directory) always returns float32 on the
+full 5-axis grid (size-1 and broadcast axes restored).
+
+Half precision: 11 significant bits, so a value is stored within 2^-11 of itself relative
+(<= 0.25 HU for |HU| < 1024, <= 0.5 HU for |HU| < 2048, <= 1 HU up to 4096); the metrics are
+computed from the stored volumes, so they describe exactly what a user reads back. It halves
+the volumes of a paper-scale run (docs/reproduction.md gives the measured effect on Table 2).
 """
 
 from __future__ import annotations
@@ -29,6 +39,8 @@ from clrecon.core.errors import StoreError
 
 DIMS = ("cardiac", "resp", "z", "y", "x")
 FORMAT_VERSION = 1
+#: Allowed on-disk dtypes of the volumes (``recon.volume_dtype``).
+VOLUME_DTYPES = ("float32", "float16")
 
 
 def pitch_key(pitch: float) -> str:
@@ -49,7 +61,11 @@ class VolumeWriter:
     ``.partial`` (an assembly cut short) is discarded and rebuilt; any other key starts afresh.
     """
 
-    def __init__(self, path: Path, axes: dict, keep_cardiac: bool, keep_resp: bool, run_key: str = ""):
+    def __init__(self, path: Path, axes: dict, keep_cardiac: bool, keep_resp: bool, run_key: str = "",
+                 dtype: str = "float32"):
+        if dtype not in VOLUME_DTYPES:
+            raise ValueError(f"volume dtype {dtype!r}: allowed {', '.join(VOLUME_DTYPES)}")
+        self.dtype = np.dtype(dtype)
         self.path = Path(path)
         self.partial = self.path.with_name(self.path.name + ".partial")
         self.units_dir = self.path.with_name(self.path.name + ".units")
@@ -59,6 +75,7 @@ class VolumeWriter:
         self.f = None
         self.units_written = {"recon": 0, "truth": 0}
         self._specs: dict[str, tuple[tuple, int]] = {}  # name -> (on-disk shape, done size)
+        self._broadcast: dict[str, tuple[str, ...]] = {}  # name -> axes stored at length 1 (standing for all)
         self._done: dict[str, np.ndarray] = {}
         self._units: dict[str, list[tuple[Path, dict]]] = {}
         self.partial.unlink(missing_ok=True)  # only ever an assembly in progress: rebuilt from the units
@@ -83,10 +100,20 @@ class VolumeWriter:
         drop = tuple(i for i, keep in enumerate(self.keep) if not keep)
         return vol.reshape(tuple(s for i, s in enumerate(vol.shape) if i not in drop))
 
-    def create(self, name: str, full_shape: tuple, done_size: int) -> None:
-        """Declare dataset ``name`` with a ``done`` mask of ``done_size`` (slices or flattened targets)."""
+    def create(self, name: str, full_shape: tuple, done_size: int, broadcast: tuple = ()) -> None:
+        """Declare dataset ``name`` with a ``done`` mask of ``done_size`` (slices or flattened targets).
+
+        ``broadcast``: target axes (``"cardiac"``, ``"resp"``) along which the volume is the same
+        for every target, stored at length 1 (blocks written to it have length 1 there).
+        """
         if name in self._specs:
             return
+        bad = set(broadcast) - {"cardiac", "resp"}
+        if bad:
+            raise ValueError(f"broadcast axes {sorted(bad)}: only 'cardiac' and 'resp' can be broadcast")
+        full_shape = tuple(1 if d in broadcast else n for d, n in zip(DIMS, full_shape, strict=True))
+        self._broadcast[name] = tuple(d for d, keep in zip(DIMS[:2], self.keep, strict=True)
+                                      if keep and d in broadcast)
         shape = tuple(n for i, n in enumerate(full_shape) if i >= 2 or self.keep[i])
         self._specs[name] = (shape, done_size)
         done = np.zeros(done_size, bool)
@@ -107,12 +134,14 @@ class VolumeWriter:
 
     def _unit(self, name: str, vol: np.ndarray, meta: dict, fault: str, stem: str) -> None:
         meta = dict(meta, name=name, shape=list(self._specs[name][0]))
-        p = units.write_unit(self.units_dir, stem, {"data": np.ascontiguousarray(vol, np.float32)}, meta, fault)
+        p = units.write_unit(self.units_dir, stem, {"data": np.ascontiguousarray(vol, self.dtype)}, meta, fault)
         self._units[name].append((p, meta))
         self.units_written[fault] += 1
 
     def write(self, name: str, vol: np.ndarray, z_index) -> None:
         """Write a full-axis block ``(n_c, n_r, s, ny, nx)`` into slice indices ``z_index`` (increasing).
+
+        Along a ``broadcast`` axis of the dataset the block has length 1.
 
         Slices already done are skipped (a resumed run never writes a unit twice).
         """
@@ -142,8 +171,9 @@ class VolumeWriter:
                 f[f"axes/{k}"] = v
             for name, (shape, _) in self._specs.items():
                 chunks = tuple(1 for _ in shape[:-3]) + (1,) + tuple(shape[-2:])
-                ds = f.create_dataset(name, shape=shape, dtype=np.float32, chunks=chunks)
+                ds = f.create_dataset(name, shape=shape, dtype=self.dtype, chunks=chunks)
                 ds.attrs["dims"] = list(self._dims())
+                ds.attrs["broadcast"] = list(self._broadcast[name])
                 ds.attrs["units"] = "HU"
                 ds.attrs["done"] = self._done[name].astype(np.uint8)
                 for p, m in self._units[name]:
@@ -195,26 +225,58 @@ def open_volumes(path) -> h5py.File:
     return f
 
 
+def read_part(f: h5py.File, name: str, index: dict | None = None, full: bool = True) -> np.ndarray:
+    """Part of a volume as float32 HU, by axis name: ``index`` maps axis names to an int or slice.
+
+    The one place that reads volume datasets: an axis the dataset lacks on disk (length 1) or
+    stores at length 1 for every target (attribute ``broadcast``) takes any index, and with
+    ``full=True`` the result has every one of the five axes at the run's length (from
+    ``/axes``) except those indexed by an int; with ``full=False`` the axes the dataset lacks
+    on disk are left out (its own shape).
+    """
+    index = dict(index or {})
+    ds = f[name]
+    dims = [str(d) for d in ds.attrs["dims"]]
+    bc = {str(d) for d in ds.attrs.get("broadcast", [])}
+    sel = []
+    for d in dims:
+        k = index.get(d, slice(None))
+        if d in bc:
+            k = 0 if isinstance(k, (int, np.integer)) else slice(0, 1)
+        sel.append(k)
+    arr = np.asarray(ds[tuple(sel)], np.float32)
+    kept = [d for d in dims if not isinstance(index.get(d, slice(None)), (int, np.integer))]
+    if not full:
+        if bc:
+            want = [len(range(_axis_len(f, d))[index.get(d, slice(None))]) if d in bc else n
+                    for d, n in zip(kept, arr.shape, strict=True)]
+            arr = np.ascontiguousarray(np.broadcast_to(arr, want))
+        return arr
+    out_dims = [d for d in DIMS if not isinstance(index.get(d, slice(None)), (int, np.integer))]
+    shape = [arr.shape[kept.index(d)] if d in kept else 1 for d in out_dims]
+    arr = arr.reshape(shape)
+    if bc:
+        want = [len(range(_axis_len(f, d))[index.get(d, slice(None))]) if d in bc else n
+                for d, n in zip(out_dims, shape, strict=True)]
+        arr = np.ascontiguousarray(np.broadcast_to(arr, want))
+    return arr
+
+
+def _axis_len(f: h5py.File, dim: str) -> int:
+    return int(f[f"axes/{_AXIS_NAME[dim]}"].shape[0])
+
+
+_AXIS_NAME = dict(zip(DIMS, ("cardiac_phase", "resp_amplitude", "z_mm", "y_mm", "x_mm"), strict=True))
+
+
 def read_volume(f: h5py.File, name: str, index=None) -> np.ndarray:
-    """A volume as a full 5-axis array ``(n_c, n_r, nz, ny, nx)``.
+    """A volume as a full 5-axis float32 array ``(n_c, n_r, nz, ny, nx)``.
 
     ``index`` optionally picks (cardiac_index, resp_index) and returns ``(nz, ny, nx)``.
     """
-    ds = f[name]
-    dims = list(ds.attrs["dims"])
     if index is not None:
-        sel = []
-        for d in dims:
-            if d == "cardiac":
-                sel.append(index[0])
-            elif d == "resp":
-                sel.append(index[1])
-            else:
-                sel.append(slice(None))
-        return ds[tuple(sel)]
-    arr = ds[()]
-    shape = [arr.shape[dims.index(d)] if d in dims else 1 for d in DIMS]
-    return arr.reshape(shape)
+        return read_part(f, name, {"cardiac": int(index[0]), "resp": int(index[1])})
+    return read_part(f, name)
 
 
 def list_recons(f: h5py.File) -> list[tuple[str, str, str]]:

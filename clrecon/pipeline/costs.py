@@ -5,7 +5,9 @@ from __future__ import annotations
 from clrecon.config.scene import builtin_scene_names, load_scene
 from clrecon.core.errors import SceneError
 from clrecon.pipeline.variants import noise_variants
+from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.rebin import slice_window_mm
+from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, SLAB_BYTES
 
 GiB = 1024 ** 3
 
@@ -19,8 +21,9 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     """:func:`scene_costs` of one run: the scene narrowed to ``methods``, targets, slices, ``pitches``.
 
     ``projections_needed`` models the projections the slices use (those within the SSRB slice
-    window of a slice, plus one rotation); ``volume_bytes`` is what ``volumes.h5`` holds (every
-    reconstruction on the full target grid: r4dct and helical are broadcast on disk).
+    window of a slice, plus one rotation); ``volume_bytes`` is what ``volumes.h5`` holds: the
+    5D methods on the full target grid, r4dct once per amplitude and helical once (they stand
+    for every cardiac phase / every target), in ``recon.volume_dtype``.
     """
     sc, rc = scene.scanner, scene.recon
     methods = tuple(methods or rc.methods)
@@ -31,28 +34,34 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     n_proj = {p: scene.scan.projection_count(sc, p) for p in pitches}
     proj_bytes = sc.n_rows * sc.n_cols * 4
     n_targets = n_c * n_r
-    vol_bytes = n_targets * nz * rc.ny * rc.nx * 4
+    item = 2 if rc.volume_dtype == "float16" else 4
+    vol_bytes = n_targets * nz * rc.ny * rc.nx * item
     n_var = len(noise_variants(scene))
-    n_vols = len(pitches) * n_var * len(methods) + 2
+    grid = {m: METHODS[m].target_grid for m in methods}
+    # full-grid volume equivalents: a 5D method 1, r4dct 1 / n_c, helical 1 / n_targets
+    per_pitch_variant = sum({"resp": 1.0 / n_c, "none": 1.0 / n_targets}.get(g, 1.0) for g in grid.values())
+    n_vols = len(pitches) * n_var * per_pitch_variant + 2
     radius = min(sc.fov_radius_mm, rc.fov_radius_mm)
     window = slice_window_mm(sc, radius)
     z_extent = (max(slices_z) - min(slices_z)) if slices_z is not None and len(slices_z) else (nz - 1) * rc.slice_mm
     needed = {p: int(min(n_proj[p], ((z_extent + 2 * window) / scene.scan.feed_mm(sc, p) + 1)
                          * sc.views_per_rotation)) for p in pitches}
-    # peak, as reconstruct.py walks it: one 512-projection read chunk (+ its noisy copy), one
-    # slab of rebinned rows (capped at 1.5 GB by the slab size), the slab's output volumes for
-    # every method and variant, one method's slab of sinograms, and one target's truth volume
+    # peak, as run.py walks it: one 512-projection read chunk (+ its noisy copy), one slab (its
+    # rebinned rows of every variant and one method's images, sized by reconstruct.slab_slices
+    # to at most SLAB_BYTES; the plan is part of that budget there, not modelled here), the plans
+    # kept between the planning pass and the reconstruction (at most KEEP_PLANS_BYTES, about
+    # 40 bytes per (slice, view, target, neighbour)), one launch of sinograms, and the truth
     feed = min(scene.scan.feed_mm(sc, p) for p in pitches)
     rows_per_slice = 2 * window / feed * sc.views_per_rotation
-    slab = int(max(1, min(nz, 1.5e9 // (rows_per_slice * sc.n_cols * 4 * n_var))))
+    per_slice = rows_per_slice * sc.n_cols * 4 * n_var + 2 * n_targets * rc.ny * rc.nx * 4
+    slab = int(max(1, min(nz, SLAB_BYTES // per_slice)))
     chunk = 512 * proj_bytes * (1 + n_var)
-    slab_rows = min(1.5e9, slab * rows_per_slice * sc.n_cols * 4 * n_var)
-    slab_vols = len(methods) * n_var * n_targets * slab * rc.ny * rc.nx * 4
-    slab_sinos = n_targets * slab * sc.views_per_rotation * sc.n_cols * 4 * 2
-    peak = chunk + slab_rows + slab_vols + slab_sinos + 2 * nz * rc.ny * rc.nx * 4
+    plans = min(KEEP_PLANS_BYTES, 40.0 * nz * sc.views_per_rotation * n_targets * 8 * len(methods))
+    slab_sinos = 2 * 32 * sc.views_per_rotation * sc.n_cols * 4
+    peak = chunk + slab * per_slice + plans + slab_sinos + 2 * nz * rc.ny * rc.nx * 4
     return {"projections": n_proj, "projections_needed": needed, "store_bytes": sum(n_proj.values()) * proj_bytes,
             "needed_store_bytes": sum(needed.values()) * proj_bytes,
-            "volume_bytes": vol_bytes * n_vols, "n_volumes": n_vols, "n_targets": n_targets,
+            "volume_bytes": int(vol_bytes * n_vols), "n_volumes": round(n_vols, 3), "n_targets": n_targets,
             "peak_memory_bytes": int(peak), "slab_slices": slab}
 
 
@@ -77,6 +86,7 @@ def describe_scenes() -> str:
                 f"{c['peak_memory_bytes'] / GiB if i == 0 else 0:>12.2f}")
         if s.description:
             lines.append(f"{'':<12} {s.description}")
-    lines.append("store: noise-free line integrals, float32, all projections (a run stores only those its slices use);"
-                 " volumes: every method x pitch x noise variant + ground truth + phantom, float32")
+    lines.append("store: noise-free line integrals, float32 before compression, all projections (a run stores only"
+                 " those its slices use); volumes: every method x pitch x noise variant + ground truth + phantom"
+                 " (r4dct once per amplitude, helical once), in recon.volume_dtype (paper scenes: float16)")
     return "\n".join(lines)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import platform
 import sys
 import time
@@ -28,6 +27,7 @@ import numpy as np
 
 from clrecon.config.scene import Scene
 from clrecon.core.errors import ClreconError
+from clrecon.core.progress import progress as progress_counter
 from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
 from clrecon.evaluation import claims, groundtruth, metrics, motion
@@ -37,6 +37,7 @@ from clrecon.pipeline import costs as costs_mod
 from clrecon.pipeline import preflight
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, rebin, reconstruct
+from clrecon.reconstruction.diagnostics import combine as combine_diagnostics
 from clrecon.reconstruction.diagnostics import weight_diagnostics
 from clrecon.reconstruction.reconstruct import StageTimes, Targets
 from clrecon.scan import sampling as sampling_mod
@@ -52,11 +53,8 @@ FIVE_D_METHODS = interpolation.five_d_methods()
 RESP_ONLY_METHODS = FIVE_D_METHODS + interpolation.resp_grid_methods()
 
 
-def _progress(total: int, desc: str, enabled: bool):
-    from tqdm import tqdm
-
-    disable = (not enabled) or os.environ.get("CLRECON_NO_PROGRESS") == "1"
-    return tqdm(total=total, desc=desc, disable=disable, leave=False, dynamic_ncols=True)
+def _progress(total: int, desc: str, enabled: bool, unit: str = "it"):
+    return progress_counter(total, desc, enabled, unit)
 
 
 def resolve_targets(scene: Scene, cardiac: Sequence[float] | None = None,
@@ -151,7 +149,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
          "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT},
         sort_keys=True, default=_json_default).encode()).hexdigest()
     writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
-                          run_key=run_key)
+                          run_key=run_key, dtype=rc.volume_dtype)
     if writer.resumed:
         log("resuming an interrupted run: finished slices and targets are kept")
     n_t = targets.shape[0] * targets.shape[1]
@@ -161,12 +159,15 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     diagnostics: dict = {}  # pitch key -> method -> per-target weight diagnostics (cardiac-major)
     sampling: dict = {}  # per pitch: distinct cardiac phases and candidates per (slice, view)
     units_written = {"projections": 0}  # unit files written by this process (a resumed run: only the rest)
+    stage_counts: dict = {}  # work counts of the reconstruction: detector cells read, noise cells drawn
     try:
         for pitch in pitches:
             pk = pitch_key(pitch)
-            names = [f"recon/{pk}/{v}/{m}" for v in variants for m in methods]
-            for name in names:
-                writer.create(name, full_shape, len(slices_z))
+            for m in methods:
+                # r4dct stands for every cardiac phase, helical for every target: stored once
+                bc = {"resp": ("cardiac",), "none": ("cardiac", "resp")}.get(interpolation.METHODS[m].target_grid, ())
+                for v in variants:
+                    writer.create(f"recon/{pk}/{v}/{m}", full_shape, len(slices_z), broadcast=bc)
             # a resumed run redoes only the units (slab x variant x method) not yet written:
             # the methods with an unfinished unit, on the slices one of them lacks
             run_methods = tuple(m for m in methods if not all(writer.done(f"recon/{pk}/{v}/{m}").all()
@@ -183,36 +184,48 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             t0 = time.perf_counter()
             table = geometry.projection_table(scene, pitch)
             times.add("signals", time.perf_counter() - t0)
-            plan = reconstruct.plan(recon_cfg, table, slices_z[todo], targets, run_methods)
-            times.add("plan", plan.seconds)
-            diagnostics[pk] = weight_diagnostics(plan, table, targets)
+            t0 = time.perf_counter()
+            slabs, plans, needed, diag_parts, plan_s = _plan_slabs(recon_cfg, table, slices_z, todo, targets,
+                                                                   run_methods, len(variants), progress)
+            times.add("plan", time.perf_counter() - t0)
+            diagnostics[pk] = combine_diagnostics(diag_parts)
             sampling[pk] = sampling_mod.sampling_summary(
                 table, rebin.candidate_groups(table, slices_z, scene.scanner, recon_cfg.object_radius_mm))
-            needed = plan.needed_projections(len(table))
             t0 = time.perf_counter()
             store = simulate.simulate(scene, pitch, needed=needed, cache_dir=cache_dir, progress=progress)
             times.add("simulate", time.perf_counter() - t0)
             sim_info[pk] = {"projections_total": len(table), "projections_needed": int(needed.sum()),
                             "projections_simulated": int(getattr(store, "n_simulated", 0)),
                             "projections_reused": int(getattr(store, "n_reused", 0)),
-                            "store": str(getattr(store, "path", ""))}
+                            "store": str(getattr(store, "path", "")), "slabs": len(slabs),
+                            "slab_slices": [int(b - a) for a, b in slabs]}
             units_written["projections"] += int(getattr(store, "units_written", 0))
 
-            def on_slab(zs, slab, pk=pk, todo=todo):
-                for (v, m), vol in slab.items():
-                    # r4dct (1, n_r): the same for every c; helical (1, 1): the same for every target
-                    vol = np.broadcast_to(vol, targets.shape + vol.shape[2:])
-                    writer.write(f"recon/{pk}/{v}/{m}", vol, todo[zs])
-
-            bar = _progress(len(slices_z), f"reconstruct {pk}", progress)
+            bar = _progress(len(slices_z), f"reconstruct {pk}", progress, "slices")
             ptimes = StageTimes()
-            reconstruct.reconstruct(recon_cfg, store, plan, variants=variants, rt=rt, times=ptimes, progress=bar,
-                                    on_slab=on_slab)
+            for k, (a, b) in enumerate(slabs):
+                sel = todo[a:b]
+
+                def on_slab(zs, slab, pk=pk, sel=sel):
+                    for (v, m), vol in slab.items():  # r4dct (1, n_r), helical (1, 1): stored as they are
+                        writer.write(f"recon/{pk}/{v}/{m}", vol, sel[zs])
+
+                plan = plans[k]
+                if plan is None:  # not kept (the plans of the whole scan were over the budget): made again
+                    t0 = time.perf_counter()
+                    plan = reconstruct.plan(recon_cfg, table, slices_z[sel], targets, run_methods)
+                    times.add("plan", time.perf_counter() - t0)
+                    for m, sec in plan.method_seconds.items():
+                        plan_s[m] = plan_s.get(m, 0.0) + sec
+                plans[k] = None
+                reconstruct.reconstruct(recon_cfg, store, plan, variants=variants, rt=rt, times=ptimes,
+                                        progress=bar, on_slab=on_slab, slab_size=len(sel))
+                del plan
+            stage_counts.update({k: stage_counts.get(k, 0) + n for k, n in ptimes.counts.items()})
             bar.close()
             method_seconds[pk] = {}
             # a method's cost per variant: its interpolation + FBP of that variant plus its whole
             # plan (made once for every variant: a run of one variant pays it in full)
-            plan_s = dict(plan.method_seconds)
             for key, sec in ptimes.seconds.items():
                 if key.startswith("plan:"):
                     m = key.split(":", 1)[1]
@@ -233,7 +246,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         for name in ("groundtruth", "phantom"):
             writer.create(name, full_shape, n_t)
         skip = set(np.flatnonzero(writer.done("groundtruth")))
-        bar = _progress(n_t - len(skip), "ground truth", progress)
+        bar = _progress(n_t - len(skip), "ground truth", progress, "targets")
         for i, j, vol in groundtruth.groundtruth_volumes(gt_cfg, slices_z, targets, rt=rt, progress=bar, skip=skip):
             writer.write_target("groundtruth", i, j, targets.shape[1], vol)
         bar.close()
@@ -249,7 +262,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         vol_file = writer.assemble()
         phantom = phantom_from_config(scene.phantom)
         met, resp_only, motion_res = evaluate(scene, vol_file, targets, slices_z, pitches, variants, methods,
-                                              phantom)
+                                              phantom, progress=progress)
         times.add("metrics", time.perf_counter() - t0)
         # the previous run's results must not describe the new volumes, even for a moment
         (out / "results.json").unlink(missing_ok=True)
@@ -268,6 +281,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         stages["simulate"]["ran"] = False
         stages["simulate"]["skipped_because"] = "every needed projection was already in the projection store"
     stages["simulate"].update(per_pitch=sim_info)
+    stages["read"]["cells"] = int(stage_counts.get("read_cells", 0))
+    stages["noise"]["cells"] = int(stage_counts.get("noise_cells", 0))
     if not groundtruth.offers_lv_region(phantom):
         stages["metrics"]["respiratory_only_skipped_because"] = (
             f"phantom.kind = {scene.phantom.kind!r} has no LV blood-pool model (the LV volume needs it)")
@@ -305,18 +320,50 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     return results
 
 
+def _plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progress):
+    """Plan the slices ``todo`` slab by slab: ``(slabs, plans, needed, diagnostics_parts, plan_seconds)``.
+
+    The slab size comes from the plan of the first slice (:func:`reconstruct.slab_slices`), so
+    a paper-scale scan never holds the plan of every slice at once. Each slab is planned to
+    find the projections the reconstruction needs (``needed``, (n,) bool) and its weight
+    diagnostics; the plans are kept for the reconstruction while they fit in
+    :data:`clrecon.reconstruction.reconstruct.KEEP_PLANS_BYTES` (``plans[k]`` is None where a
+    slab must be planned again).
+    ``plan_seconds``: method -> seconds, each slab's planning summed.
+    """
+    probe = reconstruct.plan(cfg, table, slices_z[todo[:1]], targets, methods)
+    per = reconstruct.slab_slices(cfg, probe, n_variants)
+    slabs = [(a, min(todo.size, a + per)) for a in range(0, todo.size, per)]
+    needed = np.zeros(len(table), bool)
+    plans, parts, plan_s, kept = [], [], {}, 0
+    bar = _progress(len(slabs), "plan", progress and len(slabs) > 1, "slabs")
+    for a, b in slabs:
+        p = reconstruct.plan(cfg, table, slices_z[todo[a:b]], targets, methods)
+        for m, sec in p.method_seconds.items():
+            plan_s[m] = plan_s.get(m, 0.0) + sec
+        needed |= p.needed_projections(len(table))
+        parts.append((weight_diagnostics(p, table, targets), b - a))
+        size = reconstruct.plan_bytes(p)
+        plans.append(p if kept + size <= reconstruct.KEEP_PLANS_BYTES else None)
+        kept += size if plans[-1] is not None else 0
+        bar.update(1)
+    bar.close()
+    return slabs, plans, needed, parts, plan_s
+
+
 def reconstruct_methods():
     return interpolation.method_names()
 
 
-def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom):
+def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, progress: bool = False):
     """Table-2 metrics, the respiratory-only comparison and the motion metrics per pitch/variant/method.
 
     Reads one target's volumes at a time from the (open) volume file ``f``. Returns
     ``(metrics, respiratory_only, motion)``; ``motion[pitch][variant][method]`` is
     :meth:`clrecon.evaluation.motion.MotionMetrics.result`, with a ``groundtruth`` reference entry.
     ``phantom`` is the scene's phantom source, built once by the caller (the LV-based parts need
-    one that :func:`clrecon.evaluation.groundtruth.offers_lv_region`).
+    one that :func:`clrecon.evaluation.groundtruth.offers_lv_region`). ``progress``: a counter
+    with an ETA over the volumes read.
     """
     met: dict = {}
     resp_only: dict = {}
@@ -348,6 +395,7 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom):
             mot_gt.add(i, j, gt(i, j), None, geoms[i][j])
     mot_ref = mot_gt.result()
     mot: dict = {}
+    bar = _progress(len(pitches) * len(variants) * len(methods) * n_c * n_r, "metrics", progress, "volumes")
     for pitch in pitches:
         pk = pitch_key(pitch)
         met[pk] = {}
@@ -373,6 +421,7 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom):
                         if want_ro and m in RESP_ONLY_METHODS:
                             ro_mae[m][i, j] = metrics.abs_error_stats(vol, truth, masks["small"])["mae_hu"]
                             ro_lv[m][i, j] = lv(vol, i, j)
+                        bar.update(1)
                 met[pk][v][m] = acc.result()
                 if want_mot:
                     mot[pk][v][m] = macc.result()
@@ -387,6 +436,7 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom):
                         row["lv_volume_spread_ml"][m] = _spread(ro_lv[m][i])
                     rows.append(row)
                 resp_only[pk][v] = rows
+    bar.close()
     return met, resp_only, mot
 
 

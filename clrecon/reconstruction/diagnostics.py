@@ -85,3 +85,29 @@ def pooled(diag: dict) -> dict:
     for nm, v in diag.get("branch_share", {}).items():
         p[nm] = float(np.mean(v)) if v else 0.0
     return p
+
+
+def combine(parts) -> dict:
+    """:func:`weight_diagnostics` of a plan made slab by slab, from ``[(diagnostics, n_slices), ...]``.
+
+    The largest |dc|, |da| over the slabs; branch shares averaged with the slabs' slice counts
+    as weights (every slice has the same views), so the result equals the diagnostics of one
+    plan over all the slices.
+    """
+    parts = [(d, n) for d, n in parts if d]
+    if not parts:
+        return {}
+    total = sum(n for _, n in parts)
+    out = {}
+    for name, first in parts[0][0].items():
+        ds = [(d[name], n) for d, n in parts]
+        c = {"targets": first["targets"],
+             "max_abs_dc": np.max([d["max_abs_dc"] for d, _ in ds], axis=0).tolist(),
+             "max_abs_da": np.max([d["max_abs_da"] for d, _ in ds], axis=0).tolist()}
+        if "branch_share" in first:
+            names = list(dict.fromkeys(nm for d, _ in ds for nm in d.get("branch_share", {})))
+            n_t = len(first["targets"])
+            c["branch_share"] = {nm: (sum(np.asarray(d["branch_share"].get(nm, np.zeros(n_t))) * n for d, n in ds)
+                                      / total).tolist() for nm in names}
+        out[name] = c
+    return out

@@ -188,13 +188,41 @@ def candidate_groups(table: ProjectionTable, slice_z_mm, scanner: ScannerConfig,
 
 
 # ---------------------------------------------------------------------------------------
-def _check_pairs(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig):
+def ssrb_row_range(pair_dz_mm, scanner: ScannerConfig) -> tuple[int, int]:
+    """Detector rows ``[lo, hi)`` that :func:`ssrb_rows` reads for pairs at ``pair_dz_mm`` (p,), mm.
+
+    v(u) is linear in dz and grows with |u|, so the rows of every column of every pair lie
+    between those of the outermost columns at the smallest and the largest dz. One row of
+    margin on each side covers the float32 rounding of the kernel's row coordinate. The
+    reconstruction reads, and draws noise for, only these rows of a chunk (a 4-slice slab
+    of paper-p002 uses about 15 of the 64). ``(0, 0)`` for no pairs.
+    """
+    dz = np.asarray(pair_dz_mm, dtype=np.float64)
+    if dz.size == 0:
+        return 0, 0
+    n_rows = scanner.n_rows
+    u = detector_coords(scanner.n_cols, scanner.col_pitch_mm)
+    u_edge = np.array([0.0, np.abs(u).max()])
+    v = ssrb_v_mm(u_edge[:, None], np.array([dz.min(), dz.max()])[None, :], scanner)
+    centre = 0.5 * (n_rows - 1)
+    fr = np.clip(v / scanner.row_pitch_mm + centre, 0.0, n_rows - 1)
+    r0 = np.minimum(np.floor(fr), max(n_rows - 2, 0))
+    lo = int(max(0, r0.min() - 1))
+    hi = int(min(n_rows, r0.max() + 3))  # r1 = r0 + 1, plus the margin, exclusive
+    return lo, hi
+
+
+def _check_pairs(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, first_row: int | None = None):
     proj = np.asarray(projections)
     if proj.dtype.kind not in "fiu":
         raise TypeError(f"projections: expected a real numeric array, got dtype {proj.dtype}")
-    if proj.ndim != 3 or proj.shape[1:] != (scanner.n_rows, scanner.n_cols):
-        raise ValueError(f"projections: expected shape (m, {scanner.n_rows}, {scanner.n_cols}), "
-                         f"got {proj.shape}")
+    whole = first_row is None
+    if proj.ndim != 3 or proj.shape[2] != scanner.n_cols or not (
+            (whole and proj.shape[1] == scanner.n_rows)
+            or (not whole and 0 <= first_row and first_row + proj.shape[1] <= scanner.n_rows and proj.shape[1] > 0)):
+        raise ValueError(f"projections: expected shape (m, {scanner.n_rows}, {scanner.n_cols}), or a block of "
+                         f"rows first_row.. inside the {scanner.n_rows} detector rows; got {proj.shape} "
+                         f"with first_row = {first_row}")
     slot = np.asarray(pair_slot)
     if slot.dtype.kind not in "iu":
         raise TypeError(f"pair_slot: expected an integer array, got dtype {slot.dtype}")
@@ -206,12 +234,19 @@ def _check_pairs(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig):
                          f"got [{slot.min()}, {slot.max()}]")
     if not np.all(np.isfinite(dz)):
         raise ValueError("pair_dz_mm: must be finite")
+    if not whole and dz.size:
+        lo, hi = ssrb_row_range(dz, scanner)
+        if lo < first_row or hi > first_row + proj.shape[1]:
+            raise ValueError(f"projections: the pairs read detector rows {lo}..{hi - 1}, the block holds rows "
+                             f"{first_row}..{first_row + proj.shape[1] - 1}")
     return proj, slot, dz
 
 
-def ssrb_rows_reference(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig) -> np.ndarray:
+def ssrb_rows_reference(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig,
+                        first_row: int | None = None) -> np.ndarray:
     """Float64 NumPy reference of :func:`ssrb_rows` (same clamping), shape (p, C)."""
-    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner)
+    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner, first_row)
+    first_row = first_row or 0
     proj = proj.astype(np.float64)
     n_rows, n_cols = scanner.n_rows, scanner.n_cols
     u = detector_coords(n_cols, scanner.col_pitch_mm)                       # (C,)
@@ -224,18 +259,21 @@ def ssrb_rows_reference(projections, pair_slot, pair_dz_mm, scanner: ScannerConf
     t = fr - r0
     cols = np.arange(n_cols)[None, :]
     s = slot[:, None]
-    val = (1 - t) * proj[s, r0, cols] + t * proj[s, r1, cols]
+    val = (1 - t) * proj[s, r0 - first_row, cols] + t * proj[s, r1 - first_row, cols]
     vs = (fr - centre) * scanner.row_pitch_mm
     return np.sqrt(q / (q + vs * vs)) * val
 
 
-def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=None) -> np.ndarray:
+def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=None,
+              first_row: int | None = None) -> np.ndarray:
     """Rebin helical cone-beam projections to in-plane fan-beam rows (OpenCL, ``kernels/ssrb.cl``).
 
     Parameters
     ----------
     projections : array_like
-        (m, n_rows, n_cols) line integrals (converted to C-contiguous float32).
+        (m, n_rows, n_cols) line integrals (converted to C-contiguous float32), or (m, b, n_cols):
+        detector rows ``first_row .. first_row + b - 1`` only, which must hold every row the
+        pairs read (:func:`ssrb_row_range`; ValueError otherwise).
     pair_slot : array_like of int
         (p,) which projection each output row comes from, index into m.
     pair_dz_mm : array_like
@@ -243,6 +281,8 @@ def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=Non
     scanner : ScannerConfig
     rt : Runtime, optional
         Defaults to :func:`clrecon.core.runtime.get_runtime`.
+    first_row : int, optional
+        Detector row of the block's row 0; None (default): whole projections.
 
     Returns
     -------
@@ -252,7 +292,7 @@ def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=Non
         outer row is used (clamped); candidates from :func:`candidates` never need that for
         columns that see the object.
     """
-    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner)
+    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner, first_row)
     p, n_cols = slot.size, scanner.n_cols
     if p == 0:
         return np.zeros((0, n_cols), np.float32)
@@ -263,7 +303,8 @@ def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=Non
     d_out = rt.empty((p, n_cols), np.float32)
     knl = rt.kernel("ssrb.cl", "ssrb_rows")
     ev = knl(rt.queue, (_round_up(n_cols, _LOCAL_COLS), p), (_LOCAL_COLS, 1),
-             d_proj, d_slot, d_dz, d_out, np.int32(p), np.int32(scanner.n_rows), np.int32(n_cols),
+             d_proj, d_slot, d_dz, d_out, np.int32(p), np.int32(scanner.n_rows), np.int32(first_row or 0),
+             np.int32(proj.shape[1]), np.int32(n_cols),
              np.float32(scanner.col_pitch_mm), np.float32(scanner.row_pitch_mm),
              np.float32(scanner.sid_mm), np.float32(scanner.sdd_mm))
     return rt.from_device(d_out, (p, n_cols), np.float32, wait_for=[ev])

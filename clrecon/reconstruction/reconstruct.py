@@ -250,10 +250,16 @@ def _cardiac_bin_width(targets: Targets) -> float:
 
 @dataclass
 class StageTimes:
+    """Seconds per stage (``add``) and work counts (``count``: e.g. detector cells read, noise cells)."""
+
     seconds: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
 
     def add(self, name: str, dt: float) -> None:
         self.seconds[name] = self.seconds.get(name, 0.0) + dt
+
+    def count(self, name: str, n) -> None:
+        self.counts[name] = self.counts.get(name, 0) + int(n)
 
 
 def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-free",), rt=None,
@@ -266,7 +272,8 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-
     store : object with ``read_indices(indices, noisy=False) -> (m, R, C) float32`` and ``table``.
     variants : iterable of ``"noise-free"`` / ``"noisy"``.
     on_slab : optional callback ``(slice_slice, {(variant, method): (n_c, n_r, s, ny, nx)})`` that
-        receives each slab's volumes as it finishes (to write them out and free memory). If None,
+        receives each slab's volume of each (variant, method) as soon as it is finished (to write
+        it out and free memory: only one method's slab of images is held at a time). If None,
         whole volumes are returned.
 
     Returns
@@ -281,15 +288,54 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-
     results: dict = {}
     for s0 in range(0, S, slab_size):
         s1 = min(S, s0 + slab_size)
-        slab = _reconstruct_slab(cfg, store, plan_, s0, s1, variants, geom, rt, times, chunk, progress)
-        if on_slab is not None:
-            on_slab(slice(s0, s1), slab)
-        else:
-            for key, vol in slab.items():
-                if key not in results:
-                    results[key] = np.zeros(vol.shape[:2] + (S,) + vol.shape[3:], np.float32)
-                results[key][:, :, s0:s1] = vol
+
+        def emit(key, vol, s0=s0, s1=s1):
+            if on_slab is not None:
+                on_slab(slice(s0, s1), {key: vol})
+                return
+            if key not in results:
+                results[key] = np.zeros(vol.shape[:2] + (S,) + vol.shape[3:], np.float32)
+            results[key][:, :, s0:s1] = vol
+
+        _reconstruct_slab(cfg, store, plan_, s0, s1, variants, geom, rt, times, chunk, progress, emit)
     return results
+
+
+#: Memory for one slab of the reconstruction (bytes): its plan, its rebinned rows of every
+#: variant, and one method's images (the slab-size rule of :func:`slab_slices`).
+SLAB_BYTES = 2.5e9
+#: Plans of a whole scan kept in memory between the planning pass (which finds the
+#: projections to simulate) and the reconstruction (bytes); beyond it a slab's plan is made
+#: again when its turn comes.
+KEEP_PLANS_BYTES = 2.0e9
+
+
+def plan_bytes(plan_: Plan) -> int:
+    """Bytes a plan holds (its weight, index and branch arrays)."""
+    n = 0
+    for mp in plan_.methods.values():
+        n += mp.proj_index.nbytes + mp.weight.nbytes + (0 if mp.branch is None else mp.branch.nbytes)
+    return int(n)
+
+
+def slab_slices(cfg: ReconstructionConfig, probe: Plan, n_variants: int, budget: float = SLAB_BYTES) -> int:
+    """Slices per slab so that one slab's working set stays under ``budget`` bytes.
+
+    ``probe`` is the plan of a few slices (their sizes per slice are representative: every
+    slice has the same views and about the same candidates). Per slice a slab holds: its plan
+    (and the int32/float32 copies the slab makes of it, half as large again), its rebinned
+    rows (pairs x columns x float32, one copy per noise variant), and the images of the one
+    method being reconstructed (targets x ny x nx float32, twice: the batch and its
+    reordered copy). The result never changes the numbers, only memory and the number of
+    times a projection is read.
+    """
+    S = max(len(probe.slices_z), 1)
+    proj, _ = probe.needed_pairs()
+    rows = len(proj) / S * cfg.scanner.n_cols * 4 * max(n_variants, 1)
+    plans = 1.5 * plan_bytes(probe) / S
+    n_t = max((int(np.prod(mp.targets_shape)) for mp in probe.methods.values()), default=1)
+    images = 2 * n_t * cfg.fbp.ny * cfg.fbp.nx * 4
+    return int(max(1, budget // (rows + plans + images)))
 
 
 def _slab_size(cfg: ReconstructionConfig, plan_: Plan) -> int:
@@ -302,7 +348,7 @@ def _slab_size(cfg: ReconstructionConfig, plan_: Plan) -> int:
 
 
 def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, variants, geom, rt, times, chunk,
-                      progress) -> dict:
+                      progress, emit) -> None:
     sc = cfg.scanner
     t0 = time.perf_counter()
     sub = {m: (mp.proj_index[s0:s1], mp.weight[s0:s1], mp.targets_shape) for m, mp in plan_.methods.items()}
@@ -328,18 +374,23 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
         if lo == hi:
             continue
         wanted, slot = np.unique(pair_proj[lo:hi], return_inverse=True)
+        # only the detector rows these pairs read (a slab of a few slices: a few of the rows),
+        # and noise only for them: a cell's noise is keyed by its place on the whole detector
+        r_lo, r_hi = rebin.ssrb_row_range(pair_dz[lo:hi], sc)
         t1 = time.perf_counter()
-        clean = store.read_indices(wanted, noisy=False)
+        clean = store.read_indices(wanted, noisy=False, rows=(r_lo, r_hi))
         times.add("read", time.perf_counter() - t1)
+        times.count("read_cells", clean.size)
         for v in variants:
             data = clean
             if v == "noisy":
                 t1 = time.perf_counter()
-                data = noise.add_noise(clean, wanted, cfg.noise)
+                data = noise.add_noise(clean, wanted, cfg.noise, first_row=r_lo)
                 times.add("noise", time.perf_counter() - t1)
+                times.count("noise_cells", data.size)
             t1 = time.perf_counter()
             rows[v][lo:hi] = rebin.ssrb_rows(data, slot.astype(np.int32).ravel(),
-                                            pair_dz[lo:hi].astype(np.float32), sc, rt=rt)
+                                            pair_dz[lo:hi].astype(np.float32), sc, rt=rt, first_row=r_lo)
             times.add("rebin", time.perf_counter() - t1)
 
     # Cosine weighting and ramp filtering act on each row alone and linearly, so they commute
@@ -361,7 +412,6 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
         times.add(f"plan:{m}", time.perf_counter() - t1)  # the method's share of "plan"
     step = fbp_mod.groups_per_launch(geom) * fbp_mod.BATCH_LANES
     mu_water = cfg.mu_water_per_mm
-    out = {}
     for v in variants:
         t1 = time.perf_counter()
         fbp_mod.filter_rows(rows[v], geom, cfg.filter, out=rows[v])
@@ -395,9 +445,9 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
                 # upload split evenly): the "error against run time" figure
                 times.add(f"method:{m}:{v}", t_interp + t_fbp + (t_filter + t_upload) / len(per_method))
                 img = img.reshape(Sn, tshape[0], tshape[1], geom.ny, geom.nx).transpose(1, 2, 0, 3, 4)
-                out[(v, m)] = np.ascontiguousarray(img)
+                emit((v, m), np.ascontiguousarray(img))
+                del img
         finally:
             d_rows.release()
     if progress is not None:
         progress.update(s1 - s0)
-    return out

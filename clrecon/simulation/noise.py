@@ -182,7 +182,7 @@ def poisson_reference(lam, cell, key, r0) -> np.ndarray:
     return out
 
 
-def add_noise_reference(line_integrals, proj_index, cfg: NoiseConfig) -> np.ndarray:
+def add_noise_reference(line_integrals, proj_index, cfg: NoiseConfig, first_row: int = 0) -> np.ndarray:
     """Float64 NumPy reference of :func:`add_noise`: the same Philox streams and samplers."""
     p, idx = _check(line_integrals, proj_index)
     m = p.shape[0]
@@ -190,7 +190,7 @@ def add_noise_reference(line_integrals, proj_index, cfg: NoiseConfig) -> np.ndar
     i0 = float(cfg.i0_photons)
     sigma = float(cfg.electronic_sigma)
     out = np.empty(p.shape, np.float32)
-    cell = np.arange(cells, dtype=np.uint64)
+    cell = np.arange(cells, dtype=np.uint64) + np.uint64(_cell0(p, first_row))
     for j in range(m):
         key = np.broadcast_to(np.array([cfg.seed, int(idx[j]) & 0xFFFFFFFFFFFFFFFF], np.uint64), (cells, 2))
         ctr = np.zeros((cells, 4), np.uint64)
@@ -203,6 +203,13 @@ def add_noise_reference(line_integrals, proj_index, cfg: NoiseConfig) -> np.ndar
         counts = np.maximum(counts, N_FLOOR)
         out[j] = (-np.log(counts / i0)).astype(np.float32).reshape(p.shape[1:])
     return out
+
+
+def _cell0(p, first_row) -> int:
+    """Detector cell index of the first cell of a block of rows ``first_row ..`` of (m, R, C)."""
+    if int(first_row) < 0:
+        raise ValueError(f"first_row must be >= 0, got {first_row}")
+    return int(first_row) * int(p.shape[2])
 
 
 def _check(line_integrals, proj_index):
@@ -221,10 +228,15 @@ def _has_fp64(rt) -> bool:
     return "cl_khr_fp64" in rt.device.extensions
 
 
-def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None) -> np.ndarray:
+def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None, first_row: int = 0) -> np.ndarray:
     """Noisy line integrals from noise-free ones.
 
     ``cfg.enabled`` is not consulted: the caller decides whether noise is wanted.
+
+    ``first_row`` says that ``line_integrals`` holds detector rows ``first_row ..
+    first_row + R - 1`` of each projection (a reconstruction that reads only the rows its
+    slices use): a cell's noise is keyed by its place on the whole detector, so the noise of
+    a block of rows is exactly those rows of the whole projection's noise.
 
     Parameters
     ----------
@@ -237,6 +249,8 @@ def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None) -> np.ndarr
     rt : Runtime, optional
         OpenCL runtime (default :func:`clrecon.core.runtime.get_runtime`); without float64
         support the NumPy reference computes the same numbers.
+    first_row : int
+        Detector row of the block's first row (default 0: whole projections).
 
     Returns
     -------
@@ -249,16 +263,17 @@ def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None) -> np.ndarr
     cells = int(np.prod(p.shape[1:]))
     if m == 0 or cells == 0:
         return np.zeros(p.shape, np.float32)
+    cell0 = _cell0(p, first_row)
     if not _has_fp64(rt):
-        return add_noise_reference(p, idx, cfg)
+        return add_noise_reference(p, idx, cfg, first_row=first_row)
     llvm_math = int("portable" in rt.device.platform.name.lower() or "pocl" in rt.device.platform.name.lower())
     knl = rt.kernel("noise.cl", "add_noise", LLVM_MATH=llvm_math)
     knl_rest = rt.kernel("noise.cl", "add_noise_rest", LLVM_MATH=llvm_math)
     padded = -(-cells // _LOCAL) * _LOCAL  # pass 1 has no bounds check (it would stop vectorisation)
     flat_in = p.reshape(m, cells)
     out = np.empty((m, cells), np.float32)
-    args = (np.int32(padded), np.uint64(cfg.seed), np.float64(cfg.i0_photons), np.float64(cfg.electronic_sigma),
-            np.float64(N_FLOOR))
+    args = (np.int32(padded), np.int64(cell0), np.uint64(cfg.seed), np.float64(cfg.i0_photons),
+            np.float64(cfg.electronic_sigma), np.float64(N_FLOOR))
     # blocks of projections keep the device buffers (host memory on a CPU device) small
     block = max(1, BLOCK_CELLS // padded)
     for j0 in range(0, m, block):

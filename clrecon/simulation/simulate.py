@@ -8,23 +8,15 @@ integrals and :meth:`ProjectionStore.read` adds noise on the way out.
 
 from __future__ import annotations
 
-import os
-import sys
 import time
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from clrecon.config.scene import Scene
+from clrecon.core.progress import progress as progress_counter
 from clrecon.scan.table import projection_table
 from clrecon.simulation.projector import project
 from clrecon.simulation.store import ProjectionStore
-
-
-def _progress_enabled(progress: bool) -> bool:
-    if not progress or os.environ.get("CLRECON_NO_PROGRESS", "") == "1":
-        return False
-    return bool(getattr(sys.stderr, "isatty", lambda: False)())
 
 
 def simulate(scene: Scene, pitch: float, needed=None, cache_dir=None, projector=None,
@@ -46,7 +38,8 @@ def simulate(scene: Scene, pitch: float, needed=None, cache_dir=None, projector=
     chunk : int
         Projections per projector call (and per write).
     progress : bool
-        Show a tqdm bar on stderr (never when stderr is not a TTY or ``CLRECON_NO_PROGRESS=1``).
+        Progress with an ETA on stderr (:mod:`clrecon.core.progress`: a tqdm bar on a terminal,
+        a log line a minute otherwise; none with ``CLRECON_NO_PROGRESS=1``).
 
     Returns
     -------
@@ -84,8 +77,7 @@ def simulate(scene: Scene, pitch: float, needed=None, cache_dir=None, projector=
         return store
 
     t0 = time.perf_counter()
-    with tqdm(total=int(missing.size), unit="proj", desc=f"simulate {scene.name} pitch {pitch:g}",
-              disable=not _progress_enabled(progress), leave=False) as bar:
+    with progress_counter(int(missing.size), f"simulate {scene.name} pitch {pitch:g}", progress, "proj") as bar:
         # A .partial with nothing missing still goes through writing() to be finished.
         with store.writing():
             for lo in range(0, missing.size, chunk):

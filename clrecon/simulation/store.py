@@ -365,12 +365,14 @@ class ProjectionStore:
             return np.zeros((0,) + tuple(self.shape[1:]), np.float32)
         return self.read_indices(np.arange(start, stop, dtype=np.int64), noisy=noisy)
 
-    def read_indices(self, indices, noisy: bool = False) -> np.ndarray:
+    def read_indices(self, indices, noisy: bool = False, rows: tuple[int, int] | None = None) -> np.ndarray:
         """Projections ``indices`` (sorted, unique), shape (len(indices), R, C), float32.
 
         For sparse selections (a run that needs only some projections): reads the covering
         range of the file, requires only the selected projections to be present, and keeps
-        only those. Same errors and noise as :meth:`read`.
+        only those. Same errors and noise as :meth:`read`. ``rows=(lo, hi)`` reads only
+        detector rows ``lo .. hi - 1`` (shape (len(indices), hi - lo, C)); their noise is the
+        same as those rows of the whole projections' (:func:`clrecon.simulation.noise.add_noise`).
         """
         idx = np.asarray(indices, dtype=np.int64)
         if idx.size == 0:
@@ -389,10 +391,13 @@ class ProjectionStore:
             raise StoreError(f"{self.path}: projections {missing[0]}..{missing[-1]} "
                              f"({missing.size} of the requested {idx.size}) were not simulated")
         start, stop = int(idx[0]), int(idx[-1]) + 1
+        r_lo, r_hi = (0, self.shape[1]) if rows is None else (int(rows[0]), int(rows[1]))
+        if not 0 <= r_lo < r_hi <= self.shape[1]:
+            raise ValueError(f"rows {rows}: must satisfy 0 <= lo < hi <= {self.shape[1]} detector rows")
         try:
             if self._reader is None:
                 self._reader = h5py.File(self.path, "r", rdcc_nbytes=CACHE_BYTES)
-            data = self._reader["projections"][start:stop]
+            data = self._reader["projections"][start:stop, r_lo:r_hi]
             if idx.size != stop - start:  # sparse selection: keep only the requested projections
                 data = data[idx - start]
         except (OSError, KeyError, RuntimeError) as e:
@@ -405,7 +410,7 @@ class ProjectionStore:
             raise StoreError(f"{self.path}: projections {k[0]}..{k[-1]} hold {int(bad.sum())} NaN or inf "
                              f"line integrals (corrupt store); delete it to simulate again")
         if noisy:
-            data = add_noise(data, idx, self.scene.noise)
+            data = add_noise(data, idx, self.scene.noise, first_row=r_lo)
         return data
 
     def close(self) -> None:
