@@ -154,14 +154,44 @@ class VolumeWriter:
         self._unit(name, v, {"z": z.tolist()}, "recon", f"{name.replace('/', '~')}.z{z[0]:05d}-{z[-1]:05d}")
         self._done[name][z] = True
 
-    def write_target(self, name: str, i: int, j: int, n_resp: int, vol: np.ndarray) -> None:
-        """Write one target's ``(nz, ny, nx)`` volume at cardiac index ``i``, respiratory index ``j``."""
+    @staticmethod
+    def target_stem(name: str, k: int) -> str:
+        """File-name stem of the unit of flattened target ``k`` of ``name``."""
+        return f"{name.replace('/', '~')}.t{k:05d}"
+
+    def write_target(self, name: str, i: int, j: int, n_resp: int, vol: np.ndarray) -> Path | None:
+        """Write one target's ``(nz, ny, nx)`` volume at cardiac index ``i``, respiratory index ``j``.
+
+        Returns the unit file written (None if the target was already done).
+        """
         k = i * n_resp + j
         if self._done[name][k]:
-            return
+            return None
         sel = [int(x) for x, keep in zip((i, j), self.keep, strict=True) if keep]
-        self._unit(name, vol, {"target": k, "sel": sel}, "truth", f"{name.replace('/', '~')}.t{k:05d}")
+        self._unit(name, vol, {"target": k, "sel": sel}, "truth", self.target_stem(name, k))
         self._done[name][k] = True
+        return self._units[name][-1][0]
+
+    def adopt_target(self, name: str, k: int, path: Path, link) -> bool:
+        """Take flattened target ``k`` of ``name`` from an existing unit file (e.g. the truth cache).
+
+        The unit must pass its checksum and describe this target of this dataset's shape;
+        ``link(path, folder) -> new path`` puts it into the units folder. Returns whether it
+        was taken (False: damaged or not this target; the caller computes it).
+        """
+        if self._done[name][k]:
+            return True
+        try:
+            _, meta = units.read_unit(path)
+        except (OSError, ValueError, KeyError, EOFError):
+            return False
+        if (meta.get("name") != name or meta.get("target") != k
+                or tuple(meta.get("shape", ())) != self._specs[name][0]):
+            return False
+        self._units[name].append((link(path, self.units_dir), meta))
+        self._done[name][k] = True
+        self.units_written["adopted"] = self.units_written.get("adopted", 0) + 1
+        return True
 
     def assemble(self) -> h5py.File:
         """Build ``volumes.h5.partial`` from the units; returns it open for reading (also ``self.f``)."""

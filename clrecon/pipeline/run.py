@@ -31,6 +31,7 @@ from clrecon.core.progress import progress as progress_counter
 from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
 from clrecon.evaluation import claims, groundtruth, metrics, motion
+from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key, read_volume
 from clrecon.pipeline import costs as costs_mod
@@ -242,19 +243,25 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
 
         log("ground truth")
         gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
-        t0 = time.perf_counter()
+        truths = TruthCache(cache_path, truth_key(scene, slices_z, targets))
+        n_r = targets.shape[1]
         for name in ("groundtruth", "phantom"):
             writer.create(name, full_shape, n_t)
+            for k in np.flatnonzero(~writer.done(name)):  # computed by an earlier run with the same truths
+                hit = truths.find(writer.target_stem(name, int(k)))
+                if hit is not None and not writer.adopt_target(name, int(k), hit, truths.link):
+                    truths.drop(hit)
+        t0 = time.perf_counter()
         skip = set(np.flatnonzero(writer.done("groundtruth")))
         bar = _progress(n_t - len(skip), "ground truth", progress, "targets")
         for i, j, vol in groundtruth.groundtruth_volumes(gt_cfg, slices_z, targets, rt=rt, progress=bar, skip=skip):
-            writer.write_target("groundtruth", i, j, targets.shape[1], vol)
+            truths.put(writer.write_target("groundtruth", i, j, n_r, vol))
         bar.close()
         times.add("groundtruth", time.perf_counter() - t0)
         t0 = time.perf_counter()
         skip = set(np.flatnonzero(writer.done("phantom")))
         for i, j, vol in groundtruth.phantom_truth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
-            writer.write_target("phantom", i, j, targets.shape[1], vol)
+            truths.put(writer.write_target("phantom", i, j, n_r, vol))
         times.add("phantom_truth", time.perf_counter() - t0)
 
         log("metrics")
@@ -281,6 +288,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         stages["simulate"]["ran"] = False
         stages["simulate"]["skipped_because"] = "every needed projection was already in the projection store"
     stages["simulate"].update(per_pitch=sim_info)
+    stages["groundtruth"]["targets_from_cache"] = int(writer.units_written.get("adopted", 0))
     stages["read"]["cells"] = int(stage_counts.get("read_cells", 0))
     stages["noise"]["cells"] = int(stage_counts.get("noise_cells", 0))
     if not groundtruth.offers_lv_region(phantom):
