@@ -352,3 +352,20 @@ def test_lesion_is_inside_the_demo_slab_and_small_fov(phantom):
             assert z0 + r < p[2] < z1 - r and x0 + r < p[0] < x1 - r and y0 + r < p[1] < y1 - r, (c, a, p)
             lv_z = phantom.lv_blood_pool_centre(c, a)[2]
             assert abs(p[2] - lv_z) - r > 0.5 * s.recon.slice_mm, (c, a)
+
+
+def test_prefetched_and_cached_states_are_the_states_posed_alone():
+    """``prefetch`` poses many states in one vectorised call and ``objects`` keeps them: the
+    numbers must be those of posing each state alone (bit for bit), and a caller that
+    modifies what ``objects`` returned must not change the cache."""
+    rng = np.random.default_rng(3)
+    c, a = rng.random(7), rng.random(7)
+    alone = [ph.Phantom().objects(ci, ai) for ci, ai in zip(c, a, strict=True)]
+    phantom = ph.Phantom()
+    phantom.prefetch(c, a)
+    for k in range(7):
+        got = phantom.objects(c[k], a[k])
+        np.testing.assert_array_equal(got, alone[k])
+        got[:] = 0.0
+        np.testing.assert_array_equal(phantom.objects(c[k], a[k]), alone[k])
+    np.testing.assert_array_equal(phantom.objects(0.5, 0.5), ph.Phantom().objects(0.5, 0.5))  # a state not prefetched

@@ -90,6 +90,7 @@ def groundtruth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets, r
     flat index ``i * n_resp + j`` is in ``skip`` (already done) are left out.
     """
     phantom = cfg.source()
+    _prefetch(phantom, targets)
     for i, c in enumerate(targets.cardiac):
         for j, a in enumerate(targets.resp):
             if i * len(targets.resp) + j in skip:
@@ -107,6 +108,7 @@ def phantom_truth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets,
     ``supersample`` samples per axis per voxel).
     """
     phantom = cfg.source()
+    _prefetch(phantom, targets)
     x = voxel_coords(cfg.fbp.nx, cfg.fbp.voxel_mm)
     y = voxel_coords(cfg.fbp.ny, cfg.fbp.voxel_mm)
     for i, c in enumerate(targets.cardiac):
@@ -115,6 +117,13 @@ def phantom_truth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets,
                 continue
             mu = phantom.voxelise(c, a, x, y, np.asarray(slices_z), supersample=cfg.supersample, rt=rt)
             yield i, j, mu_to_hu(mu, cfg.mu_water_per_mm).astype(np.float32)
+
+
+def _prefetch(phantom, targets) -> None:
+    """Pose an analytic phantom at every target in one vectorised call (same numbers, ~25x faster)."""
+    if hasattr(phantom, "prefetch"):
+        pairs = targets.pairs
+        phantom.prefetch(pairs[:, 0], pairs[:, 1])
 
 
 def offers_lv_region(phantom) -> bool:

@@ -382,6 +382,8 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, p
     want_ro = (any(m in methods for m in interpolation.resp_grid_methods())
                and scene.has_cardiac and scene.has_respiratory and groundtruth.offers_lv_region(phantom))
     rc = scene.recon
+    if hasattr(phantom, "prefetch"):  # every target's pose in one vectorised call
+        phantom.prefetch(targets.pairs[:, 0], targets.pairs[:, 1])
     x, y = reconstruct.voxel_coords(rc.nx, rc.voxel_mm), reconstruct.voxel_coords(rc.ny, rc.voxel_mm)
     voxel_ml = rc.voxel_mm ** 2 * (abs(slices_z[1] - slices_z[0]) if len(slices_z) > 1 else rc.slice_mm) / 1000.0
     regions = ([[groundtruth.lv_region_mask(phantom, c, a, x, y, slices_z) for a in targets.resp]

@@ -430,6 +430,7 @@ class Phantom:
         self.names = tuple(o.name for o in objs)
         self.parents = tuple(o.parent for o in objs)
         self.tissue_hu = {o.name: float(np.asarray(o.hu).reshape(-1)[0]) for o in objs}
+        self._states: dict[tuple[float, float], np.ndarray] = {}  # objects() cache, see prefetch
 
     def __repr__(self) -> str:
         return f"Phantom({self.cfg!r})"
@@ -439,9 +440,41 @@ class Phantom:
     def n_objects(self) -> int:
         return len(self.names)
 
+    #: States kept by :meth:`objects` (about 45 kB each).
+    STATE_CACHE = 1024
+
     def objects(self, c: float, a: float) -> np.ndarray:
-        """Packed objects at one state, (n_obj, STRIDE) float64 (layout: module constants)."""
-        return self.objects_batch(np.atleast_1d(c), np.atleast_1d(a))[0]
+        """Packed objects at one state, (n_obj, STRIDE) float64 (layout: module constants).
+
+        States are kept (up to :data:`STATE_CACHE`), so the truths and metrics of a target,
+        which each pose the phantom at it, pose it once; :meth:`prefetch` poses many states
+        in one vectorised call (50 targets: 0.15 s instead of 4 s). Returns a copy.
+        """
+        key = (float(c), float(a))
+        hit = self._states.get(key)
+        if hit is None:
+            hit = self.objects_batch(np.atleast_1d(c), np.atleast_1d(a))[0]
+            self._keep(key, hit)
+        return hit.copy()
+
+    def prefetch(self, c, a) -> None:
+        """Pose the phantom at the states ``c``, ``a`` (m,) in one call, for :meth:`objects`.
+
+        The batch gives the same numbers as one state at a time (every step is elementwise
+        over states; checked in the tests).
+        """
+        c = np.atleast_1d(np.asarray(c, dtype=np.float64))
+        a = np.atleast_1d(np.asarray(a, dtype=np.float64))
+        todo = [k for k in range(c.size) if (float(c[k]), float(a[k])) not in self._states]
+        if todo:
+            objs = self.objects_batch(c[todo], a[todo])
+            for n, k in enumerate(todo):
+                self._keep((float(c[k]), float(a[k])), objs[n])
+
+    def _keep(self, key, objs) -> None:
+        if len(self._states) >= self.STATE_CACHE:
+            self._states.pop(next(iter(self._states)))
+        self._states[key] = objs
 
     def objects_batch(self, c, a) -> np.ndarray:
         """Packed objects at m states, (m, n_obj, STRIDE) float64; ``c``, ``a`` of shape (m,)."""
