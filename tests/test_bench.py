@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from clrecon.bench import paper
 from clrecon.bench import suite as bench
 from clrecon.cli import build_parser
 from clrecon.core.errors import ClreconError
@@ -72,3 +73,42 @@ def test_cli_bench_arguments():
     assert a.quick and a.json == "x.json" and a.only == "projector"
     with pytest.raises(ClreconError, match="--only 'nope'"):
         bench.run_bench(quick=True, only=["nope"])
+
+
+#: Keys each paper-scale section must give (what the README table and --json readers use).
+PAPER_KEYS = {
+    "paper-projector": ("simulate_projections_per_s", "projector_projections_per_s", "per_call", "reference",
+                        "projected_whole_scan_s", "old_16_projection_figure", "max_abs_diff_vs_reference"),
+    "noise": ("cells_per_s", "reference", "own_reference", "projected_whole_scan_s", "noise_mean_std"),
+    "paper-fbp": ("backproject_images_per_s", "filter_rows_per_s", "reference", "filter_reference",
+                  "projected_full_job"),
+    "groundtruth": ("groundtruth_slice_targets_per_s", "phantom_truth_slice_targets_per_s", "reference",
+                    "phantom_truth_reference", "projected_full_job"),
+}
+
+
+def test_paper_sections_quick_tiny(tmp_path):
+    """The paper-scale sections at their --quick sizes (capped for the tiny scene) give their keys."""
+    assert set(paper.SECTIONS) <= set(bench.SECTIONS)
+    small = {"paper-projector": dict(n_projections=8, chunk=4), "noise": dict(n_projections=4),
+             "paper-fbp": dict(n_images=3), "groundtruth": dict(n_slices=2)}
+    res = {"quick": True, "repeats": 1, "machine": bench.machine()}
+    for name in paper.SECTIONS:
+        r = paper.run_section(name, quick=True, repeats=1, scene="tiny", **small[name])
+        for key in PAPER_KEYS[name]:
+            assert key in r, (name, key)
+        assert r["load_average_1min_before"] >= 0
+        res[name] = r
+    # the references agree with what they check (exact or to rounding), whatever the speed
+    assert res["paper-projector"]["max_abs_diff_vs_reference"] < 1e-5
+    assert res["noise"]["own_reference"]["max_abs_diff"] == 0.0
+    assert res["paper-fbp"]["reference"]["max_rel_diff"] < 1e-4
+    assert res["paper-fbp"]["filter_reference"]["max_rel_diff"] < 1e-4
+    assert res["groundtruth"]["reference"]["max_abs_diff_hu_in_fov"] < 1.0
+    assert res["paper-fbp"]["projected_full_job"]["images"] > 0
+    text = bench.format_report(res)
+    for tag in ("P1.", "P2.", "P3.", "P4."):
+        assert tag in text
+    bench.write_json(res, tmp_path / "p.json")
+    back = json.loads((tmp_path / "p.json").read_text())
+    assert set(paper.SECTIONS) <= set(back)

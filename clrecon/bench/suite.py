@@ -43,6 +43,16 @@ Sections (``--only`` picks some):
 ``scaling``
     Plan and reconstruct seconds of demo-sized scenes against slices, targets and
     projections (via :meth:`clrecon.config.scene.Scene.replace`).
+``paper-projector``, ``noise``, ``paper-fbp``, ``groundtruth``
+    The paper-p002 job's stages at the job's own sizes, each with the time it projects for
+    the whole job (:mod:`clrecon.bench.paper`): simulation projections/s over 512 projections
+    spread over the scan in the simulation's 256-projection chunks (projector alone and
+    ``simulate`` end to end, against the unculled kernel on a subset; the per-call fixed cost
+    that made the old 16-projection figure low), noise cells/s on a 256 x 64 x 900 chunk (against
+    NumPy's ``Generator(Philox)``), FBP images/s (filter + interleaved backprojection, against
+    the one-sinogram kernel and a float64 NumPy filter), ground-truth and phantom-truth
+    slice-targets/s at 110 slices per target (against the unculled projector + one-sinogram
+    kernel, and float64 NumPy point samples).
 ``tradeoff`` (only with ``--only tradeoff``: not in the default set, about 20 minutes)
     :func:`clrecon.bench.tradeoff.run_tradeoff`: per method, the knobs that trade seconds for
     error (local-linear neighbours, kappa, sigma; candidate turns; views; grid) swept on demo
@@ -70,6 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clrecon.bench import paper
 from clrecon.bench.fbp import bench_backprojection
 from clrecon.bench.projector import bench_projector
 from clrecon.bench.tradeoff import format_table as tradeoff_table
@@ -87,6 +98,8 @@ from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate
 
 SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling")
+#: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
+SECTIONS = SECTIONS + paper.SECTIONS
 #: Sections run only when ``--only`` names them (long).
 EXTRA_SECTIONS = ("tradeoff",)
 
@@ -671,6 +684,7 @@ def format_report(res: dict) -> str:
                        f"{r['projections_needed']:>6d} {r['rebinned_rows']:>8d} {r['plan_s']:>7.2f} "
                        f"{r['simulate_s']:>7.2f} {r['reconstruct_s']:>7.2f} "
                        f"{1e3 * r['reconstruct_s'] / r['sinograms']:>8.1f}")
+    out.extend(paper.format_report(res))
     tr = res.get("tradeoff")
     if tr:
         ld = tr["load_average_1min"]
@@ -700,6 +714,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "end-to-end": lambda: bench_end_to_end_section(quick),
         "memory": lambda: bench_memory_section(quick),
         "scaling": lambda: bench_scaling_section(quick),
+        **{name: (lambda name=name: paper.run_section(name, quick, repeats)) for name in paper.SECTIONS},
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
     }
     for name in SECTIONS + EXTRA_SECTIONS:
