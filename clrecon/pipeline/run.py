@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import platform
+import resource
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -80,6 +82,14 @@ def resolve_targets(scene: Scene, cardiac: Sequence[float] | None = None,
     return Targets(cardiac=c, resp=r)
 
 
+def _load_average() -> float | None:
+    """1-minute load average of the machine (None where the OS does not say)."""
+    try:
+        return round(os.getloadavg()[0], 2)
+    except (OSError, AttributeError):
+        return None
+
+
 def _versions() -> dict:
     import h5py
     import pyopencl
@@ -118,6 +128,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     will not fit; ``force=True`` skips that check.
     """
     t_start = time.perf_counter()
+    load_start = _load_average()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rt = get_runtime()
@@ -324,6 +335,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         report_mod.write_report(out, results)
         stages["report"] = {"ran": True, "seconds": round(time.perf_counter() - t0, 3)}
     results["total_seconds"] = round(time.perf_counter() - t_start, 3)
+    # ru_maxrss: KiB on Linux (bytes on macOS)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    results["peak_rss_bytes"] = int(rss if sys.platform == "darwin" else rss * 1024)
+    results["load_average"] = {"start": load_start, "end": _load_average()}
     _write_json_atomic(out / "results.json", results)
     return results
 
