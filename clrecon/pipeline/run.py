@@ -213,7 +213,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                             "slab_slices": [int(b - a) for a, b in slabs]}
             units_written["projections"] += int(getattr(store, "units_written", 0))
 
-            bar = _progress(len(slices_z), f"reconstruct {pk}", progress, "slices")
+            bar = _progress(todo.size * len(variants) * len(run_methods), f"reconstruct {pk}", progress,
+                            "slice-volumes")
             ptimes = StageTimes()
             for k, (a, b) in enumerate(slabs):
                 sel = todo[a:b]

@@ -219,9 +219,12 @@ def filter_sinograms(sino, geom: FanBeamGeometry, window: str = "ram-lak", *, ro
 
     Notes
     -----
-    Two real rows share one complex FFT: the filter is real and even, so filtering
-    ``a + i b`` gives ``(a * g) + i (b * g)`` and the two results are its real and
-    imaginary parts (docs/algorithms.md, "Making kernels fast on PoCL").
+    Each row is filtered alone (a real FFT of the zero-padded row, times the real, even
+    response, inverse real FFT), so a row's result does not depend on the rows filtered with
+    it: the reconstruction gives the same bits whatever its slab size or worker count.
+    (Until 2026-12-02 two rows shared one complex FFT, ``a + i b``; that made a row's last
+    bits depend on its partner, about 1e-3 HU, and was no faster than ``rfft`` here:
+    28.8 ms against 46.9 ms for 1001 rows of 2048.)
     """
     a = _check_sinograms(sino, geom, "sino")
     return filter_rows(a.reshape(-1, geom.n_cols), geom, window, rows_per_chunk=rows_per_chunk,
@@ -253,22 +256,18 @@ def filter_rows(rows, geom: FanBeamGeometry, window: str = "ram-lak", *, out: np
         out = np.empty_like(rows)
     elif out.shape != rows.shape or out.dtype != np.float32 or not out.flags.c_contiguous:
         raise ValueError(f"out: expected a C-contiguous float32 array of shape {rows.shape}")
-    chunk = max(2, int(rows_per_chunk) // 2 * 2)
-    # Columns c.. stay zero for the whole loop (the zero padding): fft() does not
-    # overwrite its input, and only the first c columns are written below.
-    work = np.zeros((chunk // 2, n_pad), np.complex64)
+    chunk = max(1, int(rows_per_chunk))
+    half = response[:n_pad // 2 + 1]  # the response is real and even: its rfft half
+    # Columns c.. stay zero for the whole loop (the zero padding): only the first c are written.
+    work = np.zeros((chunk, n_pad), np.float32)
     for r0 in range(0, rows.shape[0], chunk):
         block = rows[r0:r0 + chunk]
         m = block.shape[0]
-        w = work[:(m + 1) // 2]
-        w[:, :c].real = block[0::2] * weights
-        w[:, :c].imag = 0.0  # the last pair of an odd block has no imaginary partner
-        w[:m // 2, :c].imag = block[1::2] * weights
-        spec = scipy.fft.fft(w, axis=1, workers=workers)
-        spec *= response
-        filt = scipy.fft.ifft(spec, axis=1, overwrite_x=True, workers=workers)[:, :c]
-        out[r0:r0 + m:2] = filt.real
-        out[r0 + 1:r0 + m:2] = filt[: m // 2].imag
+        w = work[:m]
+        np.multiply(block, weights, out=w[:, :c])
+        spec = scipy.fft.rfft(w, axis=1, workers=workers)
+        spec *= half
+        out[r0:r0 + m] = scipy.fft.irfft(spec, n=n_pad, axis=1, overwrite_x=True, workers=workers)[:, :c]
     return out
 
 

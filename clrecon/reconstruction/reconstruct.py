@@ -271,6 +271,8 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-
     ----------
     store : object with ``read_indices(indices, noisy=False) -> (m, R, C) float32`` and ``table``.
     variants : iterable of ``"noise-free"`` / ``"noisy"``.
+    progress : optional counter (``update(n)``), advanced by a slab's slice count as each of its
+        (variant, method) volumes is done: its total is slices x variants x methods.
     on_slab : optional callback ``(slice_slice, {(variant, method): (n_c, n_r, s, ny, nx)})`` that
         receives each slab's volume of each (variant, method) as soon as it is finished (to write
         it out and free memory: only one method's slab of images is held at a time). If None,
@@ -447,7 +449,8 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
                 img = img.reshape(Sn, tshape[0], tshape[1], geom.ny, geom.nx).transpose(1, 2, 0, 3, 4)
                 emit((v, m), np.ascontiguousarray(img))
                 del img
+                if progress is not None:  # one step per slice of each (variant, method)
+                    progress.update(s1 - s0)
         finally:
             d_rows.release()
-    if progress is not None:
-        progress.update(s1 - s0)
+
