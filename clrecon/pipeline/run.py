@@ -34,7 +34,7 @@ from clrecon.evaluation import claims, groundtruth, metrics, motion
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key, read_volume
 from clrecon.pipeline import costs as costs_mod
-from clrecon.pipeline import preflight
+from clrecon.pipeline import distributed, preflight
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, rebin, reconstruct
 from clrecon.reconstruction.diagnostics import weight_diagnostics
@@ -111,8 +111,11 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         cardiac: Sequence[float] | None = None, resp: Sequence[float] | None = None,
         slice_range: tuple[int, int] | None = None, pitches: Sequence[float] | None = None,
         cache_dir: str | Path | None = None, progress: bool = True, report: bool = True,
-        log: Callable[..., Any] = print, force: bool = False) -> dict[str, Any]:
+        log: Callable[..., Any] = print, force: bool = False, client=None) -> dict[str, Any]:
     """Run the whole job; returns the ``results.json`` dictionary.
+
+    ``client``: a ``distributed.Client``; the run's units are then computed on its workers
+    first (:mod:`clrecon.pipeline.distributed`) and this process only assembles and evaluates.
 
     Before any work, :func:`clrecon.pipeline.preflight.check` compares the run's modelled peak
     memory and disk need with the machine and raises a one-line :class:`ClreconError` if it
@@ -161,7 +164,16 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     diagnostics: dict = {}  # pitch key -> method -> per-target weight diagnostics (cardiac-major)
     sampling: dict = {}  # per pitch: distinct cardiac phases and candidates per (slice, view)
     units_written = {"projections": 0}  # unit files written by this process (a resumed run: only the rest)
+    dist = None
     try:
+        # ---- distributed (docs/distributed.md): the workers compute every missing unit and this
+        # process writes them; the serial path below then finds them done and only assembles
+        if client is not None:
+            dist = distributed.compute_units(client, writer, scene, recon_cfg, methods=methods, pitches=pitches,
+                                             variants=variants, targets=targets, slices_z=slices_z,
+                                             full_shape=full_shape, cache_dir=cache_path, progress=progress,
+                                             log=log)
+        # ---- end distributed
         for pitch in pitches:
             pk = pitch_key(pitch)
             names = [f"recon/{pk}/{v}/{m}" for v in variants for m in methods]
@@ -258,6 +270,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         writer.abort()
         raise
 
+    if dist is not None:  # what the workers computed, in place of this process's (empty) records
+        distributed.merge_records(dist, times, sim_info, method_seconds, method_plan_seconds, diagnostics, sampling,
+                                  units_written)
     for name in ("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp", "groundtruth",
                  "phantom_truth", "metrics"):
         stages[name] = {"ran": name in times.seconds, "seconds": round(times.seconds.get(name, 0.0), 3)}
@@ -295,6 +310,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         "motion_definitions": motion.definitions(motion.MotionConfig.from_scene(scene, slices_z)),
         "outputs": {"volumes": "volumes.h5", "report": "report.md" if report else None},
     }
+    if dist is not None:
+        results["distributed"] = dist.summary
     results["claims"] = claims.evaluate_claims(results)  # the paper's claims, measured
     if report:
         t0 = time.perf_counter()
