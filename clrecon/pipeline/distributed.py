@@ -31,6 +31,7 @@ import logging
 import os
 import time
 import uuid
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -390,7 +391,11 @@ class _Jobs:
 
     def submit(self, kind: str, label: str, fn, args: tuple, on_done) -> None:
         key = f"clrecon-{kind}-{uuid.uuid4().hex[:12]}"
-        fut = self.client.submit(fn, *args, key=key, pure=False, priority=_PRIORITY[kind])
+        with warnings.catch_warnings():
+            # a slab's plan (its weights, MBs at paper scale) travels with its task on purpose: a
+            # scattered copy would be lost with the worker holding it, and the unit with it
+            warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)
+            fut = self.client.submit(fn, *args, key=key, pure=False, priority=_PRIORITY[kind])
         self.pending[fut.key] = (kind, label, on_done, time.perf_counter())
         self.ac.add(fut)
 
