@@ -119,10 +119,6 @@ def connect(workers: int | None = None, cluster: str | None = None, device: str 
             local.close()
 
 
-def n_workers(client) -> int:
-    return len(client.scheduler_info().get("workers", {}))
-
-
 # ----------------------------------------------------------------------------------------
 # the distributed phase of a run
 @dataclass
@@ -375,7 +371,6 @@ class _Jobs:
 
         self.client, self.d = client, d
         self.pending: dict = {}
-        self.done_cb = None
         self.total = 0
         self.count = {"simulate": 0, "reconstruct": 0, "truth": 0}
         self.unit_seconds: dict = {"simulate": [], "reconstruct": [], "truth": []}
@@ -396,13 +391,13 @@ class _Jobs:
             # scattered copy would be lost with the worker holding it, and the unit with it
             warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)
             fut = self.client.submit(fn, *args, key=key, pure=False, priority=_PRIORITY[kind])
-        self.pending[fut.key] = (kind, label, on_done, time.perf_counter())
+        self.pending[fut.key] = (kind, label, on_done)
         self.ac.add(fut)
 
     def run(self) -> None:
         """Handle results as they complete (each callback may submit more) until none is left."""
         for fut in self.ac:
-            kind, label, on_done, _ = self.pending.pop(fut.key)
+            kind, label, on_done = self.pending.pop(fut.key)
             try:
                 res = fut.result()
             except self.d.KilledWorker as e:
