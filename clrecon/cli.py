@@ -1,4 +1,4 @@
-"""Command line: ``python -m clrecon {run,scenes,view,export,phantom,bench}`` (a thin layer over the modules).
+"""Command line: ``python -m clrecon {run,sweep,scenes,view,export,phantom,bench}`` (a thin layer over the modules).
 
 User errors (:class:`clrecon.core.errors.ClreconError`) print one line and exit with status 2;
 ``--debug`` shows the traceback instead.
@@ -7,6 +7,7 @@ User errors (:class:`clrecon.core.errors.ClreconError`) print one line and exit 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import signal
 import sys
@@ -46,14 +47,43 @@ def cmd_run(args) -> int:
     slices = parse_slices(args.slices) if args.slices else None
     pitches = _floats(args.pitch) if args.pitch else None
     out = args.out or f"runs/{scene.name}"
-    res = run(scene, out, methods=methods, cardiac=cardiac, resp=resp, slice_range=slices, pitches=pitches,
-              cache_dir=args.cache, progress=not args.no_progress, force=args.force)
+    with _client(args) as client:
+        res = run(scene, out, methods=methods, cardiac=cardiac, resp=resp, slice_range=slices, pitches=pitches,
+                  cache_dir=args.cache, progress=not args.no_progress, force=args.force, client=client)
     print(f"wrote {out}/results.json, {out}/report.md, {out}/volumes.h5 in {res['total_seconds']:.1f} s")
     from clrecon.evaluation.claims import claim_summary_lines
     from clrecon.outputs.report import summary_lines
     for line in summary_lines(res) + claim_summary_lines(res):
         print(line)
     return 0
+
+
+def _client(args):
+    """``--workers N`` / ``--cluster ADDRESS``: a Dask client for the run (docs/distributed.md), else none."""
+    if args.workers is None and args.cluster is None:
+        return contextlib.nullcontext(None)
+    from clrecon.pipeline.distributed import connect
+
+    return connect(workers=args.workers, cluster=args.cluster)
+
+
+def cmd_sweep(args) -> int:
+    from clrecon.pipeline.sweep import load_study, run_study
+
+    study = load_study(args.study)
+    with _client(args) as client:
+        summary = run_study(study, out=args.out, cache_dir=args.cache, client=client, progress=not args.no_progress)
+    print(f"wrote {summary['table_csv']}, {summary['table_md']} and {len(summary['figures'])} figures "
+          f"({summary['points_run']} points run, {summary['points_kept']} kept from an earlier sweep)")
+    return 0
+
+
+def _add_cluster_args(p) -> None:
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="compute the units on a local Dask cluster of N worker processes (needs clrecon[dask])")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="compute the units on the Dask scheduler at ADDRESS, e.g. tcp://10.0.0.1:8786; the cache "
+                        "and run folders must be on a file system every worker sees (docs/distributed.md)")
 
 
 def cmd_scenes(args) -> int:
@@ -149,7 +179,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
     r.add_argument("--force", action="store_true",
                    help="run even if the pre-flight check says the memory or disk will not suffice")
+    _add_cluster_args(r)
     r.set_defaults(func=cmd_run)
+
+    sw = sub.add_parser("sweep", help="a study: a grid of runs (scenes, pitches, methods, kappa/sigma, rhythms), "
+                                      "a summary table and figures; resumable (docs/distributed.md)")
+    sw.add_argument("study", help="study TOML file")
+    sw.add_argument("--out", help="study folder (default: the file's `out`, else runs/<study name>)")
+    sw.add_argument("--cache", help="projection store folder (default: $CLRECON_CACHE or ~/.cache/clrecon)")
+    sw.add_argument("--no-progress", action="store_true", help="no progress bars")
+    _add_cluster_args(sw)
+    sw.set_defaults(func=cmd_sweep)
 
     s = sub.add_parser("scenes", help="list the built-in scenes with their size, disk and memory")
     s.set_defaults(func=cmd_scenes)
@@ -193,7 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="smaller sizes and one repeat (about a minute)")
     b.add_argument("--json", metavar="FILE", help="also write every number and the machine description here")
     b.add_argument("--only", help="comma list from backprojection,projector,voxel-projector,interpolation,"
-                   "end-to-end,memory,scaling; also tradeoff (error against run time, ~20 min: only when named)")
+                   "end-to-end,memory,scaling; also, only when named: tradeoff (error against run time, ~20 min) "
+                   "and distributed (Dask overhead, speedup 1 -> 2 workers, paper-p002 on N nodes, ~5 min)")
     b.add_argument("--repeats", type=int, help="timed repeats per figure (default 3; --quick 1); the median is shown")
     b.set_defaults(func=cmd_bench)
     return p

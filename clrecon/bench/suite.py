@@ -53,6 +53,10 @@ Sections (``--only`` picks some):
     the one-sinogram kernel and a float64 NumPy filter), ground-truth and phantom-truth
     slice-targets/s at 110 slices per target (against the unculled projector + one-sinogram
     kernel, and float64 NumPy point samples).
+``distributed`` (only with ``--only distributed``: needs ``clrecon[dask]``, a few minutes)
+    :func:`clrecon.bench.distributed.bench_distributed_section`: Dask task overhead, the speedup
+    of a small run from 1 to 2 local workers, and paper-p002's modelled wall time on 1, 10 and
+    100 nodes from unit costs measured here (module docstring: the model's assumptions).
 ``tradeoff`` (only with ``--only tradeoff``: not in the default set, about 20 minutes)
     :func:`clrecon.bench.tradeoff.run_tradeoff`: per method, the knobs that trade seconds for
     error (local-linear neighbours, kappa, sigma; candidate turns; views; grid) swept on demo
@@ -81,6 +85,8 @@ from pathlib import Path
 import numpy as np
 
 from clrecon.bench import paper
+from clrecon.bench.distributed import bench_distributed_section
+from clrecon.bench.distributed import report_lines as distributed_report_lines
 from clrecon.bench.fbp import bench_backprojection
 from clrecon.bench.projector import bench_projector
 from clrecon.bench.tradeoff import format_table as tradeoff_table
@@ -101,7 +107,7 @@ SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
 SECTIONS = SECTIONS + paper.SECTIONS
 #: Sections run only when ``--only`` names them (long).
-EXTRA_SECTIONS = ("tradeoff",)
+EXTRA_SECTIONS = ("tradeoff", "distributed")
 
 #: Goals of the issue (bench output marks them).
 GOAL_BACKPROJECTION_GUPS = 4.0
@@ -694,6 +700,7 @@ def format_report(res: dict) -> str:
                    f"(load {ld['min']:.2f}..{ld['max']:.2f}, median {ld['median']:.2f}); "
                    f"{tr['out_dir']}/tradeoff.png; * = on the method's Pareto front")
         out.extend("   " + line for line in tradeoff_table(tr).splitlines())
+    out.extend(distributed_report_lines(res.get("distributed")))
     return "\n".join(out)
 
 
@@ -716,6 +723,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "scaling": lambda: bench_scaling_section(quick),
         **{name: (lambda name=name: paper.run_section(name, quick, repeats)) for name in paper.SECTIONS},
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
+        "distributed": lambda: bench_distributed_section(quick, repeats),
     }
     for name in SECTIONS + EXTRA_SECTIONS:
         if name in only:

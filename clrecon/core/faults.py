@@ -15,6 +15,9 @@ The points (the only calls of :func:`point` in clrecon):
     after the ``n``-th unit (a torn HDF5 file).
 ``rename-store``, ``rename-volumes``
     Right before the assembled ``.partial`` is renamed to its final name.
+``worker-unit``
+    At the start of the ``n``-th unit a Dask worker computes (:mod:`clrecon.pipeline.work_units`):
+    a worker that dies mid-unit.
 """
 
 from __future__ import annotations

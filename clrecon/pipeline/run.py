@@ -37,11 +37,11 @@ from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key, read_volume
 from clrecon.pipeline import costs as costs_mod
-from clrecon.pipeline import preflight
+from clrecon.pipeline import distributed, preflight
+from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, rebin, reconstruct
 from clrecon.reconstruction.diagnostics import combine as combine_diagnostics
-from clrecon.reconstruction.diagnostics import weight_diagnostics
 from clrecon.reconstruction.reconstruct import StageTimes, Targets
 from clrecon.scan import sampling as sampling_mod
 from clrecon.scan import table as geometry
@@ -120,8 +120,11 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         cardiac: Sequence[float] | None = None, resp: Sequence[float] | None = None,
         slice_range: tuple[int, int] | None = None, pitches: Sequence[float] | None = None,
         cache_dir: str | Path | None = None, progress: bool = True, report: bool = True,
-        log: Callable[..., Any] = print, force: bool = False) -> dict[str, Any]:
+        log: Callable[..., Any] = print, force: bool = False, client=None) -> dict[str, Any]:
     """Run the whole job; returns the ``results.json`` dictionary.
+
+    ``client``: a ``distributed.Client``; the run's units are then computed on its workers
+    first (:mod:`clrecon.pipeline.distributed`) and this process only assembles and evaluates.
 
     Before any work, :func:`clrecon.pipeline.preflight.check` compares the run's modelled peak
     memory and disk need with the machine and raises a one-line :class:`ClreconError` if it
@@ -172,20 +175,20 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     sampling: dict = {}  # per pitch: distinct cardiac phases and candidates per (slice, view)
     units_written = {"projections": 0}  # unit files written by this process (a resumed run: only the rest)
     stage_counts: dict = {}  # work counts of the reconstruction: detector cells read, noise cells drawn
+    dist = None
     try:
+        # ---- distributed (docs/distributed.md): the workers compute every missing unit and this
+        # process writes them; the serial path below then finds them done and only assembles
+        if client is not None:
+            dist = distributed.compute_units(client, writer, scene, recon_cfg, methods=methods, pitches=pitches,
+                                             variants=variants, targets=targets, slices_z=slices_z,
+                                             full_shape=full_shape, cache_dir=cache_path, progress=progress,
+                                             log=log)
+        # ---- end distributed
         for pitch in pitches:
             pk = pitch_key(pitch)
-            for m in methods:
-                # r4dct stands for every cardiac phase, helical for every target: stored once
-                bc = {"resp": ("cardiac",), "none": ("cardiac", "resp")}.get(interpolation.METHODS[m].target_grid, ())
-                for v in variants:
-                    writer.create(f"recon/{pk}/{v}/{m}", full_shape, len(slices_z), broadcast=bc)
-            # a resumed run redoes only the units (slab x variant x method) not yet written:
-            # the methods with an unfinished unit, on the slices one of them lacks
-            run_methods = tuple(m for m in methods if not all(writer.done(f"recon/{pk}/{v}/{m}").all()
-                                                                 for v in variants))
-            todo = np.flatnonzero(~np.logical_and.reduce(
-                [writer.done(f"recon/{pk}/{v}/{m}") for v in variants for m in run_methods] or [True]))
+            slabs_mod.declare_recon(writer, pk, methods, variants, full_shape, len(slices_z))
+            run_methods, todo = slabs_mod.unfinished(writer, pk, variants, methods)
             if todo.size == 0:
                 log(f"[{pk}] already reconstructed (resumed run)")
                 sim_info[pk] = {"projections_total": scene.scan.projection_count(scene.scanner, pitch),
@@ -197,8 +200,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             table = geometry.projection_table(scene, pitch)
             times.add("signals", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            slabs, plans, needed, diag_parts, plan_s = _plan_slabs(recon_cfg, table, slices_z, todo, targets,
-                                                                   run_methods, len(variants), progress)
+            slabs, plans, needed, diag_parts, plan_s = slabs_mod.plan_slabs(recon_cfg, table, slices_z, todo, targets,
+                                                                            run_methods, len(variants), progress)
             times.add("plan", time.perf_counter() - t0)
             diagnostics[pk] = combine_diagnostics(diag_parts)
             sampling[pk] = sampling_mod.sampling_summary(
@@ -259,10 +262,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         n_r = targets.shape[1]
         for name in ("groundtruth", "phantom"):
             writer.create(name, full_shape, n_t)
-            for k in np.flatnonzero(~writer.done(name)):  # computed by an earlier run with the same truths
-                hit = truths.find(writer.target_stem(name, int(k)))
-                if hit is not None and not writer.adopt_target(name, int(k), hit, truths.link):
-                    truths.drop(hit)
+        slabs_mod.adopt_cached_truths(writer, truths, n_t)  # computed by an earlier run with the same truths
         t0 = time.perf_counter()
         skip = set(np.flatnonzero(writer.done("groundtruth")))
         bar = _progress(n_t - len(skip), "ground truth", progress, "targets")
@@ -290,6 +290,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         writer.abort()
         raise
 
+    if dist is not None:  # what the workers computed, in place of this process's (empty) records
+        distributed.merge_records(dist, times, sim_info, method_seconds, method_plan_seconds, diagnostics, sampling,
+                                  units_written)
     for name in ("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp", "groundtruth",
                  "phantom_truth", "metrics"):
         stages[name] = {"ran": name in times.seconds, "seconds": round(times.seconds.get(name, 0.0), 3)}
@@ -330,6 +333,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         "motion_definitions": motion.definitions(motion.MotionConfig.from_scene(scene, slices_z)),
         "outputs": {"volumes": "volumes.h5", "report": "report.md" if report else None},
     }
+    if dist is not None:
+        results["distributed"] = dist.summary
     results["claims"] = claims.evaluate_claims(results)  # the paper's claims, measured
     if report:
         t0 = time.perf_counter()
@@ -342,37 +347,6 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     results["load_average"] = {"start": load_start, "end": _load_average()}
     _write_json_atomic(out / "results.json", results)
     return results
-
-
-def _plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progress):
-    """Plan the slices ``todo`` slab by slab: ``(slabs, plans, needed, diagnostics_parts, plan_seconds)``.
-
-    The slab size comes from the plan of the first slice (:func:`reconstruct.slab_slices`), so
-    a paper-scale scan never holds the plan of every slice at once. Each slab is planned to
-    find the projections the reconstruction needs (``needed``, (n,) bool) and its weight
-    diagnostics; the plans are kept for the reconstruction while they fit in
-    :data:`clrecon.reconstruction.reconstruct.KEEP_PLANS_BYTES` (``plans[k]`` is None where a
-    slab must be planned again).
-    ``plan_seconds``: method -> seconds, each slab's planning summed.
-    """
-    probe = reconstruct.plan(cfg, table, slices_z[todo[:1]], targets, methods)
-    per = reconstruct.slab_slices(cfg, probe, n_variants)
-    slabs = [(a, min(todo.size, a + per)) for a in range(0, todo.size, per)]
-    needed = np.zeros(len(table), bool)
-    plans, parts, plan_s, kept = [], [], {}, 0
-    bar = _progress(len(slabs), "plan", progress and len(slabs) > 1, "slabs")
-    for a, b in slabs:
-        p = reconstruct.plan(cfg, table, slices_z[todo[a:b]], targets, methods)
-        for m, sec in p.method_seconds.items():
-            plan_s[m] = plan_s.get(m, 0.0) + sec
-        needed |= p.needed_projections(len(table))
-        parts.append((weight_diagnostics(p, table, targets), b - a))
-        size = reconstruct.plan_bytes(p)
-        plans.append(p if kept + size <= reconstruct.KEEP_PLANS_BYTES else None)
-        kept += size if plans[-1] is not None else 0
-        bar.update(1)
-    bar.close()
-    return slabs, plans, needed, parts, plan_s
 
 
 def reconstruct_methods():

@@ -18,9 +18,12 @@ from clrecon.scan.table import projection_table
 from clrecon.simulation.projector import project
 from clrecon.simulation.store import ProjectionStore
 
+#: Projections per projector call and per unit file (the distributed path cuts the same chunks).
+CHUNK = 256
+
 
 def simulate(scene: Scene, pitch: float, needed=None, cache_dir=None, projector=None,
-             chunk: int = 256, progress: bool = True) -> ProjectionStore:
+             chunk: int = CHUNK, progress: bool = True) -> ProjectionStore:
     """Make sure the projections ``needed`` of ``(scene, pitch)`` are in the store.
 
     Parameters

@@ -1,0 +1,81 @@
+"""What a run does per pitch and per target, shared by the single-process path and Dask.
+
+:mod:`clrecon.pipeline.run` and :mod:`clrecon.pipeline.distributed` must cut the same units
+and write the same files, so the decisions live here once: which datasets a pitch declares
+(r4dct and helical stored once, ``broadcast``), which (methods, slices) are still to do, the
+slab-by-slab planning with its slab size, and taking truths from the truth cache.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clrecon.core.progress import progress as progress_counter
+from clrecon.evaluation.truth_cache import TruthCache
+from clrecon.outputs.volumes import VolumeWriter
+from clrecon.reconstruction import interpolation, reconstruct
+from clrecon.reconstruction.diagnostics import weight_diagnostics
+
+#: target grid of a method -> the target axes its volume stands for (stored at length 1)
+BROADCAST = {"resp": ("cardiac",), "none": ("cardiac", "resp")}
+
+
+def declare_recon(writer: VolumeWriter, pk: str, methods, variants, full_shape: tuple, n_slices: int) -> None:
+    """Declare the reconstruction datasets of one pitch (r4dct once per amplitude, helical once)."""
+    for m in methods:
+        bc = BROADCAST.get(interpolation.METHODS[m].target_grid, ())
+        for v in variants:
+            writer.create(f"recon/{pk}/{v}/{m}", full_shape, n_slices, broadcast=bc)
+
+
+def unfinished(writer: VolumeWriter, pk: str, variants, methods) -> tuple[tuple, np.ndarray]:
+    """(methods with an unfinished unit, slice indices one of them lacks) of one pitch.
+
+    A resumed run redoes only the units (slab x variant x method) not yet written: the methods
+    with an unfinished unit, on the slices one of them lacks.
+    """
+    run_methods = tuple(m for m in methods if not all(writer.done(f"recon/{pk}/{v}/{m}").all() for v in variants))
+    todo = np.flatnonzero(~np.logical_and.reduce(
+        [writer.done(f"recon/{pk}/{v}/{m}") for v in variants for m in run_methods] or [True]))
+    return run_methods, todo
+
+
+def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progress):
+    """Plan the slices ``todo`` slab by slab: ``(slabs, plans, needed, diagnostics_parts, plan_seconds)``.
+
+    The slab size comes from the plan of the first slice (:func:`reconstruct.slab_slices`), so
+    a paper-scale scan never holds the plan of every slice at once. Each slab is planned to
+    find the projections the reconstruction needs (``needed``, (n,) bool) and its weight
+    diagnostics; the plans are kept for the reconstruction while they fit in
+    :data:`clrecon.reconstruction.reconstruct.KEEP_PLANS_BYTES` (``plans[k]`` is None where a
+    slab must be planned again). ``slabs``: (a, b) ranges into ``todo``. ``plan_seconds``:
+    method -> seconds, each slab's planning summed.
+    """
+    probe = reconstruct.plan(cfg, table, slices_z[todo[:1]], targets, methods)
+    per = reconstruct.slab_slices(cfg, probe, n_variants)
+    slabs = [(a, min(todo.size, a + per)) for a in range(0, todo.size, per)]
+    needed = np.zeros(len(table), bool)
+    plans, parts, plan_s, kept = [], [], {}, 0
+    bar = progress_counter(len(slabs), "plan", progress and len(slabs) > 1, "slabs")
+    for a, b in slabs:
+        p = reconstruct.plan(cfg, table, slices_z[todo[a:b]], targets, methods)
+        for m, sec in p.method_seconds.items():
+            plan_s[m] = plan_s.get(m, 0.0) + sec
+        needed |= p.needed_projections(len(table))
+        parts.append((weight_diagnostics(p, table, targets), b - a))
+        size = reconstruct.plan_bytes(p)
+        plans.append(p if kept + size <= reconstruct.KEEP_PLANS_BYTES else None)
+        kept += size if plans[-1] is not None else 0
+        bar.update(1)
+    bar.close()
+    return slabs, plans, needed, parts, plan_s
+
+
+def adopt_cached_truths(writer: VolumeWriter, truths: TruthCache, n_targets: int,
+                        names=("groundtruth", "phantom")) -> None:
+    """Take every not-yet-done truth unit the truth cache holds (a damaged one is dropped)."""
+    for name in names:
+        for k in np.flatnonzero(~writer.done(name)):
+            hit = truths.find(writer.target_stem(name, int(k)))
+            if hit is not None and not writer.adopt_target(name, int(k), hit, truths.link):
+                truths.drop(hit)

@@ -1,0 +1,130 @@
+"""The work units a Dask worker computes for a distributed run (:mod:`clrecon.pipeline.distributed`).
+
+Each function is top-level (importable by name on the worker), takes small picklable
+configs and paths, computes exactly what the single-process path
+computes for that unit (the same functions on the same inputs, so the numbers are
+bit-identical) and returns NumPy arrays; the client writes them as unit files
+(:mod:`clrecon.core.units`) with the run's own writers. Nothing is written here, so a worker
+killed mid-unit leaves nothing behind: the scheduler gives the unit to another worker.
+
+The units:
+
+- :func:`simulate_chunk`: one chunk of projections (the chunk ``simulate`` would project);
+- :func:`reconstruct_slab`: one slab of slices x every method x every noise variant of one
+  pitch (the slabs of :func:`clrecon.pipeline.slabs.plan_slabs`, as the single-process path
+  cuts them; every step is per slice, per row or per target, so another cut would give the
+  same bits too, but the same cut makes the same unit files);
+- :func:`truth_target`: the ground truth and/or phantom truth of one target.
+
+``CLRECON_FAULT=worker-unit:<n>`` (:mod:`clrecon.core.faults`) kills the worker process at the
+start of its ``n``-th unit (the test of a worker that dies mid-unit).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from clrecon.core import faults
+from clrecon.core.runtime import get_runtime
+from clrecon.evaluation import groundtruth
+from clrecon.reconstruction import reconstruct
+from clrecon.reconstruction.reconstruct import StageTimes
+from clrecon.scan.table import projection_table
+from clrecon.simulation.projector import project
+from clrecon.simulation.store import ProjectionStore
+
+
+def prepare_worker(device: str | None = None) -> str:
+    """Build this worker process's OpenCL runtime once (the Dask worker plugin calls it at start).
+
+    ``device`` (a ``CLRECON_DEVICE`` spec, e.g. ``nvidia:1``) overrides the worker's environment;
+    without it the worker's own ``CLRECON_DEVICE`` (or PoCL) is used. Progress bars are turned
+    off in workers. Returns the device description.
+    """
+    if device:
+        os.environ["CLRECON_DEVICE"] = device
+    os.environ["CLRECON_NO_PROGRESS"] = "1"
+    return get_runtime().description
+
+
+_tables: dict = {}
+
+
+def scan_table(scene, pitch: float):
+    """``projection_table(scene, pitch)``, kept per worker process for the last few scans.
+
+    Computed here rather than sent: it is deterministic (the client's is the same array), and
+    a worker that joins or restarts needs nothing but the scene.
+    """
+    key = scene.scan_hash(pitch)
+    table = _tables.get(key)
+    if table is None:
+        if len(_tables) >= 4:
+            _tables.pop(next(iter(_tables)))
+        table = _tables[key] = projection_table(scene, pitch)
+    return table
+
+
+def simulate_chunk(scene, pitch: float, indices: np.ndarray) -> tuple[np.ndarray, float]:
+    """Line integrals of projections ``indices`` (increasing, (m,)) of the scan: ((m, R, C) float32, seconds)."""
+    faults.point("worker-unit")
+    t0 = time.perf_counter()
+    table = scan_table(scene, pitch)
+    data = np.ascontiguousarray(project(scene, table.take(np.asarray(indices, np.int64))), np.float32)
+    return data, time.perf_counter() - t0
+
+
+def reconstruct_slab(cfg, scene, pitch: float, cache_dir: str, plan, slices_z, targets, methods,
+                     variants) -> tuple[dict, dict]:
+    """One slab of every planned method and variant, read from the finished projection store.
+
+    ``plan`` is the client's plan of the slab's slices ``slices_z`` (mm), or None when the
+    client did not keep it (over its plan budget): the worker then makes it with the same
+    function (:func:`clrecon.reconstruction.reconstruct.plan`, deterministic). The store at
+    ``cache_dir`` must be finished and readable from this worker (a shared folder on a cluster).
+    Returns ``({(variant, method): (n_c', n_r', s, ny, nx) float32 HU}, stage seconds)``.
+    """
+    faults.point("worker-unit")
+    times = StageTimes()
+    table = scan_table(scene, pitch)
+    if plan is None:
+        t0 = time.perf_counter()
+        plan = reconstruct.plan(cfg, table, np.asarray(slices_z), targets, methods)
+        times.add("plan", time.perf_counter() - t0)
+    store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table, create=False)
+    try:
+        vols = reconstruct.reconstruct(cfg, store, plan, variants=variants, rt=get_runtime(), times=times,
+                                       slab_size=max(1, len(plan.slices_z)))
+    finally:
+        store.close()
+    return vols, times.seconds
+
+
+def truth_target(gt_cfg, slices_z: np.ndarray, targets, k: int, which: tuple) -> tuple[dict, dict]:
+    """The truths ``which`` (``"groundtruth"``, ``"phantom"``) of flat target ``k`` (cardiac-major).
+
+    Returns ``({name: (nz, ny, nx) float32 HU}, {"groundtruth"|"phantom_truth": seconds})``.
+    """
+    faults.point("worker-unit")
+    rt = get_runtime()
+    skip = set(range(len(targets.cardiac) * len(targets.resp))) - {k}
+    out, seconds = {}, {}
+    if "groundtruth" in which:
+        t0 = time.perf_counter()
+        for _, _, vol in groundtruth.groundtruth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
+            out["groundtruth"] = vol
+        seconds["groundtruth"] = time.perf_counter() - t0
+    if "phantom" in which:
+        t0 = time.perf_counter()
+        for _, _, vol in groundtruth.phantom_truth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
+            out["phantom"] = vol
+        seconds["phantom_truth"] = time.perf_counter() - t0
+    return out, seconds
+
+
+def round_trip(x=None):
+    """A task that does nothing (the bench's measure of the per-task overhead)."""
+    return x
