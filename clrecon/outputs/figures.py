@@ -412,7 +412,11 @@ def fig_mae_per_target(run_results: dict, path: Path, fov: str) -> str:
             if k == 0:
                 ax.set_ylabel("cardiac phase target", fontsize=6)
     fig.suptitle(f"MAE vs ground truth per target, {fov} FOV (HU)", fontsize=9)
-    fig.tight_layout(rect=(0, 0, 0.88, 0.95))
+    # fixed margins in inches: tight_layout over the panels' 1000+ value labels took half the
+    # figure's time (5 of 10 s on the demo) for the same layout
+    w_in, h_in = fig.get_size_inches()
+    fig.subplots_adjust(left=0.75 / w_in, right=0.86, bottom=0.85 / h_in, top=1 - 0.75 / h_in, wspace=0.35,
+                        hspace=0.6)
     _colourbar(fig, im, "MAE (HU)")
     fig.savefig(path, dpi=110)
     plt.close(fig)
