@@ -11,7 +11,10 @@ Disk need, from the crash-safe layout (:mod:`clrecon.core.units`): projection un
 needed projections (raw float32) plus the assembled store (the old ``.h5`` copied, plus the
 new projections; LZF-compressed, counted raw), i.e. 2 x needed + the existing store, or
 nothing when the existing store is complete; volume units plus the assembled ``volumes.h5``
-(2 x the volumes), less the units an interrupted run already left.
+(2 x the volumes), less the units an interrupted run already left. The truth cache
+(:mod:`clrecon.evaluation.truth_cache`) hard-links the truth units, so it costs nothing more
+at the peak; where the cache is on another file system the link is a copy, and the two truth
+volumes are counted at the cache too.
 """
 
 from __future__ import annotations
@@ -80,7 +83,9 @@ def needs(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
                 pass
         cache += 2 * n_needed * proj_bytes + existing
     out = max(0, 2 * costs["volume_bytes"] - _dir_bytes(Path(out_dir) / "volumes.h5.units"))
-    return {"memory": costs["peak_memory_bytes"], "cache_disk": cache, "out_disk": out}
+    if _device(cache_dir) != _device(out_dir):  # the truth cache copies instead of linking
+        cache += int(2 * costs["volume_bytes"] / max(costs["n_volumes"], 1))
+    return {"memory": costs["peak_memory_bytes"], "cache_disk": cache, "out_disk": int(out)}
 
 
 def check(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
