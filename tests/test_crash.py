@@ -2,25 +2,17 @@
 at a chosen point (``CLRECON_FAULT``, :mod:`clrecon.core.faults`); the rerun resumes, writes
 only the unfinished units, and ends bit-identical to an uninterrupted run."""
 
-import json
 import os
 import signal
 import subprocess
 import sys
 
-import h5py
 import numpy as np
 import pytest
+from run_compare import assert_identical
 
 from clrecon.config.scene import load_scene
 from clrecon.pipeline.run import run
-
-
-def _volumes(path):
-    with h5py.File(path / "volumes.h5", "r") as f:
-        out = {}
-        f.visititems(lambda n, o: out.__setitem__(n, o[()]) if isinstance(o, h5py.Dataset) else None)
-    return out
 
 
 def _cli(out, cache, fault=None):
@@ -39,20 +31,6 @@ def reference(tmp_path_factory):
     res = run(load_scene("tiny"), out, cache_dir=tmp_path_factory.mktemp("cache"), progress=False,
               log=lambda *a: None)
     return out, res
-
-
-def _assert_identical(out, ref):
-    ref_out, ref_res = ref
-    va, vb = _volumes(out), _volumes(ref_out)
-    assert va.keys() == vb.keys()
-    for k in va:
-        assert va[k].tobytes() == vb[k].tobytes(), k
-    res = json.loads((out / "results.json").read_text())
-    want = json.loads(json.dumps(ref_res, default=lambda o: o.tolist() if hasattr(o, "tolist") else list(o)))
-    for key in ("metrics", "respiratory_only", "motion"):
-        assert res[key] == want[key], key
-    assert not [p for p in out.iterdir() if p.suffix in (".partial", ".units")]
-    return res
 
 
 # (fault, unit files the rerun writes: projections, recon, truth); with the reference run's
@@ -77,7 +55,7 @@ def test_sigkill_then_resume_is_bit_identical(tmp_path, reference, fault):
     again = _cli(out, cache)
     assert again.returncode == 0, again.stderr
     assert "Traceback" not in again.stderr
-    res = _assert_identical(out, reference)
+    res = assert_identical(out, reference, ("metrics", "respiratory_only", "motion"))
     total = reference[1]["units_written"]
     P, R, T = total["projections"], total["recon"], total["truth"]
     assert (P, R, T) == (2, 12, 8)
@@ -98,7 +76,7 @@ def test_damaged_unit_file_is_detected_and_redone(tmp_path, reference):
     again = _cli(out, cache)
     assert again.returncode == 0, again.stderr
     assert "damaged unit file" in again.stderr
-    res = _assert_identical(out, reference)
+    res = assert_identical(out, reference, ("metrics", "respiratory_only", "motion"))
     got = res["units_written"]
     assert (got["projections"], got["recon"], got["truth"]) == (0, 1, 6)
 

@@ -8,8 +8,8 @@ import signal
 import subprocess
 import sys
 
-import h5py
 import pytest
+from run_compare import assert_identical
 
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import ClreconError
@@ -32,30 +32,9 @@ def reference(tmp_path_factory):
     return out, run(load_scene("tiny"), out, cache_dir=tmp_path_factory.mktemp("cache"), **QUIET)
 
 
-def _volumes(path):
-    with h5py.File(path / "volumes.h5", "r") as f:
-        out = {}
-        f.visititems(lambda n, o: out.__setitem__(n, o[()]) if isinstance(o, h5py.Dataset) else None)
-    return out
-
-
-def _assert_identical(out, ref):
-    ref_out, ref_res = ref
-    va, vb = _volumes(out), _volumes(ref_out)
-    assert va.keys() == vb.keys()
-    for k in va:
-        assert va[k].tobytes() == vb[k].tobytes(), k
-    res = json.loads((out / "results.json").read_text())
-    want = json.loads(json.dumps(ref_res, default=lambda o: o.tolist() if hasattr(o, "tolist") else list(o)))
-    for key in ("metrics", "respiratory_only", "motion", "diagnostics", "sampling"):
-        assert res[key] == want[key], key
-    assert not [p for p in out.iterdir() if p.suffix in (".partial", ".units")]
-    return res
-
-
 def test_two_workers_bit_identical(tmp_path, client, reference):
     res = run(load_scene("tiny"), tmp_path / "run", cache_dir=tmp_path / "cache", client=client, **QUIET)
-    _assert_identical(tmp_path / "run", reference)
+    assert_identical(tmp_path / "run", reference)
     d = res["distributed"]
     # tiny: 384 projections = 2 chunks of 256, one slab (2 slices x 6 methods x 2 variants), 4 targets
     assert d["workers"] == 2 and d["units"] == {"simulate": 2, "reconstruct": 1, "truth": 4}
@@ -72,7 +51,7 @@ def test_killed_worker_costs_only_its_unit(tmp_path, client, reference):
     # the fault: a fresh process) and the scheduler hands the unit to a worker again
     client.run(lambda: os.environ.__setitem__("CLRECON_FAULT", "worker-unit:1"), workers=[victim])
     res = run(load_scene("tiny"), tmp_path / "run", cache_dir=tmp_path / "cache", client=client, **QUIET)
-    _assert_identical(tmp_path / "run", reference)
+    assert_identical(tmp_path / "run", reference)
     client.wait_for_workers(2, timeout=60)
     after = client.run(os.getpid)
     assert before[victim] not in after.values()  # it did die ...
@@ -110,7 +89,7 @@ def test_cli_client_killed_then_resumes(tmp_path, reference):
     rc, stdout, err = _cli(out, cache)
     assert rc == 0, err
     assert "Traceback" not in err
-    res = _assert_identical(out, reference)
+    res = assert_identical(out, reference)
     assert res["resumed"] and res["units_written"]["truth"] == reference[1]["units_written"]["truth"] - 2
 
 

@@ -49,7 +49,6 @@ images, 32 slices; about 85 s at load 4 on the 2-core machine (the default sizes
 
 from __future__ import annotations
 
-import os
 import tempfile
 import time
 from pathlib import Path
@@ -57,6 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from clrecon.bench.projector import bench_projector
+from clrecon.bench.timing import load1, median_time
 from clrecon.config.scene import load_scene
 from clrecon.core.conventions import mu_to_hu, voxel_coords
 from clrecon.core.runtime import get_runtime
@@ -68,22 +68,6 @@ from clrecon.simulation import noise, projector, simulate
 
 #: Projections in the paper scenes' scans (Table 1): the projected whole-scan times use these.
 PAPER_SCANS = ("paper-p002", "paper-p010")
-
-
-def _load1() -> float:
-    return round(os.getloadavg()[0], 2)
-
-
-def _median_time(fn, repeats: int, warmup: bool = True) -> tuple[float, list]:
-    """(median seconds, all seconds) of ``repeats`` calls of ``fn`` after one untimed warm-up."""
-    if warmup:
-        fn()
-    times = []
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), [round(t, 4) for t in times]
 
 
 def _timed(fn) -> tuple:
@@ -123,7 +107,7 @@ def bench_paper_projector(n_projections: int = 512, scene="paper-p002", *, chunk
     idx = spread_indices(n_total, n_projections)
     chunks = [idx[i:i + chunk] for i in range(0, len(idx), chunk)]
     rays_per_proj = sc.scanner.n_rows * sc.scanner.n_cols
-    load = _load1()
+    load = load1()
 
     projector.project(sc, table.take(idx[:2]), rt=rt)      # kernel builds
     # the first call at the chunk size, then the same call again (warm)
@@ -132,7 +116,7 @@ def bench_paper_projector(n_projections: int = 512, scene="paper-p002", *, chunk
     one = idx[len(idx) // 2:len(idx) // 2 + 1]
     # seconds of one warm call against its projections (medians): a straight line, fixed + slope * n
     fit_sizes = sorted({1, min(16, len(chunks[0])), len(chunks[0])})
-    fit_s = [_median_time(lambda k=k: projector.project(sc, table.take(chunks[0][:k]), rt=rt), 3)[0]
+    fit_s = [median_time(lambda k=k: projector.project(sc, table.take(chunks[0][:k]), rt=rt), 3)[0]
              for k in fit_sizes]
     per_proj_s, overhead_s = (float(v) for v in np.polyfit(fit_sizes, fit_s, 1)) if len(fit_sizes) > 1 \
         else (fit_s[0], 0.0)
@@ -144,7 +128,7 @@ def bench_paper_projector(n_projections: int = 512, scene="paper-p002", *, chunk
         box["out"] = [projector.project(sc, table.take(c), rt=rt) for c in chunks]
 
     cpu0 = time.process_time()
-    t_proj, all_proj = _median_time(project_all, repeats, warmup=False)
+    t_proj, all_proj = median_time(project_all, repeats, warmup=False)
     cpu_proj = (time.process_time() - cpu0) / max(1, repeats)
     culled = np.concatenate(box["out"])
 
@@ -174,7 +158,7 @@ def bench_paper_projector(n_projections: int = 512, scene="paper-p002", *, chunk
     ref_pos = np.arange(0, len(idx), max(1, reference_every))
     ref_table = table.take(idx[ref_pos])
     ref_out = {}
-    t_ref, all_ref = _median_time(
+    t_ref, all_ref = median_time(
         lambda: ref_out.__setitem__("x", projector.project(sc, ref_table, rt=rt, cull=False)), max(1, repeats - 1))
 
     res = {
@@ -253,13 +237,13 @@ def bench_noise(n_projections: int = 256, scene="paper-p002", *, repeats: int = 
     idx = spread_indices(len(table), n_projections)
     clean = projector.project(sc, table.take(idx), rt=rt)
     cells = clean.size
-    load = _load1()
+    load = load1()
     box = {}
-    t_ours, all_ours = _median_time(lambda: box.__setitem__("o", noise.add_noise(clean, idx, cfg, rt=rt)), repeats)
-    t_np, all_np = _median_time(lambda: box.__setitem__("n", numpy_philox_noise(clean, cfg)), max(1, repeats - 1),
+    t_ours, all_ours = median_time(lambda: box.__setitem__("o", noise.add_noise(clean, idx, cfg, rt=rt)), repeats)
+    t_np, all_np = median_time(lambda: box.__setitem__("n", numpy_philox_noise(clean, cfg)), max(1, repeats - 1),
                                 warmup=False)
     k = max(1, min(check_projections, len(idx)))
-    t_ref, _ = _median_time(lambda: box.__setitem__("r", noise.add_noise_reference(clean[:k], idx[:k], cfg)), 1,
+    t_ref, _ = median_time(lambda: box.__setitem__("r", noise.add_noise_reference(clean[:k], idx[:k], cfg)), 1,
                             warmup=False)
     d_ours = (box["o"] - clean).astype(np.float64)
     d_np = (box["n"] - clean).astype(np.float64)
@@ -329,7 +313,7 @@ def bench_paper_fbp(scene="paper-p002", *, n_images: int = 64, reference_images:
     window = sc.recon.filter
     sino = _thorax_sinograms(sc, n_images, rt)
     B, V, C = sino.shape
-    load = _load1()
+    load = load1()
     rows = sino.reshape(-1, C).copy()
 
     def filt():
@@ -352,15 +336,15 @@ def bench_paper_fbp(scene="paper-p002", *, n_images: int = 64, reference_images:
     def bp():
         box["img"] = np.concatenate([fbp.backproject_interleaved(buf, g, geom, runtime=rt)[:n] for buf, g, n in bufs])
 
-    t_bp, all_bp = _median_time(bp, repeats)
+    t_bp, all_bp = median_time(bp, repeats)
     for buf, _, _ in bufs:
         buf.release()
     n_ref = max(1, min(reference_images, B))
-    t_single, all_single = _median_time(
+    t_single, all_single = median_time(
         lambda: box.__setitem__("s", fbp.backproject_single(filtered[:n_ref], geom, runtime=rt)),
         max(1, repeats - 1))
     ref_rows = rows[:V]
-    t_np, _ = _median_time(lambda: box.__setitem__("nf", filter_rows_numpy(ref_rows, geom, window)), 1,
+    t_np, _ = median_time(lambda: box.__setitem__("nf", filter_rows_numpy(ref_rows, geom, window)), 1,
                            warmup=False)
     bp_per_img = t_bp / B
     filt_per_row = t_filter / (B * V)
@@ -421,22 +405,22 @@ def bench_groundtruth(scene="paper-p002", *, n_slices: int | None = None, cardia
     z = reconstruct.slice_positions(sc, (i0, i0 + n_slices))
     targets = reconstruct.Targets(tuple(cardiac), tuple(resp))
     n_st = n_slices * len(cardiac) * len(resp)
-    load = _load1()
+    load = load1()
     box = {}
     one = reconstruct.Targets(tuple(cardiac[:1]), tuple(resp[:1]))
     # warm-up: kernel builds on one slice, and the projector's launch at the full size
     list(groundtruth.groundtruth_volumes(cfg, z[:1], one, rt=rt))
     list(groundtruth.phantom_truth_volumes(cfg, z[:1], one, rt=rt))
     groundtruth.groundtruth_sinograms(cfg, cfg.source(), float(cardiac[0]), float(resp[0]), z, rt=rt)
-    t_gt, all_gt = _median_time(
+    t_gt, all_gt = median_time(
         lambda: box.__setitem__("gt", list(groundtruth.groundtruth_volumes(cfg, z, targets, rt=rt))), repeats,
         warmup=False)
-    t_pt, all_pt = _median_time(
+    t_pt, all_pt = median_time(
         lambda: box.__setitem__("pt", list(groundtruth.phantom_truth_volumes(cfg, z, targets, rt=rt))), repeats,
         warmup=False)
     phantom = cfg.source()
     c0, a0 = float(cardiac[0]), float(resp[0])
-    t_sino, _ = _median_time(lambda: groundtruth.groundtruth_sinograms(cfg, phantom, c0, a0, z, rt=rt), 1,
+    t_sino, _ = median_time(lambda: groundtruth.groundtruth_sinograms(cfg, phantom, c0, a0, z, rt=rt), 1,
                              warmup=False)
 
     # reference CT of one slice-target: unculled projector + one-sinogram backprojector
@@ -450,14 +434,14 @@ def bench_groundtruth(scene="paper-p002", *, n_slices: int | None = None, cardia
         f = fbp.filter_sinograms(s.reshape(1, V, det.n_cols), geom, cfg.filter)
         box["ref"] = mu_to_hu(fbp.backproject_single(f, geom, runtime=rt)[0], cfg.mu_water_per_mm)
 
-    t_ref, _ = _median_time(ref_ct, 1)
+    t_ref, _ = median_time(ref_ct, 1)
     mask = geom.fov_mask()
     gt0 = box["gt"][0][2][0]
     # reference phantom truth: float64 NumPy point samples at the voxel centres of one slice
     x = voxel_coords(geom.nx, geom.voxel_mm)
     y = voxel_coords(geom.ny, geom.voxel_mm)
     pts = np.stack(list(np.meshgrid(x, y, indexing="xy")) + [np.full((geom.ny, geom.nx), float(z[0]))], axis=-1)
-    t_np, _ = _median_time(lambda: box.__setitem__("np", phantom.mu_at(pts, c0, a0)), 1, warmup=False)
+    t_np, _ = median_time(lambda: box.__setitem__("np", phantom.mu_at(pts, c0, a0)), 1, warmup=False)
     ours1, t_vox1 = _timed(lambda: phantom.voxelise(c0, a0, x, y, z[:1], supersample=1, rt=rt))
     ours1, t_vox1 = _timed(lambda: phantom.voxelise(c0, a0, x, y, z[:1], supersample=1, rt=rt))
     differ = np.abs(ours1[0].astype(np.float64) - box["np"]) > 1e-6

@@ -89,6 +89,7 @@ from clrecon.bench.distributed import bench_distributed_section
 from clrecon.bench.distributed import report_lines as distributed_report_lines
 from clrecon.bench.fbp import bench_backprojection
 from clrecon.bench.projector import bench_projector
+from clrecon.bench.timing import load1, median_time
 from clrecon.bench.tradeoff import format_table as tradeoff_table
 from clrecon.bench.tradeoff import run_tradeoff
 from clrecon.bench.voxel_projector import bench_voxel_projector
@@ -120,22 +121,6 @@ RECON_FBP_BATCH = 64
 
 # ---------------------------------------------------------------------------------------
 # helpers
-def _load1() -> float:
-    return round(os.getloadavg()[0], 2)
-
-
-def _median_time(fn, repeats: int, warmup: bool = True) -> tuple[float, list]:
-    """(median seconds, all seconds) of ``repeats`` calls of ``fn`` after one untimed warm-up."""
-    if warmup:
-        fn()
-    times = []
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), [round(t, 4) for t in times]
-
-
 def machine() -> dict:
     """CPU model, core count, load averages, memory, OpenCL device and library versions."""
     cpu = platform.processor() or "unknown"
@@ -234,7 +219,7 @@ def _astra_backprojection(filtered0: np.ndarray, geom, repeats: int) -> dict:
         cpu.append(time.process_time() - c0)
 
     try:
-        sec, all_s = _median_time(once, repeats)
+        sec, all_s = median_time(once, repeats)
         img = np.flipud(astra.data2d.get(vol_id)).astype(np.float64)  # ASTRA's row 0 is the largest y
     finally:
         astra.algorithm.delete(alg)
@@ -266,7 +251,7 @@ def bench_backprojection_section(quick: bool = False, repeats: int = 3, *, nx: i
     geom = fbp.FanBeamGeometry(sid_mm=595.0, sdd_mm=1085.6, n_cols=n_cols, col_pitch_mm=0.8,
                                n_views=n_views, nx=nx, ny=nx, voxel_mm=1.0)
     geom = dataclasses.replace(geom, voxel_mm=2.0 * geom.fov_radius_mm / nx)  # image inscribed in the FOV
-    load = _load1()
+    load = load1()
     sino = disk_phantom_sinograms(geom, batch)
     filtered = fbp.filter_sinograms(sino, geom)
     res = bench_backprojection(nx, n_views, n_cols, batch, repeats, voxel_mm=geom.voxel_mm,
@@ -313,8 +298,8 @@ def bench_interpolation_section(quick: bool = False, repeats: int = 3, scene="de
     slices_z = reconstruct.slice_positions(sc, (i0, min(nz, i0 + n_slices)))
     table = projection_table(sc, pitch)
     targets = reconstruct.Targets(tuple(sc.cardiac_targets), tuple(sc.resp_targets))
-    load = _load1()
-    t_groups, _ = _median_time(lambda: rebin.candidate_groups(table, slices_z, sc.scanner,
+    load = load1()
+    t_groups, _ = median_time(lambda: rebin.candidate_groups(table, slices_z, sc.scanner,
                                                               reconstruct.object_radius_mm(sc)), 1, warmup=False)
     groups = rebin.candidate_groups(table, slices_z, sc.scanner, reconstruct.object_radius_mm(sc))
     c = table.cardiac_phase[groups.row]
@@ -322,7 +307,7 @@ def bench_interpolation_section(quick: bool = False, repeats: int = 3, scene="de
     opts = reconstruct.weight_options(reconstruct.ReconstructionConfig.from_scene(sc), targets)
     rng = np.random.default_rng(0)
     rows = rng.standard_normal((len(groups.row), sc.scanner.n_cols)).astype(np.float32)
-    t_up, _ = _median_time(lambda: interpolate.DeviceRows(rows, rt=rt).release(), repeats)
+    t_up, _ = median_time(lambda: interpolate.DeviceRows(rows, rt=rt).release(), repeats)
     d_rows = interpolate.DeviceRows(rows, rt=rt)
     S, V = len(slices_z), sc.scanner.views_per_rotation
     res = {"scene": sc.name, "pitch": pitch, "slices": S, "views": V,
@@ -337,7 +322,7 @@ def bench_interpolation_section(quick: bool = False, repeats: int = 3, scene="de
         def weights(m=m, tg=tg, box=box):
             box["w"] = interpolate.batch_weights(m, c, a, groups.offsets, tg, rt=rt, dz=groups.dz_mm, **opts)
 
-        t_w, _ = _median_time(weights, max(1, repeats - 1), warmup=False)
+        t_w, _ = median_time(weights, max(1, repeats - 1), warmup=False)
         G, T, K = box["w"].index.shape
         # sinogram b = s * T + t, (B, V, K): as reconstruct hands them to the kernel
         idx = box["w"].index.reshape(S, V, T, K).transpose(0, 2, 1, 3).reshape(S * T, V, K)
@@ -348,14 +333,14 @@ def bench_interpolation_section(quick: bool = False, repeats: int = 3, scene="de
             box["out"] = rt.from_device(buf, (n_groups, V, sc.scanner.n_cols + 2, 16))
             buf.release()
 
-        t_a, _ = _median_time(apply, repeats)
+        t_a, _ = median_time(apply, repeats)
         n_sino = max(1, min(S * T, reference_rows // V))  # whole sinograms, about reference_rows rows
 
         def apply_ref(idx=idx, wgt=wgt, n_sino=n_sino, K=K, box=box):
             box["ref"] = interpolate.apply_weights_reference(
                 rows, idx[:n_sino].reshape(-1, K), wgt[:n_sino].reshape(-1, K))
 
-        t_ref, _ = _median_time(apply_ref, 1, warmup=False)
+        t_ref, _ = median_time(apply_ref, 1, warmup=False)
         out_rows = G * T
         ref = box["ref"].reshape(n_sino, V, -1)
         got = box["out"].transpose(0, 3, 1, 2).reshape(-1, V, sc.scanner.n_cols + 2)[:n_sino, :, 1:-1]
@@ -381,7 +366,7 @@ def bench_end_to_end_section(quick: bool = False, scene="demo") -> dict:
     if quick:
         nz = sc.recon.nz
         slices = (max(0, nz // 2 - 2), min(nz, nz // 2 + 2))
-    load = _load1()
+    load = load1()
     with tempfile.TemporaryDirectory(prefix="clrecon-bench-") as tmp:
         t0 = time.perf_counter()
         c0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -478,7 +463,7 @@ def bench_memory_section(quick: bool = False, scene: str = "paper-p002", method:
     sc = load_scene(scene)  # a name or file: the child loads it again
     n_slices = n_slices or (1 if quick else 2)
     resp = resp or ((0.55,) if quick else (0.25, 0.75))
-    load = _load1()
+    load = load1()
     with tempfile.TemporaryDirectory(prefix="clrecon-bench-mem-") as tmp:
         code = ("import json, sys; from clrecon.bench.suite import slab_memory_child; "
                 "print('RESULT ' + json.dumps(slab_memory_child(*json.loads(sys.argv[1]))))")
@@ -531,7 +516,7 @@ def bench_scaling_section(quick: bool = False, scene="demo", method: str = "loca
         "targets": [dict(recon={"resp_bins": b}) for b in ((2, 4) if quick else (2, 5, 10))],
         "projections": [dict(scan={"pitches": [p]}) for p in ((0.10, 0.05) if quick else (0.10, 0.05, 0.025))],
     }
-    load = _load1()
+    load = load1()
     rows = []
     with tempfile.TemporaryDirectory(prefix="clrecon-bench-scale-") as tmp:
         for axis, variants in series.items():

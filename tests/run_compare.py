@@ -1,0 +1,34 @@
+"""Bit-identity of two run directories (the crash, fault and distributed tests compare against
+an uninterrupted single-process run)."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+
+#: results.json entries that must be equal, besides every dataset of volumes.h5
+KEYS = ("metrics", "respiratory_only", "motion", "diagnostics", "sampling")
+
+
+def volumes(path) -> dict:
+    """Every dataset of ``path/volumes.h5`` as stored (dtype and shape on disk)."""
+    with h5py.File(path / "volumes.h5", "r") as f:
+        out = {}
+        f.visititems(lambda n, o: out.__setitem__(n, o[()]) if isinstance(o, h5py.Dataset) else None)
+    return out
+
+
+def assert_identical(out, ref, keys=KEYS) -> dict:
+    """``out`` equals the reference ``(ref_dir, ref_results)`` bit for bit; returns out's results."""
+    ref_out, ref_res = ref
+    va, vb = volumes(out), volumes(ref_out)
+    assert va.keys() == vb.keys()
+    for k in va:
+        assert va[k].tobytes() == vb[k].tobytes(), k
+    res = json.loads((out / "results.json").read_text())
+    want = json.loads(json.dumps(ref_res, default=lambda o: o.tolist() if hasattr(o, "tolist") else list(o)))
+    for key in keys:
+        assert res[key] == want[key], key
+    assert not [p for p in out.iterdir() if p.suffix in (".partial", ".units")]
+    return res
