@@ -28,6 +28,7 @@ from __future__ import annotations
 import base64
 import html
 import re
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -283,9 +284,13 @@ def fig_coronal(run: _Run, path: Path, window: str = "cardiac") -> str:
             ax.set_xlabel("x (mm, patient left ->)", fontsize=6)
             ax.set_ylabel("z (mm, superior ^)", fontsize=6)
     w, lv = WINDOWS[window]
-    fig.suptitle(f"Coronal plane through the heart, y = {run.y[iy]:.1f} mm; target c = {run.c[ci]:.2f}, "
-                 f"a = {run.a[ri]:.2f}; window {window} W{w:.0f}/L{lv:.0f} HU", fontsize=9)
-    fig.tight_layout(rect=(0, 0, 0.88, 0.96))
+    title = (f"Coronal plane through the heart, y = {run.y[iy]:.1f} mm; target c = {run.c[ci]:.2f}, "
+             f"a = {run.a[ri]:.2f}; window {window} W{w:.0f}/L{lv:.0f} HU")
+    # wrapped to the figure's width (about 14 characters per inch at 9 pt): a one-column figure
+    # (a volume of many slices) clipped it
+    lines = textwrap.wrap(title, width=max(30, int(fig.get_size_inches()[0] * 14)))
+    fig.suptitle("\n".join(lines), fontsize=9)
+    fig.tight_layout(rect=(0, 0, 0.88, 1.0 - 0.25 * len(lines) / fig.get_size_inches()[1]))
     _colourbar(fig, im, "HU")
     fig.savefig(path, dpi=110)
     plt.close(fig)
