@@ -434,20 +434,21 @@ def slab_memory_child(scene_name: str, n_slices: int, cardiac, resp, method: str
             "process_peak_before_reset_mib": hwm_process / 1024}
 
 
-def slab_memory_model(scene, slab_slices: int, n_targets: int, n_methods: int, n_variants: int,
-                      rows_per_slice: float) -> dict:
+def slab_memory_model(scene, slab_slices: int, n_targets: int, n_variants: int, rows_per_slice: float) -> dict:
     """Bytes of the big arrays of one slab (see :func:`clrecon.reconstruction.reconstruct.reconstruct`).
 
     The rebinned rows of every variant (host; each variant's rows move to the device, which
     on a CPU device is host memory too, when it is reconstructed), one backprojection launch
-    (the interleaved sinograms, at most ``fbp.LAUNCH_BYTES``, and its images) and the slab's
-    images of every variant and method (float32, handed to ``on_slab`` together).
+    (the interleaved sinograms, at most ``fbp.LAUNCH_BYTES``, and its images) and the images
+    of the one method being reconstructed (float32, twice: the batch and its reordered copy;
+    each (variant, method) goes to ``on_slab`` as soon as it is done, so they do not grow
+    with the number of methods).
     """
 
     sc, rc = scene.scanner, scene.recon
     C, V = sc.n_cols, sc.views_per_rotation
     rows = slab_slices * rows_per_slice * C * 4
-    images = n_variants * n_methods * slab_slices * n_targets * rc.ny * rc.nx * 4
+    images = 2 * slab_slices * n_targets * rc.ny * rc.nx * 4
     geom = fbp.FanBeamGeometry.from_scene(scene)
     groups = min(fbp.groups_per_launch(geom), -(-slab_slices * n_targets // fbp.BATCH_LANES))
     launch = groups * fbp.BATCH_LANES * (V * (C + 2) * 4 + 2 * rc.ny * rc.nx * 4)
@@ -481,13 +482,14 @@ def bench_memory_section(quick: bool = False, scene: str = "paper-p002", method:
     res["load_average_1min_before"] = load
     # model, checked at the measured size, then at the full job's slab
     n_var = len(noise_variants(sc))
-    small = slab_memory_model(sc, n_slices, res["targets"], 1, n_var, res["rebinned_rows"] / n_slices)
+    small = slab_memory_model(sc, n_slices, res["targets"], n_var, res["rebinned_rows"] / n_slices)
     full_targets = len(sc.cardiac_targets) * len(sc.resp_targets)
     full_methods = len(sc.recon.methods)
     rows_per_slice = res["candidates_per_slice"]  # upper bound: every candidate used by some method
-    bytes_per_slice = rows_per_slice * sc.scanner.n_cols * 4 * 2
-    slab = int(max(1, min(sc.recon.nz, 1.5e9 // bytes_per_slice)))  # reconstruct._slab_size's rule
-    full = slab_memory_model(sc, slab, full_targets, full_methods, n_var, rows_per_slice)
+    per_slice = reconstruct.slab_bytes_per_slice(rows_per_slice, sc.scanner.n_cols, n_var, full_targets,
+                                                 sc.recon.ny, sc.recon.nx)
+    slab = min(sc.recon.nz, reconstruct.slices_per_slab(per_slice))  # the run's rule (its plan not modelled)
+    full = slab_memory_model(sc, slab, full_targets, n_var, rows_per_slice)
     base_mib = res["rss_before_mib"]
     res["model_small_mib"] = base_mib + small["total_bytes"] / 2 ** 20
     # extrapolation: the measured peak plus the growth of the modelled arrays (the rest --
@@ -497,9 +499,9 @@ def bench_memory_section(quick: bool = False, scene: str = "paper-p002", method:
                        "rows_per_slice_upper_bound": rows_per_slice, **full,
                        "predicted_peak_gib": (res["peak_rss_mib"] * 2 ** 20 + full["total_bytes"]
                                               - small["total_bytes"]) / 2 ** 30,
-                       "slab_size_rule": "reconstruct._slab_size: rebinned rows of both variants <= 1.5 GB"}
+                       "slab_size_rule": "reconstruct.slices_per_slab: rows of every variant + one method's "
+                                         "images <= SLAB_BYTES (the plan not modelled)"}
     res["goal_gib"] = GOAL_PEAK_MEMORY_GIB
-    _ = reconstruct  # the child imports it; keep the dependency visible here
     return res
 
 

@@ -7,7 +7,7 @@ from clrecon.core.errors import SceneError
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.rebin import slice_window_mm
-from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, SLAB_BYTES
+from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, slab_bytes_per_slice, slices_per_slab
 
 GiB = 1024 ** 3
 
@@ -53,8 +53,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     # 40 bytes per (slice, view, target, neighbour)), one launch of sinograms, and the truth
     feed = min(scene.scan.feed_mm(sc, p) for p in pitches)
     rows_per_slice = 2 * window / feed * sc.views_per_rotation
-    per_slice = rows_per_slice * sc.n_cols * 4 * n_var + 2 * n_targets * rc.ny * rc.nx * 4
-    slab = int(max(1, min(nz, SLAB_BYTES // per_slice)))
+    per_slice = slab_bytes_per_slice(rows_per_slice, sc.n_cols, n_var, n_targets, rc.ny, rc.nx)
+    slab = min(nz, slices_per_slab(per_slice))
     chunk = 512 * proj_bytes * (1 + n_var)
     plans = min(KEEP_PLANS_BYTES, 40.0 * nz * sc.views_per_rotation * n_targets * 8 * len(methods))
     slab_sinos = 2 * 32 * sc.views_per_rotation * sc.n_cols * 4

@@ -269,14 +269,16 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-
 
     Parameters
     ----------
-    store : object with ``read_indices(indices, noisy=False) -> (m, R, C) float32`` and ``table``.
-    variants : iterable of ``"noise-free"`` / ``"noisy"``.
+    store : object with ``read_indices(indices, noisy=False, rows=(lo, hi)) -> (m, hi - lo, C) float32``
+        and ``table`` (:class:`clrecon.simulation.store.ProjectionStore`).
+    variants : sequence of ``"noise-free"`` / ``"noisy"``.
     progress : optional counter (``update(n)``), advanced by a slab's slice count as each of its
         (variant, method) volumes is done: its total is slices x variants x methods.
     on_slab : optional callback ``(slice_slice, {(variant, method): (n_c, n_r, s, ny, nx)})`` that
         receives each slab's volume of each (variant, method) as soon as it is finished (to write
         it out and free memory: only one method's slab of images is held at a time). If None,
         whole volumes are returned.
+    slab_size : slices per slab; default :func:`slab_slices` of the plan.
 
     Returns
     -------
@@ -286,7 +288,7 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-
     geom = cfg.fbp
     S = len(plan_.slices_z)
     if slab_size is None:
-        slab_size = _slab_size(cfg, plan_)
+        slab_size = slab_slices(cfg, plan_, len(tuple(variants)))
     results: dict = {}
     for s0 in range(0, S, slab_size):
         s1 = min(S, s0 + slab_size)
@@ -320,33 +322,37 @@ def plan_bytes(plan_: Plan) -> int:
     return int(n)
 
 
-def slab_slices(cfg: ReconstructionConfig, probe: Plan, n_variants: int, budget: float = SLAB_BYTES) -> int:
-    """Slices per slab so that one slab's working set stays under ``budget`` bytes.
+def slab_bytes_per_slice(rows_per_slice: float, n_cols: int, n_variants: int, n_targets: int, ny: int, nx: int,
+                         plan_bytes_per_slice: float = 0.0) -> float:
+    """Bytes one slice adds to a slab's working set (the slab-size rule, :func:`slices_per_slab`).
 
-    ``probe`` is the plan of a few slices (their sizes per slice are representative: every
-    slice has the same views and about the same candidates). Per slice a slab holds: its plan
-    (and the int32/float32 copies the slab makes of it, half as large again), its rebinned
-    rows (pairs x columns x float32, one copy per noise variant), and the images of the one
-    method being reconstructed (targets x ny x nx float32, twice: the batch and its
-    reordered copy). The result never changes the numbers, only memory and the number of
-    times a projection is read.
+    Its rebinned rows (``rows_per_slice`` x ``n_cols`` float32, one copy per noise variant),
+    its plan (``plan_bytes_per_slice``, with the int32/float32 copies the slab makes of it:
+    half as large again), and the images of the one method being reconstructed (``n_targets``
+    x ny x nx float32, twice: the batch and its reordered copy).
     """
+    return (rows_per_slice * n_cols * 4 * max(n_variants, 1) + 1.5 * plan_bytes_per_slice
+            + 2 * n_targets * ny * nx * 4)
+
+
+def slices_per_slab(bytes_per_slice: float, budget: float = SLAB_BYTES) -> int:
+    """Slices per slab so that one slab's working set stays under ``budget`` bytes (at least 1).
+
+    The one slab-size rule: the run (:func:`slab_slices`), its cost model
+    (:mod:`clrecon.pipeline.costs`) and the bench's memory model use it. The result never
+    changes the numbers, only memory and the number of times a projection is read.
+    """
+    return int(max(1, budget // max(bytes_per_slice, 1.0)))
+
+
+def slab_slices(cfg: ReconstructionConfig, probe: Plan, n_variants: int, budget: float = SLAB_BYTES) -> int:
+    """:func:`slices_per_slab` from the plan ``probe`` of a few slices (every slice has the same
+    views and about the same candidates, so its sizes per slice are representative)."""
     S = max(len(probe.slices_z), 1)
     proj, _ = probe.needed_pairs()
-    rows = len(proj) / S * cfg.scanner.n_cols * 4 * max(n_variants, 1)
-    plans = 1.5 * plan_bytes(probe) / S
     n_t = max((int(np.prod(mp.targets_shape)) for mp in probe.methods.values()), default=1)
-    images = 2 * n_t * cfg.fbp.ny * cfg.fbp.nx * 4
-    return int(max(1, budget // (rows + plans + images)))
-
-
-def _slab_size(cfg: ReconstructionConfig, plan_: Plan) -> int:
-    """Slices per slab so that the slab's rebinned rows stay under ~1.5 GB."""
-    proj, sl = plan_.needed_pairs()
-    S = max(len(plan_.slices_z), 1)
-    rows_per_slice = max(len(proj) / S, 1)
-    bytes_per_slice = rows_per_slice * cfg.scanner.n_cols * 4 * 2
-    return int(max(1, min(S, 1.5e9 // bytes_per_slice)))
+    return slices_per_slab(slab_bytes_per_slice(len(proj) / S, cfg.scanner.n_cols, n_variants, n_t, cfg.fbp.ny,
+                                                cfg.fbp.nx, plan_bytes(probe) / S), budget)
 
 
 def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, variants, geom, rt, times, chunk,
