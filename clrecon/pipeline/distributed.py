@@ -44,10 +44,7 @@ from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs.volumes import VolumeWriter, pitch_key
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline import work_units
-from clrecon.reconstruction import rebin, reconstruct
-from clrecon.reconstruction.diagnostics import combine as combine_diagnostics
-from clrecon.scan import sampling as sampling_mod
-from clrecon.scan import table as geometry
+from clrecon.reconstruction import reconstruct
 from clrecon.simulation.simulate import CHUNK
 from clrecon.simulation.store import ProjectionStore
 
@@ -231,17 +228,14 @@ class _Phase:
         run_methods, todo = slabs_mod.unfinished(self.writer, pk, self.variants, methods)
         if todo.size == 0:
             return
-        t0 = time.perf_counter()
-        table = geometry.projection_table(scene, pitch)
-        rec.add("signals", time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        slabs, plans, needed, parts, plan_s = slabs_mod.plan_slabs(cfg, table, slices_z, todo, self.targets,
-                                                                   run_methods, len(self.variants), self.progress)
-        rec.add("plan", time.perf_counter() - t0)
-        rec.diagnostics[pk] = combine_diagnostics(parts)
-        rec.sampling[pk] = sampling_mod.sampling_summary(
-            table, rebin.candidate_groups(table, slices_z, scene.scanner, cfg.object_radius_mm))
-        rec.method_plan_seconds[pk] = dict(plan_s)
+        pp = slabs_mod.plan_pitch(scene, cfg, pitch, slices_z, todo, self.targets, run_methods, len(self.variants),
+                                  self.progress)
+        table, slabs, plans, needed = pp.table, pp.slabs, pp.plans, pp.needed
+        rec.add("signals", pp.signals_seconds)
+        rec.add("plan", pp.plan_seconds)
+        rec.diagnostics[pk] = pp.diagnostics
+        rec.sampling[pk] = pp.sampling
+        rec.method_plan_seconds[pk] = dict(pp.method_plan_seconds)
         store = ProjectionStore.open(scene, pitch, cache_dir=self.cache_dir, table=table)
         missing = np.flatnonzero(needed & ~store.present)
         rec.sim_info[pk] = {"projections_total": len(table), "projections_needed": int(needed.sum()),
@@ -301,10 +295,8 @@ class _Phase:
     def start_truths(self, slices_z: np.ndarray, full_shape: tuple) -> None:
         gt_cfg = groundtruth.GroundTruthConfig.from_scene(self.scene)
         n_c, n_r = self.targets.shape
-        for name in ("groundtruth", "phantom"):
-            self.writer.create(name, full_shape, n_c * n_r)
         self.truths = TruthCache(self.cache_dir, truth_key(self.scene, slices_z, self.targets))
-        slabs_mod.adopt_cached_truths(self.writer, self.truths, n_c * n_r)
+        slabs_mod.declare_truths(self.writer, full_shape, n_c * n_r, self.truths)
         for k in range(n_c * n_r):
             which = tuple(n for n in ("groundtruth", "phantom") if not self.writer.done(n)[k])
             if which:

@@ -40,11 +40,8 @@ from clrecon.pipeline import costs as costs_mod
 from clrecon.pipeline import distributed, preflight
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.variants import noise_variants
-from clrecon.reconstruction import interpolation, rebin, reconstruct
-from clrecon.reconstruction.diagnostics import combine as combine_diagnostics
+from clrecon.reconstruction import interpolation, reconstruct
 from clrecon.reconstruction.reconstruct import StageTimes, Targets
-from clrecon.scan import sampling as sampling_mod
-from clrecon.scan import table as geometry
 from clrecon.simulation import simulate
 from clrecon.simulation.phantom_sources import phantom_from_config
 from clrecon.simulation.store import default_cache_dir
@@ -196,16 +193,13 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                                 "store": ""}
                 continue
             log(f"[{pk}] planning {todo.size} slices x {n_t} targets x {len(run_methods)} methods")
-            t0 = time.perf_counter()
-            table = geometry.projection_table(scene, pitch)
-            times.add("signals", time.perf_counter() - t0)
-            t0 = time.perf_counter()
-            slabs, plans, needed, diag_parts, plan_s = slabs_mod.plan_slabs(recon_cfg, table, slices_z, todo, targets,
-                                                                            run_methods, len(variants), progress)
-            times.add("plan", time.perf_counter() - t0)
-            diagnostics[pk] = combine_diagnostics(diag_parts)
-            sampling[pk] = sampling_mod.sampling_summary(
-                table, rebin.candidate_groups(table, slices_z, scene.scanner, recon_cfg.object_radius_mm))
+            pp = slabs_mod.plan_pitch(scene, recon_cfg, pitch, slices_z, todo, targets, run_methods, len(variants),
+                                      progress)
+            table, slabs, plans, needed, plan_s = pp.table, pp.slabs, pp.plans, pp.needed, pp.method_plan_seconds
+            times.add("signals", pp.signals_seconds)
+            times.add("plan", pp.plan_seconds)
+            diagnostics[pk] = pp.diagnostics
+            sampling[pk] = pp.sampling
             t0 = time.perf_counter()
             store = simulate.simulate(scene, pitch, needed=needed, cache_dir=cache_dir, progress=progress)
             times.add("simulate", time.perf_counter() - t0)
@@ -260,9 +254,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
         truths = TruthCache(cache_path, truth_key(scene, slices_z, targets))
         n_r = targets.shape[1]
-        for name in ("groundtruth", "phantom"):
-            writer.create(name, full_shape, n_t)
-        slabs_mod.adopt_cached_truths(writer, truths, n_t)  # computed by an earlier run with the same truths
+        slabs_mod.declare_truths(writer, full_shape, n_t, truths)  # taking those an earlier run computed
         t0 = time.perf_counter()
         skip = set(np.flatnonzero(writer.done("groundtruth")))
         bar = _progress(n_t - len(skip), "ground truth", progress, "targets")

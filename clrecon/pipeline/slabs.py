@@ -8,13 +8,19 @@ slab-by-slab planning with its slab size, and taking truths from the truth cache
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass
+
 import numpy as np
 
 from clrecon.core.progress import progress as progress_counter
 from clrecon.evaluation.truth_cache import TruthCache
 from clrecon.outputs.volumes import VolumeWriter
-from clrecon.reconstruction import interpolation, reconstruct
+from clrecon.reconstruction import interpolation, rebin, reconstruct
+from clrecon.reconstruction.diagnostics import combine as combine_diagnostics
 from clrecon.reconstruction.diagnostics import weight_diagnostics
+from clrecon.scan import sampling as sampling_mod
+from clrecon.scan import table as geometry
 
 #: target grid of a method -> the target axes its volume stands for (stored at length 1)
 BROADCAST = {"resp": ("cardiac",), "none": ("cardiac", "resp")}
@@ -69,6 +75,44 @@ def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progres
         bar.update(1)
     bar.close()
     return slabs, plans, needed, parts, plan_s
+
+
+@dataclass
+class PitchPlan:
+    """The planning of one pitch (:func:`plan_pitch`): what both paths record and reconstruct from."""
+
+    table: object              # ProjectionTable of the scan
+    slabs: list                # (a, b) ranges into the slices still to do
+    plans: list                # per slab: its Plan, or None (made again when its turn comes)
+    needed: np.ndarray         # (n,) bool: projections the reconstruction reads
+    diagnostics: dict          # weight diagnostics of every slab, combined
+    sampling: dict             # phase-space sampling summary of the requested slices
+    method_plan_seconds: dict  # method -> planning seconds
+    signals_seconds: float     # building the projection table
+    plan_seconds: float        # the whole planning pass (wall)
+
+
+def plan_pitch(scene, cfg, pitch: float, slices_z, todo, targets, methods, n_variants, progress) -> PitchPlan:
+    """The projection table, the slab-by-slab plans (:func:`plan_slabs`), the diagnostics and the
+    sampling summary of one pitch, for the slices ``todo`` of ``slices_z``."""
+    t0 = time.perf_counter()
+    table = geometry.projection_table(scene, pitch)
+    t1 = time.perf_counter()
+    slabs, plans, needed, parts, plan_s = plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants,
+                                                     progress)
+    t2 = time.perf_counter()
+    sampling = sampling_mod.sampling_summary(
+        table, rebin.candidate_groups(table, slices_z, scene.scanner, cfg.object_radius_mm))
+    return PitchPlan(table=table, slabs=slabs, plans=plans, needed=needed, diagnostics=combine_diagnostics(parts),
+                     sampling=sampling, method_plan_seconds=plan_s, signals_seconds=t1 - t0, plan_seconds=t2 - t1)
+
+
+def declare_truths(writer: VolumeWriter, full_shape: tuple, n_targets: int, truths: TruthCache,
+                   names=("groundtruth", "phantom")) -> None:
+    """Declare the truth datasets and take every one of their units the truth cache holds."""
+    for name in names:
+        writer.create(name, full_shape, n_targets)
+    adopt_cached_truths(writer, truths, n_targets, names)
 
 
 def adopt_cached_truths(writer: VolumeWriter, truths: TruthCache, n_targets: int,
