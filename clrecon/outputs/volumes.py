@@ -275,19 +275,16 @@ def read_part(f: h5py.File, name: str, index: dict | None = None, full: bool = T
             k = 0 if isinstance(k, (int, np.integer)) else slice(0, 1)
         sel.append(k)
     arr = np.asarray(ds[tuple(sel)], np.float32)
-    kept = [d for d in dims if not isinstance(index.get(d, slice(None)), (int, np.integer))]
-    if not full:
-        if bc:
-            want = [len(range(_axis_len(f, d))[index.get(d, slice(None))]) if d in bc else n
-                    for d, n in zip(kept, arr.shape, strict=True)]
-            arr = np.ascontiguousarray(np.broadcast_to(arr, want))
-        return arr
-    out_dims = [d for d in DIMS if not isinstance(index.get(d, slice(None)), (int, np.integer))]
-    shape = [arr.shape[kept.index(d)] if d in kept else 1 for d in out_dims]
-    arr = arr.reshape(shape)
-    if bc:
+    picked = lambda d: isinstance(index.get(d, slice(None)), (int, np.integer))  # noqa: E731
+    kept = [d for d in dims if not picked(d)]
+    if full:  # every axis not picked by an int, length 1 where the dataset lacks it
+        out_dims = [d for d in DIMS if not picked(d)]
+        arr = arr.reshape([arr.shape[kept.index(d)] if d in kept else 1 for d in out_dims])
+    else:
+        out_dims = kept
+    if bc:  # the broadcast axes restored to the run's length (or the slice of it asked for)
         want = [len(range(_axis_len(f, d))[index.get(d, slice(None))]) if d in bc else n
-                for d, n in zip(out_dims, shape, strict=True)]
+                for d, n in zip(out_dims, arr.shape, strict=True)]
         arr = np.ascontiguousarray(np.broadcast_to(arr, want))
     return arr
 
