@@ -137,3 +137,64 @@ def test_cycle_detector_sees_a_cycle():
 def test_no_project_imports_inside_functions():
     _, lazy = _graph()
     assert lazy == []
+
+
+# ----------------------------------------------------------------------------------------
+# packages: the folders stand in the order the README draws
+def _drawn_levels() -> list[list[str]]:
+    """The README's layering line (``core -> scan -> ... -> api, cli``) as levels of package names."""
+    for line in (ROOT / "README.md").read_text().splitlines():
+        if line.startswith("core -> "):
+            return [[p.strip() for p in level.split(",")] for level in line.split("->")]
+    raise AssertionError("README.md has no layering line starting 'core -> '")
+
+
+def _package(module: str) -> str:
+    """``clrecon.scan.table`` -> ``scan``; ``viewer.app`` -> ``viewer``; ``clrecon``/``clrecon.__main__`` -> ``""``."""
+    parts = module.split(".")
+    if parts[0] == "viewer":
+        return "viewer"
+    if len(parts) == 1 or parts[1] == "__main__":
+        return ""  # the package root: PEP 562 lazy API and `python -m clrecon`, above everything
+    return parts[1]
+
+
+def _backward_package_edges(edges: dict[str, set[str]], levels: list[list[str]]) -> list[str]:
+    """Module imports from a package to one at the same or a later level (peers do not import each other)."""
+    rank = {p: i for i, level in enumerate(levels) for p in level}
+    bad = []
+    for m, targets in sorted(edges.items()):
+        a = _package(m)
+        for t in sorted(targets):
+            b = _package(t)
+            if not a or a == b or not b:
+                continue
+            if a not in rank or b not in rank:
+                bad.append(f"{m} -> {t}: package {a if a not in rank else b!r} is not in the README's layering line")
+            elif rank[b] >= rank[a]:
+                bad.append(f"{m} -> {t}: {a} (level {rank[a]}) may import only packages drawn before it, "
+                           f"not {b} (level {rank[b]})")
+    return bad
+
+
+def test_every_package_is_drawn_once():
+    levels = _drawn_levels()
+    drawn = [p for level in levels for p in level]
+    assert len(drawn) == len(set(drawn))
+    on_disk = {_package(m) for m in _modules()} - {""}
+    assert on_disk == set(drawn), f"drawn {sorted(drawn)}, on disk {sorted(on_disk)}"
+
+
+def test_packages_import_only_earlier_packages():
+    edges, _ = _graph()
+    assert _backward_package_edges(edges, _drawn_levels()) == []
+
+
+def test_package_check_sees_a_backward_import():
+    levels = [["core"], ["config"], ["reconstruction"]]
+    edges = {"clrecon.config.scene": {"clrecon.reconstruction.filters", "clrecon.core.errors"},
+             "clrecon.reconstruction.rebin": {"clrecon.config.scene"}, "clrecon.core.errors": set()}
+    bad = _backward_package_edges(edges, levels)
+    assert len(bad) == 1 and bad[0].startswith("clrecon.config.scene -> clrecon.reconstruction.filters")
+    peers = _backward_package_edges({"clrecon.api": {"clrecon.cli"}}, [["api", "cli"]])
+    assert len(peers) == 1

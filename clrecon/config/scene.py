@@ -4,6 +4,12 @@ A scene says what scanner, scan protocol, breathing and heart rhythm, phantom, n
 reconstruction to run. Every section is a frozen dataclass; derived quantities (collimation
 at the isocentre, table feed, number of projections) are properties, never stored twice.
 
+Each section is defined by the stage it configures (``[scanner]``, ``[scan]``, ``[signals]``:
+:mod:`clrecon.scan.config`; ``[noise]``: :mod:`clrecon.simulation.config`; ``[phantom]``:
+:mod:`clrecon.simulation.phantom_sources`; ``[recon]``: :mod:`clrecon.reconstruction.config`);
+this module composes them, so it stands above those stages and imports them, never the other
+way (``docs/data-flow.md`` "Layering"). The section classes are re-exported here.
+
 Errors name the key, the bad value and what is allowed; unknown keys are errors that
 suggest the nearest valid key. Built-in scenes live in ``clrecon/config/scenes/*.toml``.
 """
@@ -24,216 +30,28 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib
 
-from clrecon.core.config import (
-    BOOL,
-    FRAC,
-    NONNEG,
-    NONNEGINT,
-    NUM,
-    POS,
-    POSINT,
-    F,
-    Section,
-    _num,
-    _pos,
-    _posint,
-    field_of,
-    one_of,
-)
-from clrecon.core.detector import DETECTORS, DetectorModel, detector_for
 from clrecon.core.errors import SceneError
 from clrecon.core.versions import PROJECTOR_VERSION
+from clrecon.reconstruction.config import FILTERS, METHODS, ReconConfig
+from clrecon.scan.config import (
+    RHYTHMS,
+    TRACE_MARGIN_S,
+    TRACE_MIN_S,
+    ScanConfig,
+    ScannerConfig,
+    SignalsConfig,
+)
+from clrecon.simulation.config import NoiseConfig
 from clrecon.simulation.phantom_sources import PHANTOM_SOURCES, PhantomConfig
+
+__all__ = ["FILTERS", "METHODS", "RHYTHMS", "SECTIONS", "TRACE_MARGIN_S", "TRACE_MIN_S", "NoiseConfig",
+           "PhantomConfig", "ReconConfig", "Scene", "ScanConfig", "ScannerConfig", "SignalsConfig",
+           "builtin_scene_names", "load_scene", "scene_from_dict"]
 
 SCENE_DIR = Path(__file__).resolve().parent / "scenes"
 
-#: The signal trace spans max(TRACE_MIN_S, the longest scan) + TRACE_MARGIN_S seconds.
-TRACE_MIN_S = 60.0
-TRACE_MARGIN_S = 5.0
-
-# the registries' names (interpolation methods: clrecon.reconstruction.interpolation; ramp-filter windows:
-# clrecon.reconstruction.filters); those packages import only clrecon.core
-from clrecon.reconstruction.filters import FILTERS as _FILTER_REGISTRY  # noqa: E402
-from clrecon.reconstruction.interpolation import METHODS as _METHOD_REGISTRY  # noqa: E402
-from clrecon.reconstruction.interpolation.local_linear import LL_MAX_SLOTS, LL_POINT_RULES  # noqa: E402
-
-METHODS = _METHOD_REGISTRY.names
-FILTERS = _FILTER_REGISTRY.names
-RHYTHMS = ("periodic", "hrv", "af", "pvc")
-
-
-_f = field_of  # (default, allowed, check, doc)
-
 
 # ---------------------------------------------------------------------------------------
-@dataclass(frozen=True, kw_only=True)
-class ScannerConfig(Section):
-    """CT scanner hardware (Table 1 of the paper by default). Lengths in mm."""
-
-    SECTION = "scanner"
-
-    sid_mm: float = F(595.0, POS, "source to isocentre distance")
-    sdd_mm: float = F(1085.6, POS, "source to detector distance")
-    n_cols: int = F(900, POSINT, "detector columns")
-    n_rows: int = F(64, POSINT, "detector rows")
-    col_pitch_mm: float = F(0.8, POS, "detector column pitch at the detector")
-    row_pitch_mm: float = F(0.8, POS, "detector row pitch at the detector")
-    views_per_rotation: int = F(984, POSINT, "projections per rotation")
-    rotation_time_s: float = F(0.3, POS, "seconds per rotation")
-    detector: str = F("flat", one_of(DETECTORS.names), "detector model (clrecon.core.detector)")
-
-    @property
-    def detector_model(self) -> DetectorModel:
-        """The detector model (:mod:`clrecon.core.detector`) every stage asks for geometry."""
-        return detector_for(self)
-
-    @property
-    def collimation_iso_mm(self) -> float:
-        """W = N_rows * row_pitch * SID / SDD (mm)."""
-        return self.detector_model.collimation_iso_mm
-
-    @property
-    def fov_radius_mm(self) -> float:
-        """Radius at the isocentre of the circle every column sees (mm)."""
-        return self.detector_model.fov_radius_mm
-
-
-@dataclass(frozen=True, kw_only=True)
-class ScanConfig(Section):
-    """Helical protocol. Either ``coverage_mm`` or ``n_projections`` fixes the scan length.
-
-    Coverage = source travel + W (docs/conventions.md "Helical scan length"); projections = round(travel/h * N) + 1.
-    """
-
-    SECTION = "scan"
-
-    pitches: tuple = _f((0.02,), "a non-empty list of numbers in (0, 2]",
-                        lambda v: isinstance(v, tuple) and len(v) > 0 and all(_pos(p) and p <= 2 for p in v),
-                        "table feed per rotation / collimation W; one scan per pitch")
-    coverage_mm: float = F(119.7, POS, "longitudinal coverage = travel + W")
-    n_projections: int = F(0, NONNEGINT, "if > 0: the scan length in projections (overrides coverage_mm)")
-    z_centre_mm: float = F(0.0, NUM, "table position of the scan centre")
-    start_angle_deg: float = F(0.0, NUM, "gantry angle of the first view")
-
-    def feed_mm(self, scanner: ScannerConfig, pitch: float) -> float:
-        """Table feed per rotation h = pitch * W (mm)."""
-        return pitch * scanner.collimation_iso_mm
-
-    def projection_count(self, scanner: ScannerConfig, pitch: float) -> int:
-        if self.n_projections > 0:
-            return self.n_projections
-        travel = max(self.coverage_mm - scanner.collimation_iso_mm, 0.0)
-        return int(round(travel / self.feed_mm(scanner, pitch) * scanner.views_per_rotation)) + 1
-
-    def travel_mm(self, scanner: ScannerConfig, pitch: float) -> float:
-        n = self.projection_count(scanner, pitch)
-        return (n - 1) * self.feed_mm(scanner, pitch) / scanner.views_per_rotation
-
-    def z_start_mm(self, scanner: ScannerConfig, pitch: float) -> float:
-        return self.z_centre_mm - self.travel_mm(scanner, pitch) / 2.0
-
-    def duration_s(self, scanner: ScannerConfig, pitch: float) -> float:
-        return self.projection_count(scanner, pitch) * scanner.rotation_time_s / scanner.views_per_rotation
-
-
-@dataclass(frozen=True, kw_only=True)
-class SignalsConfig(Section):
-    """Breathing and heart rhythm (docs/algorithms.md "Breathing and heart rhythm"; Lujan 1999 breathing model)."""
-
-    SECTION = "signals"
-
-    seed: int = F(1, NONNEGINT, "seed of the breathing and rhythm irregularities")
-    resp_period_s: float = F(5.0, POS, "mean breathing period")
-    resp_period_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                               "cycle-to-cycle coefficient of variation of the period")
-    resp_depth_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                              "cycle-to-cycle coefficient of variation of the depth")
-    resp_exponent: int = _f(2, "an integer in 1..4", lambda x: _posint(x) and x <= 4,
-                            "n in cos^(2n): larger gives a longer end-exhale dwell")
-    resp_drift: float = _f(0.05, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                           "slow baseline drift, as a fraction of the mean depth, peak to peak")
-    breath_hold: bool = F(False, BOOL, "no breathing: amplitude constant at breath_hold_amplitude")
-    breath_hold_amplitude: float = F(0.5, FRAC, "normalised amplitude during a breath hold")
-    rr_s: float = _f(0.75, "a number in [0.3, 2.0]", lambda x: _num(x) and 0.3 <= x <= 2.0, "mean R-R interval")
-    rhythm: str = _f("periodic", "one of " + ", ".join(RHYTHMS), lambda x: x in RHYTHMS,
-                     "periodic; hrv (3 % sinus variability); af (i.i.d. R-R); pvc (ectopic beats)")
-    rr_cv: float = _f(0.0, "a number in [0, 0.4]", lambda x: _num(x) and 0 <= x <= 0.4,
-                      "R-R coefficient of variation for hrv/af (0: the rhythm's default)")
-    ectopic_rate: float = _f(0.0, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                             "fraction of beats that are premature (pvc rhythm)")
-    frame_time_s: float = F(0.0, NONNEG, "0: continuous motion; > 0: motion frozen in phantom frames of this length")
-
-
-@dataclass(frozen=True, kw_only=True)
-class NoiseConfig(Section):
-    """Poisson quanta + Gaussian electronic noise, seeded per projection."""
-
-    SECTION = "noise"
-
-    enabled: bool = F(True, BOOL, "add noise")
-    i0_photons: float = _f(2.0e5, "a number in (0, 1e15]", lambda x: _pos(x) and x <= 1e15,
-                           "unattenuated photons per detector cell (above 1e15 NumPy's Poisson sampler fails)")
-    electronic_sigma: float = F(5.0, NONNEG, "std of the electronic noise, in photon-equivalent counts")
-    seed: int = F(7, NONNEGINT, "noise seed")
-    also_noise_free: bool = F(True, BOOL, "also reconstruct the noise-free projections (the paper's Table 2)")
-
-
-@dataclass(frozen=True, kw_only=True)
-class ReconConfig(Section):
-    """Reconstruction grid, targets, methods and filter."""
-
-    SECTION = "recon"
-
-    nx: int = F(512, POSINT, "voxels along x (patient left)")
-    ny: int = F(512, POSINT, "voxels along y (posterior)")
-    nz: int = F(100, POSINT, "slices")
-    voxel_mm: float = F(1.0, POS, "in-plane voxel size")
-    slice_mm: float = F(1.0, POS, "slice spacing")
-    cardiac_phases: tuple = _f((0.0, 0.2, 0.4, 0.6, 0.8), "a non-empty list of numbers in [0, 1)",
-                               lambda v: isinstance(v, tuple) and len(v) > 0 and all(_num(c) and 0 <= c < 1 for c in v),
-                               "target cardiac phases")
-    resp_bins: int = _f(10, "an integer in 1..50", lambda x: _posint(x) and x <= 50,
-                        "respiratory amplitude bins of equal width; targets at the bin midpoints")
-    methods: tuple = _f(METHODS, "a non-empty list from " + ", ".join(METHODS),
-                        lambda v: isinstance(v, tuple) and len(v) > 0 and all(m in METHODS for m in v)
-                        and len(set(v)) == len(v), "reconstruction methods")
-    kappa: float = F(1.0, POS, "von Mises concentration of the local-linear cardiac kernel")
-    sigma: float = F(0.15, POS, "Gaussian width of the local-linear amplitude kernel")
-    local_linear_extrapolate: bool = F(False, BOOL, "true: the paper's plain local-linear fit, which extrapolates "
-                                       "along an axis the points do not bracket; false: locally constant there")
-    local_linear_points: str = F("quadrants", one_of(LL_POINT_RULES), "local-linear neighbour selection: "
-                                 "'quadrants' (local_linear_count nearest per quadrant, the paper's text) or "
-                                 "'nearest' (the local_linear_count nearest overall, the paper's Figure 2B caption)")
-    local_linear_count: int = _f(2, f"an integer in 1..{LL_MAX_SLOTS}", lambda x: _posint(x) and x <= LL_MAX_SLOTS,
-                                 "local-linear points per quadrant ('quadrants': 4 x count slots) or in all "
-                                 "('nearest')")
-    max_turns: int = F(0, NONNEGINT, "0: every candidate turn within the SSRB window; N > 0: only the N candidates "
-                       "nearest in z per (slice, view), for every method")
-    filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
-    volume_dtype: str = F("float32", one_of(("float32", "float16")), "on-disk dtype of the run's volumes: "
-                          "'float16' halves volumes.h5 (values within 2^-11 relative, <= 0.5 HU below 2048 HU; "
-                          "the metrics are computed from what is stored)")
-    small_fov_mm: tuple = _f((-70.0, 85.0, -100.0, 40.0), "[x_min, x_max, y_min, y_max] with min < max",
-                             lambda v: isinstance(v, tuple) and len(v) == 4 and all(_num(x) for x in v)
-                             and v[0] < v[1] and v[2] < v[3],
-                             "box around the heart (mm, LPS): the phantom's epicardial fat at every state + 10 mm")
-
-    def check(self) -> None:
-        if self.local_linear_points == "quadrants" and 4 * self.local_linear_count > LL_MAX_SLOTS:
-            raise SceneError(f"recon.local_linear_count = {self.local_linear_count}: with local_linear_points = "
-                             f"'quadrants' must be at most {LL_MAX_SLOTS // 4} (4 x count <= {LL_MAX_SLOTS} slots)")
-
-    @property
-    def resp_targets(self) -> tuple[float, ...]:
-        """Target amplitudes: midpoints of ``resp_bins`` equal bins of [0, 1]."""
-        return tuple((i + 0.5) / self.resp_bins for i in range(self.resp_bins))
-
-    @property
-    def fov_radius_mm(self) -> float:
-        """Radius (mm) of the reconstruction circle inscribed in the image grid."""
-        return 0.5 * min(self.nx, self.ny) * self.voxel_mm
-
-
 SECTIONS = {
     "scanner": ScannerConfig,
     "scan": ScanConfig,

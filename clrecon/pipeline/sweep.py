@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from clrecon import api
+from clrecon.config import overrides as scene_overrides
 from clrecon.core.errors import ClreconError
 from clrecon.core.units import write_json_atomic
 from clrecon.outputs import sweep_summary
@@ -134,7 +134,7 @@ def point_scene(study: Study, point: dict):
     name = _scene_ref(study, str(point.get("scene", study.scene)))
     where = f"{study.source or study.name}: point {point_name(point)}"
     try:
-        return api.load_scene(name, **overrides)
+        return scene_overrides.load_scene(name, **overrides)
     except ClreconError as e:  # SceneError included: the key, the value and what is allowed
         raise ClreconError(f"{where}: {e}") from None
 

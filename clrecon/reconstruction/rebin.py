@@ -24,9 +24,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from clrecon.config.scene import ScannerConfig
 from clrecon.core.conventions import detector_coords
 from clrecon.core.runtime import get_runtime
+from clrecon.scan.config import ScannerConfig
 
 if TYPE_CHECKING:  # only for annotations: rebinning needs the table's arrays, not its builder
     from clrecon.scan.table import ProjectionTable

@@ -62,7 +62,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clrecon.config.scene import TRACE_MARGIN_S, TRACE_MIN_S, Scene, SignalsConfig  # noqa: F401
+from clrecon.scan.config import TRACE_MARGIN_S, TRACE_MIN_S, Acquisition, SignalsConfig  # noqa: F401
 
 #: Sampling step of the grid the amplitude percentiles are taken on (s).
 PERCENTILE_GRID_S = 0.005
@@ -117,8 +117,8 @@ class RespiratoryTrace:
     p95: float
 
 
-def trace_duration_s(scene: Scene) -> float:
-    """Length of the scene's signal trace (s): :attr:`clrecon.config.scene.Scene.trace_duration_s`."""
+def trace_duration_s(scene: Acquisition) -> float:
+    """Length of the scene's signal trace (s): :attr:`clrecon.scan.config.Acquisition.trace_duration_s`."""
     return scene.trace_duration_s
 
 
@@ -243,7 +243,7 @@ def _trace(cfg: SignalsConfig, duration_s: float) -> _Trace:
     return _Trace(cfg, duration_s)
 
 
-def _scene_trace(scene: Scene) -> _Trace:
+def _scene_trace(scene: Acquisition) -> _Trace:
     return _trace(scene.signals, trace_duration_s(scene))
 
 
@@ -258,7 +258,7 @@ def _check_times(t_s, duration_s: float) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------
-def physiology(scene: Scene, t_s) -> Physiology:
+def physiology(scene: Acquisition, t_s) -> Physiology:
     """Recorded signals and phantom pose at acquisition times.
 
     Parameters
@@ -294,7 +294,7 @@ def physiology(scene: Scene, t_s) -> Physiology:
                       state_cardiac=c_state, state_resp=a_state)
 
 
-def r_peaks(scene: Scene) -> np.ndarray:
+def r_peaks(scene: Acquisition) -> np.ndarray:
     """R-peak times (s) of the scene's trace, shape (K,), strictly increasing.
 
     The first peak is at or before 0 and the last after ``trace_duration_s(scene)``, so
@@ -303,7 +303,7 @@ def r_peaks(scene: Scene) -> np.ndarray:
     return _scene_trace(scene).r_peaks.copy()
 
 
-def respiratory_trace(scene: Scene, step_s: float = 0.02) -> RespiratoryTrace:
+def respiratory_trace(scene: Acquisition, step_s: float = 0.02) -> RespiratoryTrace:
     """The scene's breathing trace sampled every ``step_s`` seconds over the whole trace."""
     tr = _scene_trace(scene)
     t = np.arange(0.0, tr.duration_s, step_s)

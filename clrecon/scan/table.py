@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clrecon.config.scene import Scene
 from clrecon.scan import signals
+from clrecon.scan.config import Acquisition
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ class ProjectionTable:
         return {c: getattr(self, c) for c in self.COLUMNS}
 
 
-def projection_table(scene: Scene, pitch: float) -> ProjectionTable:
+def projection_table(scene: Acquisition, pitch: float) -> ProjectionTable:
     """The whole helical scan of ``scene`` at ``pitch`` as a :class:`ProjectionTable`."""
     sc, scan = scene.scanner, scene.scan
     n = scan.projection_count(sc, pitch)

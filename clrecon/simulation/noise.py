@@ -34,8 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from clrecon.config.scene import NoiseConfig
 from clrecon.core.runtime import get_runtime
+from clrecon.simulation.config import NoiseConfig
 
 #: Counts below this (photons) are clamped before the log; see the module docstring.
 N_FLOOR = 1.0

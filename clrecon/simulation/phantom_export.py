@@ -35,17 +35,17 @@ from pathlib import Path
 
 import numpy as np
 
-from clrecon.config.scene import Scene
 from clrecon.core.conventions import mu_to_hu
 from clrecon.core.errors import ClreconError
 from clrecon.scan import signals
+from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.phantoms.analytic import Phantom
 from clrecon.simulation.voxelise import voxelise_objects
 
 FORMATS = ("xcat", "nifti")
 
 
-def export_grid(scene: Scene, voxel_mm: float | None = None):
+def export_grid(scene: SimulatedScan, voxel_mm: float | None = None):
     """Voxel-centre axes (x, y, z) mm, each increasing, of frames that cover the scanned volume."""
     sc, rc = scene.scanner, scene.recon
     h = float(voxel_mm or rc.voxel_mm / 2.0)
@@ -65,7 +65,7 @@ def export_grid(scene: Scene, voxel_mm: float | None = None):
     return xy, xy.copy(), z
 
 
-def export_states(scene: Scene, n_frames: int, grid=None):
+def export_states(scene: SimulatedScan, n_frames: int, grid=None):
     """Frame states: (c (N,), a (N,), t (N,) s or None) along the scene's time trajectory or on a grid."""
     if grid is not None:
         nc, na = (int(v) for v in grid)
@@ -114,7 +114,7 @@ def _toml_str(p) -> str:
     return '"' + str(p).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-def export_phantom(scene: Scene, out, fmt: str, n_frames: int = 0, voxel_mm: float | None = None, *, grid=None,
+def export_phantom(scene: SimulatedScan, out, fmt: str, n_frames: int = 0, voxel_mm: float | None = None, *, grid=None,
                    name: str = "clrecon", supersample: int = 2, rt=None) -> dict:
     """Write the scene's analytic phantom as frames into ``out`` (module docstring); returns a summary.
 

@@ -12,9 +12,9 @@ import time
 
 import numpy as np
 
-from clrecon.config.scene import Scene
 from clrecon.core.progress import progress as progress_counter
 from clrecon.scan.table import projection_table
+from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.projector import project
 from clrecon.simulation.store import ProjectionStore
 
@@ -22,7 +22,7 @@ from clrecon.simulation.store import ProjectionStore
 CHUNK = 256
 
 
-def simulate(scene: Scene, pitch: float, needed=None, cache_dir=None, projector=None,
+def simulate(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, projector=None,
              chunk: int = CHUNK, progress: bool = True) -> ProjectionStore:
     """Make sure the projections ``needed`` of ``(scene, pitch)`` are in the store.
 

@@ -57,11 +57,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from clrecon.config.scene import Scene
 from clrecon.core import faults, units
 from clrecon.core.errors import StoreError
 from clrecon.core.versions import PROJECTOR_VERSION, __version__
 from clrecon.scan.table import ProjectionTable, projection_table
+from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.noise import add_noise
 
 FORMAT = "clrecon-projections"
@@ -105,7 +105,7 @@ class ProjectionStore:
         Seconds :func:`~clrecon.simulation.simulate.simulate` spent projecting and writing.
     """
 
-    def __init__(self, scene: Scene, pitch: float, table: ProjectionTable, cache_dir: Path):
+    def __init__(self, scene: SimulatedScan, pitch: float, table: ProjectionTable, cache_dir: Path):
         # Use ProjectionStore.open(); the constructor only sets fields.
         self.scene = scene
         self.pitch = float(pitch)
@@ -129,7 +129,7 @@ class ProjectionStore:
 
     # -- opening -----------------------------------------------------------------------
     @classmethod
-    def open(cls, scene: Scene, pitch: float, cache_dir=None, table: ProjectionTable | None = None,
+    def open(cls, scene: SimulatedScan, pitch: float, cache_dir=None, table: ProjectionTable | None = None,
              create: bool = True) -> ProjectionStore:
         """Open the store of ``(scene, pitch)``, resuming a ``.partial`` file if one was left.
 

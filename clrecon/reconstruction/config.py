@@ -1,0 +1,78 @@
+"""The reconstruction stage's own section of a scene: grid, targets, methods, kernels and filter.
+
+``[recon]`` is a frozen, self-validating section (:class:`clrecon.core.config.Section`). It
+lives with the stage because it validates against the stage's registries (interpolation
+methods, ramp-filter windows); :mod:`clrecon.config.scene` composes it into the scene
+(``docs/data-flow.md`` "Layering").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from clrecon.core.config import BOOL, NONNEGINT, POS, POSINT, F, Section, _num, _posint, field_of, one_of
+from clrecon.core.errors import SceneError
+from clrecon.reconstruction.filters import FILTERS as _FILTER_REGISTRY
+from clrecon.reconstruction.interpolation import METHODS as _METHOD_REGISTRY
+from clrecon.reconstruction.interpolation.local_linear import LL_MAX_SLOTS, LL_POINT_RULES
+
+METHODS = _METHOD_REGISTRY.names
+FILTERS = _FILTER_REGISTRY.names
+
+_f = field_of  # (default, allowed, check, doc)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReconConfig(Section):
+    """Reconstruction grid, targets, methods and filter."""
+
+    SECTION = "recon"
+
+    nx: int = F(512, POSINT, "voxels along x (patient left)")
+    ny: int = F(512, POSINT, "voxels along y (posterior)")
+    nz: int = F(100, POSINT, "slices")
+    voxel_mm: float = F(1.0, POS, "in-plane voxel size")
+    slice_mm: float = F(1.0, POS, "slice spacing")
+    cardiac_phases: tuple = _f((0.0, 0.2, 0.4, 0.6, 0.8), "a non-empty list of numbers in [0, 1)",
+                               lambda v: isinstance(v, tuple) and len(v) > 0 and all(_num(c) and 0 <= c < 1 for c in v),
+                               "target cardiac phases")
+    resp_bins: int = _f(10, "an integer in 1..50", lambda x: _posint(x) and x <= 50,
+                        "respiratory amplitude bins of equal width; targets at the bin midpoints")
+    methods: tuple = _f(METHODS, "a non-empty list from " + ", ".join(METHODS),
+                        lambda v: isinstance(v, tuple) and len(v) > 0 and all(m in METHODS for m in v)
+                        and len(set(v)) == len(v), "reconstruction methods")
+    kappa: float = F(1.0, POS, "von Mises concentration of the local-linear cardiac kernel")
+    sigma: float = F(0.15, POS, "Gaussian width of the local-linear amplitude kernel")
+    local_linear_extrapolate: bool = F(False, BOOL, "true: the paper's plain local-linear fit, which extrapolates "
+                                       "along an axis the points do not bracket; false: locally constant there")
+    local_linear_points: str = F("quadrants", one_of(LL_POINT_RULES), "local-linear neighbour selection: "
+                                 "'quadrants' (local_linear_count nearest per quadrant, the paper's text) or "
+                                 "'nearest' (the local_linear_count nearest overall, the paper's Figure 2B caption)")
+    local_linear_count: int = _f(2, f"an integer in 1..{LL_MAX_SLOTS}", lambda x: _posint(x) and x <= LL_MAX_SLOTS,
+                                 "local-linear points per quadrant ('quadrants': 4 x count slots) or in all "
+                                 "('nearest')")
+    max_turns: int = F(0, NONNEGINT, "0: every candidate turn within the SSRB window; N > 0: only the N candidates "
+                       "nearest in z per (slice, view), for every method")
+    filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
+    volume_dtype: str = F("float32", one_of(("float32", "float16")), "on-disk dtype of the run's volumes: "
+                          "'float16' halves volumes.h5 (values within 2^-11 relative, <= 0.5 HU below 2048 HU; "
+                          "the metrics are computed from what is stored)")
+    small_fov_mm: tuple = _f((-70.0, 85.0, -100.0, 40.0), "[x_min, x_max, y_min, y_max] with min < max",
+                             lambda v: isinstance(v, tuple) and len(v) == 4 and all(_num(x) for x in v)
+                             and v[0] < v[1] and v[2] < v[3],
+                             "box around the heart (mm, LPS): the phantom's epicardial fat at every state + 10 mm")
+
+    def check(self) -> None:
+        if self.local_linear_points == "quadrants" and 4 * self.local_linear_count > LL_MAX_SLOTS:
+            raise SceneError(f"recon.local_linear_count = {self.local_linear_count}: with local_linear_points = "
+                             f"'quadrants' must be at most {LL_MAX_SLOTS // 4} (4 x count <= {LL_MAX_SLOTS} slots)")
+
+    @property
+    def resp_targets(self) -> tuple[float, ...]:
+        """Target amplitudes: midpoints of ``resp_bins`` equal bins of [0, 1]."""
+        return tuple((i + 0.5) / self.resp_bins for i in range(self.resp_bins))
+
+    @property
+    def fov_radius_mm(self) -> float:
+        """Radius (mm) of the reconstruction circle inscribed in the image grid."""
+        return 0.5 * min(self.nx, self.ny) * self.voxel_mm

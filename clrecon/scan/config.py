@@ -1,0 +1,174 @@
+"""The scan stage's own configuration: scanner hardware, helical protocol, breathing and heart rhythm.
+
+Three sections of a scene (``[scanner]``, ``[scan]``, ``[signals]``), each a frozen dataclass
+that validates itself (:class:`clrecon.core.config.Section`); derived quantities (collimation
+at the isocentre, table feed, number of projections) are properties, never stored twice.
+Lengths in mm, times in s.
+
+They live here, with the stage that uses them, so that the scan, simulation and
+reconstruction stages need nothing from :mod:`clrecon.config` (which composes every stage's
+sections into a :class:`~clrecon.config.scene.Scene` and sits above them; ``docs/data-flow.md``
+"Layering"). What a stage needs of a whole scene it declares as a small protocol here
+(:class:`Acquisition`): a :class:`~clrecon.config.scene.Scene` is one, and so is any object
+with those attributes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+from clrecon.core.config import (
+    BOOL,
+    FRAC,
+    NONNEG,
+    NONNEGINT,
+    NUM,
+    POS,
+    POSINT,
+    F,
+    Section,
+    _num,
+    _pos,
+    _posint,
+    field_of,
+    one_of,
+)
+from clrecon.core.detector import DETECTORS, DetectorModel, detector_for
+
+#: The signal trace spans max(TRACE_MIN_S, the longest scan) + TRACE_MARGIN_S seconds.
+TRACE_MIN_S = 60.0
+TRACE_MARGIN_S = 5.0
+RHYTHMS = ("periodic", "hrv", "af", "pvc")
+
+_f = field_of  # (default, allowed, check, doc)
+
+
+# ---------------------------------------------------------------------------------------
+@dataclass(frozen=True, kw_only=True)
+class ScannerConfig(Section):
+    """CT scanner hardware (Table 1 of the paper by default). Lengths in mm."""
+
+    SECTION = "scanner"
+
+    sid_mm: float = F(595.0, POS, "source to isocentre distance")
+    sdd_mm: float = F(1085.6, POS, "source to detector distance")
+    n_cols: int = F(900, POSINT, "detector columns")
+    n_rows: int = F(64, POSINT, "detector rows")
+    col_pitch_mm: float = F(0.8, POS, "detector column pitch at the detector")
+    row_pitch_mm: float = F(0.8, POS, "detector row pitch at the detector")
+    views_per_rotation: int = F(984, POSINT, "projections per rotation")
+    rotation_time_s: float = F(0.3, POS, "seconds per rotation")
+    detector: str = F("flat", one_of(DETECTORS.names), "detector model (clrecon.core.detector)")
+
+    @property
+    def detector_model(self) -> DetectorModel:
+        """The detector model (:mod:`clrecon.core.detector`) every stage asks for geometry."""
+        return detector_for(self)
+
+    @property
+    def collimation_iso_mm(self) -> float:
+        """W = N_rows * row_pitch * SID / SDD (mm)."""
+        return self.detector_model.collimation_iso_mm
+
+    @property
+    def fov_radius_mm(self) -> float:
+        """Radius at the isocentre of the circle every column sees (mm)."""
+        return self.detector_model.fov_radius_mm
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScanConfig(Section):
+    """Helical protocol. Either ``coverage_mm`` or ``n_projections`` fixes the scan length.
+
+    Coverage = source travel + W (docs/conventions.md "Helical scan length"); projections = round(travel/h * N) + 1.
+    """
+
+    SECTION = "scan"
+
+    pitches: tuple = _f((0.02,), "a non-empty list of numbers in (0, 2]",
+                        lambda v: isinstance(v, tuple) and len(v) > 0 and all(_pos(p) and p <= 2 for p in v),
+                        "table feed per rotation / collimation W; one scan per pitch")
+    coverage_mm: float = F(119.7, POS, "longitudinal coverage = travel + W")
+    n_projections: int = F(0, NONNEGINT, "if > 0: the scan length in projections (overrides coverage_mm)")
+    z_centre_mm: float = F(0.0, NUM, "table position of the scan centre")
+    start_angle_deg: float = F(0.0, NUM, "gantry angle of the first view")
+
+    def feed_mm(self, scanner: ScannerConfig, pitch: float) -> float:
+        """Table feed per rotation h = pitch * W (mm)."""
+        return pitch * scanner.collimation_iso_mm
+
+    def projection_count(self, scanner: ScannerConfig, pitch: float) -> int:
+        if self.n_projections > 0:
+            return self.n_projections
+        travel = max(self.coverage_mm - scanner.collimation_iso_mm, 0.0)
+        return int(round(travel / self.feed_mm(scanner, pitch) * scanner.views_per_rotation)) + 1
+
+    def travel_mm(self, scanner: ScannerConfig, pitch: float) -> float:
+        n = self.projection_count(scanner, pitch)
+        return (n - 1) * self.feed_mm(scanner, pitch) / scanner.views_per_rotation
+
+    def z_start_mm(self, scanner: ScannerConfig, pitch: float) -> float:
+        return self.z_centre_mm - self.travel_mm(scanner, pitch) / 2.0
+
+    def duration_s(self, scanner: ScannerConfig, pitch: float) -> float:
+        return self.projection_count(scanner, pitch) * scanner.rotation_time_s / scanner.views_per_rotation
+
+
+@dataclass(frozen=True, kw_only=True)
+class SignalsConfig(Section):
+    """Breathing and heart rhythm (docs/algorithms.md "Breathing and heart rhythm"; Lujan 1999 breathing model)."""
+
+    SECTION = "signals"
+
+    seed: int = F(1, NONNEGINT, "seed of the breathing and rhythm irregularities")
+    resp_period_s: float = F(5.0, POS, "mean breathing period")
+    resp_period_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
+                               "cycle-to-cycle coefficient of variation of the period")
+    resp_depth_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
+                              "cycle-to-cycle coefficient of variation of the depth")
+    resp_exponent: int = _f(2, "an integer in 1..4", lambda x: _posint(x) and x <= 4,
+                            "n in cos^(2n): larger gives a longer end-exhale dwell")
+    resp_drift: float = _f(0.05, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
+                           "slow baseline drift, as a fraction of the mean depth, peak to peak")
+    breath_hold: bool = F(False, BOOL, "no breathing: amplitude constant at breath_hold_amplitude")
+    breath_hold_amplitude: float = F(0.5, FRAC, "normalised amplitude during a breath hold")
+    rr_s: float = _f(0.75, "a number in [0.3, 2.0]", lambda x: _num(x) and 0.3 <= x <= 2.0, "mean R-R interval")
+    rhythm: str = _f("periodic", "one of " + ", ".join(RHYTHMS), lambda x: x in RHYTHMS,
+                     "periodic; hrv (3 % sinus variability); af (i.i.d. R-R); pvc (ectopic beats)")
+    rr_cv: float = _f(0.0, "a number in [0, 0.4]", lambda x: _num(x) and 0 <= x <= 0.4,
+                      "R-R coefficient of variation for hrv/af (0: the rhythm's default)")
+    ectopic_rate: float = _f(0.0, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
+                             "fraction of beats that are premature (pvc rhythm)")
+    frame_time_s: float = F(0.0, NONNEG, "0: continuous motion; > 0: motion frozen in phantom frames of this length")
+
+
+class MotionFlags(Protocol):
+    """Which motions the phantom has (a phantom section has these two flags)."""
+
+    @property
+    def cardiac_motion(self) -> bool: ...
+    @property
+    def respiratory_motion(self) -> bool: ...
+
+
+class Acquisition(Protocol):
+    """What the scan stage needs of a scene: scanner, protocol, signals, motion flags, trace length.
+
+    :class:`clrecon.config.scene.Scene` satisfies it; so does any object with these attributes.
+    ``trace_duration_s`` (s) is the length of the signal trace the amplitude is normalised over
+    (``docs/conventions.md`` "Respiratory amplitude").
+    """
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def scanner(self) -> ScannerConfig: ...
+    @property
+    def scan(self) -> ScanConfig: ...
+    @property
+    def signals(self) -> SignalsConfig: ...
+    @property
+    def phantom(self) -> MotionFlags: ...
+    @property
+    def trace_duration_s(self) -> float: ...
