@@ -3,7 +3,8 @@
 Layout (``docs/api.md``)::
 
     dims    method, pitch, variant, cardiac, resp, z, y, x
-    coords  method   the run's reconstruction methods (str), in the order the run lists them
+    coords  method   the run's reconstruction methods (str), in the order of its request
+                     (``results.json`` ``request.methods``; others after, as volumes.h5 lists them)
             pitch    helical pitches (float); pitch_key ("p0.020") beside it on the same dim
             variant  "noisy", "noise-free" (those the run has; noisy first)
             cardiac, resp, z, y, x   as in the Dataset (clrecon.outputs.dataset), with their attrs
@@ -38,6 +39,8 @@ cardiac, resp, z, y, x coordinates are the same, so ``da - ds["groundtruth"]`` a
 """
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import xarray as xr
@@ -91,26 +94,32 @@ class RunArray(xr.DataArray):
     xarray's own ``sel`` reads ``method=`` as its inexact-lookup mode (``"nearest"``, ``"pad"``,
     ...), so on a plain DataArray a dimension named ``method`` can only be selected as
     ``sel({"method": "local_linear"})`` or ``.loc[...]``. Here, while ``method`` is a dimension
-    of the array, ``method=`` names the reconstruction method(s) (exact labels) and
-    ``lookup=`` is xarray's lookup mode for the other dimensions:
-    ``da.sel(method="nearest", cardiac=0.38, lookup="nearest")``. Once the method dimension
-    is gone (a scalar method selected), ``sel`` is xarray's own again (``lookup=`` still
-    accepted). Everything else is xarray's DataArray; operations keep this type.
+    of the array, ``method=`` names the reconstruction method(s) and ``lookup=`` is xarray's
+    lookup mode: ``da.sel(method="nearest", variant="noisy", cardiac=0.38, lookup="nearest")``.
+    Labels (method, variant, pitch_key: string coordinates) are always matched exactly; the
+    lookup mode applies to the numeric coordinates (pitch, cardiac, resp, z, y, x). Once the
+    method dimension is gone (one method selected), ``method=`` is xarray's lookup mode again
+    (``lookup=`` still works). Everything else is xarray's DataArray; operations keep this type.
     """
 
     __slots__ = ()
 
     def sel(self, indexers=None, method=None, tolerance=None, drop=False, lookup=None, **indexers_kwargs):
+        if indexers is not None and indexers_kwargs:
+            raise ValueError("cannot specify both keyword and positional arguments to .sel")
+        wanted = dict(indexers if indexers is not None else indexers_kwargs)
         if method is not None and "method" in self.dims:
-            out = xr.DataArray.sel(self, {"method": method}, drop=drop)
-            if not indexers and not indexers_kwargs:
-                return out
-            return xr.DataArray.sel(out, indexers, method=lookup, tolerance=tolerance, drop=drop, **indexers_kwargs)
-        if lookup is not None:
-            if method is not None:
+            wanted["method"] = method
+        elif method is not None:
+            if lookup is not None:
                 raise TypeError(f"sel: method={method!r} and lookup={lookup!r}: give the lookup mode once")
-            method = lookup
-        return xr.DataArray.sel(self, indexers, method=method, tolerance=tolerance, drop=drop, **indexers_kwargs)
+            lookup = method
+        if lookup is None:
+            return xr.DataArray.sel(self, wanted, tolerance=tolerance, drop=drop)
+        labels = {k: v for k, v in wanted.items() if k in self.indexes and self.indexes[k].dtype.kind in "OUS"}
+        out = xr.DataArray.sel(self, labels, drop=drop) if labels else self
+        rest = {k: v for k, v in wanted.items() if k not in labels}
+        return xr.DataArray.sel(out, rest, method=lookup, tolerance=tolerance, drop=drop) if rest else out
 
 
 def open_stacked(path) -> RunArray:
@@ -126,6 +135,8 @@ def open_stacked(path) -> RunArray:
             raise StoreError(f"{ds.attrs.get('run_dir', path)}: no reconstructions in this run directory to stack "
                              f"(it holds {', '.join(ds.data_vars) or 'no volumes'})")
         methods = list(dict.fromkeys(a["method"] for _, a in recons))
+        requested = json.loads(ds.attrs.get("results", "{}")).get("request", {}).get("methods") or []
+        methods.sort(key=lambda m: requested.index(m) if m in requested else len(requested))  # stable
         pkeys = sorted({a["pitch_key"] for _, a in recons}, key=lambda k: float(k[1:]))
         variants = sorted({a["variant"] for _, a in recons},
                           key=lambda v: (_VARIANT_ORDER.index(v) if v in _VARIANT_ORDER else len(_VARIANT_ORDER), v))
