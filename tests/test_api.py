@@ -65,6 +65,8 @@ def test_docs_example_runs(tmp_path, monkeypatch):
     assert res.results["request"]["methods"] == ["nearest"] and res.results["request"]["slices"] == [0, 1]
     assert list((tmp_path / "cache").glob("*.h5")), "the projection store went to $CLRECON_CACHE"
     assert ns["one"].shape == (1, 32, 32) and float(ns["one"].resp) == 0.25
+    assert ns["target"].dims == ("y", "x") and float(ns["target"].cardiac) == 0.4  # the stacked block
+    assert ns["err"].dims == ("variant", "cardiac", "resp", "z", "y", "x")
 
 
 def test_open_run_is_lazy_and_reads_one_target(run_dir, h5_reads):
