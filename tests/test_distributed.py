@@ -241,3 +241,14 @@ def test_tls_errors_are_one_line(tmp_path, certs, capsys):
         with distributed.connect(cluster="tcp://127.0.0.1:1", security=distributed.tls_security(
                 certs["ca"], certs["cert"], certs["key"], address="tls://x")):
             pass
+
+
+def test_bench_tls_round_trips():
+    """``bench --only distributed``'s tls:// vs tcp:// figure runs and reports both protocols."""
+    from clrecon.bench.distributed import _tls_lines, tls_overhead
+
+    t = tls_overhead(1)
+    assert set(t["trivial_round_trip_s"]) == {"tcp", "tls"} and t["round_trips"] == 10
+    assert all(v > 0 for v in (*t["trivial_round_trip_s"].values(), *t["payload_round_trip_s"].values()))
+    (line,) = _tls_lines(t)
+    assert "tls:// vs tcp://" in line and "MB/s over TLS" in line
