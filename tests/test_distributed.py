@@ -149,7 +149,7 @@ def tls_cluster(certs):
                 tls_worker_cert=certs["cert"], tls_worker_key=certs["key"], tls_client_cert=certs["cert"],
                 tls_client_key=certs["key"])
     cluster = d.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tls",
-                             security=d.Security(require_encryption=True, **node), dashboard_address=None,
+                             security=d.Security(require_encryption=True, **node), dashboard_address="127.0.0.1:0",
                              silence_logs=logging.ERROR, env={"CLRECON_NO_PROGRESS": "1"})
     try:
         yield cluster.scheduler_address
@@ -198,6 +198,16 @@ def test_tls_certificates_from_dask_config(tls_cluster, certs):
     with dask.config.set(conf), distributed.connect(cluster=tls_cluster) as c:
         assert c.submit(sum, [1, 2], pure=False).result() == 3
         assert all(w.startswith("tls://") for w in c.scheduler_info()["workers"])
+
+
+def test_tls_foreign_certificates_refused(tmp_path, tls_cluster):
+    """A client whose certificates another CA signed is refused by the scheduler: one line."""
+    other = {k: str(v) for k, v in make_certs(tmp_path / "other").items()}
+    sec = distributed.tls_security(other["ca"], other["cert"], other["key"], address=tls_cluster)
+    with pytest.raises(ClreconError, match="no TLS connection to a Dask scheduler there") as e:
+        with distributed.connect(cluster=tls_cluster, security=sec):
+            pass
+    assert "\n" not in str(e.value)
 
 
 def test_tls_errors_are_one_line(tmp_path, certs, capsys):

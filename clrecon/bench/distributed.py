@@ -110,7 +110,8 @@ def tls_overhead(repeats: int = 3) -> dict:
         return {"skipped": f"needs the cryptography package ({e})"}
     n = 10 * max(1, repeats)
     arr = np.ones(1 << 21, np.float32)  # 8 MiB, as overhead()
-    kw = dict(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR)
+    kw = dict(n_workers=1, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
+              silence_logs=logging.ERROR)
     times: dict = {"tcp": {"trivial": [], "payload": []}, "tls": {"trivial": [], "payload": []}}
     with d.LocalCluster(protocol="tcp", **kw) as c_tcp, d.LocalCluster(protocol="tls", security=sec, **kw) as c_tls, \
             d.Client(c_tcp) as tcp, d.Client(c_tls, security=sec) as tls:
