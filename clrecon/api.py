@@ -26,6 +26,7 @@ from clrecon.config import overrides as _overrides
 from clrecon.config.scene import Scene
 from clrecon.core.errors import ClreconError
 from clrecon.outputs.dataset import open_dataset
+from clrecon.outputs.stacked import open_stacked
 from clrecon.pipeline.run import run as run_pipeline
 
 __all__ = ["RunResult", "load_scene", "open_run", "run"]
@@ -57,9 +58,9 @@ class RunResult:
     path: Path
     results: dict
 
-    def open(self) -> xarray.Dataset:
+    def open(self, stacked: bool = False) -> xarray.Dataset | xarray.DataArray:
         """:func:`open_run` of this run."""
-        return open_run(self.path)
+        return open_run(self.path, stacked=stacked)
 
     def __repr__(self) -> str:
         return f"RunResult(path={str(self.path)!r}, total_seconds={self.results.get('total_seconds')})"
@@ -147,8 +148,14 @@ def run(scene: Scene | PathLike, out: PathLike | None = None, *, methods: Sequen
 
 # ----------------------------------------------------------------------------------------
 # reading
-def open_run(path: PathLike | RunResult) -> xarray.Dataset:
+def open_run(path: PathLike | RunResult, stacked: bool = False) -> xarray.Dataset | xarray.DataArray:
     """A run directory as a lazily loaded :class:`xarray.Dataset` (nothing but axes read on open).
+
+    ``stacked=True``: instead one lazy :class:`xarray.DataArray` of every reconstruction, on
+    ``method, pitch, variant, cardiac, resp, z, y, x`` (``da.sel(method="local_linear",
+    variant="noisy")``), NaN where the run lacks a combination; r4dct and helical broadcast
+    along the axes they do not vary on; ground truth and phantom stay in the Dataset. Layout:
+    :mod:`clrecon.outputs.stacked`.
 
     Dimensions ``cardiac``, ``resp``, ``z``, ``y``, ``x`` (coordinates: cardiac phase,
     respiratory amplitude, voxel centres in mm, LPS); one float32 HU variable per
@@ -162,4 +169,4 @@ def open_run(path: PathLike | RunResult) -> xarray.Dataset:
     """
     if isinstance(path, RunResult):
         path = path.path
-    return open_dataset(path)
+    return open_stacked(path) if stacked else open_dataset(path)

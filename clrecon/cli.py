@@ -60,11 +60,18 @@ def cmd_run(args) -> int:
 
 def _client(args):
     """``--workers N`` / ``--cluster ADDRESS``: a Dask client for the run (docs/distributed.md), else none."""
+    tls = (args.tls_ca_file, args.tls_cert, args.tls_key)
+    has_tls = any(v is not None for v in tls)
+    if has_tls and not (args.cluster or "").lower().startswith("tls://"):
+        where = f"--cluster {args.cluster}" if args.cluster else "no --cluster"
+        raise ClreconError(f"--tls-ca-file/--tls-cert/--tls-key with {where}: the certificates are for a tls:// "
+                           f"scheduler, e.g. --cluster tls://head:8786 (docs/distributed.md)")
     if args.workers is None and args.cluster is None:
         return contextlib.nullcontext(None)
-    from clrecon.pipeline.distributed import connect
+    from clrecon.pipeline.distributed import connect, tls_security
 
-    return connect(workers=args.workers, cluster=args.cluster)
+    security = tls_security(*tls, address=args.cluster) if has_tls else None
+    return connect(workers=args.workers, cluster=args.cluster, security=security)
 
 
 def cmd_sweep(args) -> int:
@@ -83,7 +90,14 @@ def _add_cluster_args(p) -> None:
                    help="compute the units on a local Dask cluster of N worker processes (needs clrecon[dask])")
     p.add_argument("--cluster", metavar="ADDRESS",
                    help="compute the units on the Dask scheduler at ADDRESS, e.g. tcp://10.0.0.1:8786; the cache "
-                        "and run folders must be on a file system every worker sees (docs/distributed.md)")
+                        "and run folders must be on a file system every worker sees (docs/distributed.md); "
+                        "tls://HOST:PORT for an encrypted cluster (with --tls-* or Dask's distributed.comm.tls config)")
+    p.add_argument("--tls-ca-file", metavar="PEM",
+                   help="with --cluster tls://: the CA certificate that signed the scheduler's and workers' "
+                        "certificates")
+    p.add_argument("--tls-cert", metavar="PEM", help="with --cluster tls://: this client's certificate")
+    p.add_argument("--tls-key", metavar="PEM",
+                   help="with --cluster tls://: this client's private key (omit if appended to --tls-cert)")
 
 
 def cmd_scenes(args) -> int:

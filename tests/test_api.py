@@ -65,6 +65,8 @@ def test_docs_example_runs(tmp_path, monkeypatch):
     assert res.results["request"]["methods"] == ["nearest"] and res.results["request"]["slices"] == [0, 1]
     assert list((tmp_path / "cache").glob("*.h5")), "the projection store went to $CLRECON_CACHE"
     assert ns["one"].shape == (1, 32, 32) and float(ns["one"].resp) == 0.25
+    assert ns["target"].dims == ("y", "x") and float(ns["target"].cardiac) == 0.4  # the stacked block
+    assert ns["err"].dims == ("variant", "cardiac", "resp", "z", "y", "x")
 
 
 def test_open_run_is_lazy_and_reads_one_target(run_dir, h5_reads):
@@ -190,3 +192,111 @@ def test_run_directory_reader(run_dir, h5_reads):
         np.testing.assert_array_equal(plane, run.read("groundtruth", (1, 0))[:, 7, :])
         assert run.pitches() == ["p0.100"] and run.dims(src) == ("cardiac", "resp", "z", "y", "x")
     assert not run.h5  # closed
+
+
+# ----------------------------------------------------------------------------------------
+# open_run(path, stacked=True): one lazy 8-D DataArray
+STACK_DIMS = ("method", "pitch", "variant", "cardiac", "resp", "z", "y", "x")
+
+
+def test_open_run_stacked_is_lazy_and_labelled(run_dir, h5_reads):
+    da = clrecon.open_run(run_dir, stacked=True)
+    try:
+        assert all(name.startswith("/axes/") for name in h5_reads), h5_reads  # no voxel read on open
+        assert da.dims == STACK_DIMS and da.dtype == np.float32 and da.attrs["units"] == "HU"
+        with RunDirectory(run_dir) as run:
+            assert da.shape == (2, 1, 2) + run.shape
+        assert da.method.values.tolist() == ["nearest", "local_linear"]
+        assert da.pitch.values.tolist() == [0.1] and da.pitch_key.values.tolist() == ["p0.100"]
+        assert da.variant.values.tolist() == ["noisy", "noise-free"] and bool(da.stored.all())
+        met = json.loads(da.attrs["metrics"])
+        assert float(da.mae_hu_small.sel(method="local_linear", variant="noise-free", pitch=0.1)) == (
+            met["p0.100"]["noise-free"]["local_linear"]["small"]["mae_hu"])
+        sel = da.sel(method="local_linear", variant="noisy")  # the issue's spelling: method= is the dimension
+        assert sel.dims == ("pitch", "cardiac", "resp", "z", "y", "x")
+        part = sel.isel(pitch=0, cardiac=1, resp=2, z=slice(2, 5))
+        repr(da), repr(part)
+        assert all(n.startswith("/axes/") for n in h5_reads), h5_reads  # selections stay lazy
+        values = part.values
+        assert h5_reads[-1:] == ["/recon/p0.100/noisy/local_linear"]
+        assert [n for n in h5_reads if not n.startswith("/axes/")] == ["/recon/p0.100/noisy/local_linear"]
+        with open_volumes(run_dir) as f:
+            np.testing.assert_array_equal(values, read_volume(f, "recon/p0.100/noisy/local_linear", (1, 2))[2:5])
+        # the same through plain xarray spellings, and against the Dataset
+        with clrecon.open_run(run_dir) as ds:
+            for m in ("nearest", "local_linear"):
+                for v in ("noisy", "noise-free"):
+                    np.testing.assert_array_equal(da.sel({"method": m, "variant": v, "pitch": 0.1}).values,
+                                                  ds[f"{m}_p0.100_{v}"].values)
+            np.testing.assert_array_equal(da.loc[{"method": "nearest", "variant": "noisy"}].isel(pitch=0).values,
+                                          ds["nearest_p0.100_noisy"].values)
+            err = (da.sel(method="nearest", pitch=0.1) - ds["groundtruth"]).isel(z=0)
+            assert err.dims == ("variant", "cardiac", "resp", "y", "x")
+            np.testing.assert_array_equal(err.sel(variant="noisy").values,
+                                          (ds["nearest_p0.100_noisy"] - ds["groundtruth"]).isel(z=0).values)
+        # lookup= is xarray's inexact lookup while method= names the method
+        near = da.sel(method="nearest", variant="noisy", cardiac=0.38, resp=0.3, lookup="nearest")
+        assert near.dims == ("pitch", "z", "y", "x") and float(near.cardiac) == 0.4
+        # once the method dimension is gone, method= is xarray's lookup mode again
+        again = da.sel(method="nearest", variant="noisy", pitch=0.1).sel(cardiac=0.38, resp=0.3, method="nearest")
+        np.testing.assert_array_equal(again.values, near.isel(pitch=0).values)
+        both = da.sel(method=["local_linear", "nearest"])
+        assert both.method.values.tolist() == ["local_linear", "nearest"] and both.dims == STACK_DIMS
+        with pytest.raises(KeyError):
+            da.sel(method="bin")
+        # dask on request: the same values
+        np.testing.assert_array_equal(da.chunk({"method": 1}).isel(z=0).values, da.isel(z=0).values)
+    finally:
+        da.close()
+
+
+def test_open_run_stacked_absent_combination_is_nan(tmp_path):
+    make_fake_run(tmp_path, methods=("nearest", "local_linear"), pitches=(0.02, 0.1), variants=("noisy",))
+    with h5py.File(tmp_path / "volumes.h5", "a") as f:
+        del f["recon/p0.020/noisy/nearest"]  # a run that lacks one (method, pitch, variant)
+    with clrecon.open_run(tmp_path, stacked=True) as da:
+        assert da.sizes["pitch"] == 2 and da.pitch.values.tolist() == [0.02, 0.1]
+        assert da.stored.values[:, :, 0].tolist() == [[False, True], [True, True]]
+        assert np.isnan(da.sel(method="nearest", pitch=0.02).values).all()
+        assert np.isnan(da.mae_hu_large.sel(method="nearest", pitch=0.02)).all()
+        assert not np.isnan(da.sel(method="nearest", pitch=0.1).values).any()
+    make_fake_run(tmp_path / "refs", methods=("nearest",), pitches=(0.1,))
+    with h5py.File(tmp_path / "refs" / "volumes.h5", "a") as f:
+        del f["recon"]
+    with pytest.raises(ClreconError, match="no reconstructions in this run directory to stack") as e:
+        clrecon.open_run(tmp_path / "refs", stacked=True)
+    assert "\n" not in str(e.value)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A real tiny run with the broadcast-stored methods: r4dct (once per amplitude), helical (once)."""
+    d = tmp_path_factory.mktemp("tiny")
+    res = clrecon.run("tiny", out=d / "run", cache=d / "cache", methods=["local_linear", "r4dct", "helical"],
+                      slices=(0, 1))
+    return res.path
+
+
+def test_open_run_stacked_broadcasts_r4dct_and_helical(tiny_run, h5_reads):
+    with h5py.File(tiny_run / "volumes.h5") as f:  # as stored: r4dct (1, n_r, ...), helical (1, 1, ...)
+        assert list(f["recon/p0.100/noisy/r4dct"].attrs["broadcast"]) == ["cardiac"]
+        assert list(f["recon/p0.100/noisy/helical"].attrs["broadcast"]) == ["cardiac", "resp"]
+    h5_reads.clear()
+    with clrecon.open_run(tiny_run, stacked=True) as da, RunDirectory(tiny_run) as run:
+        assert da.dims == STACK_DIMS and da.sizes["cardiac"] == 2 and da.sizes["resp"] == 2
+        assert set(da.method.values) == {"local_linear", "r4dct", "helical"} and bool(da.stored.all())
+        h5_reads.clear()
+        r4 = da.sel(method="r4dct", variant="noisy").values  # (pitch, cardiac, resp, z, y, x)
+        # the one stored copy read once, repeated along cardiac only in the returned values
+        assert [n for n in h5_reads if not n.startswith("/axes/")] == ["/recon/p0.100/noisy/r4dct"]
+        assert r4.shape == (1, 2, 2, 1, 32, 32) and np.array_equal(r4[:, 0], r4[:, 1])
+        np.testing.assert_array_equal(r4[0], run.read("recon/p0.100/noisy/r4dct"))
+        hel = da.sel(method="helical", variant="noise-free", pitch=0.1).values
+        assert (hel == hel[:1, :1]).all()
+        np.testing.assert_array_equal(hel, run.read("recon/p0.100/noise-free/helical"))
+        ll = da.sel(method="local_linear", variant="noisy", pitch=0.1, cardiac=0.4, resp=0.75)
+        np.testing.assert_array_equal(ll.values, run.read("recon/p0.100/noisy/local_linear", (1, 1)))
+        # a target of the broadcast methods is the same volume whatever the cardiac phase asked for
+        np.testing.assert_array_equal(da.sel(method="r4dct", cardiac=0.0).values, da.sel(method="r4dct",
+                                                                                           cardiac=0.4).values)
+    assert not run.h5

@@ -1,16 +1,23 @@
 """Dask scale-out (clrecon.pipeline.distributed): a 2-worker local cluster gives the single-process
 run's volumes and metrics bit for bit; a worker killed mid-unit costs only that unit; a client
-killed mid-run (``python -m clrecon run --workers 2``) resumes; a sweep runs its points on the cluster."""
+killed mid-run (``python -m clrecon run --workers 2``) resumes; a sweep runs its points on the cluster;
+a tls:// cluster (certificates made here) runs ``clrecon run`` and ``sweep`` bit-identically."""
 
 import json
+import logging
 import os
+import re
 import signal
 import subprocess
 import sys
 
+import dask
+import h5py
 import pytest
 from run_compare import assert_identical
+from tls_certs import make_certs
 
+from clrecon.cli import main
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import ClreconError
 from clrecon.pipeline import distributed
@@ -124,3 +131,134 @@ def test_connect_errors():
     with pytest.raises(ClreconError, match="whole number of worker processes"):
         with distributed.connect(workers=0):
             pass
+
+
+# ----------------------------------------------------------------------------------------
+# a tls:// cluster (issue 18: patient data on a cluster)
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory):
+    return {k: str(v) for k, v in make_certs(tmp_path_factory.mktemp("certs")).items()}
+
+
+@pytest.fixture(scope="module")
+def tls_cluster(certs):
+    """A scheduler and one single-threaded worker process on 127.0.0.1 that speak only TLS (one CA)."""
+    import distributed as d
+
+    node = dict(tls_ca_file=certs["ca"], tls_scheduler_cert=certs["cert"], tls_scheduler_key=certs["key"],
+                tls_worker_cert=certs["cert"], tls_worker_key=certs["key"], tls_client_cert=certs["cert"],
+                tls_client_key=certs["key"])
+    cluster = d.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tls",
+                             security=d.Security(require_encryption=True, **node), dashboard_address="127.0.0.1:0",
+                             silence_logs=logging.ERROR, env={"CLRECON_NO_PROGRESS": "1"})
+    try:
+        yield cluster.scheduler_address
+    finally:
+        cluster.close()
+
+
+def _tls_args(certs):
+    return ["--tls-ca-file", certs["ca"], "--tls-cert", certs["cert"], "--tls-key", certs["key"]]
+
+
+def test_tls_cluster_run_and_sweep_bit_identical(tmp_path, tls_cluster, certs, reference):
+    assert tls_cluster.startswith("tls://127.0.0.1:")
+    term = signal.getsignal(signal.SIGTERM)  # main() installs its SIGTERM handler; this process keeps its own
+    try:
+        out, cache = tmp_path / "run", tmp_path / "cache"
+        argv = ["run", "--scene", "tiny", "--out", str(out), "--cache", str(cache), "--no-progress",
+                "--cluster", tls_cluster, *_tls_args(certs)]
+        assert main(argv) == 0
+        res = assert_identical(out, reference)
+        d = res["distributed"]
+        assert d["encrypted"] is True and d["scheduler"] == tls_cluster and d["workers"] == 1
+        assert d["units"] == {"simulate": 2, "reconstruct": 1, "truth": 4}
+        # a sweep (one noise-free point at the default kappa) on the same cluster, its store reused
+        study = tmp_path / "study.toml"
+        study.write_text('name = "t"\nscene = "tiny"\nmethods = ["nearest"]\nreport = false\n'
+                         '[set]\n"noise.enabled" = false\n[grid]\n"recon.kappa" = [1.0]\n')
+        assert main(["sweep", str(study), "--out", str(tmp_path / "study"), "--cache", str(cache), "--no-progress",
+                     "--cluster", tls_cluster, *_tls_args(certs)]) == 0
+    finally:
+        signal.signal(signal.SIGTERM, term)
+    point = tmp_path / "study" / "kappa=1"
+    pres = json.loads((point / "results.json").read_text())
+    assert pres["distributed"]["encrypted"] is True and pres["distributed"]["units"]["simulate"] == 0
+    name = "recon/p0.100/noise-free/nearest"
+    with h5py.File(point / "volumes.h5") as a, h5py.File(reference[0] / "volumes.h5") as b:
+        assert a[name][()].tobytes() == b[name][()].tobytes()
+    assert pres["metrics"]["p0.100"]["noise-free"]["nearest"] == reference[1]["metrics"]["p0.100"]["noise-free"][
+        "nearest"]
+
+
+def test_tls_certificates_from_dask_config(tls_cluster, certs):
+    """No --tls-* options: a tls:// address takes the client's certificates from Dask's config."""
+    conf = {"distributed.comm.tls.ca-file": certs["ca"], "distributed.comm.tls.client.cert": certs["cert"],
+            "distributed.comm.tls.client.key": certs["key"]}
+    with dask.config.set(conf), distributed.connect(cluster=tls_cluster) as c:
+        assert c.submit(sum, [1, 2], pure=False).result() == 3
+        assert all(w.startswith("tls://") for w in c.scheduler_info()["workers"])
+
+
+def test_tls_foreign_certificates_refused(tmp_path, tls_cluster):
+    """A client whose certificates another CA signed is refused by the scheduler: one line."""
+    other = {k: str(v) for k, v in make_certs(tmp_path / "other").items()}
+    sec = distributed.tls_security(other["ca"], other["cert"], other["key"], address=tls_cluster)
+    with pytest.raises(ClreconError, match="no TLS connection to a Dask scheduler there") as e:
+        with distributed.connect(cluster=tls_cluster, security=sec):
+            pass
+    assert "\n" not in str(e.value)
+
+
+def test_tls_errors_are_one_line(tmp_path, certs, capsys):
+    """Bad TLS settings fail before any connection, with one line naming the option and the file."""
+    other = {k: str(v) for k, v in make_certs(tmp_path / "other").items()}
+    (tmp_path / "notes.txt").write_text("not a certificate")
+    addr = "tls://127.0.0.1:1"  # nothing listens: each case must fail before connecting
+    cases = [
+        ([], "tls:// scheduler needs certificates and none are given"),
+        (["--tls-ca-file", certs["ca"]], "--tls-cert missing"),
+        (["--tls-ca-file", str(tmp_path / "nope.pem"), "--tls-cert", certs["cert"], "--tls-key", certs["key"]],
+         "--tls-ca-file .*nope.pem: cannot read the CA certificate file \\(No such file"),
+        (["--tls-ca-file", certs["ca"], "--tls-cert", str(tmp_path / "notes.txt"), "--tls-key", certs["key"]],
+         "--tls-cert .*notes.txt: not a PEM file"),
+        (["--tls-ca-file", certs["ca"], "--tls-cert", certs["cert"], "--tls-key", other["key"]],
+         "--tls-cert .*node.pem / --tls-key .*node.key: not a PEM certificate with its matching private key"),
+        (["--tls-ca-file", certs["key"], "--tls-cert", certs["cert"], "--tls-key", certs["key"]],
+         "--tls-ca-file .*node.key: not a usable CA certificate"),
+    ]
+    (tmp_path / "unreadable.pem").write_text(open(certs["cert"]).read())
+    (tmp_path / "unreadable.pem").chmod(0)
+    if not os.access(tmp_path / "unreadable.pem", os.R_OK):  # root reads any file
+        cases.append((["--tls-ca-file", certs["ca"], "--tls-cert", str(tmp_path / "unreadable.pem"),
+                       "--tls-key", certs["key"]], "--tls-cert .*unreadable.pem: cannot read the client certificate"))
+    base = ["run", "--scene", "tiny", "--out", str(tmp_path / "run"), "--no-progress"]
+    term = signal.getsignal(signal.SIGTERM)
+    try:
+        for extra, pattern in cases:
+            assert main(base + ["--cluster", addr, *extra]) == 2, extra
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and re.search(pattern, err), (extra, err)
+        for argv in (base + ["--cluster", "tcp://127.0.0.1:1", *_tls_args(certs)], base + _tls_args(certs),
+                     base + ["--workers", "1", *_tls_args(certs)]):
+            assert main(argv) == 2
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and "the certificates are for a tls:// scheduler" in err, err
+    finally:
+        signal.signal(signal.SIGTERM, term)
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(ClreconError, match="TLS certificates .* are for a tls:// scheduler address"):
+        with distributed.connect(cluster="tcp://127.0.0.1:1", security=distributed.tls_security(
+                certs["ca"], certs["cert"], certs["key"], address="tls://x")):
+            pass
+
+
+def test_bench_tls_round_trips():
+    """``bench --only distributed``'s tls:// vs tcp:// figure runs and reports both protocols."""
+    from clrecon.bench.distributed import _tls_lines, tls_overhead
+
+    t = tls_overhead(1)
+    assert set(t["trivial_round_trip_s"]) == {"tcp", "tls"} and t["round_trips"] == 10
+    assert all(v > 0 for v in (*t["trivial_round_trip_s"].values(), *t["payload_round_trip_s"].values()))
+    (line,) = _tls_lines(t)
+    assert "tls:// vs tcp://" in line and "MB/s over TLS" in line

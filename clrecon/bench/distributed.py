@@ -61,6 +61,7 @@ def bench_distributed_section(quick: bool = False, repeats: int = 3) -> dict:
     """Every number of the section (see the module docstring)."""
     out = {"load_before": _load()}
     out["overhead"] = overhead(repeats)
+    out["tls"] = tls_overhead(repeats)
     out["speedup"] = speedup(quick)
     out["model"] = model_p002(quick, out["overhead"], out["speedup"])
     out["load_after"] = _load()
@@ -90,6 +91,50 @@ def overhead(repeats: int = 3) -> dict:
             "tasks_per_s_200_in_flight": 200 / batch_s, "payload_bytes": arr.nbytes,
             "payload_round_trip_s": float(np.median(pay)),
             "payload_bytes_per_s": 2 * arr.nbytes / max(float(np.median(pay)), 1e-9), "load": _load()}
+
+
+def tls_overhead(repeats: int = 3) -> dict:
+    """Round trips on a 1-worker local cluster over ``tcp://`` and over ``tls://``, alternated (seconds, medians).
+
+    The TLS cluster uses ``distributed.Security.temporary()`` (an in-memory certificate; needs
+    the ``cryptography`` package, else the figure is skipped). Both clusters run at once, so
+    the two protocols see the same machine load.
+    """
+    import logging
+
+    import distributed as d
+
+    try:
+        sec = d.Security.temporary()
+    except ImportError as e:
+        return {"skipped": f"needs the cryptography package ({e})"}
+    n = 10 * max(1, repeats)
+    arr = np.ones(1 << 21, np.float32)  # 8 MiB, as overhead()
+    kw = dict(n_workers=1, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
+              silence_logs=logging.ERROR)
+    times: dict = {"tcp": {"trivial": [], "payload": []}, "tls": {"trivial": [], "payload": []}}
+    with d.LocalCluster(protocol="tcp", **kw) as c_tcp, d.LocalCluster(protocol="tls", security=sec, **kw) as c_tls, \
+            d.Client(c_tcp) as tcp, d.Client(c_tls, security=sec) as tls:
+        clients = {"tcp": tcp, "tls": tls}
+        for c in clients.values():
+            c.submit(work_units.round_trip, arr, pure=False).result()  # warm
+        for i in range(n):
+            for proto, c in clients.items():
+                t0 = time.perf_counter()
+                c.submit(work_units.round_trip, i, pure=False).result()
+                times[proto]["trivial"].append(time.perf_counter() - t0)
+        for _ in range(max(3, repeats)):
+            for proto, c in clients.items():
+                t0 = time.perf_counter()
+                c.submit(work_units.round_trip, arr, pure=False).result()
+                times[proto]["payload"].append(time.perf_counter() - t0)
+    med = {p: {k: float(np.median(v)) for k, v in t.items()} for p, t in times.items()}
+    return {"trivial_round_trip_s": {p: m["trivial"] for p, m in med.items()},
+            "payload_round_trip_s": {p: m["payload"] for p, m in med.items()},
+            "payload_bytes": arr.nbytes, "round_trips": n,
+            "tls_over_tcp_trivial": med["tls"]["trivial"] / max(med["tcp"]["trivial"], 1e-9),
+            "tls_over_tcp_payload": med["tls"]["payload"] / max(med["tcp"]["payload"], 1e-9),
+            "tls_payload_bytes_per_s": 2 * arr.nbytes / max(med["tls"]["payload"], 1e-9), "load": _load()}
 
 
 def _speedup_case(quick: bool):
@@ -278,6 +323,7 @@ def report_lines(d: dict | None) -> list[str]:
            f"   task round trip {1e3 * o['trivial_round_trip_s']:.1f} ms (median of {o['round_trips']}), "
            f"{o['tasks_per_s_200_in_flight']:.0f} tasks/s with 200 in flight, 8 MiB there and back "
            f"{1e3 * o['payload_round_trip_s']:.0f} ms ({o['payload_bytes_per_s'] / 1e6:.0f} MB/s)",
+           *_tls_lines(d.get("tls")),
            f"   {s['scene']}: {'workers':>7s} {'run s':>7s} {'phase s':>8s} {'compute s':>9s} {'units':>6s} "
            f"{'overhead/unit s':>15s} {'load':>5s}"]
     for r in s["rows"]:
@@ -299,3 +345,15 @@ def report_lines(d: dict | None) -> list[str]:
                                                  for n, w in m["nodes"].items()))
     out.append(f"   assumptions: {m['assumptions']}")
     return out
+
+
+def _tls_lines(t: dict | None) -> list[str]:
+    if not t:
+        return []
+    if "skipped" in t:
+        return [f"   tls:// round trips: skipped ({t['skipped']})"]
+    tr, pay = t["trivial_round_trip_s"], t["payload_round_trip_s"]
+    return [f"   tls:// vs tcp:// (1 worker each, alternated; load {t['load']}): task round trip "
+            f"{1e3 * tr['tls']:.1f} vs {1e3 * tr['tcp']:.1f} ms ({t['tls_over_tcp_trivial']:.2f}x), 8 MiB there and "
+            f"back {1e3 * pay['tls']:.0f} vs {1e3 * pay['tcp']:.0f} ms ({t['tls_over_tcp_payload']:.2f}x, "
+            f"{t['tls_payload_bytes_per_s'] / 1e6:.0f} MB/s over TLS)"]
