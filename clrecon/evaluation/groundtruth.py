@@ -72,14 +72,16 @@ def groundtruth_sinograms(cfg: GroundTruthConfig, phantom, c: float, a: float, s
     V = cfg.views
     S = len(slices_z)
     beta = np.deg2rad(cfg.start_angle_deg) + 2 * np.pi * np.arange(V) / V
-    src, centre, e_u, e_v = det.frames(np.tile(beta, S), np.repeat(np.asarray(slices_z, float), V))
+    # the detector model's cells (a cylindrical arc: flat-equivalent cells), source in the slice plane
+    (src, centre, e_u, e_v), (u, _, vs) = projector.spot_frames(det, np.tile(beta, S),
+                                                               np.repeat(np.asarray(slices_z, float), V), (0, 0, 0))
     if getattr(phantom, "carries_projector", False):        # a voxel phantom: the state blended from its frames
-        out = phantom.project(np.full(S * V, float(c)), np.full(S * V, float(a)), src, centre, e_u, e_v, det.u_mm(),
-                              np.zeros(1), rt=rt)
+        out = phantom.project(np.full(S * V, float(c)), np.full(S * V, float(a)), src, centre, e_u, e_v, u,
+                              np.zeros(1), rt=rt, **({} if vs is None else {"v_scale": vs}))
         return out.reshape(S, V, det.n_cols)
     objs = phantom.objects(c, a)
     objs_v = np.broadcast_to(objs, (S * V,) + objs.shape)
-    out = projector.project_views(objs_v, src, centre, e_u, e_v, det.u_mm(), np.zeros(1), rt=rt)
+    out = projector.project_views(objs_v, src, centre, e_u, e_v, u, np.zeros(1), rt=rt, v_scale=vs)
     return out.reshape(S, V, det.n_cols)
 
 
