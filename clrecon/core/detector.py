@@ -238,15 +238,24 @@ class CylindricalDetector:
     row_pitch_mm: float
     central_col: float
     central_row: float
+    spot_inplane_mm: float = 0.0
+    spot_z_mm: float = 0.0
 
     name = "cylindrical"
 
     @classmethod
     def from_scanner(cls, scanner: Any) -> CylindricalDetector:
+        """From a scanner config; its flying focal spot (if any) sets the largest spot offsets
+        ``spot_inplane_mm`` (in the gantry plane) and ``spot_z_mm`` (axial), which narrow the FOV
+        and the SSRB slice window."""
+        shifts = getattr(scanner, "ffs_shifts", np.zeros((1, 3)))
+        frame = spot_shift_in_frame(shifts, scanner.sid_mm)
         return cls(sid_mm=scanner.sid_mm, sdd_mm=scanner.sdd_mm, n_cols=scanner.n_cols, n_rows=scanner.n_rows,
                    col_pitch_mm=scanner.col_pitch_mm, row_pitch_mm=scanner.row_pitch_mm,
                    central_col=middle(scanner.n_cols, getattr(scanner, "central_col", -1.0)),
-                   central_row=middle(scanner.n_rows, getattr(scanner, "central_row", -1.0)))
+                   central_row=middle(scanner.n_rows, getattr(scanner, "central_row", -1.0)),
+                   spot_inplane_mm=float(np.hypot(frame[:, 0], frame[:, 1]).max()),
+                   spot_z_mm=float(np.abs(frame[:, 2]).max()))
 
     # -- cells and frames -------------------------------------------------------------
     @property
@@ -305,10 +314,15 @@ class CylindricalDetector:
     def fov_radius_mm(self) -> float:
         """Radius at the isocentre of the circle every column edge sees, SID sin(min |gamma_edge|) (mm).
 
-        With an off-centre central element the shorter side of the fan binds.
+        With an off-centre central element the shorter side of the fan binds. A flying focal spot
+        (offset d in the gantry plane) moves each edge ray by at most d at the isocentre: the
+        circle shrinks to ``(SID - d) sin(gamma) - d`` (the same rule as
+        :attr:`clrecon.reconstruction.fbp.FanBeamGeometry.fov_radius_mm`).
         """
         lo, hi = self.edge_gamma_rad()
-        return self.sid_mm * math.sin(min(-lo, hi, 0.5 * math.pi))
+        g = min(-lo, hi, 0.5 * math.pi)
+        d = self.spot_inplane_mm
+        return self.sid_mm * math.sin(g) if d == 0 else (self.sid_mm - d) * math.sin(g) - d
 
     # -- single-slice rebinning -------------------------------------------------------
     def ssrb_v_mm(self, u_mm: ArrayLike, dz_mm: ArrayLike) -> np.ndarray:
@@ -342,12 +356,19 @@ class CylindricalDetector:
         """Largest |z - z_k| (mm) for which SSRB needs no row outside the detector.
 
         |v| = SDD |dz| / (SID cos gamma) <= :meth:`v_half_mm` for every column whose ray passes
-        within ``object_radius_mm`` (finite, > 0) of the axis; the outermost one binds.
+        within ``object_radius_mm`` (finite, > 0) of the axis; the outermost one binds. With a
+        flying focal spot, ``dz`` is from the focal centre and the ray starts at the spot: v =
+        c + (dz - c) k with k = t / (R' cos gamma) <= (SDD + d) / ((SID - d) cos gamma), so
+        ``|dz| <= (v_half - |c| (k - 1)) / k`` (d, |c| the largest in-plane and axial offsets).
         """
         if not (math.isfinite(object_radius_mm) and object_radius_mm > 0):
             raise ValueError(f"object_radius_mm = {object_radius_mm!r}: must be a finite number > 0")
         g = self.object_half_width_u_mm(object_radius_mm) / self.sdd_mm
-        return self.v_half_mm() * self.sid_mm * math.cos(g) / self.sdd_mm
+        if self.spot_inplane_mm == 0 and self.spot_z_mm == 0:
+            return self.v_half_mm() * self.sid_mm * math.cos(g) / self.sdd_mm
+        d, c = self.spot_inplane_mm, self.spot_z_mm
+        k = (self.sdd_mm + d) / ((self.sid_mm - d) * math.cos(min(g + d / self.sid_mm, 0.5 * math.pi - 1e-9)))
+        return max(0.0, (self.v_half_mm() - c * (k - 1.0)) / k)
 
     def max_covering_pitch(self, object_radius_mm: float) -> float:
         """Largest helical pitch with an SSRB candidate for every (slice, view): ``2 window / W``."""
