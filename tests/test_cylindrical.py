@@ -432,3 +432,73 @@ def test_analytic_disks_through_equiangular_fbp_have_no_bias(geom):
     inner = np.hypot(x[None, :], y[:, None]) < 80.0
     assert abs(float(hu[inner].mean())) < TOL_FBP["disk_bias_hu"]
     assert float(hu[inner].std()) < TOL_FBP["water_std_hu"]
+
+
+# ---------------------------------------------------------------------------------------
+# scene keys, store hash, the projection table's focal spots
+from clrecon.config.scene import load_scene  # noqa: E402
+from clrecon.core.errors import SceneError  # noqa: E402
+from clrecon.scan.table import projection_table  # noqa: E402
+
+
+def test_flat_scenes_keep_their_store_hash_and_curved_ones_change_it():
+    demo = load_scene("demo")
+    # the hash of `demo` before this change (git c397708), hard-coded on purpose: a flat
+    # scene's store must stay valid
+    assert demo.scan_hash(0.02) == "719a9b63ffd15b36"
+    same = demo.replace(scanner={"detector": "flat", "central_col": -1.0, "flying_focal_spot": "none"})
+    assert same.scan_hash(0.02) == demo.scan_hash(0.02)
+    cyl = demo.replace(scanner={"detector": "cylindrical"})
+    assert cyl.scan_hash(0.02) != demo.scan_hash(0.02)
+    assert cyl.replace(scanner={"central_col": 119.75}).scan_hash(0.02) != cyl.scan_hash(0.02)
+    assert cyl.replace(scanner={"flying_focal_spot": "z", "ffs_z_mm": 0.5}).scan_hash(0.02) != cyl.scan_hash(0.02)
+
+
+@pytest.mark.parametrize("keys,match", [
+    ({"central_col": 100.0}, "central_col"),
+    ({"flying_focal_spot": "z"}, "flying_focal_spot"),
+    ({"detector": "cylindrical", "central_col": 240.0}, r"\[0, 239\]"),
+    ({"detector": "cylindrical", "flying_focal_spot": "phi+z", "views_per_rotation": 362}, "multiple of 4"),
+    ({"detector": "cylindrical", "ffs_z_mm": 0.5}, "only used with"),
+    ({"detector": "cylindrical", "flying_focal_spot": "phi", "ffs_angle_rad": 0.5}, "0.01 rad"),
+])
+def test_bad_detector_keys_are_one_line_errors(keys, match):
+    with pytest.raises(SceneError, match=match):
+        load_scene("demo").replace(scanner=keys)
+
+
+def test_ffs_alternation_order_in_the_table():
+    s = load_scene("demo").replace(scanner={"detector": "cylindrical", "flying_focal_spot": "phi+z",
+                                            "ffs_angle_rad": 0.001, "ffs_radial_mm": 0.5, "ffs_z_mm": 0.4})
+    t = projection_table(s, 0.1)
+    np.testing.assert_array_equal(t.focal_shift[:4], [[-0.001, -0.5, -0.4], [0.001, 0.5, -0.4],
+                                                      [-0.001, -0.5, 0.4], [0.001, 0.5, 0.4]])
+    np.testing.assert_array_equal(t.focal_shift[4:8], t.focal_shift[:4])
+    np.testing.assert_allclose(t.spot_z_mm - t.source_z_mm, t.focal_shift[:, 2])
+    sub = t.take(np.array([1, 6]))
+    np.testing.assert_array_equal(sub.focal_shift, t.focal_shift[[1, 6]])
+    # each view keeps its state from turn to turn
+    v = s.scanner.views_per_rotation
+    np.testing.assert_array_equal(t.focal_shift[:v], t.focal_shift[v:2 * v])
+    assert projection_table(load_scene("demo"), 0.1).focal_shift is None
+
+
+def test_scene_projection_with_ffs_matches_chords_from_each_spot():
+    """projector.project on a phi+z scene: every view from its own spot, checked against float64
+    chords from the spot (world coordinates from angle, radius, z) to the arc's cells."""
+    s = load_scene("tiny").replace(scanner={"detector": "cylindrical", "central_col": 47.75,
+                                            "views_per_rotation": 92, "flying_focal_spot": "phi+z",
+                                            "ffs_angle_rad": 0.004, "ffs_radial_mm": 1.5, "ffs_z_mm": 0.8})
+    t = projection_table(s, 0.1).take(np.arange(4))
+    p = projector.project(s, t)
+    det = s.scanner.detector_model
+    pht = projector.phantom_for_scene(s)
+    objs = pht.objects_batch(t.state_cardiac, t.state_resp)
+    b, rho = t.spot_angle_rad, s.scanner.sid_mm + t.focal_shift[:, 1]
+    spot = np.stack([rho * np.cos(b), rho * np.sin(b), t.spot_z_mm], -1)
+    cells = curved_cells(det, *det.frames(t.angle_rad, t.source_z_mm))
+    r = reference(objs, spot, cells)
+    thick = r >= 0.5
+    assert thick.sum() > 0.3 * r.size
+    assert (np.abs(p - r)[thick] / r[thick]).max() <= CURVED_RTOL
+    assert np.abs(p - r).max() <= tol("phantom_atol")
