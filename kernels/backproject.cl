@@ -32,10 +32,10 @@
 // column of pixel (x, y) is c = gamma / dgamma + central_col with gamma = atan(V / U) (V =
 // -x sin b + y cos b, the in-plane offset from the central ray), and the weight is R^2 / L^2,
 // L^2 = U^2 + V^2 the squared distance from the source (the 1 / R^2 is in the filter's
-// pre-weight, clrecon.reconstruction.fbp.cosine_weights). atan is an odd polynomial of degree 17
-// (least squares on [0, 1], max error 2.0e-8 rad in float64, 1.0e-7 in float32 Horner):
-// plain arithmetic, as the PoCL notes below ask; pixels of the FOV have |V / U| <= tan(gamma_edge)
-// <= 1 (FanBeamGeometry checks gamma_edge <= 45 degrees). `sdd_over_pitch` then carries
+// pre-weight, clrecon.reconstruction.fbp.cosine_weights). atan is an odd polynomial whose
+// ATAN_TERMS coefficients the host fits for the geometry's largest |V / U| = tan(gamma_fov)
+// (fewest terms with a float64 error <= 2e-8 rad; at most 9 = degree 17 on [0, 1]): plain
+// arithmetic, as the PoCL notes below ask (FanBeamGeometry checks gamma_edge <= 45 degrees). `sdd_over_pitch` then carries
 // 1 / dgamma, and `col_centre` the central column (0-based, without the pad column).
 #ifndef CURVED
 #define CURVED 0
@@ -65,22 +65,47 @@
 #if CURVED
 // Pixel (x, y) in the view with table entry cs = (cos b, sin b) / R: returns the fractional
 // column c = atan(V / U) / dgamma + centre and puts the weight R^2 / L^2 in *w.
+#ifndef ATAN_TERMS
+#define ATAN_TERMS 9
+#endif
 inline float fan_column(const float x, const float y, const float2 cs, const float inv_dgamma,
                         const float centre, float *w)
 {
-    const float r_over_u = 1.0f / (1.0f - (x * cs.x + y * cs.y));  // R / U
-    const float t = (y * cs.x - x * cs.y) * r_over_u;               // V / U = tan gamma
+    const float ur = 1.0f - (x * cs.x + y * cs.y);                 // U / R
+    const float vr = y * cs.x - x * cs.y;                          // V / R
+    const float l2 = ur * ur + vr * vr;                            // L^2 / R^2
+    const float d = 1.0f / (ur * l2);                              // one division for both:
+    *w = d * ur;                                                   // R^2 / L^2
+    const float t = vr * (d * l2);                                 // V / U = tan gamma
     const float t2 = t * t;
-    *w = r_over_u * r_over_u / (1.0f + t2);                        // R^2 / (U^2 + V^2)
-    float p = 2.579458150e-03f;
-    p = p * t2 - 1.488854491e-02f;
-    p = p * t2 + 4.057225576e-02f;
-    p = p * t2 - 7.302466604e-02f;
-    p = p * t2 + 1.053153696e-01f;
-    p = p * t2 - 1.417003332e-01f;
-    p = p * t2 + 1.998714845e-01f;
-    p = p * t2 - 3.333267404e-01f;
-    p = p * t2 + 9.999998999e-01f;
+    // atan(t) = t (a0 + a1 t^2 + ... ), ATAN_TERMS coefficients ATAN_C0.. (-D literals) fitted on
+    // the host for this geometry's largest |t| (clrecon.reconstruction.fbp.atan_coefficients)
+    float p = 0.0f;  // (0 t2 + the top coefficient folds away under -cl-fast-relaxed-math)
+#if ATAN_TERMS > 8
+    p = p * t2 + ATAN_C8;
+#endif
+#if ATAN_TERMS > 7
+    p = p * t2 + ATAN_C7;
+#endif
+#if ATAN_TERMS > 6
+    p = p * t2 + ATAN_C6;
+#endif
+#if ATAN_TERMS > 5
+    p = p * t2 + ATAN_C5;
+#endif
+#if ATAN_TERMS > 4
+    p = p * t2 + ATAN_C4;
+#endif
+#if ATAN_TERMS > 3
+    p = p * t2 + ATAN_C3;
+#endif
+#if ATAN_TERMS > 2
+    p = p * t2 + ATAN_C2;
+#endif
+#if ATAN_TERMS > 1
+    p = p * t2 + ATAN_C1;
+#endif
+    p = p * t2 + ATAN_C0;
     return inv_dgamma * (p * t) + centre;
 }
 #else

@@ -41,6 +41,24 @@
 #endif
 
 #if CURVED
+#if FFS_PHI
+// atan on [-1, 1]: odd polynomial of degree 17 (least squares, 2.0e-8 rad in float64; the same
+// as kernels/backproject.cl); the arc's fan angles are within +-45 degrees (FanBeamGeometry)
+inline float atan_poly(const float t)
+{
+    const float t2 = t * t;
+    float p = 2.579458150e-03f;
+    p = p * t2 - 1.488854491e-02f;
+    p = p * t2 + 4.057225576e-02f;
+    p = p * t2 - 7.302466604e-02f;
+    p = p * t2 + 1.053153696e-01f;
+    p = p * t2 - 1.417003332e-01f;
+    p = p * t2 + 1.998714845e-01f;
+    p = p * t2 - 3.333267404e-01f;
+    p = p * t2 + 9.999998999e-01f;
+    return p * t;
+}
+#endif
 __kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_cols): rows first_row..
                         __global const int *pair_slot,   // (n_pairs,) index into m
                         __global const float *pair_dz,   // (n_pairs,) slice_z - z of the focal centre, mm
@@ -53,6 +71,7 @@ __kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_co
                         const int first_row,
                         const int block_rows,
                         const int n_cols,
+                        __global const float4 *colgeo,   // (n_cols,) cos g, sin g, SDD / (SID cos g), 0
                         const float dgamma,              // col_pitch / SDD, rad
                         const float row_pitch_mm,
                         const float sid_mm,
@@ -64,7 +83,7 @@ __kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_co
     const int p = get_global_id(1);
     if (col >= n_cols || p >= n_pairs)
         return;
-    const float g = ((float)col - central_col) * dgamma;
+    const float4 cg4 = colgeo[col];  // per column, from float64 on the host (no builtins here)
     const float dz = pair_dz[p];
 #if FFS
     const float4 sh = pair_shift[p];
@@ -72,21 +91,20 @@ __kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_co
     // the spot's own fan: central ray n' = (SID - a, -b) / R', e_u' = (b, SID - a) / R'
     const float na = sid_mm - sh.x, nb = -sh.y;
     const float rp = sqrt(na * na + nb * nb);
-    const float cg = cos(g), sg = sin(g);
+    const float cg = cg4.x, sg = cg4.y;
     const float dx = (cg * na - sg * nb) / rp, dy = (cg * nb + sg * na) / rp;   // ray direction
     const float ad = sh.x * dx + sh.y * dy;
     const float t = -ad + sqrt(ad * ad - (sh.x * sh.x + sh.y * sh.y) + sdd_mm * sdd_mm);
     const float px = sh.x + t * dx, py = sh.y + t * dy;                          // hit on the arc
-    const float fc = clamp(atan2(py, px) / dgamma + central_col, 0.0f, (float)(n_cols - 1));
-    const float mid = rp * cg;
+    const float fc = clamp(atan_poly(py / px) / dgamma + central_col, 0.0f, (float)(n_cols - 1));
+    const float v = sh.z + (dz - sh.z) * t / (rp * cg);
 #else
     const float t = sdd_mm;
-    const float mid = sid_mm * cos(g);
+    const float v = sh.z + (dz - sh.z) * cg4.z;
 #endif
-    const float v = sh.z + (dz - sh.z) * t / mid;
 #else
     const float t = sdd_mm;
-    const float v = sdd_mm / (sid_mm * cos(g)) * dz;
+    const float v = cg4.z * dz;
 #endif
     const float fr = clamp(v / row_pitch_mm + central_row, 0.0f, (float)(n_rows - 1));
     const int r0 = min((int)fr, max(n_rows - 2, 0));

@@ -417,10 +417,13 @@ def _ssrb_rows_curved(proj, slot, dz, scanner: ScannerConfig, rt, first_row: int
         sh[:, :3] = pair_shift
         extra = [rt.to_device(sh, np.float32, "pair_shift")]
     d_out = rt.empty((p, n_cols), np.float32)
+    g = det.gamma_rad()
+    colgeo = np.stack([np.cos(g), np.sin(g), det.sdd_mm / (det.sid_mm * np.cos(g)), np.zeros_like(g)], 1)
+    d_col = rt.to_device(colgeo, np.float32, "colgeo")
     knl = rt.kernel("ssrb.cl", "ssrb_rows", **defines)
     ev = knl(rt.queue, (_round_up(n_cols, _LOCAL_COLS), p), (_LOCAL_COLS, 1),
              d_proj, d_slot, d_dz, *extra, d_out, np.int32(p), np.int32(scanner.n_rows), np.int32(first_row),
-             np.int32(proj.shape[1]), np.int32(n_cols), np.float32(det.delta_gamma_rad),
+             np.int32(proj.shape[1]), np.int32(n_cols), d_col, np.float32(det.delta_gamma_rad),
              np.float32(scanner.row_pitch_mm), np.float32(scanner.sid_mm), np.float32(scanner.sdd_mm),
              np.float32(det.central_col), np.float32(det.central_row))
     return rt.from_device(d_out, (p, n_cols), np.float32, wait_for=[ev])
