@@ -123,7 +123,7 @@ def bench_backprojection_detectors(nx: int = 256, n_views: int = 492, n_cols: in
 def bench_detectors_section(quick: bool = False, repeats: int = 3) -> dict:
     """The three stages on both detectors (quick: smaller sizes)."""
     return {
-        "projector": bench_projector_detectors(8 if quick else 32, "demo", repeats),
+        "projector": bench_projector_detectors(8 if quick else 32, "demo", repeats),  # FFS: 4 groups per call
         "ssrb": bench_ssrb_detectors("demo" if quick else "paper-p002", 32, 5000 if quick else 20000, repeats),
         "backprojection": bench_backprojection_detectors(128 if quick else 256, 246 if quick else 492,
                                                          225 if quick else 450, 16 if quick else 32, repeats),
