@@ -630,3 +630,14 @@ def test_voxel_projector_on_curved_cells_matches_reference_and_box_chords():
     t1 = np.maximum(ta, tb).min(-1)
     chord = 0.01 * np.maximum(t1 - t0, 0.0) * np.linalg.norm(d, axis=-1)
     assert np.abs(got - chord).max() <= 1e-5 * chord.max()
+
+
+@pytest.mark.parametrize("name", ["demo", "demo-curved", "clinical-r4dct"])
+def test_detector_model_and_fbp_geometry_agree_on_the_fov(name):
+    s = load_scene(name)
+    geom = F.FanBeamGeometry.from_scene(s)
+    assert geom.fov_radius_mm == pytest.approx(s.scanner.fov_radius_mm, rel=1e-12)
+    assert geom.detector == s.scanner.detector
+    if s.scanner.detector == "cylindrical":
+        assert geom.centre_col == s.scanner.detector_model.central_col
+        np.testing.assert_allclose(geom.col_gamma_rad(), s.scanner.detector_model.gamma_rad(), rtol=1e-12)

@@ -182,7 +182,9 @@ class FanBeamGeometry:
         if not self.source_shifts:
             return self.sid_mm * math.sin(g)
         # the spot's fan is the arc's seen from the spot: keep the circle every spot's fan covers
-        d = max(math.hypot(self.sid_mm * math.sin(a), r) for a, r in self.source_shifts)
+        # (d: the spot's in-plane offset from the focal centre, as CylindricalDetector.spot_inplane_mm)
+        d = max(math.hypot(self.sid_mm - (self.sid_mm + r) * math.cos(a), (self.sid_mm + r) * math.sin(a))
+                for a, r in self.source_shifts)
         return (self.sid_mm - d) * math.sin(g) - d
 
     @property
