@@ -34,7 +34,7 @@
 // L^2 = U^2 + V^2 the squared distance from the source (the 1 / R^2 is in the filter's
 // pre-weight, clrecon.reconstruction.fbp.cosine_weights). atan is an odd polynomial whose
 // ATAN_TERMS coefficients the host fits for the geometry's largest |V / U| = tan(gamma_fov)
-// (fewest terms with a float64 error <= 2e-8 rad; at most 9 = degree 17 on [0, 1]): plain
+// (fewest terms with a float64 error <= 1e-7 rad; at most 9 = degree 17 on [0, 1]): plain
 // arithmetic, as the PoCL notes below ask (FanBeamGeometry checks gamma_edge <= 45 degrees). `sdd_over_pitch` then carries
 // 1 / dgamma, and `col_centre` the central column (0-based, without the pad column).
 #ifndef CURVED
@@ -78,8 +78,8 @@ inline float fan_column(const float x, const float y, const float2 cs, const flo
     *w = d * ur;                                                   // R^2 / L^2
     const float t = vr * (d * l2);                                 // V / U = tan gamma
     const float t2 = t * t;
-    // atan(t) = t (a0 + a1 t^2 + ... ), ATAN_TERMS coefficients ATAN_C0.. (-D literals) fitted on
-    // the host for this geometry's largest |t| (clrecon.reconstruction.fbp.atan_coefficients)
+    // atan(t) / dgamma = t (a0 + a1 t^2 + ... ), ATAN_TERMS coefficients ATAN_C0.. (-D literals)
+    // fitted on the host for this geometry's largest |t| (clrecon.reconstruction.fbp.atan_coefficients)
     float p = 0.0f;  // (0 t2 + the top coefficient folds away under -cl-fast-relaxed-math)
 #if ATAN_TERMS > 8
     p = p * t2 + ATAN_C8;
@@ -106,7 +106,7 @@ inline float fan_column(const float x, const float y, const float2 cs, const flo
     p = p * t2 + ATAN_C1;
 #endif
     p = p * t2 + ATAN_C0;
-    return inv_dgamma * (p * t) + centre;
+    return p * t + centre;  // the coefficients carry 1 / dgamma
 }
 #else
 // Pixel (x, y) in the view with table entry cs = (cos b, sin b) / R: returns the

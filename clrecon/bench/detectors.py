@@ -3,7 +3,8 @@
 Each stage runs on both detector models with the same sizes, data and process, the calls
 interleaved (flat, cylindrical, flat, ...), and the median of ``repeats`` timings is kept, so
 the ratio cylindrical / flat is meaningful on a shared machine (the absolute rates are not;
-the 1-min load average is reported before each stage). The goal of the issue is a ratio
+the 1-min load average is reported before each stage). Ratios are also given from the CPU
+time of the process (``cpu_ratio``), which another job's load disturbs much less. The goal of the issue is a ratio
 >= 0.8 for each stage (:data:`GOAL_RATIO`).
 
 - **projector**: ``projector.project`` of the analytic phantom on ``scene``'s projections
@@ -38,17 +39,32 @@ def _load() -> float:
     return round(os.getloadavg()[0], 2)
 
 
+#: CPU seconds of the last :func:`_interleaved` call per callable (medians), see the module doc
+_LAST_CPU: dict = {}
+
+
 def _interleaved(fns: dict, repeats: int) -> dict:
-    """Median seconds of each callable, the calls interleaved round by round (first call untimed)."""
+    """Median wall seconds of each callable, the calls interleaved round by round (first call
+    untimed); the median CPU seconds of this process (host and PoCL threads) go to ``_LAST_CPU``:
+    on a machine shared with other jobs the CPU time of a call varies far less than its wall time."""
     for fn in fns.values():
         fn()
     times = {k: [] for k in fns}
+    cpu = {k: [] for k in fns}
     for _ in range(max(1, repeats)):
         for k, fn in fns.items():
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             fn()
             times[k].append(time.perf_counter() - t0)
+            cpu[k].append(time.process_time() - c0)
+    _LAST_CPU.clear()
+    _LAST_CPU.update({k: float(np.median(v)) for k, v in cpu.items()})
     return {k: float(np.median(v)) for k, v in times.items()}
+
+
+def _cpu_ratios(base: str = "flat") -> dict:
+    """Rate ratios from CPU time (base / other) of the last :func:`_interleaved` call."""
+    return {k: _LAST_CPU[base] / v for k, v in _LAST_CPU.items() if k != base}
 
 
 def bench_projector_detectors(n_proj: int = 16, scene: str = "demo", repeats: int = 3) -> dict:
@@ -71,7 +87,8 @@ def bench_projector_detectors(n_proj: int = 16, scene: str = "demo", repeats: in
     return {"scene": scene, "projections": n_proj, "rays": rays, "load_average_1min_before": load,
             "seconds": sec, "rays_per_s": rate,
             "ratio_cylindrical": rate["cylindrical"] / rate["flat"],
-            "ratio_cylindrical_ffs": rate["cylindrical_ffs"] / rate["flat"]}
+            "ratio_cylindrical_ffs": rate["cylindrical_ffs"] / rate["flat"],
+            "cpu_seconds": dict(_LAST_CPU), "cpu_ratio": _cpu_ratios()}
 
 
 def bench_ssrb_detectors(scene: str = "paper-p002", n_proj: int = 64, n_pairs: int = 20000,
@@ -98,7 +115,7 @@ def bench_ssrb_detectors(scene: str = "paper-p002", n_proj: int = 64, n_pairs: i
     samples = n_pairs * sc_flat.n_cols
     rate = {k: samples / s for k, s in sec.items()}
     return {"scene": scene, "pairs": n_pairs, "samples": samples, "load_average_1min_before": load,
-            "seconds": sec, "samples_per_s": rate,
+            "seconds": sec, "samples_per_s": rate, "cpu_seconds": dict(_LAST_CPU), "cpu_ratio": _cpu_ratios(),
             **{f"ratio_{k}": rate[k] / rate["flat"] for k in rate if k != "flat"}}
 
 
@@ -117,7 +134,8 @@ def bench_backprojection_detectors(nx: int = 256, n_views: int = 492, n_cols: in
     rate = {k: updates / s / 1e9 for k, s in sec.items()}
     return {"nx": nx, "n_views": n_views, "n_cols": n_cols, "batch": batch, "load_average_1min_before": load,
             "fov_fraction": {"flat": float(flat.fov_mask().mean()), "cylindrical": float(curved.fov_mask().mean())},
-            "seconds": sec, "gups": rate, "ratio_cylindrical": rate["cylindrical"] / rate["flat"]}
+            "seconds": sec, "gups": rate, "ratio_cylindrical": rate["cylindrical"] / rate["flat"],
+            "cpu_seconds": dict(_LAST_CPU), "cpu_ratio": _cpu_ratios()}
 
 
 def bench_detectors_section(quick: bool = False, repeats: int = 3) -> dict:
@@ -139,11 +157,17 @@ def format_lines(res: dict | None) -> list[str]:
     p, s, b = res["projector"], res["ssrb"], res["backprojection"]
     out.append(f"   projector ({p['scene']}, {p['projections']} projections, load {p['load_average_1min_before']}): "
                + ", ".join(f"{k} {v / 1e6:.2f} M rays/s" for k, v in p["rays_per_s"].items())
-               + f"; ratio {p['ratio_cylindrical']:.2f} (phi+z FFS {p['ratio_cylindrical_ffs']:.2f})")
+               + f"; ratio {p['ratio_cylindrical']:.2f} (phi+z FFS {p['ratio_cylindrical_ffs']:.2f}); "
+               + _cpu_text(p))
     out.append(f"   ssrb ({s['scene']}, {s['pairs']} pairs, load {s['load_average_1min_before']}): "
                + ", ".join(f"{k} {v / 1e6:.1f} M samples/s" for k, v in s["samples_per_s"].items())
-               + "; ratios " + ", ".join(f"{k[6:]} {v:.2f}" for k, v in s.items() if k.startswith("ratio_")))
+               + "; ratios " + ", ".join(f"{k[6:]} {v:.2f}" for k, v in s.items() if k.startswith("ratio_"))
+               + "; " + _cpu_text(s))
     out.append(f"   backprojection ({b['nx']}^2 from {b['n_views']} x {b['n_cols']}, {b['batch']} sinograms, load "
                f"{b['load_average_1min_before']}): " + ", ".join(f"{k} {v:.2f} G upd/s" for k, v in b["gups"].items())
-               + f"; ratio {b['ratio_cylindrical']:.2f}")
+               + f"; ratio {b['ratio_cylindrical']:.2f}; " + _cpu_text(b))
     return out
+
+
+def _cpu_text(r: dict) -> str:
+    return "by CPU time " + ", ".join(f"{k} {v:.2f}" for k, v in r.get("cpu_ratio", {}).items())

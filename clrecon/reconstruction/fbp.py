@@ -400,8 +400,9 @@ def _geometry_args(geom: FanBeamGeometry) -> tuple:
             np.float32(geom.fov_radius_mm ** 2), np.float32(geom.delta_beta_rad))
 
 
-#: Largest error (rad) of the backprojector's atan polynomial (float64 fit; float32 adds ~1e-7 t).
-ATAN_MAX_ERR = 2e-8
+#: Largest error (rad) of the backprojector's atan polynomial (float64 fit): that of float32 atan
+#: near 0.5 rad (the kernel evaluates it in float32 anyway); 1e-7 rad is < 1e-4 of a column.
+ATAN_MAX_ERR = 1e-7
 
 
 @functools.lru_cache(maxsize=64)
@@ -429,7 +430,7 @@ def _defines(geom: FanBeamGeometry | None = None) -> dict:
     d = {"LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK}
     if geom is not None and geom.curved:
         d["CURVED"] = 1
-        a = _atan_for(geom)
+        a = _atan_for(geom) / geom.delta_gamma_rad   # the kernel's polynomial gives atan(t) / dgamma
         d["ATAN_TERMS"] = len(a)
         d.update({f"ATAN_C{k}": float(np.float32(c)) for k, c in enumerate(a)})
     return d
