@@ -588,21 +588,24 @@ def project(scene, table, rt=None, *, chunk_views: int | None = None, cull: bool
     frame_shift = spot_shift_in_frame(table.shifts, sc.sid_mm)            # (n, 3)
     states, inverse = np.unique(frame_shift, axis=0, return_inverse=True)
     inverse = np.asarray(inverse).reshape(-1)
+    # chunks of ``step`` views; the phantom is posed once per chunk (its per-call cost is fixed),
+    # then each focal-spot state's views are projected with that state's flat-equivalent cells
     for a in range(0, n, step):
         b = min(n, a + step)
+        objs = None if own else phantom.objects_batch(table.state_cardiac[a:b], table.state_resp[a:b])
         for k, shift in enumerate(states):
-            rows = a + np.flatnonzero(inverse[a:b] == k)
-            if not len(rows):
+            loc = np.flatnonzero(inverse[a:b] == k)
+            if not len(loc):
                 continue
+            rows = a + loc
             frames, (u, v, vs) = spot_frames(dm, table.angle_rad[rows], table.source_z_mm[rows], shift)
-            whole = len(rows) == b - a
+            whole = len(loc) == b - a
             dest = out[a:b] if whole else np.empty((len(rows), sc.n_rows, sc.n_cols), np.float32)
             if own:
                 phantom.project(table.state_cardiac[rows], table.state_resp[rows], *frames, u, v, rt=rt, out=dest,
                                 v_scale=vs)
             else:
-                objs = phantom.objects_batch(table.state_cardiac[rows], table.state_resp[rows])
-                project_views(objs, *frames, u, v, rt=rt, cull=cull, out=dest, v_scale=vs)
+                project_views(objs if whole else objs[loc], *frames, u, v, rt=rt, cull=cull, out=dest, v_scale=vs)
             if not whole:
                 out[rows] = dest
     return out
