@@ -42,20 +42,37 @@
 
 #if CURVED
 #if FFS_PHI
-// atan on [-1, 1]: odd polynomial of degree 17 (least squares, 2.0e-8 rad in float64; the same
-// as kernels/backproject.cl); the arc's fan angles are within +-45 degrees (FanBeamGeometry)
-inline float atan_poly(const float t)
+// atan(t) / dgamma = t (a0 + a1 t^2 + ...): ATAN_TERMS coefficients ATAN_C0.. (-D literals, carrying
+// 1 / dgamma) fitted on the host for the arc's largest |tan gamma| (clrecon.core.detector.atan_defines)
+inline float atan_cols(const float t)
 {
     const float t2 = t * t;
-    float p = 2.579458150e-03f;
-    p = p * t2 - 1.488854491e-02f;
-    p = p * t2 + 4.057225576e-02f;
-    p = p * t2 - 7.302466604e-02f;
-    p = p * t2 + 1.053153696e-01f;
-    p = p * t2 - 1.417003332e-01f;
-    p = p * t2 + 1.998714845e-01f;
-    p = p * t2 - 3.333267404e-01f;
-    p = p * t2 + 9.999998999e-01f;
+    float p = 0.0f;
+#if ATAN_TERMS > 8
+    p = p * t2 + ATAN_C8;
+#endif
+#if ATAN_TERMS > 7
+    p = p * t2 + ATAN_C7;
+#endif
+#if ATAN_TERMS > 6
+    p = p * t2 + ATAN_C6;
+#endif
+#if ATAN_TERMS > 5
+    p = p * t2 + ATAN_C5;
+#endif
+#if ATAN_TERMS > 4
+    p = p * t2 + ATAN_C4;
+#endif
+#if ATAN_TERMS > 3
+    p = p * t2 + ATAN_C3;
+#endif
+#if ATAN_TERMS > 2
+    p = p * t2 + ATAN_C2;
+#endif
+#if ATAN_TERMS > 1
+    p = p * t2 + ATAN_C1;
+#endif
+    p = p * t2 + ATAN_C0;
     return p * t;
 }
 #endif
@@ -63,7 +80,7 @@ __kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_co
                         __global const int *pair_slot,   // (n_pairs,) index into m
                         __global const float *pair_dz,   // (n_pairs,) slice_z - z of the focal centre, mm
 #if FFS
-                        __global const float4 *pair_shift, // (n_pairs,) spot offset (a, b, c, 0), mm
+                        __global const float4 *pair_shift, // (n_pairs,) spot offset (a, b, c) mm, 1 / R'
 #endif
                         __global float *out,             // (n_pairs, n_cols) in-plane rows
                         const int n_pairs,
@@ -71,7 +88,7 @@ __kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_co
                         const int first_row,
                         const int block_rows,
                         const int n_cols,
-                        __global const float4 *colgeo,   // (n_cols,) cos g, sin g, SDD / (SID cos g), 0
+                        __global const float4 *colgeo,   // (n_cols,) cos g, sin g, SDD / (SID cos g), 1 / cos g
                         const float dgamma,              // col_pitch / SDD, rad
                         const float row_pitch_mm,
                         const float sid_mm,
@@ -89,15 +106,14 @@ __kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_co
     const float4 sh = pair_shift[p];
 #if FFS_PHI
     // the spot's own fan: central ray n' = (SID - a, -b) / R', e_u' = (b, SID - a) / R'
-    const float na = sid_mm - sh.x, nb = -sh.y;
-    const float rp = sqrt(na * na + nb * nb);
+    const float na = (sid_mm - sh.x) * sh.w, nb = -sh.y * sh.w;       // sh.w = 1 / R' (host)
     const float cg = cg4.x, sg = cg4.y;
-    const float dx = (cg * na - sg * nb) / rp, dy = (cg * nb + sg * na) / rp;   // ray direction
+    const float dx = cg * na - sg * nb, dy = cg * nb + sg * na;        // ray direction
     const float ad = sh.x * dx + sh.y * dy;
     const float t = -ad + sqrt(ad * ad - (sh.x * sh.x + sh.y * sh.y) + sdd_mm * sdd_mm);
     const float px = sh.x + t * dx, py = sh.y + t * dy;                          // hit on the arc
-    const float fc = clamp(atan_poly(py / px) / dgamma + central_col, 0.0f, (float)(n_cols - 1));
-    const float v = sh.z + (dz - sh.z) * t / (rp * cg);
+    const float fc = clamp(atan_cols(py / px) + central_col, 0.0f, (float)(n_cols - 1));
+    const float v = sh.z + (dz - sh.z) * t * sh.w * cg4.w;           // cg4.w = 1 / cos g
 #else
     const float t = sdd_mm;
     const float v = sh.z + (dz - sh.z) * cg4.z;

@@ -22,6 +22,7 @@ variant reads the per-column ``v_scale``).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -57,6 +58,32 @@ class DetectorModel(Protocol):
     def max_covering_pitch(self, object_radius_mm: float) -> float: ...
     def ray_cells(self, shift_mm: ArrayLike = (0.0, 0.0, 0.0)
                   ) -> tuple[np.ndarray, np.ndarray | None, float]: ...
+
+
+#: Largest error (rad) of the kernels' atan polynomials (float64 fit): that of float32 atan near
+#: 0.5 rad (the kernels evaluate it in float32 anyway); 1e-7 rad is < 1e-4 of a column.
+ATAN_MAX_ERR = 1e-7
+
+
+@functools.lru_cache(maxsize=64)
+def atan_coefficients(t_max: float) -> np.ndarray:
+    """Coefficients (n,) float64 of atan(t) ~ t sum_k a_k t^(2k) on [0, t_max] (least squares on 4000
+    points), the fewest n <= 9 whose maximum error on a fine grid is <= :data:`ATAN_MAX_ERR` rad.
+    ``t_max <= 1`` (fans of up to +-45 degrees). Used by the cylindrical kernels (``-D ATAN_C0..``),
+    since PoCL does not inline the ``atan`` builtin (docs/algorithms.md)."""
+    t = np.linspace(1e-6, t_max, 4000)
+    tt = np.linspace(0.0, t_max, 20001)
+    for n in range(3, 10):
+        a, *_ = np.linalg.lstsq(np.stack([t ** (2 * k + 1) for k in range(n)], 1), np.arctan(t), rcond=None)
+        if np.abs(np.stack([tt ** (2 * k + 1) for k in range(n)], 1) @ a - np.arctan(tt)).max() <= ATAN_MAX_ERR:
+            break
+    return a
+
+
+def atan_defines(t_max: float, scale: float = 1.0) -> dict:
+    """``-D`` defines ``ATAN_TERMS``, ``ATAN_C0..`` of :func:`atan_coefficients` times ``scale``."""
+    a = atan_coefficients(float(t_max)) * scale
+    return {"ATAN_TERMS": len(a), **{f"ATAN_C{k}": float(np.float32(c)) for k, c in enumerate(a)}}
 
 
 def flat_fov_radius_mm(sid_mm: float, sdd_mm: float, half_width_mm: float) -> float:

@@ -37,7 +37,6 @@ circle inside every view's fan; rays outside it are missing from some views) are
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
@@ -45,7 +44,7 @@ import numpy as np
 import scipy.fft
 
 from clrecon.core.conventions import MU_WATER_PER_MM, detector_coords, mu_to_hu, voxel_coords
-from clrecon.core.detector import flat_fov_radius_mm
+from clrecon.core.detector import atan_defines, flat_fov_radius_mm
 from clrecon.core.runtime import get_runtime
 from clrecon.reconstruction.filters import FILTERS as _WINDOW_FUNCTIONS
 
@@ -400,39 +399,18 @@ def _geometry_args(geom: FanBeamGeometry) -> tuple:
             np.float32(geom.fov_radius_mm ** 2), np.float32(geom.delta_beta_rad))
 
 
-#: Largest error (rad) of the backprojector's atan polynomial (float64 fit): that of float32 atan
-#: near 0.5 rad (the kernel evaluates it in float32 anyway); 1e-7 rad is < 1e-4 of a column.
-ATAN_MAX_ERR = 1e-7
-
-
-@functools.lru_cache(maxsize=64)
-def atan_coefficients(t_max: float) -> np.ndarray:
-    """Coefficients (n,) float64 of atan(t) ~ t sum_k a_k t^(2k) on [0, t_max] (least squares on 4000
-    points), the fewest n <= 9 whose maximum error on a fine grid is <= :data:`ATAN_MAX_ERR` rad.
-    ``t_max <= 1`` (fans of up to +-45 degrees)."""
-    t = np.linspace(1e-6, t_max, 4000)
-    tt = np.linspace(0.0, t_max, 20001)
-    for n in range(3, 10):
-        a, *_ = np.linalg.lstsq(np.stack([t ** (2 * k + 1) for k in range(n)], 1), np.arctan(t), rcond=None)
-        if np.abs(np.stack([tt ** (2 * k + 1) for k in range(n)], 1) @ a - np.arctan(tt)).max() <= ATAN_MAX_ERR:
-            break
-    return a
-
-
-def _atan_for(geom: FanBeamGeometry) -> np.ndarray:
-    """The atan polynomial for the largest |tan gamma| of a pixel inside the FOV (a little margin)."""
+def _atan_t_max(geom: FanBeamGeometry) -> float:
+    """The largest |tan gamma| of a pixel inside the FOV (a little margin), <= 1."""
     r = geom.fov_radius_mm
     rmin = geom.sid_mm - max((abs(s[1]) for s in geom.source_shifts), default=0.0)
-    return atan_coefficients(min(1.0, 1.02 * math.tan(math.asin(min(1.0, r / rmin)))))
+    return min(1.0, round(1.02 * math.tan(math.asin(min(1.0, r / rmin))), 6))
 
 
 def _defines(geom: FanBeamGeometry | None = None) -> dict:
     d = {"LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK}
     if geom is not None and geom.curved:
         d["CURVED"] = 1
-        a = _atan_for(geom) / geom.delta_gamma_rad   # the kernel's polynomial gives atan(t) / dgamma
-        d["ATAN_TERMS"] = len(a)
-        d.update({f"ATAN_C{k}": float(np.float32(c)) for k, c in enumerate(a)})
+        d.update(atan_defines(_atan_t_max(geom), 1.0 / geom.delta_gamma_rad))  # the polynomial gives atan / dgamma
     return d
 
 

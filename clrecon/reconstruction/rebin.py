@@ -25,6 +25,7 @@ docs/algorithms.md "SSRB on a cylindrical detector").
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -32,6 +33,7 @@ import numpy as np
 
 from clrecon.config.scene import ScannerConfig
 from clrecon.core.conventions import detector_coords
+from clrecon.core.detector import atan_defines
 from clrecon.core.runtime import get_runtime
 
 if TYPE_CHECKING:  # only for annotations: rebinning needs the table's arrays, not its builder
@@ -408,17 +410,22 @@ def _ssrb_rows_curved(proj, slot, dz, scanner: ScannerConfig, rt, first_row: int
     p, n_cols = slot.size, scanner.n_cols
     kind = _ffs_kind(pair_shift)
     defines = {"CURVED": 1, **({"FFS": 1} if kind else {}), **({"FFS_PHI": 1} if kind == "phi" else {})}
+    if kind == "phi":   # atan of the arc's fan angles: up to the outer column edge, a little margin
+        g_max = max(abs(x) for x in det.edge_gamma_rad()) + 0.01
+        defines.update(atan_defines(min(1.0, round(math.tan(min(g_max, 0.25 * math.pi)), 6)),
+                                    1.0 / det.delta_gamma_rad))
     d_proj = rt.to_device(proj, np.float32, "projections")
     d_slot = rt.to_device(slot, np.int32, "pair_slot")
     d_dz = rt.to_device(dz, np.float32, "pair_dz_mm")
     extra = []
     if kind:
-        sh = np.zeros((p, 4), np.float32)
+        sh = np.zeros((p, 4))
         sh[:, :3] = pair_shift
+        sh[:, 3] = 1.0 / np.hypot(scanner.sid_mm - sh[:, 0], sh[:, 1])   # 1 / R', the spot's radius
         extra = [rt.to_device(sh, np.float32, "pair_shift")]
     d_out = rt.empty((p, n_cols), np.float32)
     g = det.gamma_rad()
-    colgeo = np.stack([np.cos(g), np.sin(g), det.sdd_mm / (det.sid_mm * np.cos(g)), np.zeros_like(g)], 1)
+    colgeo = np.stack([np.cos(g), np.sin(g), det.sdd_mm / (det.sid_mm * np.cos(g)), 1.0 / np.cos(g)], 1)
     d_col = rt.to_device(colgeo, np.float32, "colgeo")
     knl = rt.kernel("ssrb.cl", "ssrb_rows", **defines)
     ev = knl(rt.queue, (_round_up(n_cols, _LOCAL_COLS), p), (_LOCAL_COLS, 1),
