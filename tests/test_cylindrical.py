@@ -641,3 +641,21 @@ def test_detector_model_and_fbp_geometry_agree_on_the_fov(name):
     if s.scanner.detector == "cylindrical":
         assert geom.centre_col == s.scanner.detector_model.central_col
         np.testing.assert_allclose(geom.col_gamma_rad(), s.scanner.detector_model.gamma_rad(), rtol=1e-12)
+
+
+def test_clinical_scenes_load_and_are_listed():
+    from clrecon.pipeline.costs import describe_scenes
+
+    table = describe_scenes()
+    for name, det in (("demo-curved", "240x16 cyl z"), ("clinical-r4dct", "736x32 cyl phi+z")):
+        s = load_scene(name)
+        assert s.scanner.detector == "cylindrical" and s.scanner.detector_model.central_col == (
+            s.scanner.n_cols - 1) / 2 + 0.25
+        assert any(line.startswith(name) and det in line for line in table.splitlines()), name
+    c = load_scene("clinical-r4dct")
+    assert c.scan.pitches == (0.1,) and (c.scanner.sid_mm, c.scanner.sdd_mm) == (595.0, 1085.6)
+    assert c.scanner.flying_focal_spot == "phi+z" and c.scanner.ffs_angle_rad > 0 and c.scanner.ffs_z_mm > 0
+    # demo-curved costs what demo costs: same projections, volumes and sizes
+    from clrecon.pipeline.costs import scene_costs
+    a, b = scene_costs(load_scene("demo")), scene_costs(load_scene("demo-curved"))
+    assert a["projections"] == b["projections"] and a["volume_bytes"] == b["volume_bytes"]
