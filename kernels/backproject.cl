@@ -28,6 +28,30 @@
 //   cache with no kernels in it (INVALID_KERNEL_NAME on the second run). Plain `a*b + c`
 //   is contracted to FMAs under -cl-mad-enable instead.
 
+// CURVED = 1: equiangular data of a cylindrical detector (Kak & Slaney sec. 3.4.1). The
+// column of pixel (x, y) is c = gamma / dgamma + central_col with gamma = atan(V / U) (V =
+// -x sin b + y cos b, the in-plane offset from the central ray), and the weight is R^2 / L^2,
+// L^2 = U^2 + V^2 the squared distance from the source (the 1 / R^2 is in the filter's
+// pre-weight, clrecon.reconstruction.fbp.cosine_weights). atan is an odd polynomial whose
+// ATAN_TERMS coefficients the host fits for the geometry's largest |V / U| = tan(gamma_fov)
+// (fewest terms with a float64 error <= 1e-7 rad; at most 9 = degree 17 on [0, 1]): plain
+// arithmetic, as the PoCL notes below ask (FanBeamGeometry checks gamma_edge <= 45 degrees). `sdd_over_pitch` then carries
+// 1 / dgamma, and `col_centre` the central column (0-based, without the pad column).
+#ifndef CURVED
+#define CURVED 0
+#endif
+
+#if CURVED
+#define GEOMETRY_ARGS                                                                     \
+    const int nx, const int ny,                                                            \
+    const int n_views, const int n_cols,                                                   \
+    const float voxel_mm,                                                                  \
+    const float sdd_over_pitch,         /* 1 / dgamma, 1/rad */                            \
+    const float fov_r2,                                                                    \
+    const float dbeta,                                                                     \
+    const float col_centre              /* central column, fractional, 0-based */
+#define COL_CENTRE col_centre
+#else
 #define GEOMETRY_ARGS                                                                     \
     const int nx, const int ny,         /* image size, img[y, x] */                        \
     const int n_views, const int n_cols,                                                   \
@@ -35,7 +59,56 @@
     const float sdd_over_pitch,         /* SDD / col_pitch */                              \
     const float fov_r2,                 /* squared FOV radius at the isocentre, mm^2 */    \
     const float dbeta                   /* 2 pi / n_views, rad */
+#define COL_CENTRE (0.5f * (float)(n_cols - 1))
+#endif
 
+#if CURVED
+// Pixel (x, y) in the view with table entry cs = (cos b, sin b) / R: returns the fractional
+// column c = atan(V / U) / dgamma + centre and puts the weight R^2 / L^2 in *w.
+#ifndef ATAN_TERMS
+#define ATAN_TERMS 9
+#endif
+inline float fan_column(const float x, const float y, const float2 cs, const float inv_dgamma,
+                        const float centre, float *w)
+{
+    const float ur = 1.0f - (x * cs.x + y * cs.y);                 // U / R
+    const float vr = y * cs.x - x * cs.y;                          // V / R
+    const float l2 = ur * ur + vr * vr;                            // L^2 / R^2
+    const float d = 1.0f / (ur * l2);                              // one division for both:
+    *w = d * ur;                                                   // R^2 / L^2
+    const float t = vr * (d * l2);                                 // V / U = tan gamma
+    const float t2 = t * t;
+    // atan(t) / dgamma = t (a0 + a1 t^2 + ... ), ATAN_TERMS coefficients ATAN_C0.. (-D literals)
+    // fitted on the host for this geometry's largest |t| (clrecon.reconstruction.fbp.atan_coefficients)
+    float p = 0.0f;  // (0 t2 + the top coefficient folds away under -cl-fast-relaxed-math)
+#if ATAN_TERMS > 8
+    p = p * t2 + ATAN_C8;
+#endif
+#if ATAN_TERMS > 7
+    p = p * t2 + ATAN_C7;
+#endif
+#if ATAN_TERMS > 6
+    p = p * t2 + ATAN_C6;
+#endif
+#if ATAN_TERMS > 5
+    p = p * t2 + ATAN_C5;
+#endif
+#if ATAN_TERMS > 4
+    p = p * t2 + ATAN_C4;
+#endif
+#if ATAN_TERMS > 3
+    p = p * t2 + ATAN_C3;
+#endif
+#if ATAN_TERMS > 2
+    p = p * t2 + ATAN_C2;
+#endif
+#if ATAN_TERMS > 1
+    p = p * t2 + ATAN_C1;
+#endif
+    p = p * t2 + ATAN_C0;
+    return p * t + centre;  // the coefficients carry 1 / dgamma
+}
+#else
 // Pixel (x, y) in the view with table entry cs = (cos b, sin b) / R: returns the
 // fractional column index c = u / col_pitch + centre and puts the distance weight
 // (R/U)^2 in *w.
@@ -46,6 +119,7 @@ inline float fan_column(const float x, const float y, const float2 cs, const flo
     *w = r_over_u * r_over_u;
     return sdd_over_pitch * (y * cs.x - x * cs.y) * r_over_u + centre;
 }
+#endif
 
 // Batched kernel: 16 filtered sinograms interleaved as [view][column][batch] and read as
 // one float16 per interpolation tap. The 16 lanes are the SIMD width; the geometry of a
@@ -88,7 +162,7 @@ void backproject_batched16x2(__global const float16 *restrict sino16,
     const bool in_image = ix < nx && iy < ny;
     const bool in_fov = in_image && x * x + y * y <= fov_r2;
     const int stride = n_cols + 2;
-    const float centre = 0.5f * (float)(n_cols - 1) + 1.0f;  // +1: the left pad column
+    const float centre = COL_CENTRE + 1.0f;  // +1: the left pad column
     const size_t group_size = (size_t)n_views * stride;
     __global const float16 *sino = sino16 + (size_t)g * group_size;
     const size_t second = two ? group_size : 0;  // offset of the second group (none: itself)
@@ -145,7 +219,7 @@ void backproject_single(__global const float *restrict sino,
         __global const float *s = sino + (size_t)b * n_views * n_cols;
         for (int j = 0; j < n_views; ++j, s += n_cols) {
             float w;
-            float c = fan_column(x, y, trig[j], sdd_over_pitch, 0.5f * last, &w);
+            float c = fan_column(x, y, trig[j], sdd_over_pitch, COL_CENTRE, &w);
             c = c < 0.0f ? 0.0f : (c > last ? last : c);
             int i0 = (int)c;
             i0 = i0 > n_cols - 2 ? n_cols - 2 : i0;

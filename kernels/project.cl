@@ -19,7 +19,9 @@
 // tau, turned into mm by |p - s| at the end.
 //
 // Defines: VW (1, 4, 8, 16), LX, LY (work-group shape), CULL (0: every object for every
-// ray, the reference for the culling test), LIST_MAX (local list capacity).
+// ray, the reference for the culling test), LIST_MAX (local list capacity), CURVED (1: the
+// cells are flat-equivalent points (u[c], v[r] * vscale[c]) of a cylindrical detector,
+// clrecon.core.detector.CylindricalDetector.ray_cells; v then varies along the VW columns).
 
 #ifndef VW
 #define VW 8
@@ -35,6 +37,9 @@
 #endif
 #ifndef LIST_MAX
 #define LIST_MAX 256
+#endif
+#ifndef CURVED
+#define CURVED 0
 #endif
 
 #if VW == 1
@@ -84,6 +89,10 @@ void project(__global const float *rec,      // (m, nmax, REC): each view's reco
              __global const float *v_mm,     // (n_rows,)
              __global const float *tile_u,   // (n_tiles_u, 2) u range of each tile column
              __global const float *tile_v,   // (n_tiles_v, 2) v range of each tile row
+#if CURVED
+             __global const float *vs_pad,   // (n_seg * VW,) per-column scale of v, padded
+             __global const float *vs_seg,   // (n_seg, 2) min, max of vs over each VW-segment
+#endif
              const int n_cols, const int n_rows, const int n_seg, const int nmax,
              const int accumulate,
              __global float *out)            // (m, n_rows, n_cols)
@@ -122,7 +131,18 @@ void project(__global const float *rec,      // (m, nmax, REC): each view's reco
         return;
 
     const vec u = VLOAD(seg, u_pad);
+#if CURVED
+    const float v_row = v_mm[row];
+    const vec v = v_row * VLOAD(seg, vs_pad);
+    const float va = v_row * vs_seg[2 * seg], vb = v_row * vs_seg[2 * seg + 1];
+    const float vlo = fmin(va, vb), vhi = fmax(va, vb);
+    typedef vec vrow;
+#else
     const float v = v_mm[row];
+#define vlo v
+#define vhi v
+    typedef float vrow;
+#endif
 #if CULL
     const float slo = seg_lo[seg], shi = seg_hi[seg];
 #endif
@@ -136,7 +156,7 @@ void project(__global const float *rec,      // (m, nmax, REC): each view's reco
     for (int j = 0; j < n_loop; ++j) {
 #if CULL
         __global const float *r = vrec + (size_t)list[j] * REC;
-        if (r[R_UHI] < slo || r[R_ULO] > shi || r[R_VHI] < v || r[R_VLO] > v)
+        if (r[R_UHI] < slo || r[R_ULO] > shi || r[R_VHI] < vlo || r[R_VLO] > vhi)
             continue;
 #else
         __global const float *r = vrec + (size_t)j * REC;
@@ -149,7 +169,7 @@ void project(__global const float *rec,      // (m, nmax, REC): each view's reco
         const int cut1 = (flags >> 6) & 3;
         const float tc = r[R_TC];
         const vec du = u - r[R_UC];
-        const float dv = v - r[R_VC];
+        const vrow dv = v - r[R_VC];
         // e = du eu' + dv ev'; d = dc' + e
         const vec ex = du * r[R_EU + 0] + dv * r[R_EV + 0];
         const vec ey = du * r[R_EU + 1] + dv * r[R_EV + 1];
@@ -218,7 +238,7 @@ void project(__global const float *rec,      // (m, nmax, REC): each view's reco
 #if CULL
             // a cut whose rectangle misses these cells meets none of their rays
             __global const float *rr = r + R_CUT_RECT + 4 * k;
-            if (rr[1] < slo || rr[0] > shi || rr[3] < v || rr[2] > v) {
+            if (rr[1] < slo || rr[0] > shi || rr[3] < vlo || rr[2] > vhi) {
                 if (mode == CUT_INTERSECT)
                     valid = (ivec)(0);
                 continue;

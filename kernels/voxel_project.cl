@@ -16,6 +16,14 @@
 // a = (s - o) / h, then D = det - s, e_u, e_v in mm.
 //
 // One work-item per (column, row, view); no local memory, no barriers.
+//
+// CURVED = 1 (a cylindrical detector): the cell of column c, row r is the flat-equivalent
+// point (u[c], v[r] * vscale[c]) (clrecon.core.detector.CylindricalDetector.ray_cells); the
+// half-line and its integral do not depend on where along the ray the point lies.
+
+#ifndef CURVED
+#define CURVED 0
+#endif
 
 #define VIEW_REC 12
 
@@ -23,13 +31,20 @@ __kernel void voxel_project(__global const float *mu, const int nx, const int ny
                             const float hx, const float hy, const float hz,
                             __global const float *views, __global const float *u_mm,
                             __global const float *v_mm, const int n_cols, const int n_rows,
+#if CURVED
+                            __global const float *vscale,
+#endif
                             __global float *out)
 {
     const int col = get_global_id(0), row = get_global_id(1), view = get_global_id(2);
     if (col >= n_cols || row >= n_rows)
         return;
     __global const float *vr = views + VIEW_REC * view;
+#if CURVED
+    const float u = u_mm[col], v = v_mm[row] * vscale[col];
+#else
     const float u = u_mm[col], v = v_mm[row];
+#endif
     const float3 D = (float3)(vr[3], vr[4], vr[5]);
     const float3 eu = (float3)(vr[6], vr[7], vr[8]);
     const float3 ev = (float3)(vr[9], vr[10], vr[11]);

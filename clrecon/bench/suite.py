@@ -84,7 +84,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clrecon.bench import paper
+from clrecon.bench import detectors, paper
 from clrecon.bench.distributed import bench_distributed_section
 from clrecon.bench.distributed import report_lines as distributed_report_lines
 from clrecon.bench.fbp import bench_backprojection
@@ -104,7 +104,8 @@ from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate
 
-SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling")
+SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling",
+            "detectors")
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
 SECTIONS = SECTIONS + paper.SECTIONS
 #: Sections run only when ``--only`` names them (long).
@@ -688,6 +689,7 @@ def format_report(res: dict) -> str:
                    f"{tr['out_dir']}/tradeoff.png; * = on the method's Pareto front")
         out.extend("   " + line for line in tradeoff_table(tr).splitlines())
     out.extend(distributed_report_lines(res.get("distributed")))
+    out.extend(detectors.format_lines(res.get("detectors")))
     return "\n".join(out)
 
 
@@ -708,6 +710,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "end-to-end": lambda: bench_end_to_end_section(quick),
         "memory": lambda: bench_memory_section(quick),
         "scaling": lambda: bench_scaling_section(quick),
+        "detectors": lambda: detectors.bench_detectors_section(quick, repeats),
         **{name: (lambda name=name: paper.run_section(name, quick, repeats)) for name in paper.SECTIONS},
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
         "distributed": lambda: bench_distributed_section(quick, repeats),

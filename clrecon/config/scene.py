@@ -117,7 +117,9 @@ class Scene:
         d = self.to_dict()
         # Keys added after stores existed hash only when they differ from what those stores
         # were made with (flat detector, analytic phantom), so earlier stores stay valid.
-        scanner = {k: v for k, v in d["scanner"].items() if not (k == "detector" and v == "flat")}
+        later = {"detector": "flat", "central_col": -1.0, "central_row": -1.0, "flying_focal_spot": "none",
+                 "ffs_angle_rad": 0.0, "ffs_radial_mm": 0.0, "ffs_z_mm": 0.0}
+        scanner = {k: v for k, v in d["scanner"].items() if not (k in later and v == later[k])}
         phantom = {k: v for k, v in d["phantom"].items() if not (k == "kind" and v == "analytic")}
         if hasattr(self.phantom, "content_hash"):  # a phantom read from files: their content, not only their path
             phantom["content"] = self.phantom.content_hash()

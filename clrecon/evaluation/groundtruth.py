@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from clrecon.core.conventions import mu_to_hu, voxel_coords
+from clrecon.core.conventions import detector_frames, mu_to_hu, voxel_coords
 from clrecon.reconstruction.fbp import FanBeamGeometry, fbp_batched
 from clrecon.simulation import projector, voxelise
 from clrecon.simulation.phantom_sources import phantom_from_config
@@ -72,14 +72,21 @@ def groundtruth_sinograms(cfg: GroundTruthConfig, phantom, c: float, a: float, s
     V = cfg.views
     S = len(slices_z)
     beta = np.deg2rad(cfg.start_angle_deg) + 2 * np.pi * np.arange(V) / V
-    src, centre, e_u, e_v = det.frames(np.tile(beta, S), np.repeat(np.asarray(slices_z, float), V))
+    # the detector model's cells (a cylindrical arc: flat-equivalent cells), source in the slice plane
+    zs = np.repeat(np.asarray(slices_z, float), V)
+    (src, centre, e_u, e_v), (u, _, vs) = projector.spot_frames(det, np.tile(beta, S), zs, (0, 0, 0))
+    if cfg.fbp.source_shifts:
+        # a flying focal spot: each view's source is its spot (angle, radius), with the spot's own
+        # equiangular fan, as SSRB rebins to and FBP backprojects from (FanBeamGeometry.source_shifts)
+        b_s, r_s = cfg.fbp.source_angles_radii()
+        src, centre, e_u, e_v = detector_frames(np.tile(b_s, S), zs, np.tile(r_s, S), det.sdd_mm)
     if getattr(phantom, "carries_projector", False):        # a voxel phantom: the state blended from its frames
-        out = phantom.project(np.full(S * V, float(c)), np.full(S * V, float(a)), src, centre, e_u, e_v, det.u_mm(),
-                              np.zeros(1), rt=rt)
+        out = phantom.project(np.full(S * V, float(c)), np.full(S * V, float(a)), src, centre, e_u, e_v, u,
+                              np.zeros(1), rt=rt, **({} if vs is None else {"v_scale": vs}))
         return out.reshape(S, V, det.n_cols)
     objs = phantom.objects(c, a)
     objs_v = np.broadcast_to(objs, (S * V,) + objs.shape)
-    out = projector.project_views(objs_v, src, centre, e_u, e_v, det.u_mm(), np.zeros(1), rt=rt)
+    out = projector.project_views(objs_v, src, centre, e_u, e_v, u, np.zeros(1), rt=rt, v_scale=vs)
     return out.reshape(S, V, det.n_cols)
 
 

@@ -65,8 +65,18 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
             "peak_memory_bytes": int(peak), "slab_slices": slab}
 
 
+def detector_label(sc) -> str:
+    """``900x64`` (flat), ``736x32 cyl`` (cylindrical), ``+phi+z`` with a flying focal spot."""
+    label = f"{sc.n_cols}x{sc.n_rows}"
+    if sc.detector != "flat":
+        label += " cyl"
+    if sc.flying_focal_spot != "none":
+        label += f" {sc.flying_focal_spot}"
+    return label
+
+
 def describe_scenes() -> str:
-    lines = [f"{'scene':<12} {'pitch':>6} {'projections':>12} {'scan s':>7} {'detector':>10} {'volume':>16} "
+    lines = [f"{'scene':<12} {'pitch':>6} {'projections':>12} {'scan s':>7} {'detector':>16} {'volume':>16} "
              f"{'targets':>7} {'store GiB':>9} {'volumes GiB':>11} {'peak mem GiB':>12}"]
     for name in builtin_scene_names():
         try:
@@ -79,13 +89,14 @@ def describe_scenes() -> str:
         for i, p in enumerate(s.scan.pitches):
             lines.append(
                 f"{name if i == 0 else '':<12} {p:>6.3f} {c['projections'][p]:>12,} "
-                f"{s.scan.duration_s(sc, p):>7.1f} {f'{sc.n_cols}x{sc.n_rows}':>10} "
+                f"{s.scan.duration_s(sc, p):>7.1f} {detector_label(sc):>16} "
                 f"{f'{rc.nx}x{rc.ny}x{rc.nz}':>16} {c['n_targets'] if i == 0 else '':>7} "
                 f"{c['projections'][p] * sc.n_rows * sc.n_cols * 4 / GiB:>9.2f} "
                 f"{c['volume_bytes'] / GiB if i == 0 else 0:>11.2f} "
                 f"{c['peak_memory_bytes'] / GiB if i == 0 else 0:>12.2f}")
         if s.description:
             lines.append(f"{'':<12} {s.description}")
+    lines.append("detector: columns x rows, cyl = cylindrical (equiangular) arc, then the flying focal spot (phi, z)")
     lines.append("store: noise-free line integrals, float32 before compression, all projections (a run stores only"
                  " those its slices use); volumes: every method x pitch x noise variant + ground truth + phantom"
                  " (r4dct once per amplitude, helical once), in recon.volume_dtype (paper scenes: float16)")

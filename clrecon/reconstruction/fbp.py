@@ -19,6 +19,15 @@ Method: Kak & Slaney (1988), "Principles of Computerized Tomographic Imaging", s
 Sampling the ramp kernel in space (rather than taking a naive ``|w|`` in frequency) keeps
 its DC term right, so a uniform object has no offset (K&S ch. 3, discussion of eq. 61).
 
+A cylindrical detector (``detector = "cylindrical"``) gives equiangular data (K&S sec. 3.4.1):
+pre-weight D cos(gamma) (here cos(gamma) / SID: the 1 / D^2 of the backprojection weight is
+folded in), kernel g(gamma) = 1/2 (gamma / sin gamma)^2 h(gamma) with h the same band-limited ramp
+sampled at the angular pitch dgamma = col_pitch / SDD (so g(0) = 1/(8 dgamma^2),
+g(n odd) = -1/(2 pi^2 sin^2(n dgamma))), times dgamma, and backprojection weight SID^2 / L^2
+(L the distance from the source) at column atan(V/U) / dgamma + central_col
+(``kernels/backproject.cl``, variant ``CURVED``). With a flying focal spot each view's source is
+its focal spot (``source_shifts``): the trig table holds its angle and radius.
+
 Conventions (``clrecon.core.conventions``): view j at beta_j = beta0 + 2 pi j / V, source at
 (R cos b, R sin b), column j at u_j = (j - (C-1)/2) * col_pitch along (-sin b, cos b).
 Images are ``img[y, x]`` with voxel centres from :func:`clrecon.core.conventions.voxel_coords`.
@@ -35,7 +44,7 @@ import numpy as np
 import scipy.fft
 
 from clrecon.core.conventions import MU_WATER_PER_MM, detector_coords, mu_to_hu, voxel_coords
-from clrecon.core.detector import flat_fov_radius_mm
+from clrecon.core.detector import atan_defines, flat_fov_radius_mm
 from clrecon.core.runtime import get_runtime
 from clrecon.reconstruction.filters import FILTERS as _WINDOW_FUNCTIONS
 
@@ -75,6 +84,15 @@ class FanBeamGeometry:
         Pixel size (mm); pixel centres are ``voxel_coords(n, voxel_mm)``.
     beta0_rad : float
         Gantry angle of view 0 (rad).
+    detector : str
+        ``"flat"`` (equispaced columns) or ``"cylindrical"`` (equiangular columns,
+        :class:`clrecon.core.detector.CylindricalDetector`).
+    central_col : float
+        Cylindrical: 0-based fractional column of the central ray; -1: the middle.
+    source_shifts : tuple
+        Cylindrical with a flying focal spot: the cycle of per-view source shifts
+        ``((dphi rad, drho mm), ...)``; view j uses entry ``j % len``; empty: none. The rows
+        must then be on each spot's own equiangular fan (what SSRB gives).
     """
 
     sid_mm: float
@@ -86,6 +104,9 @@ class FanBeamGeometry:
     ny: int
     voxel_mm: float
     beta0_rad: float = 0.0
+    detector: str = "flat"
+    central_col: float = -1.0
+    source_shifts: tuple = ()
 
     def __post_init__(self):
         for name in ("sid_mm", "sdd_mm", "col_pitch_mm", "voxel_mm"):
@@ -100,23 +121,70 @@ class FanBeamGeometry:
             raise ValueError(f"beta0_rad = {self.beta0_rad!r}: must be a finite number")
         if self.sdd_mm <= self.sid_mm:
             raise ValueError(f"sdd_mm = {self.sdd_mm!r}: must be greater than sid_mm = {self.sid_mm!r}")
+        if self.detector not in ("flat", "cylindrical"):
+            raise ValueError(f"detector = {self.detector!r}: must be one of flat, cylindrical")
+        if self.detector == "flat" and (self.central_col != -1.0 or self.source_shifts):
+            raise ValueError("central_col and source_shifts need detector = 'cylindrical'")
+        if self.detector == "cylindrical":
+            if self.central_col != -1.0 and not 0.0 <= self.central_col <= self.n_cols - 1:
+                raise ValueError(f"central_col = {self.central_col!r}: must be -1 or in [0, {self.n_cols - 1}]")
+            lo, hi = self.edge_gamma_rad()
+            if min(-lo, hi) > 0.25 * math.pi or min(-lo, hi) <= 0:
+                raise ValueError(f"the fan's shorter half ({math.degrees(min(-lo, hi)):.1f} deg) must be in "
+                                 f"(0, 45] degrees")
 
     @classmethod
     def from_scene(cls, scene) -> FanBeamGeometry:
         """Geometry of a :class:`clrecon.config.scene.Scene`: its scanner, recon grid and start angle."""
         sc, rc = scene.scanner, scene.recon
+        extra = {}
+        if sc.detector != "flat":
+            extra = {"detector": sc.detector, "central_col": sc.detector_model.central_col}
+            if sc.flying_focal_spot != "none":
+                extra["source_shifts"] = tuple((float(a), float(r)) for a, r, _ in sc.ffs_shifts)
         return cls(sid_mm=sc.sid_mm, sdd_mm=sc.sdd_mm, n_cols=sc.n_cols, col_pitch_mm=sc.col_pitch_mm,
                    n_views=sc.views_per_rotation, nx=rc.nx, ny=rc.ny, voxel_mm=rc.voxel_mm,
-                   beta0_rad=math.radians(scene.scan.start_angle_deg))
+                   beta0_rad=math.radians(scene.scan.start_angle_deg), **extra)
 
     # -- derived quantities -------------------------------------------------------------
+    @property
+    def curved(self) -> bool:
+        return self.detector == "cylindrical"
+
+    @property
+    def centre_col(self) -> float:
+        """0-based fractional column of the central ray."""
+        return 0.5 * (self.n_cols - 1) if self.central_col == -1.0 else float(self.central_col)
+
+    @property
+    def delta_gamma_rad(self) -> float:
+        """Cylindrical: angle between columns, col_pitch / SDD (rad)."""
+        return self.col_pitch_mm / self.sdd_mm
+
+    def edge_gamma_rad(self) -> tuple[float, float]:
+        """Cylindrical: fan angles of the outer column edges (rad), (lowest, highest)."""
+        c = self.centre_col
+        return (-0.5 - c) * self.delta_gamma_rad, (self.n_cols - 0.5 - c) * self.delta_gamma_rad
+
     @property
     def fov_radius_mm(self) -> float:
         """Radius at the isocentre of the circle every column edge sees (mm).
 
-        The flat detector's formula, :func:`clrecon.core.detector.flat_fov_radius_mm`.
+        The flat detector's formula, :func:`clrecon.core.detector.flat_fov_radius_mm`; the
+        cylindrical one's SID sin(min |gamma_edge|) (the shorter side of an off-centre fan), less
+        the largest radial focal-spot shift's effect (none without a flying focal spot).
         """
-        return flat_fov_radius_mm(self.sid_mm, self.sdd_mm, self.n_cols * self.col_pitch_mm / 2.0)
+        if not self.curved:
+            return flat_fov_radius_mm(self.sid_mm, self.sdd_mm, self.n_cols * self.col_pitch_mm / 2.0)
+        lo, hi = self.edge_gamma_rad()
+        g = min(-lo, hi)
+        if not self.source_shifts:
+            return self.sid_mm * math.sin(g)
+        # the spot's fan is the arc's seen from the spot: keep the circle every spot's fan covers
+        # (d: the spot's in-plane offset from the focal centre, as CylindricalDetector.spot_inplane_mm)
+        d = max(math.hypot(self.sid_mm - (self.sid_mm + r) * math.cos(a), (self.sid_mm + r) * math.sin(a))
+                for a, r in self.source_shifts)
+        return (self.sid_mm - d) * math.sin(g) - d
 
     @property
     def delta_beta_rad(self) -> float:
@@ -132,9 +200,27 @@ class FanBeamGeometry:
         """Gantry angles beta_j (rad), shape (V,)."""
         return self.beta0_rad + self.delta_beta_rad * np.arange(self.n_views, dtype=np.float64)
 
+    def source_angles_radii(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each view's source angle (rad) and radius (mm), (V,) each: the gantry angle and SID,
+        shifted by the flying focal spot's cycle where there is one."""
+        b = self.view_angles_rad()
+        r = np.full(self.n_views, float(self.sid_mm))
+        if self.source_shifts:
+            sh = np.asarray(self.source_shifts, np.float64)[np.arange(self.n_views) % len(self.source_shifts)]
+            b, r = b + sh[:, 0], r + sh[:, 1]
+        return b, r
+
     def col_coords_mm(self) -> np.ndarray:
-        """Column centres u_j at the detector (mm), shape (C,)."""
+        """Column centres u_j at the detector (mm), shape (C,): flat, or the arc coordinate SDD gamma."""
+        if self.curved:
+            return (np.arange(self.n_cols) - self.centre_col) * self.col_pitch_mm
         return detector_coords(self.n_cols, self.col_pitch_mm)
+
+    def col_gamma_rad(self) -> np.ndarray:
+        """Fan angle of each column (rad), (C,): atan(u / SDD) flat, (c - central_col) dgamma cylindrical."""
+        if self.curved:
+            return (np.arange(self.n_cols) - self.centre_col) * self.delta_gamma_rad
+        return np.arctan(self.col_coords_mm() / self.sdd_mm)
 
     def pixel_coords_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """Pixel-centre coordinates ``(x (nx,), y (ny,))`` in mm."""
@@ -177,9 +263,20 @@ def ramp_filter_response(geom: FanBeamGeometry, window: str = "ram-lak", n_pad: 
     n_pad = padded_length(geom.n_cols) if n_pad is None else int(n_pad)
     if n_pad < 2 * geom.n_cols - 1:
         raise ValueError(f"n_pad = {n_pad}: must be >= 2 * n_cols - 1 = {2 * geom.n_cols - 1}")
-    tau = geom.iso_col_pitch_mm
     k = np.arange(n_pad)
     n = np.where(k <= n_pad // 2, k, k - n_pad).astype(np.float64)  # signed tap offsets
+    if geom.curved:
+        # equiangular (K&S sec. 3.4.1): g(n a) = 1/2 (n a / sin n a)^2 h(n a), h the ramp at pitch a
+        a = geom.delta_gamma_rad
+        if (n_pad // 2) * a >= math.pi:
+            raise ValueError(f"n_pad = {n_pad}: the kernel's taps must stay below pi in fan angle")
+        g = np.zeros(n_pad)
+        g[0] = 1.0 / (8.0 * a * a)
+        odd = (n.astype(np.int64) % 2) != 0
+        g[odd] = -0.5 / (np.pi * np.sin(n[odd] * a)) ** 2
+        response = scipy.fft.fft(g).real * a
+        return response * _WINDOW_FUNCTIONS[window](scipy.fft.fftfreq(n_pad))
+    tau = geom.iso_col_pitch_mm
     h = np.zeros(n_pad)
     h[0] = 1.0 / (4.0 * tau * tau)
     odd = (n.astype(np.int64) % 2) != 0
@@ -191,7 +288,15 @@ def ramp_filter_response(geom: FanBeamGeometry, window: str = "ram-lak", n_pad: 
 
 
 def cosine_weights(geom: FanBeamGeometry) -> np.ndarray:
-    """Fan-beam pre-weight SDD / sqrt(SDD^2 + u^2) per column, shape (C,) float64."""
+    """Fan-beam pre-weight per column, shape (C,) float64.
+
+    Flat: SDD / sqrt(SDD^2 + u^2). Cylindrical: cos(gamma) / SID, K&S's D cos(gamma) times the
+    1 / D^2 that turns the kernel's weight SID^2 / L^2 into 1 / L^2 (with a flying focal spot the
+    nominal SID: the spot radii differ from it by |drho| / SID, 1.7e-3 at 1 mm, alternating in
+    sign from view to view).
+    """
+    if geom.curved:
+        return np.cos(geom.col_gamma_rad()) / geom.sid_mm
     u = geom.col_coords_mm()
     return geom.sdd_mm / np.sqrt(geom.sdd_mm ** 2 + u ** 2)
 
@@ -274,20 +379,39 @@ def filter_rows(rows, geom: FanBeamGeometry, window: str = "ram-lak", *, out: np
 # ---------------------------------------------------------------------------------------
 # backprojection (OpenCL)
 def _trig_table(geom: FanBeamGeometry) -> np.ndarray:
-    """Per-view (cos b / SID, sin b / SID), shape (V, 2) float32, computed in float64."""
+    """Per-view (cos b / R, sin b / R), shape (V, 2) float32, computed in float64: b, R the
+    view's source angle and radius (gantry angle and SID without a flying focal spot)."""
+    if geom.source_shifts:
+        b, r = geom.source_angles_radii()
+        return (np.stack([np.cos(b), np.sin(b)], axis=1) / r[:, None]).astype(np.float32)
     b = geom.view_angles_rad()
     return (np.stack([np.cos(b), np.sin(b)], axis=1) / geom.sid_mm).astype(np.float32)
 
 
 def _geometry_args(geom: FanBeamGeometry) -> tuple:
     """Scalar kernel arguments in the order of GEOMETRY_ARGS in backproject.cl."""
+    if geom.curved:
+        return (np.int32(geom.nx), np.int32(geom.ny), np.int32(geom.n_views), np.int32(geom.n_cols),
+                np.float32(geom.voxel_mm), np.float32(1.0 / geom.delta_gamma_rad),
+                np.float32(geom.fov_radius_mm ** 2), np.float32(geom.delta_beta_rad), np.float32(geom.centre_col))
     return (np.int32(geom.nx), np.int32(geom.ny), np.int32(geom.n_views), np.int32(geom.n_cols),
             np.float32(geom.voxel_mm), np.float32(geom.sdd_mm / geom.col_pitch_mm),
             np.float32(geom.fov_radius_mm ** 2), np.float32(geom.delta_beta_rad))
 
 
-def _defines() -> dict:
-    return {"LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK}
+def _atan_t_max(geom: FanBeamGeometry) -> float:
+    """The largest |tan gamma| of a pixel inside the FOV (a little margin), <= 1."""
+    r = geom.fov_radius_mm
+    rmin = geom.sid_mm - max((abs(s[1]) for s in geom.source_shifts), default=0.0)
+    return min(1.0, round(1.02 * math.tan(math.asin(min(1.0, r / rmin))), 6))
+
+
+def _defines(geom: FanBeamGeometry | None = None) -> dict:
+    d = {"LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK}
+    if geom is not None and geom.curved:
+        d["CURVED"] = 1
+        d.update(atan_defines(_atan_t_max(geom), 1.0 / geom.delta_gamma_rad))  # the polynomial gives atan / dgamma
+    return d
 
 
 def _global_size(geom: FanBeamGeometry, depth: int) -> tuple:
@@ -340,7 +464,7 @@ def backproject_interleaved(sino16, n_groups: int, geom: FanBeamGeometry, *, run
     float32 as :func:`backproject`.
     """
     rt = runtime or get_runtime()
-    kern = rt.kernel(_KERNEL_FILE, "backproject_batched16x2", _fast=True, **_defines())
+    kern = rt.kernel(_KERNEL_FILE, "backproject_batched16x2", _fast=True, **_defines(geom))
     trig = rt.to_device(_trig_table(geom))
     shape = (n_groups * BATCH_LANES, geom.ny, geom.nx)
     out_buf = rt.empty(shape)
@@ -398,7 +522,7 @@ def backproject_single(filtered, geom: FanBeamGeometry, *, runtime=None) -> np.n
     """
     a = _check_sinograms(filtered, geom, "filtered")
     rt = runtime or get_runtime()
-    kern = rt.kernel(_KERNEL_FILE, "backproject_single", _fast=True, **_defines())
+    kern = rt.kernel(_KERNEL_FILE, "backproject_single", _fast=True, **_defines(geom))
     trig = rt.to_device(_trig_table(geom))
     sino_buf = rt.to_device(a)
     out_buf = rt.empty(a.shape[:1] + (geom.ny, geom.nx))

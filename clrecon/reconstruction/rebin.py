@@ -15,16 +15,24 @@ z_k through that point at height z hits the detector at row coordinate
 
 and its line integral is converted to the in-plane one by the factor
 sqrt(SDD^2 + u^2) / sqrt(SDD^2 + u^2 + v^2).
+
+On a cylindrical detector (``scanner.detector = "cylindrical"``, kernel variant ``CURVED``) the
+arc lies at in-plane distance SDD along every ray, so ``v(gamma) = SDD / (SID cos gamma) * dz``
+and the factor is ``SDD / sqrt(SDD^2 + v^2)``; with a flying focal spot each pair carries its
+spot's offset from the focal centre (``pair_shift``, variant ``FFS``/``FFS_PHI``,
+docs/algorithms.md "SSRB on a cylindrical detector").
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from clrecon.core.conventions import detector_coords
+from clrecon.core.detector import atan_defines
 from clrecon.core.runtime import get_runtime
 from clrecon.scan.config import ScannerConfig
 
@@ -188,7 +196,47 @@ def candidate_groups(table: ProjectionTable, slice_z_mm, scanner: ScannerConfig,
 
 
 # ---------------------------------------------------------------------------------------
-def ssrb_row_range(pair_dz_mm, scanner: ScannerConfig) -> tuple[int, int]:
+def _curved_rows(dz, scanner: ScannerConfig, shift=None) -> np.ndarray:
+    """Float64 fractional rows, columns and scales of the cylindrical SSRB (the kernel's formulas).
+
+    ``dz`` (p,) slice_z - focal-centre z; ``shift`` (p, 3) the spot offsets (a, b, c) or None.
+    Returns ``(fr (p, C) unclamped, fc (p, C) or None, t (p, C) or SDD, c (p, 1))``.
+    """
+    det = scanner.detector_model
+    g = det.gamma_rad()[None, :]
+    dz = np.asarray(dz, np.float64)[:, None]
+    sdd, sid = det.sdd_mm, det.sid_mm
+    fc = None
+    if shift is None:
+        t, c = np.full_like(g, sdd), np.zeros_like(dz)
+        v = sdd / (sid * np.cos(g)) * dz
+    else:
+        sh = np.asarray(shift, np.float64)
+        a, b, c = sh[:, 0:1], sh[:, 1:2], sh[:, 2:3]
+        if np.any(a != 0) or np.any(b != 0):
+            na, nb = sid - a, -b
+            rp = np.hypot(na, nb)
+            dx = (np.cos(g) * na - np.sin(g) * nb) / rp
+            dy = (np.cos(g) * nb + np.sin(g) * na) / rp
+            ad = a * dx + b * dy
+            t = -ad + np.sqrt(ad * ad - (a * a + b * b) + sdd * sdd)
+            fc = np.arctan2(b + t * dy, a + t * dx) / det.delta_gamma_rad + det.central_col
+            mid = rp * np.cos(g)
+        else:
+            t, mid = np.full_like(g, sdd), sid * np.cos(g)
+        v = c + (dz - c) * t / mid
+    return v / scanner.row_pitch_mm + det.central_row, fc, t, c
+
+
+def _ffs_kind(pair_shift) -> str:
+    """'' (no shift), 'z' (axial only) or 'phi' (an in-plane shift) for (p, 3) spot offsets."""
+    if pair_shift is None:
+        return ""
+    sh = np.asarray(pair_shift, np.float64)
+    return "phi" if np.any(sh[:, :2] != 0) else "z"
+
+
+def ssrb_row_range(pair_dz_mm, scanner: ScannerConfig, pair_shift=None) -> tuple[int, int]:
     """Detector rows ``[lo, hi)`` that :func:`ssrb_rows` reads for pairs at ``pair_dz_mm`` (p,), mm.
 
     v(u) is linear in dz and grows with |u|, so the rows of every column of every pair lie
@@ -201,6 +249,18 @@ def ssrb_row_range(pair_dz_mm, scanner: ScannerConfig) -> tuple[int, int]:
     if dz.size == 0:
         return 0, 0
     n_rows = scanner.n_rows
+    if scanner.detector != "flat":
+        # every column of the pairs at the extreme dz (v is monotonic in dz for a fixed shift);
+        # with a flying focal spot, every distinct spot offset at both extremes
+        if pair_shift is None:
+            fr = _curved_rows(np.array([dz.min(), dz.max()]), scanner)[0]
+        else:
+            sh = np.unique(np.asarray(pair_shift, np.float64), axis=0)
+            zz = np.repeat([dz.min(), dz.max()], len(sh))
+            fr = _curved_rows(zz, scanner, np.tile(sh, (2, 1)))[0]
+        fr = np.clip(fr, 0.0, n_rows - 1)
+        r0 = np.minimum(np.floor(fr), max(n_rows - 2, 0))
+        return int(max(0, r0.min() - 1)), int(min(n_rows, r0.max() + 3))
     u = detector_coords(scanner.n_cols, scanner.col_pitch_mm)
     u_edge = np.array([0.0, np.abs(u).max()])
     v = ssrb_v_mm(u_edge[:, None], np.array([dz.min(), dz.max()])[None, :], scanner)
@@ -212,7 +272,8 @@ def ssrb_row_range(pair_dz_mm, scanner: ScannerConfig) -> tuple[int, int]:
     return lo, hi
 
 
-def _check_pairs(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, first_row: int | None = None):
+def _check_pairs(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, first_row: int | None = None,
+                 pair_shift=None):
     proj = np.asarray(projections)
     if proj.dtype.kind not in "fiu":
         raise TypeError(f"projections: expected a real numeric array, got dtype {proj.dtype}")
@@ -234,8 +295,14 @@ def _check_pairs(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, fir
                          f"got [{slot.min()}, {slot.max()}]")
     if not np.all(np.isfinite(dz)):
         raise ValueError("pair_dz_mm: must be finite")
+    if pair_shift is not None:
+        sh = np.asarray(pair_shift, np.float64)
+        if sh.shape != (slot.size, 3) or not np.all(np.isfinite(sh)):
+            raise ValueError(f"pair_shift: expected finite (p, 3) = ({slot.size}, 3) spot offsets, got {sh.shape}")
+        if scanner.detector == "flat":
+            raise ValueError("pair_shift: the flat detector has no flying focal spot")
     if not whole and dz.size:
-        lo, hi = ssrb_row_range(dz, scanner)
+        lo, hi = ssrb_row_range(dz, scanner, pair_shift)
         if lo < first_row or hi > first_row + proj.shape[1]:
             raise ValueError(f"projections: the pairs read detector rows {lo}..{hi - 1}, the block holds rows "
                              f"{first_row}..{first_row + proj.shape[1] - 1}")
@@ -243,12 +310,32 @@ def _check_pairs(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, fir
 
 
 def ssrb_rows_reference(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig,
-                        first_row: int | None = None) -> np.ndarray:
+                        first_row: int | None = None, pair_shift=None) -> np.ndarray:
     """Float64 NumPy reference of :func:`ssrb_rows` (same clamping), shape (p, C)."""
-    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner, first_row)
+    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner, first_row, pair_shift)
     first_row = first_row or 0
     proj = proj.astype(np.float64)
     n_rows, n_cols = scanner.n_rows, scanner.n_cols
+    if scanner.detector != "flat":
+        det = scanner.detector_model
+        fr, fc, t, c = _curved_rows(dz, scanner, pair_shift)
+        fr = np.clip(fr, 0.0, n_rows - 1)
+        r0 = np.minimum(np.floor(fr).astype(np.int64), max(n_rows - 2, 0))
+        r1 = np.minimum(r0 + 1, n_rows - 1)
+        tr = fr - r0
+        s = slot[:, None]
+        if fc is None:
+            cols = np.broadcast_to(np.arange(n_cols)[None, :], fr.shape)
+            a0, a1 = proj[s, r0 - first_row, cols], proj[s, r1 - first_row, cols]
+        else:
+            fc = np.clip(fc, 0.0, n_cols - 1)
+            c0 = np.minimum(np.floor(fc).astype(np.int64), max(n_cols - 2, 0))
+            c1 = np.minimum(c0 + 1, n_cols - 1)
+            tc = fc - c0
+            a0 = (1 - tc) * proj[s, r0 - first_row, c0] + tc * proj[s, r0 - first_row, c1]
+            a1 = (1 - tc) * proj[s, r1 - first_row, c0] + tc * proj[s, r1 - first_row, c1]
+        vs = (fr - det.central_row) * scanner.row_pitch_mm - c
+        return t / np.sqrt(t * t + vs * vs) * ((1 - tr) * a0 + tr * a1)
     u = detector_coords(n_cols, scanner.col_pitch_mm)                       # (C,)
     q = u * u + scanner.sdd_mm ** 2
     v = ssrb_v_mm(u[None, :], dz[:, None], scanner)                          # (p, C)
@@ -265,7 +352,7 @@ def ssrb_rows_reference(projections, pair_slot, pair_dz_mm, scanner: ScannerConf
 
 
 def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=None,
-              first_row: int | None = None) -> np.ndarray:
+              first_row: int | None = None, pair_shift=None) -> np.ndarray:
     """Rebin helical cone-beam projections to in-plane fan-beam rows (OpenCL, ``kernels/ssrb.cl``).
 
     Parameters
@@ -283,6 +370,11 @@ def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=Non
         Defaults to :func:`clrecon.core.runtime.get_runtime`.
     first_row : int, optional
         Detector row of the block's row 0; None (default): whole projections.
+    pair_shift : array_like, optional
+        (p, 3) each pair's focal-spot offset (a, b, c) mm from the focal centre
+        (:func:`clrecon.core.detector.spot_shift_in_frame`), cylindrical detector only; then
+        ``pair_dz_mm`` is slice_z minus the focal centre's z, and with an in-plane offset the
+        output row is the equiangular fan of the spot (kernel ``FFS_PHI``).
 
     Returns
     -------
@@ -292,11 +384,13 @@ def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=Non
         outer row is used (clamped); candidates from :func:`candidates` never need that for
         columns that see the object.
     """
-    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner, first_row)
+    proj, slot, dz = _check_pairs(projections, pair_slot, pair_dz_mm, scanner, first_row, pair_shift)
     p, n_cols = slot.size, scanner.n_cols
     if p == 0:
         return np.zeros((0, n_cols), np.float32)
     rt = rt or get_runtime()
+    if scanner.detector != "flat":
+        return _ssrb_rows_curved(proj, slot, dz, scanner, rt, first_row or 0, pair_shift)
     d_proj = rt.to_device(proj, np.float32, "projections")
     d_slot = rt.to_device(slot, np.int32, "pair_slot")
     d_dz = rt.to_device(dz, np.float32, "pair_dz_mm")
@@ -307,4 +401,36 @@ def ssrb_rows(projections, pair_slot, pair_dz_mm, scanner: ScannerConfig, rt=Non
              np.int32(proj.shape[1]), np.int32(n_cols),
              np.float32(scanner.col_pitch_mm), np.float32(scanner.row_pitch_mm),
              np.float32(scanner.sid_mm), np.float32(scanner.sdd_mm))
+    return rt.from_device(d_out, (p, n_cols), np.float32, wait_for=[ev])
+
+
+def _ssrb_rows_curved(proj, slot, dz, scanner: ScannerConfig, rt, first_row: int, pair_shift) -> np.ndarray:
+    """:func:`ssrb_rows` on a cylindrical detector (``kernels/ssrb.cl`` with ``CURVED``, ``FFS``, ``FFS_PHI``)."""
+    det = scanner.detector_model
+    p, n_cols = slot.size, scanner.n_cols
+    kind = _ffs_kind(pair_shift)
+    defines = {"CURVED": 1, **({"FFS": 1} if kind else {}), **({"FFS_PHI": 1} if kind == "phi" else {})}
+    if kind == "phi":   # atan of the arc's fan angles: up to the outer column edge, a little margin
+        g_max = max(abs(x) for x in det.edge_gamma_rad()) + 0.01
+        defines.update(atan_defines(min(1.0, round(math.tan(min(g_max, 0.25 * math.pi)), 6)),
+                                    1.0 / det.delta_gamma_rad))
+    d_proj = rt.to_device(proj, np.float32, "projections")
+    d_slot = rt.to_device(slot, np.int32, "pair_slot")
+    d_dz = rt.to_device(dz, np.float32, "pair_dz_mm")
+    extra = []
+    if kind:
+        sh = np.zeros((p, 4))
+        sh[:, :3] = pair_shift
+        sh[:, 3] = 1.0 / np.hypot(scanner.sid_mm - sh[:, 0], sh[:, 1])   # 1 / R', the spot's radius
+        extra = [rt.to_device(sh, np.float32, "pair_shift")]
+    d_out = rt.empty((p, n_cols), np.float32)
+    g = det.gamma_rad()
+    colgeo = np.stack([np.cos(g), np.sin(g), det.sdd_mm / (det.sid_mm * np.cos(g)), 1.0 / np.cos(g)], 1)
+    d_col = rt.to_device(colgeo, np.float32, "colgeo")
+    knl = rt.kernel("ssrb.cl", "ssrb_rows", **defines)
+    ev = knl(rt.queue, (_round_up(n_cols, _LOCAL_COLS), p), (_LOCAL_COLS, 1),
+             d_proj, d_slot, d_dz, *extra, d_out, np.int32(p), np.int32(scanner.n_rows), np.int32(first_row),
+             np.int32(proj.shape[1]), np.int32(n_cols), d_col, np.float32(det.delta_gamma_rad),
+             np.float32(scanner.row_pitch_mm), np.float32(scanner.sid_mm), np.float32(scanner.sdd_mm),
+             np.float32(det.central_col), np.float32(det.central_row))
     return rt.from_device(d_out, (p, n_cols), np.float32, wait_for=[ev])

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from clrecon.core.conventions import voxel_coords
+from clrecon.core.detector import spot_shift_in_frame
 from clrecon.core.errors import ClreconError
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction import interpolation, rebin
@@ -371,6 +372,10 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
     pair_proj = ukeys // Ssl
     pair_slice = ukeys % Ssl
     pair_dz = plan_.slices_z[s0:s1][pair_slice] - store.table.source_z_mm[pair_proj]
+    # a flying focal spot: each pair's spot offset from the focal centre (SSRB from the spot)
+    pair_shift = None
+    if store.table.focal_shift is not None:
+        pair_shift = spot_shift_in_frame(store.table.focal_shift[pair_proj], sc.sid_mm)
     times.add("plan", time.perf_counter() - t0)
 
     # stream the store in index order, rebinning only the pairs each chunk owns
@@ -384,7 +389,8 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
         wanted, slot = np.unique(pair_proj[lo:hi], return_inverse=True)
         # only the detector rows these pairs read (a slab of a few slices: a few of the rows),
         # and noise only for them: a cell's noise is keyed by its place on the whole detector
-        r_lo, r_hi = rebin.ssrb_row_range(pair_dz[lo:hi], sc)
+        shift = None if pair_shift is None else pair_shift[lo:hi]
+        r_lo, r_hi = rebin.ssrb_row_range(pair_dz[lo:hi], sc, shift)
         t1 = time.perf_counter()
         clean = store.read_indices(wanted, noisy=False, rows=(r_lo, r_hi))
         times.add("read", time.perf_counter() - t1)
@@ -398,7 +404,8 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
                 times.count("noise_cells", data.size)
             t1 = time.perf_counter()
             rows[v][lo:hi] = rebin.ssrb_rows(data, slot.astype(np.int32).ravel(),
-                                            pair_dz[lo:hi].astype(np.float32), sc, rt=rt, first_row=r_lo)
+                                            pair_dz[lo:hi].astype(np.float32), sc, rt=rt, first_row=r_lo,
+                                            pair_shift=shift)
             times.add("rebin", time.perf_counter() - t1)
 
     # Cosine weighting and ramp filtering act on each row alone and linearly, so they commute

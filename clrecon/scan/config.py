@@ -18,6 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+import numpy as np
+
 from clrecon.core.config import (
     BOOL,
     FRAC,
@@ -34,7 +36,8 @@ from clrecon.core.config import (
     field_of,
     one_of,
 )
-from clrecon.core.detector import DETECTORS, DetectorModel, detector_for
+from clrecon.core.detector import DETECTORS, FFS_MODES, DetectorModel, detector_for, ffs_cycle, ffs_states
+from clrecon.core.errors import SceneError
 
 #: The signal trace spans max(TRACE_MIN_S, the longest scan) + TRACE_MARGIN_S seconds.
 TRACE_MIN_S = 60.0
@@ -60,6 +63,46 @@ class ScannerConfig(Section):
     views_per_rotation: int = F(984, POSINT, "projections per rotation")
     rotation_time_s: float = F(0.3, POS, "seconds per rotation")
     detector: str = F("flat", one_of(DETECTORS.names), "detector model (clrecon.core.detector)")
+    central_col: float = F(-1.0, NUM, "cylindrical: 0-based fractional column the central ray hits; "
+                                      "-1 = the middle (n_cols - 1) / 2 (quarter offset: middle + 0.25)")
+    central_row: float = F(-1.0, NUM, "cylindrical: 0-based fractional row the central ray hits; -1 = the middle")
+    flying_focal_spot: str = F("none", one_of(FFS_MODES), "flying focal spot (cylindrical only): none, phi, z, phi+z")
+    ffs_angle_rad: float = F(0.0, NONNEG, "phi-FFS: angular shift of the focal spot from the focal centre, +- per view")
+    ffs_radial_mm: float = F(0.0, NUM, "phi-FFS: radial shift (mm, + away from the isocentre) with +ffs_angle_rad")
+    ffs_z_mm: float = F(0.0, NONNEG, "z-FFS: axial shift of the focal spot from the focal centre, +- per view")
+
+    def check(self) -> None:
+        for key, n in (("central_col", self.n_cols), ("central_row", self.n_rows)):
+            v = getattr(self, key)
+            if v != -1.0 and not (0.0 <= v <= n - 1):
+                raise SceneError(f"scanner.{key} = {v!r}: must be -1 (the middle) or a cell index in [0, {n - 1}]")
+            if v != -1.0 and self.detector == "flat":
+                raise SceneError(f"scanner.{key} = {v!r}: the flat detector is centred; an offset central "
+                                 f"element needs scanner.detector = \"cylindrical\"")
+        if self.flying_focal_spot != "none" and self.detector == "flat":
+            raise SceneError(f"scanner.flying_focal_spot = {self.flying_focal_spot!r}: needs "
+                             f"scanner.detector = \"cylindrical\" (the flat detector has no flying focal spot)")
+        cycle = ffs_cycle(self.flying_focal_spot)
+        if self.views_per_rotation % cycle:
+            raise SceneError(f"scanner.views_per_rotation = {self.views_per_rotation}: must be a multiple of "
+                             f"{cycle} with flying_focal_spot = {self.flying_focal_spot!r} (each view keeps its "
+                             f"focal-spot state from turn to turn)")
+        for key, modes in (("ffs_angle_rad", ("phi", "phi+z")), ("ffs_radial_mm", ("phi", "phi+z")),
+                           ("ffs_z_mm", ("z", "phi+z"))):
+            if getattr(self, key) != 0.0 and self.flying_focal_spot not in modes:
+                raise SceneError(f"scanner.{key} = {getattr(self, key)!r}: only used with flying_focal_spot "
+                                 f"in {', '.join(modes)} (it is {self.flying_focal_spot!r})")
+        if self.ffs_angle_rad > 0.01 or abs(self.ffs_radial_mm) > 0.05 * self.sid_mm or self.ffs_z_mm > 0.25 * (
+                self.n_rows * self.row_pitch_mm):
+            raise SceneError(f"scanner focal-spot shifts (ffs_angle_rad = {self.ffs_angle_rad}, ffs_radial_mm = "
+                             f"{self.ffs_radial_mm}, ffs_z_mm = {self.ffs_z_mm}): must stay within 0.01 rad, "
+                             f"5 % of sid_mm and a quarter of the detector height (clinical shifts are ~1 mm)")
+
+    @property
+    def ffs_shifts(self) -> np.ndarray:
+        """Focal-spot states of the FFS cycle, (cycle, 3): (angle rad, radial mm, axial mm); see :func:`ffs_cycle`."""
+        return ffs_states(self.flying_focal_spot, self.ffs_angle_rad, self.ffs_radial_mm, self.ffs_z_mm)
+
 
     @property
     def detector_model(self) -> DetectorModel:

@@ -29,6 +29,12 @@ class ProjectionTable:
     resp_direction int8    +1 inhaling, -1 exhaling (sign of da/dt)
     state_cardiac  float64 cardiac phase the phantom is posed at (= cardiac_phase unless frames)
     state_resp     float64 amplitude the phantom is posed at (= resp_amplitude unless frames)
+
+    ``angle_rad`` and ``source_z_mm`` are the *focal centre* (where the detector is centred).
+    With a flying focal spot, ``focal_shift`` (n, 3) float64 is each projection's focal-spot
+    shift from it, (dphi rad, drho mm, dz mm) (:func:`clrecon.core.detector.ffs_states`); None
+    means no shift. The spot sits at gantry angle ``spot_angle_rad``, radius SID + drho and
+    z ``spot_z_mm``. It is derived from ``index`` and the scanner, so it is not a stored column.
     """
 
     index: np.ndarray
@@ -41,6 +47,7 @@ class ProjectionTable:
     state_cardiac: np.ndarray
     state_resp: np.ndarray
     views_per_rotation: int
+    focal_shift: np.ndarray | None = None
 
     COLUMNS = ("index", "time_s", "angle_rad", "source_z_mm", "cardiac_phase", "resp_amplitude",
                "resp_direction", "state_cardiac", "state_resp")
@@ -53,10 +60,26 @@ class ProjectionTable:
         """View number within the rotation, k mod N_views, shape (n,)."""
         return self.index % self.views_per_rotation
 
+    @property
+    def shifts(self) -> np.ndarray:
+        """Focal-spot shifts (n, 3) (dphi rad, drho mm, dz mm); zeros without a flying focal spot."""
+        return np.zeros((len(self), 3)) if self.focal_shift is None else self.focal_shift
+
+    @property
+    def spot_angle_rad(self) -> np.ndarray:
+        """Gantry angle of each projection's focal spot (n,) rad."""
+        return self.angle_rad + self.shifts[:, 0]
+
+    @property
+    def spot_z_mm(self) -> np.ndarray:
+        """z of each projection's focal spot (n,) mm."""
+        return self.source_z_mm + self.shifts[:, 2]
+
     def take(self, sel) -> ProjectionTable:
         """Sub-table of the rows ``sel`` (indices or boolean mask)."""
         return ProjectionTable(**{c: getattr(self, c)[sel] for c in self.COLUMNS},
-                               views_per_rotation=self.views_per_rotation)
+                               views_per_rotation=self.views_per_rotation,
+                               focal_shift=None if self.focal_shift is None else self.focal_shift[sel])
 
     def as_dict(self) -> dict:
         return {c: getattr(self, c) for c in self.COLUMNS}
@@ -72,7 +95,9 @@ def projection_table(scene: Acquisition, pitch: float) -> ProjectionTable:
     beta = np.deg2rad(scan.start_angle_deg) + 2.0 * np.pi * k / nv
     z = scan.z_start_mm(sc, pitch) + scan.feed_mm(sc, pitch) * k / nv
     phys = signals.physiology(scene, t)
+    states = sc.ffs_shifts
+    shift = None if sc.flying_focal_spot == "none" else states[k % len(states)]
     return ProjectionTable(index=k, time_s=t, angle_rad=beta, source_z_mm=z,
                            cardiac_phase=phys.cardiac_phase, resp_amplitude=phys.resp_amplitude,
                            resp_direction=phys.resp_direction, state_cardiac=phys.state_cardiac,
-                           state_resp=phys.state_resp, views_per_rotation=nv)
+                           state_resp=phys.state_resp, views_per_rotation=nv, focal_shift=shift)

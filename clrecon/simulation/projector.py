@@ -35,6 +35,7 @@ import functools
 import numpy as np
 
 from clrecon.core.conventions import detector_coords, detector_frames
+from clrecon.core.detector import spot_shift_in_frame
 from clrecon.core.errors import SceneError
 from clrecon.core.runtime import get_runtime
 from clrecon.scan import signals
@@ -310,10 +311,16 @@ def _as_frames(src, det_centre, e_u, e_v, m):
 
 
 class _Layout:
-    """Detector-side arrays shared by every chunk: padded u, segment and tile ranges."""
+    """Detector-side arrays shared by every chunk: padded u, segment and tile ranges.
 
-    def __init__(self, u, v, rt):
+    With ``v_scale`` (n_cols,) the cell of column c, row r is the flat-equivalent point
+    ``(u[c], v[r] * v_scale[c])`` (a cylindrical detector, kernel variant ``CURVED``); the v
+    ranges of tiles and of the culling pyramid then cover every column's scaled rows.
+    """
+
+    def __init__(self, u, v, rt, v_scale=None):
         self.n_cols, self.n_rows = len(u), len(v)
+        self.curved = v_scale is not None
         self.n_seg = -(-self.n_cols // VW)
         self.lx, self.ly = _SHAPE_MULTIROW if self.n_rows > 1 else _SHAPE_ONEROW
         u_pad = np.concatenate([u, np.full(self.n_seg * VW - self.n_cols, u[-1])])
@@ -328,12 +335,27 @@ class _Layout:
         self.global_xy = (ntx * self.lx, nty * self.ly)
         self.u_range = (float(u.min()), float(u.max()))
         self.v_range = (float(v.min()), float(v.max()))
-        self.bufs = [rt.to_device(a) for a in (u_pad, seg_lo, seg_hi, v, tile_u, tile_v)]
+        extra = []
+        if self.curved:
+            vs = np.asarray(v_scale, np.float64)
+            if vs.shape != (self.n_cols,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
+                raise ValueError(f"v_scale must be {self.n_cols} finite numbers > 0, got shape {vs.shape}")
+            vs_pad = np.concatenate([vs, np.full(self.n_seg * VW - self.n_cols, vs[-1])]).reshape(self.n_seg, VW)
+            vs_seg = np.stack([vs_pad.min(1), vs_pad.max(1)], 1)
+            # a tile's rows at every column scale: v * [min, max] of the scales (conservative)
+            lo_s, hi_s = float(vs.min()), float(vs.max())
+            tile_v = np.stack([np.minimum(tile_v[:, 0] * lo_s, tile_v[:, 0] * hi_s),
+                               np.maximum(tile_v[:, 1] * lo_s, tile_v[:, 1] * hi_s)], 1)
+            self.v_range = (min(v.min() * lo_s, v.min() * hi_s), max(v.max() * lo_s, v.max() * hi_s))
+            # float32 rounding of v * scale must never fall outside a range: widen a little
+            tile_v = tile_v + np.array([-1.0, 1.0]) * (1e-4 + 1e-5 * np.abs(tile_v))
+            extra = [vs_pad.ravel(), vs_seg]
+        self.bufs = [rt.to_device(a) for a in (u_pad, seg_lo, seg_hi, v, tile_u, tile_v, *extra)]
 
 
 def project_views(objects, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, *, cull: bool = True,
-                  chunk_views: int | None = None, out=None) -> np.ndarray:
-    """Exact line integrals of per-view quadric objects on a flat detector.
+                  chunk_views: int | None = None, out=None, v_scale=None) -> np.ndarray:
+    """Exact line integrals of per-view quadric objects on a flat detector (or flat-equivalent cells).
 
     Parameters
     ----------
@@ -350,6 +372,10 @@ def project_views(objects, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, *, cu
         Views per kernel launch (default: ``CHUNK_CELLS`` output cells per launch).
     out : (m, n_rows, n_cols) float32 array, optional
         Written in place and returned.
+    v_scale : (n_cols,) array, optional
+        Cells at the flat-equivalent points ``(u[c], v[r] * v_scale[c])`` (a cylindrical
+        detector: :meth:`clrecon.core.detector.CylindricalDetector.ray_cells`; kernel variant
+        ``CURVED``). None: the flat cells ``(u[c], v[r])``.
 
     Returns
     -------
@@ -371,9 +397,11 @@ def project_views(objects, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, *, cu
     if m == 0:
         return out
     rt = rt or get_runtime()
-    lay = _Layout(u, v, rt)
+    lay = _Layout(u, v, rt, v_scale)
     step = chunk_views or max(1, CHUNK_CELLS // (lay.n_rows * lay.n_cols))
-    kern = rt.kernel("project.cl", "project", VW=VW, LX=lay.lx, LY=lay.ly, CULL=int(cull), LIST_MAX=LIST_MAX)
+    curved = {"CURVED": 1} if lay.curved else {}
+    kern = rt.kernel("project.cl", "project", VW=VW, LX=lay.lx, LY=lay.ly, CULL=int(cull), LIST_MAX=LIST_MAX,
+                     **curved)
     on_device = has_fp64(rt)
     view_rec = np.zeros((m, VIEW_REC))
     view_rec[:, 0:3], view_rec[:, 3:6], view_rec[:, 6:9] = det - src, eu, ev
@@ -495,13 +523,37 @@ def phantom_for_scene(scene):
     return phantom
 
 
+def spot_frames(det, angle_rad, source_z_mm, shift_mm):
+    """Frames of the flat-equivalent plane of a (possibly shifted) focal spot, for :func:`project_views`.
+
+    ``det`` a detector model, ``angle_rad``, ``source_z_mm`` (m,) the focal centre, ``shift_mm``
+    (3,) the spot's offset (a, b, c) in the focal-centre frame
+    (:func:`clrecon.core.detector.spot_shift_in_frame`). Returns ``(spot, plane_centre, e_u, e_v)``
+    (m, 3) each and the cells ``(u_eq, v_eq, v_scale)``: the plane lies at distance SDD from the
+    spot along the central ray n, so that ``plane_centre + u_eq e_u + v_eq v_scale e_v`` is on
+    the ray from the spot through each cell. For the flat detector (no shift) these are its own
+    frames and cells, ``v_scale = None``.
+    """
+    src, centre, eu, ev = det.frames(angle_rad, source_z_mm)
+    u_eq, v_scale, c_off = det.ray_cells(shift_mm)
+    if v_scale is None:
+        return (src, centre, eu, ev), (u_eq, det.v_mm(), None)
+    a, b, c = (float(x) for x in shift_mm)
+    n = (centre - src) / det.sdd_mm
+    spot = src + a * n + b * eu + c * ev
+    return (spot, spot + det.sdd_mm * n, eu, ev), (u_eq, det.v_mm() - c_off, v_scale)
+
+
 def project(scene, table, rt=None, *, chunk_views: int | None = None, cull: bool = True) -> np.ndarray:
     """Line integrals of the scene's phantom for every projection of ``table``.
 
     The phantom is posed at ``(table.state_cardiac, table.state_resp)`` per projection; the
-    frames come from :func:`clrecon.core.conventions.detector_frames` with the scene's SID/SDD
-    and ``(table.angle_rad, table.source_z_mm)``; cells from ``detector_coords``. Chunked
-    internally, so memory stays bounded whatever ``len(table)``.
+    frames and cells come from the scene's detector model (``scene.scanner.detector_model``:
+    the flat panel's :func:`clrecon.core.conventions.detector_frames` and ``detector_coords``,
+    or the cylindrical arc's flat-equivalent cells, :func:`spot_frames`) with
+    ``(table.angle_rad, table.source_z_mm)`` and, with a flying focal spot, each projection's
+    focal-spot shift (``table.focal_shift``; projections are grouped by focal-spot state).
+    Chunked internally, so memory stays bounded whatever ``len(table)``.
 
     Dispatch by phantom source: a source that carries its own projector
     (``carries_projector``, e.g. the voxel phantom) gets each chunk's states and frames
@@ -515,18 +567,45 @@ def project(scene, table, rt=None, *, chunk_views: int | None = None, cull: bool
     sc = scene.scanner
     phantom = phantom_for_scene(scene)
     own = getattr(phantom, "carries_projector", False)
-    u = detector_coords(sc.n_cols, sc.col_pitch_mm)
-    v = detector_coords(sc.n_rows, sc.row_pitch_mm)
     n = len(table)
     out = np.empty((n, sc.n_rows, sc.n_cols), np.float32)
     step = chunk_views or max(1, CHUNK_CELLS // (sc.n_rows * sc.n_cols))
     rt = rt or get_runtime()
+    if sc.detector == "flat":
+        u = detector_coords(sc.n_cols, sc.col_pitch_mm)
+        v = detector_coords(sc.n_rows, sc.row_pitch_mm)
+        for a in range(0, n, step):
+            sl = slice(a, min(n, a + step))
+            src, det, eu, ev = detector_frames(table.angle_rad[sl], table.source_z_mm[sl], sc.sid_mm, sc.sdd_mm)
+            if own:
+                phantom.project(table.state_cardiac[sl], table.state_resp[sl], src, det, eu, ev, u, v, rt=rt,
+                                out=out[sl])
+                continue
+            objs = phantom.objects_batch(table.state_cardiac[sl], table.state_resp[sl])
+            project_views(objs, src, det, eu, ev, u, v, rt=rt, cull=cull, out=out[sl])
+        return out
+    dm = sc.detector_model
+    frame_shift = spot_shift_in_frame(table.shifts, sc.sid_mm)            # (n, 3)
+    states, inverse = np.unique(frame_shift, axis=0, return_inverse=True)
+    inverse = np.asarray(inverse).reshape(-1)
+    # chunks of ``step`` views; the phantom is posed once per chunk (its per-call cost is fixed),
+    # then each focal-spot state's views are projected with that state's flat-equivalent cells
     for a in range(0, n, step):
-        sl = slice(a, min(n, a + step))
-        src, det, eu, ev = detector_frames(table.angle_rad[sl], table.source_z_mm[sl], sc.sid_mm, sc.sdd_mm)
-        if own:
-            phantom.project(table.state_cardiac[sl], table.state_resp[sl], src, det, eu, ev, u, v, rt=rt, out=out[sl])
-            continue
-        objs = phantom.objects_batch(table.state_cardiac[sl], table.state_resp[sl])
-        project_views(objs, src, det, eu, ev, u, v, rt=rt, cull=cull, out=out[sl])
+        b = min(n, a + step)
+        objs = None if own else phantom.objects_batch(table.state_cardiac[a:b], table.state_resp[a:b])
+        for k, shift in enumerate(states):
+            loc = np.flatnonzero(inverse[a:b] == k)
+            if not len(loc):
+                continue
+            rows = a + loc
+            frames, (u, v, vs) = spot_frames(dm, table.angle_rad[rows], table.source_z_mm[rows], shift)
+            whole = len(loc) == b - a
+            dest = out[a:b] if whole else np.empty((len(rows), sc.n_rows, sc.n_cols), np.float32)
+            if own:
+                phantom.project(table.state_cardiac[rows], table.state_resp[rows], *frames, u, v, rt=rt, out=dest,
+                                v_scale=vs)
+            else:
+                project_views(objs if whole else objs[loc], *frames, u, v, rt=rt, cull=cull, out=dest, v_scale=vs)
+            if not whole:
+                out[rows] = dest
     return out

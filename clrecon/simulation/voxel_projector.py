@@ -110,7 +110,7 @@ def _check_frames(src, det_centre, e_u, e_v, u_mm, v_mm):
 
 # ---------------------------------------------------------------------------------------
 def project_volume(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, *,
-                   chunk_views: int | None = None, out=None) -> np.ndarray:
+                   chunk_views: int | None = None, out=None, v_scale=None) -> np.ndarray:
     """Line integrals of a voxel volume on a flat detector (Joseph's method, OpenCL).
 
     Parameters
@@ -131,6 +131,10 @@ def project_volume(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v
         Views per kernel launch (default: ``CHUNK_CELLS`` output cells per launch).
     out : (m, n_rows, n_cols) C-contiguous float32 array, optional
         Written in place and returned.
+    v_scale : (n_cols,) array, optional
+        Cells at the flat-equivalent points ``(u[c], v[r] * v_scale[c])`` of a cylindrical
+        detector (:meth:`clrecon.core.detector.CylindricalDetector.ray_cells`; kernel variant
+        ``CURVED``); None: flat cells.
 
     Returns
     -------
@@ -156,10 +160,18 @@ def project_volume(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v
     rt = rt or get_runtime()
     nz, ny, nx = mu.shape
     views = np.concatenate([(src - origin) / spacing, det - src, eu, ev], axis=1)      # (m, VIEW_REC)
-    kern = rt.kernel("voxel_project.cl", "voxel_project")
+    n_rows, n_cols = len(v), len(u)
+    extra = []
+    if v_scale is not None:
+        vs = np.asarray(v_scale, np.float64)
+        if vs.shape != (n_cols,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
+            raise ValueError(f"v_scale must be {n_cols} finite numbers > 0, got shape {vs.shape}")
+        kern = rt.kernel("voxel_project.cl", "voxel_project", CURVED=1)
+        extra = [rt.to_device(vs)]
+    else:
+        kern = rt.kernel("voxel_project.cl", "voxel_project")
     mu_buf = rt.to_device(mu, np.float32, "mu")
     u_buf, v_buf = rt.to_device(u), rt.to_device(v)
-    n_rows, n_cols = len(v), len(u)
     step = int(chunk_views or max(1, CHUNK_CELLS // (n_rows * n_cols)))
     pending = []
     for a in range(0, m, step):
@@ -168,7 +180,7 @@ def project_volume(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v
         out_buf = rt.empty((b - a, n_rows, n_cols))
         ev_k = kern(rt.queue, (n_cols, n_rows, b - a), None, mu_buf, np.int32(nx), np.int32(ny), np.int32(nz),
                     np.float32(spacing[0]), np.float32(spacing[1]), np.float32(spacing[2]),
-                    view_buf, u_buf, v_buf, np.int32(n_cols), np.int32(n_rows), out_buf)
+                    view_buf, u_buf, v_buf, np.int32(n_cols), np.int32(n_rows), *extra, out_buf)
         copy = rt.cl.enqueue_copy(rt.queue, out[a:b], out_buf, wait_for=[ev_k], is_blocking=False)
         pending.append((copy, view_buf, out_buf))       # buffers stay referenced until copied
         if len(pending) > 1:                            # at most two chunks in flight
@@ -179,10 +191,11 @@ def project_volume(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v
 
 
 # ---------------------------------------------------------------------------------------
-def _rays(src, det, eu, ev, u, v, origin, spacing):
+def _rays(src, det, eu, ev, u, v, origin, spacing, v_scale=None):
     """Per ray (flattened view, row, col): a (R, 3), b (R, 3) in index units and |d| (R,) mm."""
+    vv = v[:, None] * (np.ones(len(u)) if v_scale is None else np.asarray(v_scale, np.float64))[None, :]
     d = (det - src)[:, None, None, :] + u[None, None, :, None] * eu[:, None, None, :] \
-        + v[None, :, None, None] * ev[:, None, None, :]
+        + vv[None, :, :, None] * ev[:, None, None, :]
     d = d.reshape(-1, 3)
     a = np.repeat((src - origin) / spacing, len(u) * len(v), axis=0)
     return a, d / spacing, np.linalg.norm(d, axis=-1)
@@ -228,7 +241,8 @@ def ray_samples(origin_mm, spacing_mm, shape_zyx, src, det_centre, e_u, e_v, u_m
     return np.where(hit, hi - lo + 1, 0).astype(np.int64).reshape(len(src), len(v), len(u))
 
 
-def project_volume_reference(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm) -> np.ndarray:
+def project_volume_reference(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm,
+                             v_scale=None) -> np.ndarray:
     """:func:`project_volume` in float64 NumPy, the same algorithm (for tests; small inputs).
 
     Vectorised over rays: for each dominant axis, one pass over its planes for all rays of
@@ -240,7 +254,7 @@ def project_volume_reference(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_
     vol = np.asarray(mu, np.float64)
     n = np.array(vol.shape[::-1])                      # (nx, ny, nz)
     volx = np.transpose(vol, (2, 1, 0))                # volx[ix, iy, iz]
-    a, b, length = _rays(src, det, eu, ev, u, v, origin, spacing)
+    a, b, length = _rays(src, det, eu, ev, u, v, origin, spacing, v_scale)
     t0, t1, hit = _clip(a, b, n)
     hit &= length > 0
     k_all = _dominant(b)

@@ -321,7 +321,7 @@ class VoxelPhantom:
         return out
 
     # -- projection ------------------------------------------------------------------------
-    def project(self, c, a, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, out=None) -> np.ndarray:
+    def project(self, c, a, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, out=None, v_scale=None) -> np.ndarray:
         """Line integrals of the phantom posed at per-view states (c, a) (m,), (m, n_rows, n_cols) float32.
 
         Views are grouped by the frames they need; each frame is loaded (lazily, at most two in
@@ -348,7 +348,7 @@ class VoxelPhantom:
             views = np.flatnonzero(sel.any(axis=1))
             wk = (w * sel).sum(axis=1)[views].astype(np.float32)
             p = project_volume(self.frame(k), g.origin_mm, g.spacing_mm, src[views], det[views], eu[views], ev[views],
-                               u_mm, v_mm, rt=rt)
+                               u_mm, v_mm, rt=rt, v_scale=v_scale)
             if len(views) == m and np.all(wk == 1.0):
                 out += p
             else:
