@@ -53,6 +53,7 @@ TRACE_MARGIN_S = 5.0
 
 # the registries' names (interpolation methods: clrecon.reconstruction.interpolation; ramp-filter windows:
 # clrecon.reconstruction.filters); those packages import only clrecon.core
+from clrecon.reconstruction.backprojectors import BACKPROJECTORS  # noqa: E402
 from clrecon.reconstruction.filters import FILTERS as _FILTER_REGISTRY  # noqa: E402
 from clrecon.reconstruction.interpolation import METHODS as _METHOD_REGISTRY  # noqa: E402
 from clrecon.reconstruction.interpolation.local_linear import LL_MAX_SLOTS, LL_POINT_RULES  # noqa: E402
@@ -210,6 +211,10 @@ class ReconConfig(Section):
     max_turns: int = F(0, NONNEGINT, "0: every candidate turn within the SSRB window; N > 0: only the N candidates "
                        "nearest in z per (slice, view), for every method")
     filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
+    backprojector: str = F("direct", one_of(BACKPROJECTORS), "FBP path (clrecon.reconstruction.backprojectors): "
+                           "'direct' fan-beam backprojection of every view (the paper runs), or 'parallel-rebin' "
+                           "(each interpolated sinogram rebinned to V/2 parallel views over pi, then parallel FBP; "
+                           "needs an even views_per_rotation)")
     volume_dtype: str = F("float32", one_of(("float32", "float16")), "on-disk dtype of the run's volumes: "
                           "'float16' halves volumes.h5 (values within 2^-11 relative, <= 0.5 HU below 2048 HU; "
                           "the metrics are computed from what is stored)")
@@ -393,6 +398,9 @@ def _check_consistency(s: Scene, prefix: str) -> None:
     sc, rc = s.scanner, s.recon
     if sc.sdd_mm <= sc.sid_mm:
         raise SceneError(f"{prefix}scanner.sdd_mm = {sc.sdd_mm}: must be greater than scanner.sid_mm = {sc.sid_mm}")
+    if rc.backprojector == "parallel-rebin" and sc.views_per_rotation % 2:
+        raise SceneError(f"{prefix}recon.backprojector = 'parallel-rebin': needs an even scanner.views_per_rotation "
+                         f"(conjugate rays half a rotation apart), got {sc.views_per_rotation}; use 'direct'")
     if s.scan.n_projections == 0 and s.scan.coverage_mm <= sc.collimation_iso_mm:
         raise SceneError(f"{prefix}scan.coverage_mm = {s.scan.coverage_mm}: must exceed the collimation "
                          f"W = {sc.collimation_iso_mm:.2f} mm")
