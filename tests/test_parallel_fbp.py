@@ -13,14 +13,15 @@ import math
 
 import numpy as np
 import pytest
+from test_fbp import disk_sinogram, radius_map, rel_max_err
 
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import SceneError
+from clrecon.evaluation import groundtruth, truth_cache
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction import parallel_fbp as pf
 from clrecon.reconstruction.fbp import FanBeamGeometry
-from clrecon.reconstruction.reconstruct import ReconstructionConfig
-from test_fbp import disk_sinogram, radius_map, rel_max_err
+from clrecon.reconstruction.reconstruct import ReconstructionConfig, Targets
 
 # One table for every tolerance in this file: (quantity, why this size).
 TOL = {
@@ -294,3 +295,20 @@ def test_scene_key_and_reconstruction_dispatch():
         s.replace(recon={"backprojector": "parallel-rebin"}, scanner={"views_per_rotation": 91})
     cfg = ReconstructionConfig.from_scene(s.replace(recon={"backprojector": "parallel-rebin"}))
     assert cfg.backprojector == "parallel-rebin"
+
+
+def test_ground_truth_follows_the_backprojector():
+    """The truth is reconstructed like the images (one resolution floor); its cache key says how."""
+    s = load_scene("tiny")
+    sp = s.replace(recon={"backprojector": "parallel-rebin"})
+    assert groundtruth.GroundTruthConfig.from_scene(sp).backprojector == "parallel-rebin"
+    z = np.array([0.0])
+    tg = (s.cardiac_targets[:1], s.resp_targets[:1])
+    t = Targets(*tg)
+    assert truth_cache.truth_key(s, z, t) != truth_cache.truth_key(sp, z, t)
+    # direct: the key has no backprojector entry, so the caches written before the option stay valid
+    assert truth_cache.truth_key(s, z, t) == truth_cache.truth_key(s.replace(recon={"backprojector": "direct"}), z, t)
+    sino = np.random.default_rng(2).standard_normal((3, sp.scanner.views_per_rotation, sp.scanner.n_cols))
+    cfg = groundtruth.GroundTruthConfig.from_scene(sp)
+    want = fbp_mod.mu_to_hu(pf.fbp_parallel(sino, cfg.fbp, cfg.filter), cfg.mu_water_per_mm)
+    assert np.array_equal(groundtruth._truth_fbp(cfg, sino, batch=2), want.astype(np.float32))

@@ -38,6 +38,8 @@ def truth_key(scene, slices_z, targets) -> str:
                "targets": [list(targets.cardiac), list(targets.resp)],
                "dims": [scene.has_cardiac, scene.has_respiratory],
                "projector": PROJECTOR_VERSION, "truth": TRUTH_VERSION}
+    if rc.get("backprojector", "direct") != "direct":  # (absent for direct: the keys of older caches stay)
+        payload["backprojector"] = rc["backprojector"]
     if hasattr(scene.phantom, "content_hash"):  # a phantom read from files: their content
         payload["phantom_content"] = scene.phantom.content_hash()
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:24]
