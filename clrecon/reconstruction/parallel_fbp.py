@@ -39,6 +39,7 @@ images (B, ny, nx) float32 mu in 1/mm, ``img[y, x]``.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -165,7 +166,9 @@ class ParallelFBP:
     and trig tables on the device and the filter response. :meth:`images` takes a device buffer
     in :func:`clrecon.reconstruction.fbp.interleave_batch`'s layout (G, V, C + 2, 16) of
     *unfiltered* line integrals (as :func:`clrecon.reconstruction.interpolation.weights.apply_weights_interleaved`
-    writes it) and returns mu images (16 G, ny, nx) float32.
+    writes it) and returns mu images (16 G, ny, nx) float32. ``workers``: threads of the host
+    filter's FFTs (default: every core, as the OpenCL kernels use them; rows are filtered
+    independently, so the result does not depend on it).
     """
 
     def __init__(self, fan: fbp_mod.FanBeamGeometry, window: str = "ram-lak", *, fan_angles=None, runtime=None,
@@ -175,7 +178,7 @@ class ParallelFBP:
         self.rt = runtime or get_runtime()
         self.n_pad = padded_length(self.par.n_s)
         self.half = ramp_response(self.par, window, self.n_pad)[:self.n_pad // 2 + 1].astype(np.float32)
-        self.workers = workers
+        self.workers = workers if workers is not None else (os.cpu_count() or 1)
         self._table, self._trig = _tables(fan, self.par, fan_angles, self.rt)
 
     def release(self) -> None:
