@@ -43,9 +43,9 @@ TOL = {
     "water_std_hu": 0.5,
     # centroid of an off-centre dense disk vs its true centre, in pixels.
     "centroid_px": 0.1,
-    # disk phantom: MAE vs the exact image, parallel path minus direct path (HU), one-sided: the
-    # rebinning adds one interpolation (a little blur), which against sharp disk edges lowers
-    # the MAE (measured 8.2 against 11.9 HU here); the path must not be worse.
+    # disk phantom: |MAE vs the exact image, parallel path minus direct path| (HU), the issue's
+    # goal; measured -0.25 HU (11.63 against 11.88) with ds = tau / 2. With ds = tau the extra
+    # interpolation smooths the image enough to move it by -3.7 HU (8.2 against 11.9).
     "mae_vs_direct_hu": 0.5,
 }
 
@@ -125,8 +125,8 @@ def test_parallel_geometry():
     par = pf.parallel_geometry(CT)
     assert par.n_angles == CT.n_views // 2
     assert par.dtheta_rad == pytest.approx(math.pi / par.n_angles)
-    # ds: SID x the middle columns' fan-angle step, within 0.1 % of the isocentre pitch tau
-    assert par.ds_mm == pytest.approx(CT.iso_col_pitch_mm, rel=1e-3)
+    # ds: SID x the middle columns' fan-angle step / S_OVERSAMPLE, within 0.1 % of tau / S_OVERSAMPLE
+    assert par.ds_mm == pytest.approx(CT.iso_col_pitch_mm / pf.S_OVERSAMPLE, rel=1e-3)
     # the s grid covers the FOV circle with one sample to spare on either side
     s = par.s_coords_mm()
     assert s[1] <= -CT.fov_radius_mm and s[-2] >= CT.fov_radius_mm
@@ -268,7 +268,7 @@ def test_off_centre_disk_position(beta0):
 
 
 def test_accuracy_against_direct_on_a_disk_phantom():
-    """MAE against the exact image: the parallel path no worse than the direct path's (+ TOL)."""
+    """MAE against the exact image: the parallel path's within TOL of the direct path's."""
     disks = [(0.0, 0.0, 160.0, 0.0193), (40.0, -30.0, 25.0, 0.02), (-60.0, 30.0, 15.0, -0.01),
              (20.0, 70.0, 8.0, 0.015)]
     sino = sum(disk_sinogram(CT, (cx, cy), r, mu) for cx, cy, r, mu in disks)[None]
@@ -277,7 +277,7 @@ def test_accuracy_against_direct_on_a_disk_phantom():
     to_hu = 1000.0 / fbp_mod.MU_WATER_PER_MM
     mae_d = float(np.abs(fbp_mod.fbp(sino, CT)[0] - truth)[m].mean()) * to_hu
     mae_p = float(np.abs(pf.fbp_parallel(sino, CT)[0] - truth)[m].mean()) * to_hu
-    assert mae_p < mae_d + TOL["mae_vs_direct_hu"], (mae_p, mae_d)
+    assert abs(mae_p - mae_d) < TOL["mae_vs_direct_hu"], (mae_p, mae_d)
 
 
 def test_windows_and_batch_lanes_are_independent():
