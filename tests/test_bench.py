@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from clrecon.bench import paper
-from clrecon.bench.backprojector import bench_backprojector, report_lines
 from clrecon.bench import suite as bench
+from clrecon.bench.backprojector import bench_backprojector, report_lines
 from clrecon.cli import build_parser
 from clrecon.core.errors import ClreconError
 from clrecon.reconstruction import fbp
