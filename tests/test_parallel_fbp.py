@@ -112,12 +112,17 @@ def reference_filter(p: np.ndarray, par: pf.ParallelGeometry) -> np.ndarray:
     return (ds * out).reshape(np.shape(p))
 
 
-def _filter_host(p: np.ndarray, par: pf.ParallelGeometry, window: str = "ram-lak") -> np.ndarray:
-    """The module's interleaved host filter on (B, n_angles, n_s) sinograms."""
-    obj = pf.ParallelFBP.__new__(pf.ParallelFBP)  # the filter alone: no device tables needed
+def _filter_obj(par: pf.ParallelGeometry, window: str = "ram-lak") -> pf.ParallelFBP:
+    """A ParallelFBP with only its host filter set up (no device tables needed)."""
+    obj = pf.ParallelFBP.__new__(pf.ParallelFBP)
     obj.par, obj.n_pad, obj.workers = par, pf.padded_length(par.n_s), None
     obj.half = pf.ramp_response(par, window, obj.n_pad)[:obj.n_pad // 2 + 1].astype(np.float32)
-    return pf._ungroup(obj.filter_interleaved(pf._groups(p)), p.shape[0])
+    return obj
+
+
+def _filter_host(p: np.ndarray, par: pf.ParallelGeometry, window: str = "ram-lak") -> np.ndarray:
+    """The module's interleaved host filter on (B, n_angles, n_s) sinograms."""
+    return pf._ungroup(_filter_obj(par, window).filter_interleaved(pf._groups(p)), p.shape[0])
 
 
 # ---------------------------------------------------------------------------------------
@@ -238,6 +243,10 @@ def test_filter_matches_direct_convolution_and_windows():
     par = pf.parallel_geometry(SMALL)
     p = np.random.default_rng(5).standard_normal((3, par.n_angles, par.n_s)).astype(np.float32)
     assert rel_max_err(_filter_host(p, par), reference_filter(p, par)) < TOL["filter_f32"]
+    # filtered in chunks of views (and a partial last chunk): the same bits
+    obj = _filter_obj(par)
+    g = pf._groups(p)
+    assert np.array_equal(obj.filter_interleaved(g, views_per_chunk=7), obj.filter_interleaved(g))
     # same ramp as the fan path (which is h/2 at the isocentre pitch) with tau = ds: twice its response
     fan_like = dataclasses.replace(SMALL, col_pitch_mm=par.ds_mm * SMALL.sdd_mm / SMALL.sid_mm, n_cols=par.n_s)
     for w in fbp_mod.WINDOWS:

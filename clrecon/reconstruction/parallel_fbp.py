@@ -209,16 +209,23 @@ class ParallelFBP:
                   np.int32(fan.n_views), np.int32(fan.n_cols), np.int32(par.n_s), wait_for=wait_for)
         return out, ev
 
-    def filter_interleaved(self, par16: np.ndarray) -> np.ndarray:
-        """Ramp-filter (G, V/2, n_s, 16) parallel sinograms along s (float32, a new array)."""
+    def filter_interleaved(self, par16: np.ndarray, views_per_chunk: int = 64) -> np.ndarray:
+        """Ramp-filter (G, V/2, n_s, 16) parallel sinograms along s (float32, a new array).
+
+        ``views_per_chunk`` views at a time, so the padded work array and its spectrum stay at a
+        few tens of MB (each row is filtered alone: the result does not depend on the chunking).
+        """
         n_s = self.par.n_s
-        shape = par16.shape[:2] + (self.n_pad, LANES)
-        work = np.zeros(shape, np.float32)
-        work[:, :, :n_s] = par16
-        spec = scipy.fft.rfft(work, axis=2, workers=self.workers)
-        spec *= self.half[:, None]
-        return np.ascontiguousarray(scipy.fft.irfft(spec, n=self.n_pad, axis=2, workers=self.workers)[:, :, :n_s],
-                                    dtype=np.float32)
+        out = np.empty(par16.shape, np.float32)
+        work = np.zeros((par16.shape[0], views_per_chunk, self.n_pad, LANES), np.float32)
+        for v0 in range(0, par16.shape[1], views_per_chunk):
+            blk = par16[:, v0:v0 + views_per_chunk]
+            w = work[:, :blk.shape[1]]
+            w[:, :, :n_s] = blk  # samples n_s.. stay zero: the padding
+            spec = scipy.fft.rfft(w, axis=2, workers=self.workers)
+            spec *= self.half[:, None]
+            out[:, v0:v0 + blk.shape[1]] = scipy.fft.irfft(spec, n=self.n_pad, axis=2, workers=self.workers)[:, :, :n_s]
+        return out
 
     def backproject(self, filtered16, n_groups: int, wait_for=None) -> np.ndarray:
         """Backproject a device buffer (G, V/2, n_s, 16) of filtered parallel sinograms: (16 G, ny, nx) mu."""
