@@ -27,8 +27,8 @@ Steps, for a batch of fan sinograms (B, V, C) of line integrals on one geometry:
    + y sin theta_i)``, linear in s, dtheta = pi / (V/2) = dbeta; 0 outside the FOV circle.
 
 Sampling: ds is SID times the fan-angle step of the two middle columns over
-:data:`S_OVERSAMPLE` = 2 (for today's flat detector 0.49995 x the isocentre column pitch
-tau = col_pitch SID/SDD: with ds = tau the two interpolations in s, rebinning and
+:data:`S_OVERSAMPLE` = 2 (for today's flat detector tau / 2 to 1e-7, tau = the isocentre column pitch
+col_pitch SID/SDD: with ds = tau the two interpolations in s, rebinning and
 backprojection, blur the image visibly more than the direct path), and the s grid spans
 the FOV circle plus one sample on either side, so every pixel inside the FOV reads two
 samples in range. Accuracy and speed trade-offs (two interpolations instead of one: a
