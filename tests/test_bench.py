@@ -9,6 +9,7 @@ import pytest
 
 from clrecon.bench import paper
 from clrecon.bench import suite as bench
+from clrecon.bench.backprojector import bench_backprojector, report_lines
 from clrecon.cli import build_parser
 from clrecon.core.errors import ClreconError
 from clrecon.reconstruction import fbp
@@ -112,3 +113,18 @@ def test_paper_sections_quick_tiny(tmp_path):
     bench.write_json(res, tmp_path / "p.json")
     back = json.loads((tmp_path / "p.json").read_text())
     assert set(paper.SECTIONS) <= set(back)
+
+
+def test_backprojector_section_tiny():
+    """Every option runs on the same sinograms; speedup is over direct; the images are compared."""
+    res = bench_backprojector(scene="tiny", n_images=3, repeats=1)
+    assert set(res["options"]) == {"direct", "parallel-rebin"}
+    o = res["options"]
+    assert o["direct"]["speedup"] == 1.0
+    assert o["parallel-rebin"]["speedup"] == pytest.approx(
+        o["parallel-rebin"]["images_per_s"] / o["direct"]["images_per_s"])
+    pd = res["pixel_diff_hu"]
+    assert 0.0 < pd["rms"] <= pd["max"] < 1e4
+    text = bench.format_report({"machine": bench.machine(), "backprojector": res})
+    assert "parallel-rebin" in text and text.count("\n") >= len(report_lines(res)) - 1
+    assert "backprojector" in bench.SECTIONS

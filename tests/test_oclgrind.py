@@ -170,6 +170,32 @@ def test_backprojection_kernels(grind, clean):
 
 
 # ---------------------------------------------------------------------------------------
+# kernels/parallel.cl (recon.backprojector = "parallel-rebin")
+def test_parallel_rebin_kernels(grind, clean):
+    from clrecon.core.runtime import get_runtime
+    from clrecon.reconstruction import fbp
+    from clrecon.reconstruction import parallel_fbp as pf
+
+    geom = fbp.FanBeamGeometry(sid_mm=100.0, sdd_mm=200.0, n_cols=13, col_pitch_mm=6.0, n_views=6,
+                               nx=11, ny=9, voxel_mm=4.0, beta0_rad=0.3)
+    rng = np.random.default_rng(5)
+    q = rng.standard_normal((17, geom.n_views, geom.n_cols)).astype(np.float32)   # 2 groups of 16, 1 partial
+    pocl = get_runtime()
+    rebinned = pf.rebin_to_parallel(q, geom, runtime=grind)                        # edge columns clamp, views wrap
+    ref = pf.rebin_to_parallel(q, geom, runtime=pocl)
+    assert np.abs(rebinned - ref).max() < TOL["f32"] * np.abs(ref).max()
+    par = pf.parallel_geometry(geom)
+    p = rng.standard_normal((17, par.n_angles, par.n_s)).astype(np.float32)       # odd group count
+    img = pf.backproject_parallel(p, par, runtime=grind)
+    ref = pf.backproject_parallel(p, par, runtime=pocl)
+    assert np.abs(img - ref).max() < TOL["f32"] * np.abs(ref).max()
+    small = dataclasses.replace(par, nx=3, ny=2)                                   # smaller than a work-group
+    assert np.abs(pf.backproject_parallel(p[:1], small, runtime=grind)
+                  - pf.backproject_parallel(p[:1], small, runtime=pocl)).max() < TOL["f32"] * np.abs(ref).max()
+    clean()
+
+
+# ---------------------------------------------------------------------------------------
 # kernels/project.cl and kernels/voxelise.cl (the cone-beam projector and the voxeliser)
 def _small_scene():
     from clrecon.config.scene import load_scene

@@ -53,6 +53,11 @@ Sections (``--only`` picks some):
     the one-sinogram kernel and a float64 NumPy filter), ground-truth and phantom-truth
     slice-targets/s at 110 slices per target (against the unculled projector + one-sinogram
     kernel, and float64 NumPy point samples).
+``backprojector``
+    :func:`clrecon.bench.backprojector.bench_backprojector`: images/s of every
+    ``recon.backprojector`` on the same 32 thorax sinograms of paper-p010 (512^2, 984 views x
+    900 columns, from the device as the reconstruction runs them), each option's ``speedup``
+    over ``direct`` in the same run (repeats alternating), and the pixel-wise difference (HU).
 ``distributed`` (only with ``--only distributed``: needs ``clrecon[dask]``, a few minutes)
     :func:`clrecon.bench.distributed.bench_distributed_section`: Dask task overhead, the speedup
     of a small run from 1 to 2 local workers, and paper-p002's modelled wall time on 1, 10 and
@@ -85,6 +90,8 @@ from pathlib import Path
 import numpy as np
 
 from clrecon.bench import detectors, paper
+from clrecon.bench.backprojector import bench_backprojector
+from clrecon.bench.backprojector import report_lines as backprojector_report_lines
 from clrecon.bench.distributed import bench_distributed_section
 from clrecon.bench.distributed import report_lines as distributed_report_lines
 from clrecon.bench.fbp import bench_backprojection
@@ -107,7 +114,7 @@ from clrecon.simulation import simulate
 SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling",
             "detectors")
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
-SECTIONS = SECTIONS + paper.SECTIONS
+SECTIONS = SECTIONS + paper.SECTIONS + ("backprojector",)
 #: Sections run only when ``--only`` names them (long).
 EXTRA_SECTIONS = ("tradeoff", "distributed")
 
@@ -679,6 +686,7 @@ def format_report(res: dict) -> str:
                        f"{r['simulate_s']:>7.2f} {r['reconstruct_s']:>7.2f} "
                        f"{1e3 * r['reconstruct_s'] / r['sinograms']:>8.1f}")
     out.extend(paper.format_report(res))
+    out.extend(backprojector_report_lines(res.get("backprojector")))
     tr = res.get("tradeoff")
     if tr:
         ld = tr["load_average_1min"]
@@ -712,6 +720,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "scaling": lambda: bench_scaling_section(quick),
         "detectors": lambda: detectors.bench_detectors_section(quick, repeats),
         **{name: (lambda name=name: paper.run_section(name, quick, repeats)) for name in paper.SECTIONS},
+        "backprojector": lambda: bench_backprojector(n_images=16 if quick else 32, repeats=repeats),
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
         "distributed": lambda: bench_distributed_section(quick, repeats),
     }

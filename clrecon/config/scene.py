@@ -213,6 +213,12 @@ def _check_consistency(s: Scene, prefix: str) -> None:
     sc, rc = s.scanner, s.recon
     if sc.sdd_mm <= sc.sid_mm:
         raise SceneError(f"{prefix}scanner.sdd_mm = {sc.sdd_mm}: must be greater than scanner.sid_mm = {sc.sid_mm}")
+    if rc.backprojector == "parallel-rebin" and sc.views_per_rotation % 2:
+        raise SceneError(f"{prefix}recon.backprojector = 'parallel-rebin': needs an even scanner.views_per_rotation "
+                         f"(conjugate rays half a rotation apart), got {sc.views_per_rotation}; use 'direct'")
+    if rc.backprojector == "parallel-rebin" and sc.flying_focal_spot in ("phi", "phi+z"):
+        raise SceneError(f"{prefix}recon.backprojector = 'parallel-rebin': not with scanner.flying_focal_spot = "
+                         f"{sc.flying_focal_spot!r} (the rebinning assumes one source per view angle); use 'direct'")
     if s.scan.n_projections == 0 and s.scan.coverage_mm <= sc.collimation_iso_mm:
         raise SceneError(f"{prefix}scan.coverage_mm = {s.scan.coverage_mm}: must exceed the collimation "
                          f"W = {sc.collimation_iso_mm:.2f} mm")

@@ -21,6 +21,7 @@ import numpy as np
 
 from clrecon.core.conventions import detector_frames, mu_to_hu, voxel_coords
 from clrecon.reconstruction.fbp import FanBeamGeometry, fbp_batched
+from clrecon.reconstruction.parallel_fbp import fbp_parallel
 from clrecon.simulation import projector, voxelise
 from clrecon.simulation.phantom_sources import phantom_from_config
 from clrecon.simulation.phantoms import layout
@@ -34,7 +35,9 @@ class GroundTruthConfig:
     views per rotation, ``start_angle_deg`` the first view's gantry angle, ``fbp`` the
     reconstruction geometry, ``filter`` the ramp window, ``phantom`` the phantom config (its
     ``mu_water_per_mm`` converts to HU), ``supersample`` the phantom truth's sub-samples per axis,
-    ``scene`` the scene (a voxel phantom timed by the scene's signals needs it; optional).
+    ``scene`` the scene (a voxel phantom timed by the scene's signals needs it; optional),
+    ``backprojector`` the reconstruction's ``recon.backprojector`` (the truth is reconstructed
+    the same way as the methods' images, so that both share one resolution floor).
     """
 
     detector: object
@@ -45,12 +48,14 @@ class GroundTruthConfig:
     phantom: object
     supersample: int = 2
     scene: object = field(default=None, compare=False)
+    backprojector: str = "direct"
 
     @classmethod
     def from_scene(cls, scene) -> GroundTruthConfig:
         return cls(detector=scene.scanner.detector_model, views=scene.scanner.views_per_rotation,
                    start_angle_deg=scene.scan.start_angle_deg, fbp=FanBeamGeometry.from_scene(scene),
-                   filter=scene.recon.filter, phantom=scene.phantom, scene=scene)
+                   filter=scene.recon.filter, phantom=scene.phantom, scene=scene,
+                   backprojector=scene.recon.backprojector)
 
     def source(self):
         """The phantom source (frame states bound from the scene's signals where a voxel phantom needs them)."""
@@ -90,6 +95,16 @@ def groundtruth_sinograms(cfg: GroundTruthConfig, phantom, c: float, a: float, s
     return out.reshape(S, V, det.n_cols)
 
 
+def _truth_fbp(cfg: GroundTruthConfig, sino: np.ndarray, batch: int = 64) -> np.ndarray:
+    """HU images (nz, ny, nx) of the truth's sinograms by the configured backprojector."""
+    if cfg.backprojector == "direct":
+        return fbp_batched(sino, cfg.fbp, cfg.filter, cfg.mu_water_per_mm)
+    out = np.empty((sino.shape[0], cfg.fbp.ny, cfg.fbp.nx), np.float32)
+    for b0 in range(0, sino.shape[0], batch):
+        out[b0:b0 + batch] = mu_to_hu(fbp_parallel(sino[b0:b0 + batch], cfg.fbp, cfg.filter), cfg.mu_water_per_mm)
+    return out
+
+
 def groundtruth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets, rt=None, progress=None, skip=()):
     """Ground-truth CT of every target, yielded as ``(i, j, (nz, ny, nx) float32 HU)``.
 
@@ -103,7 +118,7 @@ def groundtruth_volumes(cfg: GroundTruthConfig, slices_z: np.ndarray, targets, r
             if i * len(targets.resp) + j in skip:
                 continue
             sino = groundtruth_sinograms(cfg, phantom, c, a, slices_z, rt=rt)
-            yield i, j, fbp_batched(sino, cfg.fbp, cfg.filter, cfg.mu_water_per_mm)
+            yield i, j, _truth_fbp(cfg, sino)
             if progress is not None:
                 progress.update(1)
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from clrecon.core import units
 from clrecon.core.versions import PROJECTOR_VERSION
+from clrecon.reconstruction.parallel_fbp import S_OVERSAMPLE
 
 #: Bumped when the truths' computation changes (the key then changes: old entries are unused).
 TRUTH_VERSION = 1
@@ -38,6 +39,8 @@ def truth_key(scene, slices_z, targets) -> str:
                "targets": [list(targets.cardiac), list(targets.resp)],
                "dims": [scene.has_cardiac, scene.has_respiratory],
                "projector": PROJECTOR_VERSION, "truth": TRUTH_VERSION}
+    if rc.get("backprojector", "direct") != "direct":  # (absent for direct: the keys of older caches stay)
+        payload["backprojector"] = {"name": rc["backprojector"], "s_oversample": S_OVERSAMPLE}
     if hasattr(scene.phantom, "content_hash"):  # a phantom read from files: their content
         payload["phantom_content"] = scene.phantom.content_hash()
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:24]

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 from clrecon.core.config import BOOL, NONNEGINT, POS, POSINT, F, Section, _num, _posint, field_of, one_of
 from clrecon.core.errors import SceneError
+from clrecon.reconstruction.backprojectors import BACKPROJECTORS
 from clrecon.reconstruction.filters import FILTERS as _FILTER_REGISTRY
 from clrecon.reconstruction.interpolation import METHODS as _METHOD_REGISTRY
 from clrecon.reconstruction.interpolation.local_linear import LL_MAX_SLOTS, LL_POINT_RULES
@@ -54,6 +55,10 @@ class ReconConfig(Section):
     max_turns: int = F(0, NONNEGINT, "0: every candidate turn within the SSRB window; N > 0: only the N candidates "
                        "nearest in z per (slice, view), for every method")
     filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
+    backprojector: str = F("direct", one_of(BACKPROJECTORS), "FBP path (clrecon.reconstruction.backprojectors): "
+                           "'direct' fan-beam backprojection of every view (the paper runs), or 'parallel-rebin' "
+                           "(each interpolated sinogram rebinned to V/2 parallel views over pi, then parallel FBP; "
+                           "needs an even views_per_rotation)")
     volume_dtype: str = F("float32", one_of(("float32", "float16")), "on-disk dtype of the run's volumes: "
                           "'float16' halves volumes.h5 (values within 2^-11 relative, <= 0.5 HU below 2048 HU; "
                           "the metrics are computed from what is stored)")

@@ -29,7 +29,7 @@ from clrecon.core.conventions import voxel_coords
 from clrecon.core.detector import spot_shift_in_frame
 from clrecon.core.errors import ClreconError
 from clrecon.reconstruction import fbp as fbp_mod
-from clrecon.reconstruction import interpolation, rebin
+from clrecon.reconstruction import interpolation, parallel_fbp, rebin
 from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.scan.table import ProjectionTable
 from clrecon.simulation import noise
@@ -66,7 +66,9 @@ class ReconstructionConfig:
     ``extrapolate`` (local linear's plain fit), ``local_linear_points`` / ``local_linear_count``
     (local linear's neighbours: ``count`` per quadrant or ``count`` nearest), and ``max_turns``
     (0: every candidate turn in the SSRB window; N > 0: the N nearest in z per (slice, view),
-    :func:`limit_turns`, for every method).
+    :func:`limit_turns`, for every method), and ``backprojector``
+    (:mod:`clrecon.reconstruction.backprojectors`: ``"direct"`` fan-beam FBP, or
+    ``"parallel-rebin"``, :mod:`clrecon.reconstruction.parallel_fbp`).
     """
 
     scanner: object
@@ -84,6 +86,7 @@ class ReconstructionConfig:
     local_linear_points: str = "quadrants"
     local_linear_count: int = 2
     max_turns: int = 0
+    backprojector: str = "direct"
 
     @classmethod
     def from_scene(cls, scene) -> ReconstructionConfig:
@@ -94,7 +97,7 @@ class ReconstructionConfig:
                    sigma=rc.sigma, use_cardiac=scene.has_cardiac, use_resp=scene.has_respiratory,
                    resp_bin_width=1.0 / rc.resp_bins, extrapolate=rc.local_linear_extrapolate,
                    local_linear_points=rc.local_linear_points, local_linear_count=rc.local_linear_count,
-                   max_turns=rc.max_turns)
+                   max_turns=rc.max_turns, backprojector=rc.backprojector)
 
 
 def slice_positions(scene, slice_range: tuple | None = None) -> np.ndarray:
@@ -413,6 +416,8 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
     # filtered once per variant instead of once per method and target, the filtered rows go
     # to the device once per variant, and every method interpolates them straight into the
     # backprojector's interleaved layout (no sinogram round trip through the host).
+    # recon.backprojector = "parallel-rebin" filters after the interpolation instead (the ramp
+    # filter in s acts on rebinned parallel rows, which mix fan views): rows stay unfiltered here.
     per_method = {}
     for m, (idx, w, tshape) in sub.items():
         t1 = time.perf_counter()
@@ -427,9 +432,15 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
         times.add(f"plan:{m}", time.perf_counter() - t1)  # the method's share of "plan"
     step = fbp_mod.groups_per_launch(geom) * fbp_mod.BATCH_LANES
     mu_water = cfg.mu_water_per_mm
+    par = None
+    if cfg.backprojector == "parallel-rebin":
+        par = parallel_fbp.ParallelFBP(geom, cfg.filter, runtime=rt)
+    elif cfg.backprojector != "direct":
+        raise ValueError(f"backprojector = {cfg.backprojector!r}: must be 'direct' or 'parallel-rebin'")
     for v in variants:
         t1 = time.perf_counter()
-        fbp_mod.filter_rows(rows[v], geom, cfg.filter, out=rows[v])
+        if par is None:
+            fbp_mod.filter_rows(rows[v], geom, cfg.filter, out=rows[v])
         t_filter = time.perf_counter() - t1
         times.add("fbp", t_filter)
         t1 = time.perf_counter()
@@ -446,7 +457,10 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
                     buf, G = interpolate.apply_weights_interleaved(d_rows, pos_b[b0:b0 + step], w_b[b0:b0 + step],
                                                                    rt=rt)
                     t2 = time.perf_counter()
-                    mu = fbp_mod.backproject_interleaved(buf, G, geom, runtime=rt)
+                    if par is None:
+                        mu = fbp_mod.backproject_interleaved(buf, G, geom, runtime=rt)
+                    else:
+                        mu = par.images(buf, G)
                     buf.release()
                     n = min(step, B - b0)
                     # HU = 1000 (mu - mu_w) / mu_w (conventions.mu_to_hu), in float32 in place
@@ -466,4 +480,6 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
                     progress.update(s1 - s0)
         finally:
             d_rows.release()
+    if par is not None:
+        par.release()
 
