@@ -17,13 +17,14 @@ import json
 import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 try:  # Python >= 3.11
     import tomllib
 except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib
 
+from clrecon.config import dicom_ct_pd
 from clrecon.core.config import (
     BOOL,
     FRAC,
@@ -60,6 +61,8 @@ from clrecon.reconstruction.interpolation.local_linear import LL_MAX_SLOTS, LL_P
 METHODS = _METHOD_REGISTRY.names
 FILTERS = _FILTER_REGISTRY.names
 RHYTHMS = ("periodic", "hrv", "af", "pvc")
+SCAN_SOURCES = ("simulated", "dicom-ct-pd")
+STR = ("a string", lambda x: isinstance(x, str))
 
 
 _f = field_of  # (default, allowed, check, doc)
@@ -114,6 +117,16 @@ class ScanConfig(Section):
     n_projections: int = F(0, NONNEGINT, "if > 0: the scan length in projections (overrides coverage_mm)")
     z_centre_mm: float = F(0.0, NUM, "table position of the scan centre")
     start_angle_deg: float = F(0.0, NUM, "gantry angle of the first view")
+    source: str = F("simulated", one_of(SCAN_SOURCES), "'simulated' (the phantom) or 'dicom-ct-pd' (a measured "
+                    "scan: projections = a folder of DICOM-CT-PD files, one projection each; docs/measured-data.md)")
+    projections: str = F("", STR, "dicom-ct-pd: the folder of projection files (relative: to the scene file)")
+    timestamp_unit: str = F("ms", one_of(("ms", "s")), "dicom-ct-pd: unit of the Timestamp tag (7033,1067)")
+
+    PATH_KEYS: ClassVar[tuple] = ("projections",)
+
+    def check(self) -> None:
+        if self.source == "dicom-ct-pd" and not self.projections:
+            raise SceneError("scan.projections = '': scan.source = 'dicom-ct-pd' needs the folder of projection files")
 
     def feed_mm(self, scanner: ScannerConfig, pitch: float) -> float:
         """Table feed per rotation h = pitch * W (mm)."""
@@ -162,6 +175,19 @@ class SignalsConfig(Section):
     ectopic_rate: float = _f(0.0, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
                              "fraction of beats that are premature (pvc rhythm)")
     frame_time_s: float = F(0.0, NONNEG, "0: continuous motion; > 0: motion frozen in phantom frames of this length")
+    breathing_trace: str = F("", STR, "recorded breathing trace (Varian RPM .vxp, or CSV time_s,amplitude) in place of "
+                             "the breathing model (clrecon.scan.recorded)")
+    ecg_trace: str = F("", STR, "recorded ECG (CSV of R-peak times r_peak_s, or a WFDB record .hea) in place of the "
+                       "rhythm model")
+    trace_align: str = F("offset", one_of(("offset", "beam-on")), "breathing trace time of scan time 0: "
+                         "trace_offset_s, or the first beam-on (ttlin = 1) sample of the .vxp plus trace_offset_s")
+    trace_offset_s: float = F(0.0, NUM, "breathing trace time (s) at scan time 0 (added to the beam-on time "
+                              "with trace_align = 'beam-on')")
+    ecg_offset_s: float = F(0.0, NUM, "ECG time (s) at scan time 0")
+    breathing_inhale: str = F("up", one_of(("up", "down")), "the recorded amplitude rises ('up') or falls ('down') "
+                              "on inhalation")
+
+    PATH_KEYS: ClassVar[tuple] = ("breathing_trace", "ecg_trace")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -261,11 +287,20 @@ class Scene:
 
     # -- what the scene asks for (docs/data-flow.md "Compute only what is asked") -----------------
     @property
+    def measured(self) -> bool:
+        """A measured scan (``scan.source`` not 'simulated'): no phantom, no ground truth."""
+        return self.scan.source != "simulated"
+
+    @property
     def has_cardiac(self) -> bool:
+        if self.measured:  # the cardiac axis exists only with a recorded ECG
+            return bool(self.signals.ecg_trace)
         return self.phantom.cardiac_motion
 
     @property
     def has_respiratory(self) -> bool:
+        if self.measured:
+            return bool(self.signals.breathing_trace)
         return self.phantom.respiratory_motion and not self.signals.breath_hold
 
     @property
@@ -303,11 +338,18 @@ class Scene:
         phantom = {k: v for k, v in d["phantom"].items() if not (k == "kind" and v == "analytic")}
         if hasattr(self.phantom, "content_hash"):  # a phantom read from files: their content, not only their path
             phantom["content"] = self.phantom.content_hash()
+        # recorded traces and a measured series: their content, not only their paths
+        content = recorded_content(self)
         # The amplitude normalisation spans the whole signal trace, whose length depends on
         # the longest scan over *all* the scene's pitches: part of what a projection shows.
         payload = {"scanner": scanner, "scan": {**d["scan"], "pitches": [pitch]},
                    "signals": d["signals"], "phantom": phantom, "projector": PROJECTOR_VERSION,
                    "signal_trace_s": self.trace_duration_s}
+        if content:
+            payload["content"] = content
+        if self.measured:  # the projections are the measured ones: no phantom, no projector
+            payload.pop("phantom")
+            payload.pop("projector")
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
     def replace(self, **sections: Any) -> Scene:
@@ -328,6 +370,67 @@ class Scene:
 
 
 # ---------------------------------------------------------------------------------------
+def file_digest(path) -> str:
+    """BLAKE2b (16 hex) of a file's bytes; a WFDB record (``.hea`` or its base name): of all its files."""
+    p = Path(path)
+    if p.suffix.lower() in (".hea", ".dat") or (not p.suffix and p.with_suffix(".hea").exists()):
+        base = p.with_suffix("")
+        files = sorted(q for q in base.parent.glob(base.name + ".*") if q.is_file())
+    else:
+        files = [p] if p.is_file() else []
+    if not files:
+        raise SceneError(f"{p}: no such file")
+    h = hashlib.blake2b(digest_size=8)
+    for q in files:
+        h.update(q.name.encode())
+        h.update(q.read_bytes())
+    return h.hexdigest()
+
+
+def recorded_content(scene: Scene) -> dict:
+    """Content digests of the scene's recorded inputs (traces, measured series), for the scan hash."""
+    out = {}
+    for key in ("breathing_trace", "ecg_trace"):
+        path = getattr(scene.signals, key)
+        if path:
+            out[key] = file_digest(path)
+    if scene.measured:
+        out["projections"] = dicom_ct_pd.series_signature(scene.scan.projections)
+    return out
+
+
+def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
+    """``[scanner]`` and ``[scan]`` of a measured scene: the DICOM-CT-PD series' geometry.
+
+    A key the scene gives must agree with the series (else a SceneError naming both); the
+    series fills the rest (:func:`clrecon.config.dicom_ct_pd.series_geometry`).
+    """
+    sc_raw = dict(raw.get("scanner", {}) or {})
+    scan_raw = dict(raw.get("scan", {}) or {})
+    scan = parts["scan"]
+    geom = dicom_ct_pd.series_geometry(scan.projections, sc_raw.get("rotation_time_s"), scan.timestamp_unit)
+    for sec, given, derived in (("scanner", sc_raw, geom.scanner), ("scan", scan_raw, geom.scan)):
+        for k, v in derived.items():
+            if k not in given:
+                continue
+            g = tuple(given[k]) if isinstance(given[k], list) else given[k]
+            same = (all(math.isclose(float(a), float(b), rel_tol=1e-5, abs_tol=1e-6) for a, b in zip(g, v, strict=True))
+                    if isinstance(v, tuple) and isinstance(g, tuple) and len(g) == len(v)
+                    else (math.isclose(float(g), float(v), rel_tol=1e-5, abs_tol=1e-6)
+                          if isinstance(v, (int, float)) and isinstance(g, (int, float)) else g == v))
+            if not same:
+                src = geom.tag_of.get(k, "the views' angles and axial positions")
+                raise SceneError(f"{prefix}{sec}.{k} = {given[k]!r} contradicts the DICOM-CT-PD series "
+                                 f"{scan.projections}: {src} gives {v!r}; remove the key or fix it")
+    if geom.scanner["detector"] not in DETECTORS:
+        raise SceneError(f"{prefix}{scan.projections}: (7029,100B) DetectorShape gives detector model "
+                         f"{geom.scanner['detector']!r}, which this build does not have (detector models: "
+                         f"{', '.join(DETECTORS.names)})")
+    scanner = ScannerConfig(**{**sc_raw, **geom.scanner})
+    scan = ScanConfig(**{**scan_raw, **geom.scan})
+    return {"scanner": scanner, "scan": scan}
+
+
 def _suggest(key: str, allowed) -> str:
     near = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.5)
     return f"; did you mean {near[0]!r}?" if near else f"; valid keys: {', '.join(allowed)}"
@@ -378,6 +481,8 @@ def scene_from_dict(raw: dict[str, Any], source: str = "") -> Scene:
         for sec in SECTIONS:
             cls = _section_class(sec, raw.get(sec, {}))
             parts[sec] = _build_section(cls, _resolve_paths(cls, raw.get(sec, {}), source), sec)
+        if parts["scan"].source == "dicom-ct-pd":
+            parts.update(_measured_sections(parts, raw, ""))
     except SceneError as e:
         raise SceneError(f"{prefix}{e}") from None
     for k in ("name", "description"):

@@ -74,7 +74,7 @@ def _run_identity(run_dir: Path, run: RunDirectory) -> str:
 
 # ----------------------------------------------------------------------------------------
 def export(run_dir, fmt: str, method: str | None = None, pitch=None, variant: str | None = None,
-           out=None) -> dict:
+           out=None, keep_identifiers: bool = False) -> dict:
     """Export one source of a run, every target; returns the ``index.json`` dictionary.
 
     ``out`` defaults to ``RUN_DIR/export/<fmt>/<method>[_<pitch>_<variant>]``. Files:
@@ -86,6 +86,16 @@ def export(run_dir, fmt: str, method: str | None = None, pitch=None, variant: st
     writer = WRITERS[fmt]()
     run_dir = Path(run_dir)
     f = RunDirectory(run_dir)
+    if getattr(writer, "scan_export", False):  # the run's projections, not its volumes (dicom-ct-pd)
+        try:
+            out = Path(out) if out is not None else run_dir / "export" / fmt
+            index = writer.export_scan(f, out, pitch=pitch, keep_identifiers=keep_identifiers)
+            (out / "index.json").write_text(json.dumps(index, indent=1))
+            return index
+        finally:
+            f.close()
+    if keep_identifiers:
+        writer.keep_identifiers = True
     try:
         src = f.resolve(method, pitch, variant)
         axes = f.axes

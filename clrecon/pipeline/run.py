@@ -223,7 +223,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                 plan = plans[k]
                 if plan is None:  # not kept (the plans of the whole scan were over the budget): made again
                     t0 = time.perf_counter()
-                    plan = reconstruct.plan(recon_cfg, table, slices_z[sel], targets, run_methods)
+                    plan = reconstruct.plan(recon_cfg, pp.plan_table, slices_z[sel], targets, run_methods)
                     times.add("plan", time.perf_counter() - t0)
                     for m, sec in plan.method_seconds.items():
                         plan_s[m] = plan_s.get(m, 0.0) + sec
