@@ -166,14 +166,15 @@ def _read_header(p: Path, pydicom):
         where = f"({tag[0]:04X},{tag[1]:04X}) " if tag else ""
         raise InputError(f"{p}: tag {where}{missing[0]} is missing; a DICOM-CT-PD projection carries "
                          f"{', '.join(REQUIRED)}, InstanceNumber, Rows, Columns")
-    if (ds.get((0x7FE0, 0x0010)) is None) and "PixelData" not in ds:
-        raise InputError(f"{p}: no PixelData (7FE0,0010); a projection file holds its pixels")
     return out
 
 
 @functools.lru_cache(maxsize=4)
 def _index_cached(folder: str, signature: str) -> SeriesIndex:
-    import pydicom
+    try:
+        import pydicom
+    except ImportError:  # pragma: no cover - an install without the extra
+        raise InputError(f"{folder}: reading DICOM-CT-PD needs pydicom: pip install 'clrecon[measured]'") from None
 
     files = series_files(folder)
     heads = [_read_header(p, pydicom) for p in files]
@@ -288,6 +289,7 @@ def series_geometry(folder, rotation_time_s: float | None, timestamp_unit: str =
                          f"models are centred: expected (column, row) = {want.tolist()} (1-based; a detector "
                          f"offset such as a quarter-channel shift is not modelled on this branch)")
     beta = np.unwrap(ix.phi_rad) + np.pi / 2.0
+    beta -= 2.0 * np.pi * np.floor(beta[0] / (2.0 * np.pi))  # the first view's angle in [0, 2 pi)
     step = 2.0 * np.pi / nv
     if n > 1:
         d = np.diff(beta)

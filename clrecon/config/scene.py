@@ -121,6 +121,9 @@ class ScanConfig(Section):
                     "scan: projections = a folder of DICOM-CT-PD files, one projection each; docs/measured-data.md)")
     projections: str = F("", STR, "dicom-ct-pd: the folder of projection files (relative: to the scene file)")
     timestamp_unit: str = F("ms", one_of(("ms", "s")), "dicom-ct-pd: unit of the Timestamp tag (7033,1067)")
+    flip_channels: bool = F(False, BOOL, "dicom-ct-pd: reverse the channel order of every projection "
+                            "(docs/measured-data.md 'Pixel layout')")
+    flip_rows: bool = F(False, BOOL, "dicom-ct-pd: reverse the detector-row order of every projection")
 
     PATH_KEYS: ClassVar[tuple] = ("projections",)
 
@@ -405,9 +408,11 @@ def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
     A key the scene gives must agree with the series (else a SceneError naming both); the
     series fills the rest (:func:`clrecon.config.dicom_ct_pd.series_geometry`).
     """
-    sc_raw = dict(raw.get("scanner", {}) or {})
-    scan_raw = dict(raw.get("scan", {}) or {})
-    scan = parts["scan"]
+    scan = parts["scanner"], parts["scan"]
+    # the keys the scene gives, as validated (paths resolved against the scene file)
+    sc_raw = {k: getattr(scan[0], k) for k in (raw.get("scanner", {}) or {})}
+    scan_raw = {k: getattr(scan[1], k) for k in (raw.get("scan", {}) or {})}
+    scan = scan[1]
     geom = dicom_ct_pd.series_geometry(scan.projections, sc_raw.get("rotation_time_s"), scan.timestamp_unit)
     for sec, given, derived in (("scanner", sc_raw, geom.scanner), ("scan", scan_raw, geom.scan)):
         for k, v in derived.items():
