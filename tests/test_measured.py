@@ -140,6 +140,13 @@ def test_measured_run_has_no_truth_and_no_identifiers(sim, measured_run):
     export(out, "dicom-ct-pd", out=sim["root"] / "reexp-keep", keep_identifiers=True)
     ds = pydicom.dcmread(sorted((sim["root"] / "reexp-keep" / "projections").glob("*.dcm"))[0])
     assert str(ds.PatientName) == "DOE^JANE"
+    # the volumes as DICOM CT series: the same rule
+    export(out, "dicom", method="nearest", out=sim["root"] / "vol")
+    ds = pydicom.dcmread(sorted((sim["root"] / "vol").rglob("*.dcm"))[0])
+    assert str(ds.PatientName) == "ANONYMOUS" and str(ds.PatientID) == "ANONYMOUS"
+    export(out, "dicom", method="nearest", out=sim["root"] / "vol-keep", keep_identifiers=True)
+    ds = pydicom.dcmread(sorted((sim["root"] / "vol-keep").rglob("*.dcm"))[0])
+    assert str(ds.PatientID) == "PID-4711"
 
 
 def test_import_resumes_after_a_bad_file(sim, measured_run, tmp_path):

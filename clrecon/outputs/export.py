@@ -55,6 +55,7 @@ from clrecon.outputs.volumes import FORMAT_VERSION, list_recons, open_volumes, r
 from clrecon.outputs.writers import WRITERS
 from clrecon.outputs.writers.base import _file_tag, _spacing, source_stem, target_tag  # noqa: F401 (re-exported)
 from clrecon.outputs.writers.dicom import CT_IMAGE_STORAGE, PRIVATE_CREATOR, PRIVATE_GROUP, hu_to_stored  # noqa: F401
+from clrecon.outputs.writers.dicom_ct_pd import input_identifiers
 from clrecon.outputs.writers.nifti import nifti_affine  # noqa: F401 (re-exported)
 
 #: Export formats, in registry order (``clrecon.outputs.writers``).
@@ -94,8 +95,12 @@ def export(run_dir, fmt: str, method: str | None = None, pitch=None, variant: st
             return index
         finally:
             f.close()
-    if keep_identifiers:
-        writer.keep_identifiers = True
+    try:
+        if f.has_results and f.results.get("measured"):  # a patient's scan: anonymous unless asked
+            writer.patient = (input_identifiers(f.scene) if keep_identifiers
+                              else {"PatientName": "ANONYMOUS", "PatientID": "ANONYMOUS"})
+    except StoreError:
+        pass
     try:
         src = f.resolve(method, pitch, variant)
         axes = f.axes
