@@ -411,3 +411,42 @@ def test_sigkill_mid_import_then_resume(sim, measured_run, tmp_path):
     assert np.array_equal(store.read(0, 384), ref.read(0, 384))
     store.close()
     ref.close()
+
+
+def test_cylindrical_ffs_series_maps_onto_the_scanner_keys(sim, tmp_path):
+    """CYLINDRICAL + FFSXY with a quarter-channel offset map onto the cylindrical/FFS scanner keys
+    (scanner.detector, central_col/row, flying_focal_spot, ffs_*); where this build lacks that
+    model the scene load says so in one line."""
+    from clrecon.core.detector import DETECTORS
+
+    exp = _copy(sim, tmp_path)
+    a, r = 5e-4, 0.1
+    files = _files(exp)
+
+    def fl(tag, value):
+        return pydicom.DataElement(tag, "FL", value)
+
+    for k, f in enumerate(files):
+        s = -1.0 if k % 2 == 0 else 1.0  # minus state first
+        def edit(ds, s=s):
+            ds[0x7029, 0x100B] = pydicom.DataElement((0x7029, 0x100B), "CS", "CYLINDRICAL")
+            ds[0x7033, 0x100E] = pydicom.DataElement((0x7033, 0x100E), "CS", "FFSXY")
+            ds[0x7033, 0x100B] = fl((0x7033, 0x100B), s * a)
+            ds[0x7033, 0x100D] = fl((0x7033, 0x100D), s * r)
+            ds[0x7031, 0x1033] = fl((0x7031, 0x1033), [48.75, 4.5])
+        _edit(f, edit)
+    g = dicom_ct_pd.series_geometry(exp / "projections", None)
+    assert g.scanner["detector"] == "cylindrical" and g.scanner["flying_focal_spot"] == "phi"
+    assert np.isclose(g.scanner["ffs_angle_rad"], a, rtol=1e-6) and np.isclose(g.scanner["ffs_radial_mm"], r, rtol=1e-6)
+    assert g.scanner["ffs_z_mm"] == 0.0 and g.scanner["central_col"] == 47.75 and g.scanner["central_row"] == 3.5
+    if "cylindrical" in DETECTORS:  # the model is there (after the merge of issue 17): the scene carries it
+        m = load_scene(exp / "measured.toml")
+        assert m.scanner.detector == "cylindrical" and m.scanner.flying_focal_spot == "phi"
+    else:
+        with pytest.raises(ClreconError, match=r"\(7029,100B\) DetectorShape gives detector model 'cylindrical', "
+                                               r"which this build does not have"):
+            load_scene(exp / "measured.toml")
+    _edit(files[0], lambda ds: ds.__setitem__((0x7033, 0x100B), fl((0x7033, 0x100B), a)))
+    with pytest.raises(ClreconError, match=r"PROJ000001\.dcm: source shifts .* expected -0\.0005, -0\.1, 0 for "
+                                           r"focal-spot state 0 of mode 'phi'"):
+        dicom_ct_pd.series_geometry(exp / "projections", None)

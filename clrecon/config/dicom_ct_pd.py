@@ -236,6 +236,46 @@ def series_index(folder) -> SeriesIndex:
     return _index_cached(folder, series_signature(folder))
 
 
+#: DICOM-CT-PD FlyingFocalSpotMode -> the scanner.flying_focal_spot mode of the FFS model (issue 17)
+FFS_MODES = {"FFSNONE": "none", "FFSXY": "phi", "FFSZ": "z", "FFSXYZ": "phi+z"}
+#: signs of (dphi, dz) per state of the FFS cycle, view k in state k % cycle (as the FFS model's ffs_states)
+FFS_SIGNS = {"none": ((0, 0),), "phi": ((-1, 0), (1, 0)), "z": ((0, -1), (0, 1)),
+             "phi+z": ((-1, -1), (1, -1), (-1, 1), (1, 1))}
+
+
+def _ffs_keys(ix: SeriesIndex, mode: str, nv: int) -> dict:
+    """Scanner keys of the flying focal spot (none: {}), checked against every view's source shifts.
+
+    View k is in state k % cycle with the signs of :data:`FFS_SIGNS` (dphi, dz); the radial shift
+    goes with +dphi. Magnitudes from the first cycle; every view must match within SHIFT_TOL.
+    """
+    signs = np.asarray(FFS_SIGNS[mode], dtype=np.float64)
+    cycle = len(signs)
+    k = np.arange(len(ix)) % cycle
+    if mode == "none":
+        ang = rad = z = 0.0
+    else:
+        if nv % cycle:
+            raise InputError(f"{ix.files[0]}: (7033,1013) NumberofSourceAngularSteps = {nv} with FlyingFocalSpotMode "
+                             f"{mode}: expected a multiple of the focal-spot cycle {cycle}")
+        ang = float(np.abs(ix.dphi_rad[:cycle]).max())
+        z = float(np.abs(ix.dz_mm[:cycle]).max())
+        plus = signs[k[:cycle], 0] > 0
+        rad = float(ix.drho_mm[:cycle][plus].mean()) if plus.any() else 0.0
+    want = np.stack([signs[k, 0] * ang, signs[k, 0] * rad, signs[k, 1] * z])
+    got = np.stack([ix.dphi_rad, ix.drho_mm, ix.dz_mm])
+    tol = np.array([SHIFT_TOL[0], SHIFT_TOL[1], SHIFT_TOL[1]])[:, None]
+    bad = np.flatnonzero((np.abs(got - want) > tol).any(axis=0))
+    if bad.size:
+        j = int(bad[0])
+        raise InputError(f"{ix.files[j]}: source shifts (7033,100B/D/C) = {got[0, j]:.4g} rad, {got[1, j]:.4g} mm, "
+                         f"{got[2, j]:.4g} mm; expected {want[0, j]:.4g}, {want[1, j]:.4g}, {want[2, j]:.4g} for "
+                         f"focal-spot state {k[j]} of mode {mode!r} (view k in state k % {cycle}, minus state first)")
+    if mode == "none":
+        return {}
+    return {"flying_focal_spot": mode, "ffs_angle_rad": ang, "ffs_radial_mm": rad, "ffs_z_mm": z}
+
+
 @dataclass(frozen=True)
 class SeriesGeometry:
     """What a series gives the scene: ``scanner`` and ``scan`` key values, and the per-view geometry.
@@ -276,15 +316,9 @@ def series_geometry(folder, rotation_time_s: float | None, timestamp_unit: str =
     if nv < 2:
         raise InputError(f"{f0}: (7033,1013) NumberofSourceAngularSteps = {nv}; expected views per rotation >= 2")
     ffs = str(c.get("FlyingFocalSpotMode") or "FFSNONE").upper()
-    if ffs != "FFSNONE":
-        raise InputError(f"{f0}: (7033,100E) FlyingFocalSpotMode = {ffs}; this build reconstructs FFSNONE only "
-                         f"(the flying-focal-spot source model is not on this branch)")
-    shifts = np.abs(np.stack([ix.dphi_rad, ix.dz_mm, ix.drho_mm]))
-    bad = np.flatnonzero((shifts[0] > SHIFT_TOL[0]) | (shifts[1] > SHIFT_TOL[1]) | (shifts[2] > SHIFT_TOL[1]))
-    if bad.size:
-        k = int(bad[0])
-        raise InputError(f"{ix.files[k]}: source shifts (7033,100B/C/D) = {ix.dphi_rad[k]:.3g} rad, "
-                         f"{ix.dz_mm[k]:.3g} mm, {ix.drho_mm[k]:.3g} mm with FlyingFocalSpotMode FFSNONE; expected 0")
+    if ffs not in FFS_MODES:
+        raise InputError(f"{f0}: (7033,100E) FlyingFocalSpotMode = {ffs!r}; expected one of {', '.join(FFS_MODES)}")
+    ffs_keys = _ffs_keys(ix, FFS_MODES[ffs], nv)
     rho = ix.rho_mm
     if np.ptp(rho) > 1e-3 * rho[0]:
         k = int(np.argmax(np.abs(rho - rho[0])))
@@ -293,7 +327,11 @@ def series_geometry(folder, rotation_time_s: float | None, timestamp_unit: str =
     sid, sdd = float(rho[0]), float(c["ConstantRadialDistance"])
     central = np.atleast_1d(np.asarray(c["DetectorCentralElement"], dtype=np.float64))
     want = np.array([(n_cols + 1) / 2.0, (n_rows + 1) / 2.0])
-    if central.size != 2 or np.abs(central - want).max() > 1e-3:
+    offset_keys = {}
+    if central.size == 2 and shape == "CYLINDRICAL" and np.abs(central - want).max() > 1e-3:
+        # the cylindrical model's keys (0-based fractional cell of the central ray)
+        offset_keys = {"central_col": float(central[0] - 1.0), "central_row": float(central[1] - 1.0)}
+    elif central.size != 2 or np.abs(central - want).max() > 1e-3:
         raise InputError(f"{f0}: (7031,1033) DetectorCentralElement = {central.tolist()}; this build's detector "
                          f"models are centred: expected (column, row) = {want.tolist()} (1-based; a detector "
                          f"offset such as a quarter-channel shift is not modelled on this branch)")
@@ -325,11 +363,16 @@ def series_geometry(folder, rotation_time_s: float | None, timestamp_unit: str =
               "col_pitch_mm": "(7029,1002) DetectorElementTransverseSpacing",
               "row_pitch_mm": "(7029,1006) DetectorElementAxialSpacing",
               "views_per_rotation": "(7033,1013) NumberofSourceAngularSteps", "detector": "(7029,100B) DetectorShape",
-              "rotation_time_s": "(7033,1067) Timestamp"}
+              "rotation_time_s": "(7033,1067) Timestamp", "central_col": "(7031,1033) DetectorCentralElement",
+              "central_row": "(7031,1033) DetectorCentralElement",
+              "flying_focal_spot": "(7033,100E) FlyingFocalSpotMode",
+              "ffs_angle_rad": "(7033,100B) SourceAngularPositionShift",
+              "ffs_radial_mm": "(7033,100D) SourceRadialDistanceShift",
+              "ffs_z_mm": "(7033,100C) SourceAxialPositionShift"}
     scanner = {"sid_mm": sid, "sdd_mm": sdd, "n_cols": n_cols, "n_rows": n_rows,
                "col_pitch_mm": float(c["DetectorElementTransverseSpacing"]),
                "row_pitch_mm": float(c["DetectorElementAxialSpacing"]), "views_per_rotation": nv,
-               "detector": DETECTOR_SHAPES[shape]}
+               "detector": DETECTOR_SHAPES[shape], **offset_keys, **ffs_keys}
     ts = ix.timestamp
     if np.isfinite(ts).all():
         unit = 1e-3 if timestamp_unit == "ms" else 1.0

@@ -431,6 +431,11 @@ def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
         raise SceneError(f"{prefix}{scan.projections}: (7029,100B) DetectorShape gives detector model "
                          f"{geom.scanner['detector']!r}, which this build does not have (detector models: "
                          f"{', '.join(DETECTORS.names)})")
+    lacking = [k for k in geom.scanner if k not in {f.name for f in fields(ScannerConfig)}]
+    if lacking:
+        raise SceneError(f"{prefix}{scan.projections}: {geom.tag_of.get(lacking[0], lacking[0])} needs "
+                         f"scanner.{lacking[0]} = {geom.scanner[lacking[0]]!r}, which this build lacks (the "
+                         f"cylindrical-detector / flying-focal-spot model is not on this branch)")
     scanner = ScannerConfig(**{**sc_raw, **geom.scanner})
     scan = ScanConfig(**{**scan_raw, **geom.scan})
     return {"scanner": scanner, "scan": scan}
