@@ -112,3 +112,11 @@ def test_paper_sections_quick_tiny(tmp_path):
     bench.write_json(res, tmp_path / "p.json")
     back = json.loads((tmp_path / "p.json").read_text())
     assert set(paper.SECTIONS) <= set(back)
+
+
+def test_measured_section_tiny():
+    from clrecon.bench.measured import bench_measured_section, report_lines
+
+    r = bench_measured_section(quick=True, scene_name="tiny")
+    assert r["views"] == 300 and r["views_per_s"] > 0 and r["read_bytes_views_per_s"] > r["views_per_s"]
+    assert r["meets_goal"] == (r["views_per_s"] >= 200) and "DICOM-CT-PD import" in "\n".join(report_lines(r))

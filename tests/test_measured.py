@@ -129,6 +129,7 @@ def test_measured_run_has_no_truth_and_no_identifiers(sim, measured_run):
     assert res["metrics"] == {} and res["stages"]["groundtruth"]["skipped_because"]
     report = (out / "report.md").read_text()
     assert "error against truth is unavailable" in report
+    assert "a measured scan has no ground truth, so no error" in report and (out / "figures" / "coronal.png").exists()
     for text in ((out / "results.json").read_text(), report, measured_run["log"]):
         assert "DOE^JANE" not in text and "PID-4711" not in text
     with h5py.File(out / "volumes.h5") as f:
@@ -450,3 +451,17 @@ def test_cylindrical_ffs_series_maps_onto_the_scanner_keys(sim, tmp_path):
     with pytest.raises(ClreconError, match=r"PROJ000001\.dcm: source shifts .* expected -0\.0005, -0\.1, 0 for "
                                            r"focal-spot state 0 of mode 'phi'"):
         dicom_ct_pd.series_geometry(exp / "projections", None)
+
+
+def test_view_time_without_timestamps(sim, tmp_path):
+    """No Timestamp tag: t_k = k * rotation_time_s / views, and the scene must give rotation_time_s."""
+    exp = _copy(sim, tmp_path)
+    for f in _files(exp):
+        _edit(f, lambda ds: ds.__delitem__((0x7033, 0x1067)))
+    with pytest.raises(ClreconError, match=r"no \(7033,1067\) Timestamp in the series; give scanner\.rotation_time_s"):
+        load_scene(exp / "measured.toml")
+    toml = exp / "measured.toml"
+    toml.write_text(toml.read_text().replace("[scan]", "[scanner]\nrotation_time_s = 0.3\n\n[scan]"))
+    m = load_scene(toml)
+    t = projection_table(m, 0.1).time_s
+    assert np.allclose(t, np.arange(t.size) * 0.3 / 90, rtol=0, atol=1e-12)

@@ -155,7 +155,7 @@ def series_signature(folder) -> str:
     return h.hexdigest()
 
 
-def _read_header(p: Path, pydicom):
+def _read_header(p: Path, pydicom, photons: bool = False):
     try:
         ds = pydicom.dcmread(p, stop_before_pixels=True)
     except Exception as e:  # noqa: BLE001 - pydicom raises InvalidDicomError, EOFError, struct.error, ...
@@ -165,6 +165,9 @@ def _read_header(p: Path, pydicom):
         # raw elements, decoded here: 3x faster than pydicom's per-element conversion, and the same
         # for explicit-VR files and for implicit-VR private tags (bytes), as in the TCIA collection
         for name, ((g, e), vr) in (*TAGS.items(), *PUBLIC.items()):
+            if name == "PhotonStatistics" and not photons:  # one value per channel: kept of the first file only
+                out[name] = None
+                continue
             el = ds.get_item((g, e))
             out[name] = None if el is None or el.value in (None, b"", "") else _decode(el.value, vr)
     except (ValueError, TypeError) as e:
@@ -186,7 +189,7 @@ def _index_cached(folder: str, signature: str) -> SeriesIndex:
         raise InputError(f"{folder}: reading DICOM-CT-PD needs pydicom: pip install 'clrecon[measured]'") from None
 
     files = series_files(folder)
-    heads = [_read_header(p, pydicom) for p in files]
+    heads = [_read_header(p, pydicom, photons=(i == 0)) for i, p in enumerate(files)]
     first = heads[0]
     for p, h in zip(files[1:], heads[1:], strict=True):
         for name in CONSTANT:

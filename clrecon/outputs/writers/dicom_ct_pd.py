@@ -91,9 +91,6 @@ def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False) -> d
 
     res = run.results
     scene = run.scene
-    if scene.scanner.detector != "flat":
-        raise ClreconError(f"export --format dicom-ct-pd: scanner.detector = {scene.scanner.detector!r}; "
-                           f"this build writes flat detectors only")
     pitches = [float(p) for p in res["request"]["pitches"]]
     if pitch is None:
         pitch = min(pitches)
@@ -207,11 +204,18 @@ def projection_dataset(scene: Scene, table, k: int, stored: np.ndarray, slope: f
     _private(ds, "DetectorFocalCenterAxialPosition", float(table.source_z_mm[k]))
     _private(ds, "DetectorFocalCenterRadialDistance", float(sc.sid_mm))
     _private(ds, "ConstantRadialDistance", float(sc.sdd_mm))
-    _private(ds, "DetectorCentralElement", [(sc.n_cols + 1) / 2.0, (sc.n_rows + 1) / 2.0])
-    _private(ds, "SourceAngularPositionShift", 0.0)
-    _private(ds, "SourceAxialPositionShift", 0.0)
-    _private(ds, "SourceRadialDistanceShift", 0.0)
-    _private(ds, "FlyingFocalSpotMode", "FFSNONE")
+    # a cylindrical detector's central element and the flying focal spot (the scanner keys and the
+    # table's focal_shift of the issue-17 model, where present; the flat detector: centred, none)
+    cc, cr = getattr(sc, "central_col", -1.0), getattr(sc, "central_row", -1.0)
+    _private(ds, "DetectorCentralElement", [(sc.n_cols + 1) / 2.0 if cc == -1.0 else cc + 1.0,
+                                            (sc.n_rows + 1) / 2.0 if cr == -1.0 else cr + 1.0])
+    shift = getattr(table, "focal_shift", None)
+    dphi, drho, dz = (0.0, 0.0, 0.0) if shift is None else (float(x) for x in shift[k])
+    _private(ds, "SourceAngularPositionShift", dphi)
+    _private(ds, "SourceAxialPositionShift", dz)
+    _private(ds, "SourceRadialDistanceShift", drho)
+    mode = getattr(sc, "flying_focal_spot", "none")
+    _private(ds, "FlyingFocalSpotMode", {v: key for key, v in pd_tags.FFS_MODES.items()}[mode])
     _private(ds, "NumberofSourceAngularSteps", sc.views_per_rotation)
     _private(ds, "PhotonStatistics", photons.tolist())
     _private(ds, "Timestamp", float(table.time_s[k] * 1000.0))
