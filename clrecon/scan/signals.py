@@ -7,6 +7,10 @@ the scene's pitches) + 5 s margin, and kept (memoised); :func:`physiology` then 
 the trace at any times. Evaluating at a subset of times, in any order, gives bit-identical
 values, so both pitches of a scene see the same patient.
 
+Recorded traces (``[signals] breathing_trace`` / ``ecg_trace``, and every measured scan) replace
+the model's breathing or rhythm by :mod:`clrecon.scan.recorded` (:func:`uses_recorded`); views in
+lost or invalid trace stretches are then left out of the planning (:func:`usable_views`).
+
 Conventions
 -----------
 Respiratory amplitude ``a`` in [0, 1]: **0 = end-exhale, 1 = end-inhale** (the XCAT
