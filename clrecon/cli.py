@@ -130,7 +130,11 @@ def cmd_export(args) -> int:
     from clrecon.outputs.export import export
 
     index = export(args.run_dir, args.format, method=args.method, pitch=args.pitch, variant=args.variant,
-                   out=args.out)
+                   out=args.out, keep_identifiers=args.keep_identifiers)
+    if index.get("format") == "dicom-ct-pd":
+        print(f"wrote {index['files']['n_projections']} projections ({index['variant']}, pitch {index['pitch']:g}) "
+              f"as DICOM-CT-PD with {index['files']['scene']} to {index['out']}")
+        return 0
     what = (index["method"] if index["pitch_key"] is None
             else f"{index['method']} {index['pitch_key']} {index['variant']}")
     n_files = sum(len(t["files"]) for t in index["targets"])
@@ -229,6 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--pitch", help="pitch, e.g. 0.02 (default: the smallest present)")
     e.add_argument("--variant", help="noisy or noise-free (default: noisy if present)")
     e.add_argument("--out", help="output folder (default: RUN_DIR/export/FORMAT/SOURCE)")
+    e.add_argument("--keep-identifiers", action="store_true",
+                   help="measured scans: copy the input's patient attributes into the exported DICOM (default: none)")
     e.set_defaults(func=cmd_export)
 
     ph = sub.add_parser("phantom", help="voxel phantoms: export the analytic phantom as XCAT or NIfTI frames")

@@ -128,3 +128,11 @@ def test_backprojector_section_tiny():
     text = bench.format_report({"machine": bench.machine(), "backprojector": res})
     assert "parallel-rebin" in text and text.count("\n") >= len(report_lines(res)) - 1
     assert "backprojector" in bench.SECTIONS
+
+
+def test_measured_section_tiny():
+    from clrecon.bench.measured import bench_measured_section, report_lines
+
+    r = bench_measured_section(quick=True, scene_name="tiny")
+    assert r["views"] == 300 and r["views_per_s"] > 0 and r["read_bytes_views_per_s"] > r["views_per_s"]
+    assert r["meets_goal"] == (r["views_per_s"] >= 200) and "DICOM-CT-PD import" in "\n".join(report_lines(r))

@@ -43,6 +43,9 @@ Sections (``--only`` picks some):
 ``scaling``
     Plan and reconstruct seconds of demo-sized scenes against slices, targets and
     projections (via :meth:`clrecon.config.scene.Scene.replace`).
+``measured``
+    :func:`clrecon.bench.measured.bench_measured_section`: DICOM-CT-PD import views/s (header pass +
+    pixel import into a fresh store) against reading the same files' bytes; goal >= 200 views/s.
 ``paper-projector``, ``noise``, ``paper-fbp``, ``groundtruth``
     The paper-p002 job's stages at the job's own sizes, each with the time it projects for
     the whole job (:mod:`clrecon.bench.paper`): simulation projections/s over 512 projections
@@ -95,6 +98,8 @@ from clrecon.bench.backprojector import report_lines as backprojector_report_lin
 from clrecon.bench.distributed import bench_distributed_section
 from clrecon.bench.distributed import report_lines as distributed_report_lines
 from clrecon.bench.fbp import bench_backprojection
+from clrecon.bench.measured import bench_measured_section
+from clrecon.bench.measured import report_lines as measured_report_lines
 from clrecon.bench.projector import bench_projector
 from clrecon.bench.timing import load1, median_time
 from clrecon.bench.tradeoff import format_table as tradeoff_table
@@ -112,7 +117,7 @@ from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate
 
 SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling",
-            "detectors")
+            "detectors", "measured")
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
 SECTIONS = SECTIONS + paper.SECTIONS + ("backprojector",)
 #: Sections run only when ``--only`` names them (long).
@@ -698,6 +703,7 @@ def format_report(res: dict) -> str:
         out.extend("   " + line for line in tradeoff_table(tr).splitlines())
     out.extend(distributed_report_lines(res.get("distributed")))
     out.extend(detectors.format_lines(res.get("detectors")))
+    out.extend(measured_report_lines(res.get("measured")))
     return "\n".join(out)
 
 
@@ -719,6 +725,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "memory": lambda: bench_memory_section(quick),
         "scaling": lambda: bench_scaling_section(quick),
         "detectors": lambda: detectors.bench_detectors_section(quick, repeats),
+        "measured": lambda: bench_measured_section(quick, repeats),
         **{name: (lambda name=name: paper.run_section(name, quick, repeats)) for name in paper.SECTIONS},
         "backprojector": lambda: bench_backprojector(n_images=16 if quick else 32, repeats=repeats),
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),

@@ -30,9 +30,11 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib
 
+from clrecon.core.detector import DETECTORS
 from clrecon.core.errors import SceneError
 from clrecon.core.versions import PROJECTOR_VERSION
 from clrecon.reconstruction.config import FILTERS, METHODS, ReconConfig
+from clrecon.scan import dicom_ct_pd
 from clrecon.scan.config import (
     RHYTHMS,
     TRACE_MARGIN_S,
@@ -41,6 +43,7 @@ from clrecon.scan.config import (
     ScannerConfig,
     SignalsConfig,
 )
+from clrecon.scan.recorded import file_digest
 from clrecon.simulation.config import NoiseConfig
 from clrecon.simulation.phantom_sources import PHANTOM_SOURCES, PhantomConfig
 
@@ -79,12 +82,22 @@ class Scene:
 
     # -- what the scene asks for (docs/data-flow.md "Compute only what is asked") -----------------
     @property
+    def measured(self) -> bool:
+        """A measured scan (``scan.source`` not 'simulated'): no phantom, no ground truth."""
+        return self.scan.source != "simulated"
+
+    @property
     def has_cardiac(self) -> bool:
+        if self.measured:  # the cardiac axis exists only with a recorded ECG
+            return bool(self.signals.ecg_trace)
         return self.phantom.cardiac_motion
 
     @property
     def has_respiratory(self) -> bool:
+        if self.measured:
+            return bool(self.signals.breathing_trace)
         return self.phantom.respiratory_motion and not self.signals.breath_hold
+
 
     @property
     def cardiac_targets(self) -> tuple[float, ...]:
@@ -123,11 +136,18 @@ class Scene:
         phantom = {k: v for k, v in d["phantom"].items() if not (k == "kind" and v == "analytic")}
         if hasattr(self.phantom, "content_hash"):  # a phantom read from files: their content, not only their path
             phantom["content"] = self.phantom.content_hash()
+        # recorded traces and a measured series: their content, not only their paths
+        content = recorded_content(self)
         # The amplitude normalisation spans the whole signal trace, whose length depends on
         # the longest scan over *all* the scene's pitches: part of what a projection shows.
         payload = {"scanner": scanner, "scan": {**d["scan"], "pitches": [pitch]},
                    "signals": d["signals"], "phantom": phantom, "projector": PROJECTOR_VERSION,
                    "signal_trace_s": self.trace_duration_s}
+        if content:
+            payload["content"] = content
+        if self.measured:  # the projections are the measured ones: no phantom, no projector
+            payload.pop("phantom")
+            payload.pop("projector")
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
     def replace(self, **sections: Any) -> Scene:
@@ -148,6 +168,57 @@ class Scene:
 
 
 # ---------------------------------------------------------------------------------------
+def recorded_content(scene: Scene) -> dict:
+    """Content digests of the scene's recorded inputs (traces, measured series), for the scan hash."""
+    out = {}
+    for key in ("breathing_trace", "ecg_trace"):
+        path = getattr(scene.signals, key)
+        if path:
+            out[key] = file_digest(path)
+    if scene.measured:
+        out["projections"] = dicom_ct_pd.series_signature(scene.scan.projections)
+    return out
+
+
+def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
+    """``[scanner]`` and ``[scan]`` of a measured scene: the DICOM-CT-PD series' geometry.
+
+    A key the scene gives must agree with the series (else a SceneError naming both); the
+    series fills the rest (:func:`clrecon.scan.dicom_ct_pd.series_geometry`).
+    """
+    scan = parts["scanner"], parts["scan"]
+    # the keys the scene gives, as validated (paths resolved against the scene file)
+    sc_raw = {k: getattr(scan[0], k) for k in (raw.get("scanner", {}) or {})}
+    scan_raw = {k: getattr(scan[1], k) for k in (raw.get("scan", {}) or {})}
+    scan = scan[1]
+    geom = dicom_ct_pd.series_geometry(scan.projections, sc_raw.get("rotation_time_s"), scan.timestamp_unit)
+    for sec, given, derived in (("scanner", sc_raw, geom.scanner), ("scan", scan_raw, geom.scan)):
+        for k, v in derived.items():
+            if k not in given:
+                continue
+            g = tuple(given[k]) if isinstance(given[k], list) else given[k]
+            same = (all(math.isclose(float(a), float(b), rel_tol=1e-5, abs_tol=1e-6) for a, b in zip(g, v, strict=True))
+                    if isinstance(v, tuple) and isinstance(g, tuple) and len(g) == len(v)
+                    else (math.isclose(float(g), float(v), rel_tol=1e-5, abs_tol=1e-6)
+                          if isinstance(v, (int, float)) and isinstance(g, (int, float)) else g == v))
+            if not same:
+                src = geom.tag_of.get(k, "the views' angles and axial positions")
+                raise SceneError(f"{prefix}{sec}.{k} = {given[k]!r} contradicts the DICOM-CT-PD series "
+                                 f"{scan.projections}: {src} gives {v!r}; remove the key or fix it")
+    if geom.scanner["detector"] not in DETECTORS:
+        raise SceneError(f"{prefix}{scan.projections}: (7029,100B) DetectorShape gives detector model "
+                         f"{geom.scanner['detector']!r}, which this build does not have (detector models: "
+                         f"{', '.join(DETECTORS.names)})")
+    lacking = [k for k in geom.scanner if k not in {f.name for f in fields(ScannerConfig)}]
+    if lacking:
+        raise SceneError(f"{prefix}{scan.projections}: {geom.tag_of.get(lacking[0], lacking[0])} needs "
+                         f"scanner.{lacking[0]} = {geom.scanner[lacking[0]]!r}, which this build lacks (the "
+                         f"cylindrical-detector / flying-focal-spot model is not on this branch)")
+    scanner = ScannerConfig(**{**sc_raw, **geom.scanner})
+    scan = ScanConfig(**{**scan_raw, **geom.scan})
+    return {"scanner": scanner, "scan": scan}
+
+
 def _suggest(key: str, allowed) -> str:
     near = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.5)
     return f"; did you mean {near[0]!r}?" if near else f"; valid keys: {', '.join(allowed)}"
@@ -198,6 +269,8 @@ def scene_from_dict(raw: dict[str, Any], source: str = "") -> Scene:
         for sec in SECTIONS:
             cls = _section_class(sec, raw.get(sec, {}))
             parts[sec] = _build_section(cls, _resolve_paths(cls, raw.get(sec, {}), source), sec)
+        if parts["scan"].source == "dicom-ct-pd":
+            parts.update(_measured_sections(parts, raw, ""))
     except SceneError as e:
         raise SceneError(f"{prefix}{e}") from None
     for k in ("name", "description"):

@@ -15,3 +15,8 @@ class OpenCLUnavailable(ClreconError, RuntimeError):
 
 class StoreError(ClreconError, IOError):
     """A projection or volume store is missing, incomplete or corrupt."""
+
+
+class InputError(ClreconError, ValueError):
+    """A measured input (projection series, breathing trace, ECG) is invalid: the message names the
+    file, the tag or row, and what was expected."""

@@ -55,6 +55,7 @@ from clrecon.outputs.volumes import FORMAT_VERSION, list_recons, open_volumes, r
 from clrecon.outputs.writers import WRITERS
 from clrecon.outputs.writers.base import _file_tag, _spacing, source_stem, target_tag  # noqa: F401 (re-exported)
 from clrecon.outputs.writers.dicom import CT_IMAGE_STORAGE, PRIVATE_CREATOR, PRIVATE_GROUP, hu_to_stored  # noqa: F401
+from clrecon.outputs.writers.dicom_ct_pd import input_identifiers
 from clrecon.outputs.writers.nifti import nifti_affine  # noqa: F401 (re-exported)
 
 #: Export formats, in registry order (``clrecon.outputs.writers``).
@@ -74,7 +75,7 @@ def _run_identity(run_dir: Path, run: RunDirectory) -> str:
 
 # ----------------------------------------------------------------------------------------
 def export(run_dir, fmt: str, method: str | None = None, pitch=None, variant: str | None = None,
-           out=None) -> dict:
+           out=None, keep_identifiers: bool = False) -> dict:
     """Export one source of a run, every target; returns the ``index.json`` dictionary.
 
     ``out`` defaults to ``RUN_DIR/export/<fmt>/<method>[_<pitch>_<variant>]``. Files:
@@ -86,6 +87,20 @@ def export(run_dir, fmt: str, method: str | None = None, pitch=None, variant: st
     writer = WRITERS[fmt]()
     run_dir = Path(run_dir)
     f = RunDirectory(run_dir)
+    if getattr(writer, "scan_export", False):  # the run's projections, not its volumes (dicom-ct-pd)
+        try:
+            out = Path(out) if out is not None else run_dir / "export" / fmt
+            index = writer.export_scan(f, out, pitch=pitch, keep_identifiers=keep_identifiers)
+            (out / "index.json").write_text(json.dumps(index, indent=1))
+            return index
+        finally:
+            f.close()
+    try:
+        if f.has_results and f.results.get("measured"):  # a patient's scan: anonymous unless asked
+            writer.patient = (input_identifiers(f.scene) if keep_identifiers
+                              else {"PatientName": "ANONYMOUS", "PatientID": "ANONYMOUS"})
+    except StoreError:
+        pass
     try:
         src = f.resolve(method, pitch, variant)
         axes = f.axes

@@ -587,7 +587,8 @@ def write_figures(out_dir, results: dict) -> list[str]:
                 "the run has a single target" if n_targets < 2 else (None if has_metrics else "the run has no metrics"))
         has_secs = any(bym for byv in results.get("method_seconds", {}).values() for bym in byv.values())
         add("error_vs_time.png", "Error against run time", lambda p: fig_error_vs_time(results, p),
-            None if has_secs else "results.json has no method_seconds")
+            ("a measured scan has no ground truth, so no error" if results.get("measured") else
+             None if has_secs and has_metrics else "results.json has no method_seconds or no metrics"))
         has_motion = any(byv for byv in (results.get("motion") or {}).values())
         add("motion_metrics.png", "Motion metrics", lambda p: fig_motion_metrics(results, p),
             None if has_motion else "results.json has no motion metrics")

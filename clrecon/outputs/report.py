@@ -166,7 +166,17 @@ def write_report(out_dir: Path, results: dict) -> Path:
     lines = [f"# clrecon run: scene `{s['name']}`", "", s.get("description", ""), "",
              f"Device: {results['device']}. clrecon {results['versions']['clrecon']}.", ""]
     lines += _sampling_lines(results.get("sampling") or {})
-    for v in results["request"]["variants"]:
+    if results.get("measured"):
+        lines += ["## Measured scan", "",
+                  "This is a measured scan (DICOM-CT-PD projections): no ground truth exists, so **error against "
+                  "truth is unavailable**; the reconstructions, figures and exports are made as for a simulated "
+                  "scan. Patient identifiers of the input are not copied into this report, the logs, "
+                  "results.json or the exports (`export --keep-identifiers` copies them into exported DICOM).", ""]
+        for pk, rs in (results.get("recorded_signals") or {}).items():
+            why = ", ".join(f"{k} {n}" for k, n in rs["excluded_by_reason"].items() if n)
+            lines += [f"Pitch {pk[1:]}: {rs['views_used']} of {rs['views_total']} views used; "
+                      f"{rs['views_excluded']} left out ({why}) for lost or invalid recorded-trace stretches.", ""]
+    for v in ([] if results.get("measured") else results["request"]["variants"]):
         lines += [f"## Mean absolute error vs ground truth, {v} (HU, mean ± std over all voxels of all targets)", ""]
         lines += table2_markdown(results, v) + [""]
     ro = results.get("respiratory_only") or {}

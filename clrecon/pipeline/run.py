@@ -171,8 +171,12 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     diagnostics: dict = {}  # pitch key -> method -> per-target weight diagnostics (cardiac-major)
     sampling: dict = {}  # per pitch: distinct cardiac phases and candidates per (slice, view)
     units_written = {"projections": 0}  # unit files written by this process (a resumed run: only the rest)
+    recorded_summary: dict = {}  # per pitch: views left out by the recorded traces (lost / invalid stretches)
     stage_counts: dict = {}  # work counts of the reconstruction: detector cells read, noise cells drawn
     dist = None
+    if client is not None and scene.measured:
+        raise ClreconError("a measured scan (scan.source = 'dicom-ct-pd') runs in one process: "
+                           "drop --workers/--cluster")
     try:
         # ---- distributed (docs/distributed.md): the workers compute every missing unit and this
         # process writes them; the serial path below then finds them done and only assembles
@@ -200,6 +204,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             times.add("plan", pp.plan_seconds)
             diagnostics[pk] = pp.diagnostics
             sampling[pk] = pp.sampling
+            if pp.excluded:
+                recorded_summary[pk] = {"views_total": len(table), "views_used": len(pp.plan_table),
+                                        "views_excluded": int(len(table) - len(pp.plan_table)),
+                                        "excluded_by_reason": dict(pp.excluded)}
             t0 = time.perf_counter()
             store = simulate.simulate(scene, pitch, needed=needed, cache_dir=cache_dir, progress=progress)
             times.add("simulate", time.perf_counter() - t0)
@@ -223,7 +231,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                 plan = plans[k]
                 if plan is None:  # not kept (the plans of the whole scan were over the budget): made again
                     t0 = time.perf_counter()
-                    plan = reconstruct.plan(recon_cfg, table, slices_z[sel], targets, run_methods)
+                    plan = reconstruct.plan(recon_cfg, pp.plan_table, slices_z[sel], targets, run_methods)
                     times.add("plan", time.perf_counter() - t0)
                     for m, sec in plan.method_seconds.items():
                         plan_s[m] = plan_s.get(m, 0.0) + sec
@@ -250,31 +258,35 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             if hasattr(store, "close"):
                 store.close()
 
-        log("ground truth")
-        gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
-        truths = TruthCache(cache_path, truth_key(scene, slices_z, targets))
-        n_r = targets.shape[1]
-        slabs_mod.declare_truths(writer, full_shape, n_t, truths)  # taking those an earlier run computed
-        t0 = time.perf_counter()
-        skip = set(np.flatnonzero(writer.done("groundtruth")))
-        bar = _progress(n_t - len(skip), "ground truth", progress, "targets")
-        for i, j, vol in groundtruth.groundtruth_volumes(gt_cfg, slices_z, targets, rt=rt, progress=bar, skip=skip):
-            truths.put(writer.write_target("groundtruth", i, j, n_r, vol))
-        bar.close()
-        times.add("groundtruth", time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        skip = set(np.flatnonzero(writer.done("phantom")))
-        for i, j, vol in groundtruth.phantom_truth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
-            truths.put(writer.write_target("phantom", i, j, n_r, vol))
-        times.add("phantom_truth", time.perf_counter() - t0)
+        if scene.measured:  # no ground truth exists: every reconstruction, no error against truth
+            vol_file = writer.assemble()
+            met, resp_only, motion_res = {}, {}, {}
+        else:
+            log("ground truth")
+            gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
+            truths = TruthCache(cache_path, truth_key(scene, slices_z, targets))
+            n_r = targets.shape[1]
+            slabs_mod.declare_truths(writer, full_shape, n_t, truths)  # taking those an earlier run computed
+            t0 = time.perf_counter()
+            skip = set(np.flatnonzero(writer.done("groundtruth")))
+            bar = _progress(n_t - len(skip), "ground truth", progress, "targets")
+            for i, j, vol in groundtruth.groundtruth_volumes(gt_cfg, slices_z, targets, rt=rt, progress=bar, skip=skip):
+                truths.put(writer.write_target("groundtruth", i, j, n_r, vol))
+            bar.close()
+            times.add("groundtruth", time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            skip = set(np.flatnonzero(writer.done("phantom")))
+            for i, j, vol in groundtruth.phantom_truth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
+                truths.put(writer.write_target("phantom", i, j, n_r, vol))
+            times.add("phantom_truth", time.perf_counter() - t0)
 
-        log("metrics")
-        t0 = time.perf_counter()
-        vol_file = writer.assemble()
-        phantom = phantom_from_config(scene.phantom)
-        met, resp_only, motion_res = evaluate(scene, vol_file, targets, slices_z, pitches, variants, methods,
-                                              phantom, progress=progress)
-        times.add("metrics", time.perf_counter() - t0)
+            log("metrics")
+            t0 = time.perf_counter()
+            vol_file = writer.assemble()
+            phantom = phantom_from_config(scene.phantom)
+            met, resp_only, motion_res = evaluate(scene, vol_file, targets, slices_z, pitches, variants, methods,
+                                                  phantom, progress=progress)
+            times.add("metrics", time.perf_counter() - t0)
         # the previous run's results must not describe the new volumes, even for a moment
         (out / "results.json").unlink(missing_ok=True)
         writer.close()
@@ -298,7 +310,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     stages["groundtruth"]["targets_from_cache"] = int(writer.units_written.get("adopted", 0))
     stages["read"]["cells"] = int(stage_counts.get("read_cells", 0))
     stages["noise"]["cells"] = int(stage_counts.get("noise_cells", 0))
-    if not groundtruth.offers_lv_region(phantom):
+    if scene.measured:
+        for name in ("groundtruth", "phantom_truth", "metrics"):
+            stages[name]["skipped_because"] = "measured scan: no ground truth exists, so no error against truth"
+    elif not groundtruth.offers_lv_region(phantom):
         stages["metrics"]["respiratory_only_skipped_because"] = (
             f"phantom.kind = {scene.phantom.kind!r} has no LV blood-pool model (the LV volume needs it)")
     results = {
@@ -324,6 +339,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         "motion": motion_res,
         "motion_definitions": motion.definitions(motion.MotionConfig.from_scene(scene, slices_z)),
         "outputs": {"volumes": "volumes.h5", "report": "report.md" if report else None},
+        "measured": bool(scene.measured),
+        "ground_truth": {"available": not scene.measured,
+                         "why": "measured scan: error against truth is unavailable" if scene.measured else ""},
+        "recorded_signals": recorded_summary,
     }
     if dist is not None:
         results["distributed"] = dist.summary

@@ -46,7 +46,7 @@ def unfinished(writer: VolumeWriter, pk: str, variants, methods) -> tuple[tuple,
     return run_methods, todo
 
 
-def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progress):
+def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progress, plan_table=None):
     """Plan the slices ``todo`` slab by slab: ``(slabs, plans, needed, diagnostics_parts, plan_seconds)``.
 
     The slab size comes from the plan of the first slice (:func:`reconstruct.slab_slices`), so
@@ -57,14 +57,15 @@ def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progres
     slab must be planned again). ``slabs``: (a, b) ranges into ``todo``. ``plan_seconds``:
     method -> seconds, each slab's planning summed.
     """
-    probe = reconstruct.plan(cfg, table, slices_z[todo[:1]], targets, methods)
+    ptab = table if plan_table is None else plan_table  # the usable rows (recorded traces leave some out)
+    probe = reconstruct.plan(cfg, ptab, slices_z[todo[:1]], targets, methods)
     per = reconstruct.slab_slices(cfg, probe, n_variants)
     slabs = [(a, min(todo.size, a + per)) for a in range(0, todo.size, per)]
     needed = np.zeros(len(table), bool)
     plans, parts, plan_s, kept = [], [], {}, 0
     bar = progress_counter(len(slabs), "plan", progress and len(slabs) > 1, "slabs")
     for a, b in slabs:
-        p = reconstruct.plan(cfg, table, slices_z[todo[a:b]], targets, methods)
+        p = reconstruct.plan(cfg, ptab, slices_z[todo[a:b]], targets, methods)
         for m, sec in p.method_seconds.items():
             plan_s[m] = plan_s.get(m, 0.0) + sec
         needed |= p.needed_projections(len(table))
@@ -82,6 +83,8 @@ class PitchPlan:
     """The planning of one pitch (:func:`plan_pitch`): what both paths record and reconstruct from."""
 
     table: object              # ProjectionTable of the scan
+    plan_table: object         # its usable rows (geometry.usable_table): what every plan is made from
+    excluded: dict             # reason -> views left out (lost / invalid recorded-trace stretches)
     slabs: list                # (a, b) ranges into the slices still to do
     plans: list                # per slab: its Plan, or None (made again when its turn comes)
     needed: np.ndarray         # (n,) bool: projections the reconstruction reads
@@ -97,13 +100,15 @@ def plan_pitch(scene, cfg, pitch: float, slices_z, todo, targets, methods, n_var
     sampling summary of one pitch, for the slices ``todo`` of ``slices_z``."""
     t0 = time.perf_counter()
     table = geometry.projection_table(scene, pitch)
+    ptab, excluded = geometry.usable_table(scene, table)
     t1 = time.perf_counter()
     slabs, plans, needed, parts, plan_s = plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants,
-                                                     progress)
+                                                     progress, plan_table=ptab)
     t2 = time.perf_counter()
     sampling = sampling_mod.sampling_summary(
-        table, rebin.candidate_groups(table, slices_z, scene.scanner, cfg.object_radius_mm))
-    return PitchPlan(table=table, slabs=slabs, plans=plans, needed=needed, diagnostics=combine_diagnostics(parts),
+        ptab, rebin.candidate_groups(ptab, slices_z, scene.scanner, cfg.object_radius_mm))
+    return PitchPlan(table=table, plan_table=ptab, excluded=excluded, slabs=slabs, plans=plans, needed=needed,
+                     diagnostics=combine_diagnostics(parts),
                      sampling=sampling, method_plan_seconds=plan_s, signals_seconds=t1 - t0, plan_seconds=t2 - t1)
 
 

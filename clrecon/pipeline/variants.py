@@ -10,6 +10,8 @@ def noise_variants(scene) -> tuple[str, ...]:
     unless ``noise.also_noise_free = false`` (the store holds noise-free line integrals, so both
     come from one simulation).
     """
+    if scene.measured:  # the projections are measured: read as they are (noise is in them)
+        return ("measured",)
     if not scene.noise.enabled:
         return ("noise-free",)
     return ("noisy", "noise-free") if scene.noise.also_noise_free else ("noisy",)

@@ -32,7 +32,7 @@ from clrecon.core.runtime import get_runtime
 from clrecon.evaluation import groundtruth
 from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.reconstruct import StageTimes
-from clrecon.scan.table import projection_table
+from clrecon.scan.table import projection_table, usable_table
 from clrecon.simulation.projector import project
 from clrecon.simulation.store import ProjectionStore
 
@@ -92,7 +92,7 @@ def reconstruct_slab(cfg, scene, pitch: float, cache_dir: str, plan, slices_z, t
     table = scan_table(scene, pitch)
     if plan is None:
         t0 = time.perf_counter()
-        plan = reconstruct.plan(cfg, table, np.asarray(slices_z), targets, methods)
+        plan = reconstruct.plan(cfg, usable_table(scene, table)[0], np.asarray(slices_z), targets, methods)
         times.add("plan", time.perf_counter() - t0)
     store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table, create=False)
     try:

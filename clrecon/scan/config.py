@@ -16,7 +16,7 @@ with those attributes.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 
@@ -43,6 +43,8 @@ from clrecon.core.errors import SceneError
 TRACE_MIN_S = 60.0
 TRACE_MARGIN_S = 5.0
 RHYTHMS = ("periodic", "hrv", "af", "pvc")
+SCAN_SOURCES = ("simulated", "dicom-ct-pd")
+STR = ("a string", lambda x: isinstance(x, str))
 
 _f = field_of  # (default, allowed, check, doc)
 
@@ -136,6 +138,20 @@ class ScanConfig(Section):
     n_projections: int = F(0, NONNEGINT, "if > 0: the scan length in projections (overrides coverage_mm)")
     z_centre_mm: float = F(0.0, NUM, "table position of the scan centre")
     start_angle_deg: float = F(0.0, NUM, "gantry angle of the first view")
+    source: str = F("simulated", one_of(SCAN_SOURCES), "'simulated' (the phantom) or 'dicom-ct-pd' (a measured "
+                    "scan: projections = a folder of DICOM-CT-PD files, one projection each; docs/measured-data.md)")
+    projections: str = F("", STR, "dicom-ct-pd: the folder of projection files (relative: to the scene file)")
+    timestamp_unit: str = F("ms", one_of(("ms", "s")), "dicom-ct-pd: unit of the Timestamp tag (7033,1067)")
+    flip_channels: bool = F(False, BOOL, "dicom-ct-pd: reverse the channel order of every projection "
+                            "(docs/measured-data.md 'Pixel layout')")
+    flip_rows: bool = F(False, BOOL, "dicom-ct-pd: reverse the detector-row order of every projection")
+
+    PATH_KEYS: ClassVar[tuple] = ("projections",)
+
+    def check(self) -> None:
+        if self.source == "dicom-ct-pd" and not self.projections:
+            raise SceneError("scan.projections = '': scan.source = 'dicom-ct-pd' needs the folder of projection files")
+
 
     def feed_mm(self, scanner: ScannerConfig, pitch: float) -> float:
         """Table feed per rotation h = pitch * W (mm)."""
@@ -184,6 +200,19 @@ class SignalsConfig(Section):
     ectopic_rate: float = _f(0.0, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
                              "fraction of beats that are premature (pvc rhythm)")
     frame_time_s: float = F(0.0, NONNEG, "0: continuous motion; > 0: motion frozen in phantom frames of this length")
+    breathing_trace: str = F("", STR, "recorded breathing trace (Varian RPM .vxp, or CSV time_s,amplitude) in place of "
+                             "the breathing model (clrecon.scan.recorded)")
+    ecg_trace: str = F("", STR, "recorded ECG (CSV of R-peak times r_peak_s, or a WFDB record .hea) in place of the "
+                       "rhythm model")
+    trace_align: str = F("offset", one_of(("offset", "beam-on")), "breathing trace time of scan time 0: "
+                         "trace_offset_s, or the first beam-on (ttlin = 1) sample of the .vxp plus trace_offset_s")
+    trace_offset_s: float = F(0.0, NUM, "breathing trace time (s) at scan time 0 (added to the beam-on time "
+                              "with trace_align = 'beam-on')")
+    ecg_offset_s: float = F(0.0, NUM, "ECG time (s) at scan time 0")
+    breathing_inhale: str = F("up", one_of(("up", "down")), "the recorded amplitude rises ('up') or falls ('down') "
+                              "on inhalation")
+
+    PATH_KEYS: ClassVar[tuple] = ("breathing_trace", "ecg_trace")
 
 
 class MotionFlags(Protocol):
@@ -196,11 +225,12 @@ class MotionFlags(Protocol):
 
 
 class Acquisition(Protocol):
-    """What the scan stage needs of a scene: scanner, protocol, signals, motion flags, trace length.
+    """What the scan stage needs of a scene: scanner, protocol, signals, motion flags, trace length, source.
 
     :class:`clrecon.config.scene.Scene` satisfies it; so does any object with these attributes.
     ``trace_duration_s`` (s) is the length of the signal trace the amplitude is normalised over
-    (``docs/conventions.md`` "Respiratory amplitude").
+    (``docs/conventions.md`` "Respiratory amplitude"); ``measured`` is true for a measured scan
+    (``scan.source`` not 'simulated', ``docs/measured-data.md``).
     """
 
     @property
@@ -215,3 +245,5 @@ class Acquisition(Protocol):
     def phantom(self) -> MotionFlags: ...
     @property
     def trace_duration_s(self) -> float: ...
+    @property
+    def measured(self) -> bool: ...

@@ -7,6 +7,10 @@ the scene's pitches) + 5 s margin, and kept (memoised); :func:`physiology` then 
 the trace at any times. Evaluating at a subset of times, in any order, gives bit-identical
 values, so both pitches of a scene see the same patient.
 
+Recorded traces (``[signals] breathing_trace`` / ``ecg_trace``, and every measured scan) replace
+the model's breathing or rhythm by :mod:`clrecon.scan.recorded` (:func:`uses_recorded`); views in
+lost or invalid trace stretches are then left out of the planning (:func:`usable_views`).
+
 Conventions
 -----------
 Respiratory amplitude ``a`` in [0, 1]: **0 = end-exhale, 1 = end-inhale** (the XCAT
@@ -62,6 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clrecon.scan import recorded
 from clrecon.scan.config import TRACE_MARGIN_S, TRACE_MIN_S, Acquisition, SignalsConfig  # noqa: F401
 
 #: Sampling step of the grid the amplitude percentiles are taken on (s).
@@ -272,16 +277,21 @@ def physiology(scene: Acquisition, t_s) -> Physiology:
     Physiology
         Arrays of shape (n,); see the module docstring for the conventions.
     """
-    tr = _scene_trace(scene)
-    t = _check_times(t_s, tr.duration_s)
-    c = tr.cardiac_phase(t)
-    a, direction = tr.respiratory(t)
+    if uses_recorded(scene):
+        t = np.asarray(t_s, dtype=np.float64)
+        signals_at = functools.partial(_recorded_signals, scene)
+    else:
+        tr = _scene_trace(scene)
+        t = _check_times(t_s, tr.duration_s)
+
+        def signals_at(tt):
+            return (tr.cardiac_phase(tt),) + tuple(tr.respiratory(tt))
+    c, a, direction = signals_at(t)
 
     frame = scene.signals.frame_time_s
     if frame > 0:
         t_state = np.floor(t / frame) * frame
-        c_state = tr.cardiac_phase(t_state)
-        a_state, _ = tr.respiratory(t_state)
+        c_state, a_state, _ = signals_at(t_state)
     else:
         c_state, a_state = c.copy(), a.copy()
     if not scene.phantom.cardiac_motion:
@@ -292,6 +302,37 @@ def physiology(scene: Acquisition, t_s) -> Physiology:
         a_state = np.full_like(a, 0.5)
     return Physiology(cardiac_phase=c, resp_amplitude=a, resp_direction=direction,
                       state_cardiac=c_state, state_resp=a_state)
+
+
+def uses_recorded(scene: Acquisition) -> bool:
+    """True when a recorded trace (or a measured scan) supplies some of the signals (:mod:`clrecon.scan.recorded`)."""
+    return bool(scene.signals.breathing_trace or scene.signals.ecg_trace or scene.measured)
+
+
+def _recorded_signals(scene: Acquisition, t: np.ndarray):
+    """(c, a, direction) at times t where recorded traces replace the model; the model fills a signal
+    without a trace in a simulated scene; a measured scene without one has c = 0 / a = 0.5, direction 0."""
+    vs = recorded.view_signals(scene.signals, t)
+    sig = scene.signals
+    model = None
+    if not scene.measured and not (sig.breathing_trace and sig.ecg_trace):
+        model = _scene_trace(scene)
+        _check_times(t, model.duration_s)
+    c = vs.cardiac_phase if (sig.ecg_trace or model is None) else model.cardiac_phase(t)
+    if sig.breathing_trace or model is None:
+        a, d = vs.resp_amplitude, vs.resp_direction
+    else:
+        a, d = model.respiratory(t)
+    return c, a, d
+
+
+def usable_views(scene: Acquisition, t_s) -> tuple[np.ndarray, dict]:
+    """(usable (n,) bool, reason -> views left out) at scan times ``t_s``: all usable without a recorded trace."""
+    t = np.asarray(t_s, dtype=np.float64)
+    if not uses_recorded(scene):
+        return np.ones(t.shape, bool), {}
+    vs = recorded.view_signals(scene.signals, t)
+    return vs.usable, vs.excluded
 
 
 def r_peaks(scene: Acquisition) -> np.ndarray:

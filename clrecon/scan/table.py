@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clrecon.scan import signals
+from clrecon.scan import measured, signals
 from clrecon.scan.config import Acquisition
 
 
@@ -88,12 +88,15 @@ class ProjectionTable:
 def projection_table(scene: Acquisition, pitch: float) -> ProjectionTable:
     """The whole helical scan of ``scene`` at ``pitch`` as a :class:`ProjectionTable`."""
     sc, scan = scene.scanner, scene.scan
-    n = scan.projection_count(sc, pitch)
-    k = np.arange(n, dtype=np.int64)
     nv = sc.views_per_rotation
-    t = k * (sc.rotation_time_s / nv)
-    beta = np.deg2rad(scan.start_angle_deg) + 2.0 * np.pi * k / nv
-    z = scan.z_start_mm(sc, pitch) + scan.feed_mm(sc, pitch) * k / nv
+    if scene.measured:  # the views' own geometry, from the DICOM-CT-PD headers
+        k, t, beta, z = measured.views(scene)
+    else:
+        n = scan.projection_count(sc, pitch)
+        k = np.arange(n, dtype=np.int64)
+        t = k * (sc.rotation_time_s / nv)
+        beta = np.deg2rad(scan.start_angle_deg) + 2.0 * np.pi * k / nv
+        z = scan.z_start_mm(sc, pitch) + scan.feed_mm(sc, pitch) * k / nv
     phys = signals.physiology(scene, t)
     states = sc.ffs_shifts
     shift = None if sc.flying_focal_spot == "none" else states[k % len(states)]
@@ -101,3 +104,16 @@ def projection_table(scene: Acquisition, pitch: float) -> ProjectionTable:
                            cardiac_phase=phys.cardiac_phase, resp_amplitude=phys.resp_amplitude,
                            resp_direction=phys.resp_direction, state_cardiac=phys.state_cardiac,
                            state_resp=phys.state_resp, views_per_rotation=nv, focal_shift=shift)
+
+
+def usable_table(scene: Acquisition, table: ProjectionTable) -> tuple[ProjectionTable, dict]:
+    """The rows of ``table`` the reconstruction may use, and reason -> views left out.
+
+    With recorded traces (:mod:`clrecon.scan.recorded`) views in lost or invalid trace stretches
+    are left out; their ``index`` (= store row) stays, so the sub-table plans onto the same store.
+    Without them every row is usable (``table`` itself, ``{}``).
+    """
+    usable, excluded = signals.usable_views(scene, table.time_s)
+    if usable.all():
+        return table, excluded
+    return table.take(usable), excluded

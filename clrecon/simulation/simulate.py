@@ -14,6 +14,7 @@ import numpy as np
 
 from clrecon.core.progress import progress as progress_counter
 from clrecon.scan.table import projection_table
+from clrecon.simulation import measured
 from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.projector import project
 from clrecon.simulation.store import ProjectionStore
@@ -58,6 +59,8 @@ def simulate(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, pr
     """
     if not (isinstance(chunk, int) and chunk > 0):
         raise ValueError(f"chunk = {chunk!r}: must be an integer > 0")
+    if scene.measured:  # a measured scan: its files are read into the store instead (same store, same units)
+        return measured.import_series(scene, pitch, needed=needed, cache_dir=cache_dir, chunk=chunk, progress=progress)
     table = projection_table(scene, pitch)
     n = len(table)
     if needed is None:

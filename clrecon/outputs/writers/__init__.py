@@ -15,6 +15,6 @@ from clrecon.core.registry import Registry
 WRITERS: Registry = Registry("export format")
 
 # Importing a writer module registers it; the order here is the order of FORMATS.
-from clrecon.outputs.writers import dicom, nifti  # noqa: E402, F401 - after WRITERS: the modules register into it
+from clrecon.outputs.writers import dicom, dicom_ct_pd, nifti  # noqa: E402, F401 - after WRITERS: the modules register into it
 
 __all__ = ["WRITERS"]

@@ -42,8 +42,13 @@ class DicomWriter(Writer):
     frame = "LPS (DICOM patient frame)"
     requires = "pydicom"
 
+    #: patient attributes to write in place of the phantom's (export() sets them for a measured run)
+    patient: dict | None = None
+
     def begin(self, ident: str, src: Source, n_targets: int) -> _DicomContext:
-        return _DicomContext.create(ident, src, n_targets)
+        ctx = _DicomContext.create(ident, src, n_targets)
+        ctx.patient = dict(self.patient or {})
+        return ctx
 
     def write_target(self, out, vol, axes, src, ci, ri, ctx):
         return _write_dicom_target(out, vol, axes, src, ci, ri, ctx)
@@ -63,6 +68,7 @@ class _DicomContext:
     frame_uid: str
     n_targets: int
     when: datetime.datetime
+    patient: dict | None = None
 
     @classmethod
     def create(cls, ident: str, src: Source, n_targets: int) -> _DicomContext:
@@ -133,6 +139,8 @@ def _write_dicom_target(out: Path, vol: np.ndarray, axes: dict, src: Source, ci:
         ds.Manufacturer = "clrecon"
         ds.PatientName = "clrecon^phantom"
         ds.PatientID = "CLRECON-PHANTOM"
+        for key, val in (ctx.patient or {}).items():
+            setattr(ds, key, val)
         ds.PatientPosition = "HFS"
         ds.StudyInstanceUID = ctx.study_uid
         ds.SeriesInstanceUID = series_uid
