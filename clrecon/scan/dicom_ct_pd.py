@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clrecon.core.detector import FFS_MODES, ffs_states
+from clrecon.core.detector import ffs_states
 from clrecon.core.errors import InputError
 
 #: tag name -> ((group, element), VR): the private DICOM-CT-PD tags clrecon reads and writes.
@@ -245,7 +245,7 @@ FFS_MODES = {"FFSNONE": "none", "FFSXY": "phi", "FFSZ": "z", "FFSXYZ": "phi+z"}
 #: signs of (dphi, dz) per state of the FFS cycle, view k in state k % cycle (as the FFS model's ffs_states)
 #: (dphi, dz) signs of each focal-spot state, view k in state k % cycle: the engine's own order
 #: (:func:`clrecon.core.detector.ffs_states`), so an exported series reads back unchanged.
-FFS_SIGNS = {m: tuple(map(tuple, ffs_states(m, 1.0, 0.0, 1.0)[:, [0, 2]].astype(int).tolist())) for m in FFS_MODES}
+FFS_SIGNS = {m: tuple(map(tuple, ffs_states(m, 1.0, 0.0, 1.0)[:, [0, 2]].astype(int).tolist())) for m in FFS_MODES.values()}
 
 
 def _ffs_keys(ix: SeriesIndex, mode: str, nv: int) -> dict:
