@@ -245,7 +245,8 @@ FFS_MODES = {"FFSNONE": "none", "FFSXY": "phi", "FFSZ": "z", "FFSXYZ": "phi+z"}
 #: signs of (dphi, dz) per state of the FFS cycle, view k in state k % cycle (as the FFS model's ffs_states)
 #: (dphi, dz) signs of each focal-spot state, view k in state k % cycle: the engine's own order
 #: (:func:`clrecon.core.detector.ffs_states`), so an exported series reads back unchanged.
-FFS_SIGNS = {m: tuple(map(tuple, ffs_states(m, 1.0, 0.0, 1.0)[:, [0, 2]].astype(int).tolist())) for m in FFS_MODES.values()}
+FFS_SIGNS = {m: tuple(map(tuple, ffs_states(m, 1.0, 0.0, 1.0)[:, [0, 2]].astype(int).tolist()))
+             for m in FFS_MODES.values()}
 
 
 def _ffs_keys(ix: SeriesIndex, mode: str, nv: int) -> dict:
