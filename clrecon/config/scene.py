@@ -140,8 +140,15 @@ class Scene:
         content = recorded_content(self)
         # The amplitude normalisation spans the whole signal trace, whose length depends on
         # the longest scan over *all* the scene's pitches: part of what a projection shows.
-        payload = {"scanner": scanner, "scan": {**d["scan"], "pitches": [pitch]},
-                   "signals": d["signals"], "phantom": phantom, "projector": PROJECTOR_VERSION,
+        # likewise the measured-scan and recorded-trace keys (issue 18) at their defaults
+        scan_later = {"source": "simulated", "projections": "", "timestamp_unit": "ms", "flip_channels": False,
+                      "flip_rows": False}
+        sig_later = {"breathing_trace": "", "ecg_trace": "", "trace_align": "offset", "trace_offset_s": 0.0,
+                     "ecg_offset_s": 0.0, "breathing_inhale": "up"}
+        scan_d = {k: v for k, v in d["scan"].items() if not (k in scan_later and v == scan_later[k])}
+        signals_d = {k: v for k, v in d["signals"].items() if not (k in sig_later and v == sig_later[k])}
+        payload = {"scanner": scanner, "scan": {**scan_d, "pitches": [pitch]},
+                   "signals": signals_d, "phantom": phantom, "projector": PROJECTOR_VERSION,
                    "signal_trace_s": self.trace_duration_s}
         if content:
             payload["content"] = content
