@@ -68,6 +68,7 @@
 #ifndef ATAN_TERMS
 #define ATAN_TERMS 9
 #endif
+#include "atan_poly.h"
 inline float fan_column(const float x, const float y, const float2 cs, const float inv_dgamma,
                         const float centre, float *w)
 {
@@ -77,36 +78,7 @@ inline float fan_column(const float x, const float y, const float2 cs, const flo
     const float d = 1.0f / (ur * l2);                              // one division for both:
     *w = d * ur;                                                   // R^2 / L^2
     const float t = vr * (d * l2);                                 // V / U = tan gamma
-    const float t2 = t * t;
-    // atan(t) / dgamma = t (a0 + a1 t^2 + ... ), ATAN_TERMS coefficients ATAN_C0.. (-D literals)
-    // fitted on the host for this geometry's largest |t| (clrecon.reconstruction.fbp.atan_coefficients)
-    float p = 0.0f;  // (0 t2 + the top coefficient folds away under -cl-fast-relaxed-math)
-#if ATAN_TERMS > 8
-    p = p * t2 + ATAN_C8;
-#endif
-#if ATAN_TERMS > 7
-    p = p * t2 + ATAN_C7;
-#endif
-#if ATAN_TERMS > 6
-    p = p * t2 + ATAN_C6;
-#endif
-#if ATAN_TERMS > 5
-    p = p * t2 + ATAN_C5;
-#endif
-#if ATAN_TERMS > 4
-    p = p * t2 + ATAN_C4;
-#endif
-#if ATAN_TERMS > 3
-    p = p * t2 + ATAN_C3;
-#endif
-#if ATAN_TERMS > 2
-    p = p * t2 + ATAN_C2;
-#endif
-#if ATAN_TERMS > 1
-    p = p * t2 + ATAN_C1;
-#endif
-    p = p * t2 + ATAN_C0;
-    return p * t + centre;  // the coefficients carry 1 / dgamma
+    return atan_poly(t) + centre;  // the coefficients carry 1 / dgamma
 }
 #else
 // Pixel (x, y) in the view with table entry cs = (cos b, sin b) / R: returns the

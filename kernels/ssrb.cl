@@ -42,39 +42,8 @@
 
 #if CURVED
 #if FFS_PHI
-// atan(t) / dgamma = t (a0 + a1 t^2 + ...): ATAN_TERMS coefficients ATAN_C0.. (-D literals, carrying
-// 1 / dgamma) fitted on the host for the arc's largest |tan gamma| (clrecon.core.detector.atan_defines)
-inline float atan_cols(const float t)
-{
-    const float t2 = t * t;
-    float p = 0.0f;
-#if ATAN_TERMS > 8
-    p = p * t2 + ATAN_C8;
-#endif
-#if ATAN_TERMS > 7
-    p = p * t2 + ATAN_C7;
-#endif
-#if ATAN_TERMS > 6
-    p = p * t2 + ATAN_C6;
-#endif
-#if ATAN_TERMS > 5
-    p = p * t2 + ATAN_C5;
-#endif
-#if ATAN_TERMS > 4
-    p = p * t2 + ATAN_C4;
-#endif
-#if ATAN_TERMS > 3
-    p = p * t2 + ATAN_C3;
-#endif
-#if ATAN_TERMS > 2
-    p = p * t2 + ATAN_C2;
-#endif
-#if ATAN_TERMS > 1
-    p = p * t2 + ATAN_C1;
-#endif
-    p = p * t2 + ATAN_C0;
-    return p * t;
-}
+// atan(t) / dgamma for the column of a phi-FFS spot's ray
+#include "atan_poly.h"
 #endif
 __kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_cols): rows first_row..
                         __global const int *pair_slot,   // (n_pairs,) index into m
@@ -112,7 +81,7 @@ __kernel void ssrb_rows(__global const float *proj,      // (m, block_rows, n_co
     const float ad = sh.x * dx + sh.y * dy;
     const float t = -ad + sqrt(ad * ad - (sh.x * sh.x + sh.y * sh.y) + sdd_mm * sdd_mm);
     const float px = sh.x + t * dx, py = sh.y + t * dy;                          // hit on the arc
-    const float fc = clamp(atan_cols(py / px) + central_col, 0.0f, (float)(n_cols - 1));
+    const float fc = clamp(atan_poly(py / px) + central_col, 0.0f, (float)(n_cols - 1));
     const float v = sh.z + (dz - sh.z) * t * sh.w * cg4.w;           // cg4.w = 1 / cos g
 #else
     const float t = sdd_mm;
