@@ -113,11 +113,7 @@ inline float fan_column(const float x, const float y, const float2 cs, const flo
 // Work-item (ix, iy, gp): pixel (ix, iy) of the 32 (or 16) images of groups 2 gp, 2 gp + 1.
 //   sino16: (n_groups, n_views, n_cols + 2) float16     out: (n_groups * 16, ny, nx) float
 
-#define STORE16(o, plane, acc)                                                                     \
-    o[0 * plane] = acc.s0;  o[1 * plane] = acc.s1;  o[2 * plane] = acc.s2;  o[3 * plane] = acc.s3;    \
-    o[4 * plane] = acc.s4;  o[5 * plane] = acc.s5;  o[6 * plane] = acc.s6;  o[7 * plane] = acc.s7;    \
-    o[8 * plane] = acc.s8;  o[9 * plane] = acc.s9;  o[10 * plane] = acc.sa; o[11 * plane] = acc.sb;   \
-    o[12 * plane] = acc.sc; o[13 * plane] = acc.sd; o[14 * plane] = acc.se; o[15 * plane] = acc.sf;
+#include "store16.h"
 
 __kernel __attribute__((reqd_work_group_size(LX, LY, 1)))
 void backproject_batched16x2(__global const float16 *restrict sino16,

@@ -53,11 +53,7 @@ __kernel void rebin_parallel16(__global const float16 *restrict fan16,
 // linear in c. The host table trig holds (cos theta_i / ds, sin theta_i / ds). Pixels outside
 // the FOV circle (fov_r2 = radius^2, which the host keeps inside [s_1, s_{n_s - 2}]) are 0.
 //   par16: (n_groups, n_par, n_s) float16      out: (16 n_groups, ny, nx) float
-#define STORE16(o, plane, acc)                                                                     \
-    o[0 * plane] = acc.s0;  o[1 * plane] = acc.s1;  o[2 * plane] = acc.s2;  o[3 * plane] = acc.s3;    \
-    o[4 * plane] = acc.s4;  o[5 * plane] = acc.s5;  o[6 * plane] = acc.s6;  o[7 * plane] = acc.s7;    \
-    o[8 * plane] = acc.s8;  o[9 * plane] = acc.s9;  o[10 * plane] = acc.sa; o[11 * plane] = acc.sb;   \
-    o[12 * plane] = acc.sc; o[13 * plane] = acc.sd; o[14 * plane] = acc.se; o[15 * plane] = acc.sf;
+#include "store16.h"
 
 __kernel __attribute__((reqd_work_group_size(LX, LY, 1)))
 void backproject_parallel16x2(__global const float16 *restrict par16,

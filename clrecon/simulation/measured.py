@@ -78,10 +78,7 @@ def import_series(scene: SimulatedScan, pitch: float, needed=None, cache_dir=Non
         raise InputError(f"{scene.scan.projections}: {len(ix)} files but the scan table has {n} views")
     needed = np.ones(n, bool) if needed is None else np.asarray(needed, bool)
     store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table)
-    present = store.present
-    missing = np.flatnonzero(needed & ~present)
-    store.n_reused = int(np.count_nonzero(needed & present))
-    store.n_simulated = 0
+    missing = store.missing(needed)
     if missing.size == 0 and store.state == "final":
         return store
     sc = scene.scanner

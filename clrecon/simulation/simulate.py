@@ -75,10 +75,7 @@ def simulate(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, pr
         projector = project
 
     store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table)
-    present = store.present
-    missing = np.flatnonzero(needed & ~present)
-    store.n_reused = int(np.count_nonzero(needed & present))
-    store.n_simulated = 0
+    missing = store.missing(needed)
     if missing.size == 0 and store.state == "final":
         return store
 

@@ -99,8 +99,8 @@ class ProjectionStore:
     shape : tuple
         (n, R, C): projections, detector rows, detector columns.
     n_simulated, n_reused : int
-        Set by :func:`~clrecon.simulation.simulate.simulate`: needed projections it projected, and
-        needed projections it found already present.
+        Set by :meth:`missing` and the filler (:func:`~clrecon.simulation.simulate.simulate`, the
+        measured-scan import): needed projections it wrote, and needed projections already present.
     simulate_s : float
         Seconds :func:`~clrecon.simulation.simulate.simulate` spent projecting and writing.
     """
@@ -248,6 +248,18 @@ class ProjectionStore:
     def present(self) -> np.ndarray:
         """(n,) bool: projections simulated so far (a copy)."""
         return self._present.copy()
+
+    def missing(self, needed: np.ndarray) -> np.ndarray:
+        """Indices of the ``needed`` (n,) bool projections not yet present, for a filler to write.
+
+        Sets :attr:`n_reused` (needed and already present) and resets :attr:`n_simulated`
+        (the filler counts what it writes): the bookkeeping the simulation and the measured-scan
+        import share.
+        """
+        present = self._present
+        self.n_reused = int(np.count_nonzero(needed & present))
+        self.n_simulated = 0
+        return np.flatnonzero(needed & ~present)
 
     @property
     def complete(self) -> bool:
