@@ -127,6 +127,36 @@ def test_reconstruct_matches_plain_pipeline(tmp_path):
     store.close()
 
 
+def test_slab_halved_to_fit_the_device_buffer_limit_gives_identical_volumes(tmp_path):
+    """A slab whose rebinned rows exceed one device buffer is halved until they fit
+    (the paper-p002 whole run died on PoCL's CL_DEVICE_MAX_MEM_ALLOC_SIZE): same bits, and a
+    limit below one slice's rows is a clear error, not the driver's INVALID_BUFFER_SIZE."""
+    sc = load_scene("tiny")
+    pitch = sc.scan.pitches[0]
+    table = projection_table(sc, pitch)
+    z = reconstruct.slice_positions(sc)
+    tg = reconstruct.Targets(tuple(sc.cardiac_targets), tuple(sc.resp_targets))
+    cfg = reconstruct.ReconstructionConfig.from_scene(sc)
+    p = reconstruct.plan(cfg, table, z, tg, sc.recon.methods)
+    store = simulate.simulate(sc, pitch, needed=p.needed_projections(len(table)), cache_dir=tmp_path, progress=False)
+    variants = ("noise-free", "noisy")
+    whole = reconstruct.reconstruct(cfg, store, p, variants=variants, slab_size=len(z))
+    rows = [len(reconstruct._slab_pairs(p, s, s + 1)[1]) for s in range(len(z))]
+    assert len(z) >= 2 and min(rows) > 0
+    cap = 4 * sc.scanner.n_cols * (max(rows) + 1)  # one slice fits, the whole slab does not
+    assert len(reconstruct._slab_pairs(p, 0, len(z))[1]) * 4 * sc.scanner.n_cols > cap
+    times = reconstruct.StageTimes()
+    split = reconstruct.reconstruct(cfg, store, p, variants=variants, slab_size=len(z), max_buffer_bytes=cap,
+                                    times=times)
+    assert times.counts.get("slab_splits", 0) >= 1
+    assert split.keys() == whole.keys()
+    for k in whole:
+        np.testing.assert_array_equal(split[k], whole[k], err_msg=str(k))
+    with pytest.raises(reconstruct.SlabTooLarge, match="CL_DEVICE_MAX_MEM_ALLOC_SIZE"):
+        reconstruct.reconstruct(cfg, store, p, variants=variants, max_buffer_bytes=4 * sc.scanner.n_cols)
+    store.close()
+
+
 # --- the new kernels under Oclgrind (memcheck, data races, uninitialised values) -----------
 def _grind(capfd):
     import os

@@ -114,6 +114,11 @@ class Runtime:
         return f"{d.platform.name} / {d.name} ({d.max_compute_units} compute units)"
 
     @property
+    def max_alloc_bytes(self) -> int:
+        """The largest single buffer the device allows (``CL_DEVICE_MAX_MEM_ALLOC_SIZE``, bytes)."""
+        return int(self.device.max_mem_alloc_size)
+
+    @property
     def is_cpu(self) -> bool:
         return bool(self.device.type & self.cl.device_type.CPU)
 
@@ -148,6 +153,10 @@ class Runtime:
         if a.dtype.kind not in "fiub":
             raise TypeError(f"{name}: expected a numeric array, got dtype {a.dtype}")
         a = np.ascontiguousarray(a, dtype=dtype)
+        if a.nbytes > self.max_alloc_bytes:
+            raise MemoryError(f"{name}: one device buffer of {a.nbytes / 2**30:.2f} GiB is above the device's "
+                              f"largest allocation ({self.max_alloc_bytes / 2**30:.2f} GiB, "
+                              f"CL_DEVICE_MAX_MEM_ALLOC_SIZE of {self.device.name!r})")
         mf = self.cl.mem_flags
         if a.nbytes == 0:
             a = np.zeros(1, dtype)

@@ -268,7 +268,7 @@ class StageTimes:
 
 def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-free",), rt=None,
                 times: StageTimes | None = None, progress=None, chunk: int = 512, on_slab=None,
-                slab_size: int | None = None) -> dict:
+                slab_size: int | None = None, max_buffer_bytes: int | None = None) -> dict:
     """Reconstruct every planned method and noise variant.
 
     Parameters
@@ -283,6 +283,11 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-
         it out and free memory: only one method's slab of images is held at a time). If None,
         whole volumes are returned.
     slab_size : slices per slab; default :func:`slab_slices` of the plan.
+    max_buffer_bytes : the largest single device buffer (bytes); default the device's
+        ``CL_DEVICE_MAX_MEM_ALLOC_SIZE`` (:attr:`Runtime.max_alloc_bytes`). A slab whose rebinned
+        rows of one variant (``pairs x n_cols`` float32, uploaded as one buffer) would exceed it
+        is halved until they fit (slab size never changes the numbers); a single slice that does
+        not fit raises :class:`SlabTooLarge`.
 
     Returns
     -------
@@ -294,8 +299,28 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-
     if slab_size is None:
         slab_size = slab_slices(cfg, plan_, len(tuple(variants)))
     results: dict = {}
-    for s0 in range(0, S, slab_size):
-        s1 = min(S, s0 + slab_size)
+    if rt is None:
+        from clrecon.core.runtime import get_runtime
+        rt = get_runtime()
+    cap = int(rt.max_alloc_bytes if max_buffer_bytes is None else max_buffer_bytes)
+    row_bytes = 4 * cfg.scanner.n_cols
+    pending = [(s0, min(S, s0 + slab_size)) for s0 in range(0, S, slab_size)]
+    while pending:
+        s0, s1 = pending.pop(0)
+        t0 = time.perf_counter()
+        sub, ukeys = _slab_pairs(plan_, s0, s1)
+        times.add("plan", time.perf_counter() - t0)
+        if len(ukeys) * row_bytes > cap:
+            if s1 - s0 == 1:
+                raise SlabTooLarge(
+                    f"slice {s0}: its {len(ukeys)} rebinned rows x {cfg.scanner.n_cols} columns need one device "
+                    f"buffer of {len(ukeys) * row_bytes / 2**30:.2f} GiB, above the device's largest allocation "
+                    f"({cap / 2**30:.2f} GiB, CL_DEVICE_MAX_MEM_ALLOC_SIZE); use fewer targets or methods per run, "
+                    f"or a device with a larger allocation limit")
+            mid = (s0 + s1) // 2  # halve the slab: both halves again checked against the cap
+            pending[:0] = [(s0, mid), (mid, s1)]
+            times.count("slab_splits", 1)
+            continue
 
         def emit(key, vol, s0=s0, s1=s1):
             if on_slab is not None:
@@ -305,7 +330,7 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-
                 results[key] = np.zeros(vol.shape[:2] + (S,) + vol.shape[3:], np.float32)
             results[key][:, :, s0:s1] = vol
 
-        _reconstruct_slab(cfg, store, plan_, s0, s1, variants, geom, rt, times, chunk, progress, emit)
+        _reconstruct_slab(cfg, store, plan_, s0, s1, variants, geom, rt, times, chunk, progress, emit, sub, ukeys)
     return results
 
 
@@ -359,19 +384,30 @@ def slab_slices(cfg: ReconstructionConfig, probe: Plan, n_variants: int, budget:
                                                 cfg.fbp.nx, plan_bytes(probe) / S), budget)
 
 
-def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, variants, geom, rt, times, chunk,
-                      progress, emit) -> None:
-    sc = cfg.scanner
-    t0 = time.perf_counter()
+class SlabTooLarge(ClreconError, MemoryError):
+    """One slice's rebinned rows do not fit in one device buffer (``CL_DEVICE_MAX_MEM_ALLOC_SIZE``)."""
+
+
+def _slab_pairs(plan_: Plan, s0: int, s1: int):
+    """Slices ``s0:s1`` of the plan: ``(sub, ukeys)``, each method's ``(proj_index, weight,
+    targets_shape)`` for the slab and the sorted unique (projection, slice) pair keys
+    ``projection * (s1 - s0) + slice`` that carry a non-zero weight (one rebinned row each)."""
     sub = {m: (mp.proj_index[s0:s1], mp.weight[s0:s1], mp.targets_shape) for m, mp in plan_.methods.items()}
-    # (projection, slice) pairs of this slab, and each method's index into them
     keys = []
     Ssl = s1 - s0
     for idx, w, _ in sub.values():
         sl = np.broadcast_to(np.arange(Ssl)[:, None, None, None], idx.shape)
         nzm = w != 0
         keys.append(idx[nzm].astype(np.int64) * Ssl + sl[nzm])
-    ukeys = np.unique(np.concatenate(keys))
+    return sub, np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+
+
+def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, variants, geom, rt, times, chunk,
+                      progress, emit, sub, ukeys) -> None:
+    sc = cfg.scanner
+    t0 = time.perf_counter()
+    # (projection, slice) pairs of this slab (:func:`_slab_pairs`), and each method's index into them
+    Ssl = s1 - s0
     pair_proj = ukeys // Ssl
     pair_slice = ukeys % Ssl
     pair_dz = plan_.slices_z[s0:s1][pair_slice] - store.table.source_z_mm[pair_proj]
