@@ -225,8 +225,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                 sel = todo[a:b]
 
                 def on_slab(zs, slab, pk=pk, sel=sel):
+                    t_w = time.perf_counter()
                     for (v, m), vol in slab.items():  # r4dct (1, n_r), helical (1, 1): stored as they are
                         writer.write(f"recon/{pk}/{v}/{m}", vol, sel[zs])
+                    times.add("write_volumes", time.perf_counter() - t_w)
 
                 plan = plans[k]
                 if plan is None:  # not kept (the plans of the whole scan were over the budget): made again
@@ -259,7 +261,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                 store.close()
 
         if scene.measured:  # no ground truth exists: every reconstruction, no error against truth
+            t0 = time.perf_counter()
             vol_file = writer.assemble()
+            times.add("assemble_volumes", time.perf_counter() - t0)
             met, resp_only, motion_res = {}, {}, {}
         else:
             log("ground truth")
@@ -280,16 +284,20 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                 truths.put(writer.write_target("phantom", i, j, n_r, vol))
             times.add("phantom_truth", time.perf_counter() - t0)
 
-            log("metrics")
             t0 = time.perf_counter()
             vol_file = writer.assemble()
+            times.add("assemble_volumes", time.perf_counter() - t0)
+            log("metrics")
+            t0 = time.perf_counter()
             phantom = phantom_from_config(scene.phantom)
             met, resp_only, motion_res = evaluate(scene, vol_file, targets, slices_z, pitches, variants, methods,
                                                   phantom, progress=progress)
             times.add("metrics", time.perf_counter() - t0)
         # the previous run's results must not describe the new volumes, even for a moment
         (out / "results.json").unlink(missing_ok=True)
+        t0 = time.perf_counter()
         writer.close()
+        times.add("assemble_volumes", time.perf_counter() - t0)
     except BaseException:
         writer.abort()
         raise
@@ -297,8 +305,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     if dist is not None:  # what the workers computed, in place of this process's (empty) records
         distributed.merge_records(dist, times, sim_info, method_seconds, method_plan_seconds, diagnostics, sampling,
                                   units_written)
-    for name in ("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp", "groundtruth",
-                 "phantom_truth", "metrics"):
+    for name in ("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp", "write_volumes",
+                 "groundtruth", "phantom_truth", "assemble_volumes", "metrics"):
         stages[name] = {"ran": name in times.seconds, "seconds": round(times.seconds.get(name, 0.0), 3)}
     if not scene.noise.enabled:
         stages["noise"]["skipped_because"] = "scene has noise.enabled = false"
@@ -352,6 +360,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         report_mod.write_report(out, results)
         stages["report"] = {"ran": True, "seconds": round(time.perf_counter() - t0, 3)}
     results["total_seconds"] = round(time.perf_counter() - t_start, 3)
+    # what no stage accounts for (pre-flight, scene checks, the report's claims, closing files):
+    # named so that a run's stage table sums to its wall time
+    stages["unaccounted"] = {"ran": True, "seconds": round(
+        results["total_seconds"] - sum(st.get("seconds", 0.0) for st in stages.values()), 3)}
     # ru_maxrss: KiB on Linux (bytes on macOS)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     results["peak_rss_bytes"] = int(rss if sys.platform == "darwin" else rss * 1024)
