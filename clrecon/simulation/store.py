@@ -217,9 +217,14 @@ class ProjectionStore:
             return bool(np.allclose(stored, want, rtol=0.0, atol=_FLOAT_ATOL))
         return bool(np.array_equal(stored, want))
 
+    def _block(self) -> int:
+        """Projections per HDF5 chunk (about :data:`CHUNK_BYTES`), in the store and in its units."""
+        n, r, c = self.shape
+        return int(np.clip(CHUNK_BYTES // (r * c * 4), 1, n))
+
     def _create(self, path: Path) -> None:
         n, r, c = self.shape
-        block = int(np.clip(CHUNK_BYTES // (r * c * 4), 1, n))
+        block = self._block()
         self.cache_dir.mkdir(parents=True, exist_ok=True)
         with h5py.File(path, "w") as f:
             # fletcher32: every chunk carries a checksum, so a corrupted file fails on read
@@ -310,7 +315,7 @@ class ProjectionStore:
             ds = f["projections"]
             present |= f["present"][...]
             for p, _ in self._units:
-                arrays, _meta = units.read_unit(p)  # checksum checked again: raises if damaged since
+                arrays, _meta = units.read_unit(p)  # checksum checked again: raises if damaged since (decoded)
                 idx, arr = arrays["indices"], arrays["data"]
                 breaks = np.flatnonzero(np.diff(idx) != 1) + 1
                 for lo, hi in zip(np.concatenate([[0], breaks]), np.concatenate([breaks, [idx.size]]),
@@ -348,8 +353,9 @@ class ProjectionStore:
             raise ValueError(f"indices must increase strictly within [0, {self.shape[0]})")
         arr = np.ascontiguousarray(arr, dtype=np.float32)
         meta = {"scan_hash": self.scan_hash, "indices": idx.tolist()}
+        chunks = (min(self._block(), idx.size),) + tuple(self.shape[1:])
         p = units.write_unit(self.units_path, f"p{idx[0]:09d}-{idx[-1]:09d}", {"indices": idx, "data": arr},
-                             meta, fault="simulate")
+                             meta, fault="simulate", compress={"data": chunks})
         self._units.append((p, meta))
         self._present[idx] = True
         self.units_written += 1
