@@ -72,7 +72,8 @@ def fsync_dir(path: Path) -> None:
 
 def h5_image(arrays: dict, meta: dict, compress: dict) -> bytes:
     """The bytes of an in-memory HDF5 file holding ``arrays`` (``compress``: name -> chunk shape)."""
-    f = h5py.File(f"clrecon-unit-{os.getpid()}-{next(_image_names)}", "w", driver="core", backing_store=False)
+    f = h5py.File(f"clrecon-unit-{os.getpid()}-{next(_image_names)}", "w", driver="core", backing_store=False,
+                  libver="latest")
     try:
         f.attrs["meta"] = json.dumps(meta, sort_keys=True)
         for k, a in arrays.items():
