@@ -18,8 +18,9 @@ first bytes when read (:func:`read_unit` reads both):
 - an uncompressed ``.npz`` (``compress=None``; what every unit was before clrecon 0.x's
   compressed units, so an interrupted run of an earlier version still resumes);
 - an HDF5 file image (``compress={array: chunk shape}``): the named arrays chunked and
-  compressed with LZF + byte shuffle + Fletcher-32, exactly the filters of the projection store
-  and of the run's volume files, the others stored plain; ``meta`` is the root attribute
+  compressed with the filters of the file they are assembled into (LZF + byte shuffle, and
+  Fletcher-32 for the projection store: :data:`FILTERS`, :data:`VOLUME_FILTERS`), the others
+  stored plain; ``meta`` is the root attribute
   ``meta``. The projection units and the volume units are written so (docs/data-flow.md,
   "Disk"): a unit on disk is about the size of its share of the assembled file instead of its
   raw size, and a volume unit's compressed chunks are copied into the assembled file as they
@@ -47,8 +48,13 @@ from clrecon.core.errors import StoreError
 SUFFIX = ".unit"
 #: The HDF5 format signature (first 8 bytes of an HDF5 file image).
 H5_MAGIC = b"\x89HDF\r\n\x1a\n"
-#: The chunk filters of a compressed unit (and of the files assembled from them).
+#: The chunk filters of a compressed projection unit and of the projection store: LZF + byte
+#: shuffle + Fletcher-32 chunk checksums.
 FILTERS = {"compression": "lzf", "shuffle": True, "fletcher32": True}
+#: The chunk filters of a compressed volume unit and of the volume dataset files: LZF + byte
+#: shuffle, no Fletcher-32 (HDF5's checksum pass costs about as much as the decompression when
+#: the volumes are read, measured on float16 512 x 512 slices; the units carry their BLAKE2b).
+VOLUME_FILTERS = {"compression": "lzf", "shuffle": True}
 _image_names = itertools.count()
 
 
@@ -70,8 +76,12 @@ def fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def h5_image(arrays: dict, meta: dict, compress: dict) -> bytes:
-    """The bytes of an in-memory HDF5 file holding ``arrays`` (``compress``: name -> chunk shape)."""
+def h5_image(arrays: dict, meta: dict, compress: dict, filters: dict | None = None) -> bytes:
+    """The bytes of an in-memory HDF5 file holding ``arrays`` (``compress``: name -> chunk shape).
+
+    ``filters``: the HDF5 filters of the compressed arrays (default :data:`FILTERS`).
+    """
+    filters = FILTERS if filters is None else filters
     f = h5py.File(f"clrecon-unit-{os.getpid()}-{next(_image_names)}", "w", driver="core", backing_store=False,
                   libver="latest")
     try:
@@ -79,7 +89,7 @@ def h5_image(arrays: dict, meta: dict, compress: dict) -> bytes:
         for k, a in arrays.items():
             a = np.asarray(a)
             if k in compress and a.size:
-                f.create_dataset(k, data=a, chunks=tuple(int(c) for c in compress[k]), **FILTERS)
+                f.create_dataset(k, data=a, chunks=tuple(int(c) for c in compress[k]), **filters)
             else:
                 f.create_dataset(k, data=a)
         f.flush()
@@ -88,14 +98,15 @@ def h5_image(arrays: dict, meta: dict, compress: dict) -> bytes:
         f.close()
 
 
-def write_unit(folder: Path, stem: str, arrays: dict, meta: dict, fault: str, compress: dict | None = None) -> Path:
+def write_unit(folder: Path, stem: str, arrays: dict, meta: dict, fault: str, compress: dict | None = None,
+               filters: dict | None = None) -> Path:
     """Write one unit atomically; returns its final path. ``fault`` names its :mod:`faults` point.
 
     ``compress``: ``{array name: chunk shape}``, the unit is then an HDF5 image with those arrays
-    compressed (module docstring); None: an uncompressed ``.npz``.
+    compressed with ``filters`` (default :data:`FILTERS`; module docstring); None: an uncompressed ``.npz``.
     """
     if compress is not None:
-        data = h5_image(arrays, meta, compress)
+        data = h5_image(arrays, meta, compress, filters)
     else:
         buf = io.BytesIO()
         np.savez(buf, meta=np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8), **arrays)

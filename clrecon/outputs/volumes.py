@@ -62,9 +62,9 @@ class VolumeWriter:
 
     Every finished block (a slab of one reconstruction, one target of a truth) is written as
     its own atomic, checksummed unit file in ``volumes.h5.units/`` (:mod:`clrecon.core.units`),
-    compressed with the filters of the final files (LZF + shuffle + Fletcher-32, one chunk per
-    slice); nothing is written into HDF5 while computing, so a SIGKILL at any instant can only
-    lose the block being written.
+    compressed with the filters of the final files (LZF + byte shuffle, one chunk per slice:
+    :data:`clrecon.core.units.VOLUME_FILTERS`); nothing is written into HDF5 while computing,
+    so a SIGKILL at any instant can only lose the block being written.
 
     :meth:`assemble` then builds the datasets one by one: ``volumes.d/<gen>/<name>.h5.partial``
     from that dataset's units (their compressed chunks copied as they are, no recompression),
@@ -215,7 +215,7 @@ class VolumeWriter:
         meta = dict(meta, name=name, shape=list(self._specs[name][0]))
         vol = np.ascontiguousarray(vol, self.dtype)
         p = units.write_unit(self.units_dir, stem, {"data": vol}, meta, fault,
-                             compress={"data": self._chunks(vol.shape)})
+                             compress={"data": self._chunks(vol.shape)}, filters=units.VOLUME_FILTERS)
         self._units[name].append((p, meta))
         self.units_written[fault] += 1
 
@@ -296,8 +296,9 @@ class VolumeWriter:
                 place = lambda off: off[:nt] + (int(z[off[nt]]),) + off[nt + 1:]  # noqa: E731
             else:
                 place = lambda off: tuple(m["sel"]) + off  # noqa: E731
-            if (src is not None and src.chunks == ds.chunks and src.dtype == ds.dtype and src.compression == "lzf"
-                    and src.shuffle and src.fletcher32 and src.id.get_num_chunks() == int(np.prod(src.shape[:-2]))):
+            if (src is not None and src.chunks == ds.chunks and src.dtype == ds.dtype
+                    and (src.compression, src.shuffle, src.fletcher32) == (ds.compression, ds.shuffle, ds.fletcher32)
+                    and src.id.get_num_chunks() == int(np.prod(src.shape[:-2]))):
                 for c in range(src.id.get_num_chunks()):
                     info = src.id.get_chunk_info(c)
                     mask, raw = src.id.read_direct_chunk(info.chunk_offset)
@@ -323,7 +324,7 @@ class VolumeWriter:
             if "volume" not in f:
                 f.attrs.update({"format_version": FORMAT_VERSION, "run_key": self.run_key, "name": name})
                 ds = f.create_dataset("volume", shape=shape, dtype=self.dtype, chunks=self._chunks(shape),
-                                      **units.FILTERS)
+                                      **units.VOLUME_FILTERS)
                 ds.attrs["dims"] = list(self._dims())
                 ds.attrs["broadcast"] = list(self._broadcast[name])
                 ds.attrs["units"] = "HU"
