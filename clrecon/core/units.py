@@ -15,8 +15,8 @@ warning and the unit is computed again.
 Payload: the arrays and a JSON ``meta`` dictionary, in one of two formats, told apart by their
 first bytes when read (:func:`read_unit` reads both):
 
-- an uncompressed ``.npz`` (``compress=None``; what every unit was before clrecon 0.x's
-  compressed units, so an interrupted run of an earlier version still resumes);
+- an uncompressed ``.npz`` (``compress=None``; what every unit was before the compressed
+  units, so an interrupted run of an earlier version still resumes);
 - an HDF5 file image (``compress={array: chunk shape}``): the named arrays chunked and
   compressed with the filters of the file they are assembled into (LZF + byte shuffle, and
   Fletcher-32 for the projection store: :data:`FILTERS`, :data:`VOLUME_FILTERS`), the others

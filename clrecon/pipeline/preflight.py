@@ -24,6 +24,7 @@ volumes are counted at the cache too.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
@@ -72,8 +73,6 @@ def _left_by_interrupted_run(out_dir: Path) -> int:
     units_dir = Path(out_dir) / "volumes.h5.units"
     total = _dir_bytes(units_dir)
     try:
-        import json
-
         gen = json.loads((units_dir / "run.json").read_text()).get("datasets")
     except (OSError, ValueError):
         gen = None
