@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -41,7 +42,10 @@ CASES = {
     "rename-store:1": lambda P, R, T: (0, R, T),     # store assembled, not yet renamed
     "recon:5": lambda P, R, T: (0, R - 4, T),        # mid-write of the 5th reconstruction unit
     "truth:3": lambda P, R, T: (0, 0, T - 2),        # mid-write of the 3rd truth target
-    "assemble-volumes:3": lambda P, R, T: (0, 0, 0),  # volumes.h5.partial torn mid-write
+    "assemble-volumes:3": lambda P, R, T: (0, 0, 0),  # the 3rd dataset's .partial torn mid-write
+    "rename-dataset:2": lambda P, R, T: (0, 0, 0),   # 2nd dataset file fsync'd, not yet renamed
+    "drop-units:4": lambda P, R, T: (0, 0, 0),       # 4th dataset file renamed, its units not yet removed
+    "drop-units:14": lambda P, R, T: (0, 0, 0),      # the last dataset (phantom): only volumes.h5 is left to write
     "rename-volumes:1": lambda P, R, T: (0, 0, 0),   # right before the final rename
 }
 
@@ -63,6 +67,15 @@ def test_sigkill_then_resume_is_bit_identical(tmp_path, reference, fault):
     got = res["units_written"]
     assert (got["projections"], got["recon"], got["truth"]) == want
     assert not list(cache.glob("*.units")) and not list(cache.glob("*.partial"))
+    assert [p.name for p in (out / "volumes.d").iterdir()] == [Path(str(_attr(out, "datasets_dir"))).name]
+    assert not list((out / "volumes.d").rglob("*.partial"))
+
+
+def _attr(out, key):
+    import h5py
+
+    with h5py.File(out / "volumes.h5", "r") as f:
+        return f.attrs[key]
 
 
 def test_damaged_unit_file_is_detected_and_redone(tmp_path, reference):

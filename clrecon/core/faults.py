@@ -11,10 +11,18 @@ The points (the only calls of :func:`point` in clrecon):
     (slab x variant x method), of a truth target (ground truth or phantom): half of the
     temporary file is written (:func:`clrecon.core.units.write_unit`).
 ``assemble-store``, ``assemble-volumes``
-    While the unit files are copied into the final HDF5 file under its ``.partial`` name,
+    While the unit files are copied into the final HDF5 file under its ``.partial`` name (the
+    projection store; for the volumes, the dataset file ``volumes.d/<gen>/<name>.h5.partial``),
     after the ``n``-th unit (a torn HDF5 file).
+``rename-dataset``
+    Right before the ``n``-th volume dataset file (fsync'd) is renamed from ``.partial`` to
+    its final name.
+``drop-units``
+    Right after the ``n``-th volume dataset file is renamed, before its units are deleted
+    (both on disk).
 ``rename-store``, ``rename-volumes``
-    Right before the assembled ``.partial`` is renamed to its final name.
+    Right before the assembled ``.partial`` is renamed to its final name (for the volumes:
+    ``volumes.h5``, the axes and the virtual datasets over the dataset files).
 ``worker-unit``
     At the start of the ``n``-th unit a Dask worker computes (:mod:`clrecon.pipeline.work_units`):
     a worker that dies mid-unit.

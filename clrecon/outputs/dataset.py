@@ -121,7 +121,8 @@ def open_dataset(path) -> xr.Dataset:
             arr = VolumeArray(run, src.dataset)
             disk_dims = disk_dims or arr.disk_dims
             data_vars[src.name] = xr.Variable(DIMS, indexing.LazilyIndexedArray(arr), _variable_attrs(run, src))
-        attrs: dict = {"run_dir": str(Path(run.dir).resolve()), "format_version": FORMAT_VERSION}
+        attrs: dict = {"run_dir": str(Path(run.dir).resolve()),
+                       "format_version": int(run.h5.attrs.get("format_version", FORMAT_VERSION))}
         dims_known = {}
         if run.has_results:
             res = run.results

@@ -96,7 +96,8 @@ def _size(p: Path) -> int:
 
 
 def resources_table(runs) -> list[str]:
-    lines = ["| run | peak RSS | volumes.h5 | projection store | noise cells | read cells | load (1 min) start → end |",
+    lines = ["| run | peak RSS | volumes (volumes.h5 + volumes.d/) | projection store | noise cells | read cells "
+             "| load (1 min) start → end |",
              "|---|---|---|---|---|---|---|"]
     for d, r in runs:
         stores = [Path(s["store"]) for s in r["stages"]["simulate"].get("per_pitch", {}).values() if s.get("store")]
@@ -106,7 +107,8 @@ def resources_table(runs) -> list[str]:
             lines.append(f"| {r['scene']['name']} | not recorded (run before this was) | | | | | |")
             continue
         st = r["stages"]
-        lines.append(f"| {r['scene']['name']} | {rss / GiB:.2f} GiB | {_size(d / 'volumes.h5') / GiB:.2f} GiB | "
+        vols = _size(d / "volumes.h5") + _size(d / "volumes.d")
+        lines.append(f"| {r['scene']['name']} | {rss / GiB:.2f} GiB | {vols / GiB:.2f} GiB | "
                      f"{sum(_size(s) for s in stores) / GiB:.2f} GiB | {st['noise'].get('cells', 0) / 1e9:.2f} G | "
                      f"{st['read'].get('cells', 0) / 1e9:.2f} G | {load.get('start', '?')} → {load.get('end', '?')} |")
     return lines

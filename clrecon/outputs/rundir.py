@@ -34,7 +34,15 @@ import numpy as np
 
 from clrecon.config.scene import Scene, scene_from_dict
 from clrecon.core.errors import ClreconError, StoreError
-from clrecon.outputs.volumes import DIMS, FORMAT_VERSION, list_recons, open_volumes, read_part, read_volume
+from clrecon.outputs.volumes import (
+    DIMS,
+    FORMAT_VERSION,
+    READABLE_VERSIONS,
+    list_recons,
+    open_volumes,
+    read_part,
+    read_volume,
+)
 from clrecon.reconstruction.interpolation import by_rank
 
 #: Preferred default source, best first (5DCT methods, then baselines).
@@ -107,7 +115,7 @@ def open_volume_store(run_dir: str | Path) -> h5py.File:
                 version = version.item() if hasattr(version, "item") else version
         except OSError as e:
             raise StoreError(f"{h5}: not a readable HDF5 file ({e})") from None
-        if version != FORMAT_VERSION:
+        if version not in READABLE_VERSIONS:
             raise StoreError(f"{h5}: volume format {version!r} is not {FORMAT_VERSION} (an older or foreign run "
                              f"directory); re-run `clrecon run` with this version")
     return open_volumes(p)

@@ -28,7 +28,10 @@ the volumes of a paper-scale run (docs/reproduction.md gives the measured effect
 from __future__ import annotations
 
 import json
+import os
+import secrets
 import shutil
+import time
 from pathlib import Path
 
 import h5py
@@ -38,7 +41,14 @@ from clrecon.core import faults, units
 from clrecon.core.errors import StoreError
 
 DIMS = ("cardiac", "resp", "z", "y", "x")
-FORMAT_VERSION = 1
+#: Layout of ``volumes.h5``: 2 = axes + virtual datasets over ``volumes.d/<gen>/<name>.h5``
+#: (one compressed file per dataset); 1 = every dataset inside ``volumes.h5`` (clrecon before
+#: the per-dataset files; still read: :data:`READABLE_VERSIONS`).
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
+#: Format of the units folder's ``run.json`` (unchanged by the per-dataset files: an earlier
+#: version's interrupted run resumes).
+UNITS_FORMAT = 1
 #: Allowed on-disk dtypes of the volumes (``recon.volume_dtype``).
 VOLUME_DTYPES = ("float32", "float16")
 
@@ -48,15 +58,32 @@ def pitch_key(pitch: float) -> str:
 
 
 class VolumeWriter:
-    """Writes ``volumes.h5`` crash-safely: unit files first, one HDF5 file assembled at the end.
+    """Writes ``volumes.h5`` crash-safely, one dataset file at a time (peak disk: result + one dataset).
 
     Every finished block (a slab of one reconstruction, one target of a truth) is written as
-    its own atomic, checksummed unit file in ``volumes.h5.units/`` (:mod:`clrecon.core.units`);
-    nothing is written into HDF5 while computing, so a SIGKILL at any instant can only lose
-    the block being written. :meth:`assemble` builds ``volumes.h5.partial`` from the units
-    (``f`` is then open on it for reading); :meth:`close` fsyncs it, renames it to
-    ``volumes.h5`` and removes the units. A later run with the same ``run_key`` (hash of
-    scene and request, kept in ``volumes.h5.units/run.json``) keeps the intact units and
+    its own atomic, checksummed unit file in ``volumes.h5.units/`` (:mod:`clrecon.core.units`),
+    compressed with the filters of the final files (LZF + byte shuffle, one chunk per slice:
+    :data:`clrecon.core.units.VOLUME_FILTERS`); nothing is written into HDF5 while computing,
+    so a SIGKILL at any instant can only lose the block being written.
+
+    :meth:`assemble` then builds the datasets one by one: ``volumes.d/<gen>/<name>.h5.partial``
+    from that dataset's units (their compressed chunks copied as they are, no recompression),
+    fsync, rename to ``<name>.h5``, and only then that dataset's units are deleted; so at any
+    instant the disk holds the finished datasets, the units of the others and at most one
+    dataset twice, never the whole result twice. Last it writes ``volumes.h5.partial``: the
+    ``/axes`` and, for every dataset, an HDF5 virtual dataset mapping the whole of
+    ``volumes.d/<gen>/<name>.h5:/volume`` (a path relative to ``volumes.h5``'s folder, which
+    HDF5 resolves against the folder of the file holding the virtual dataset: the run folder can
+    be moved or copied whole), with the dataset's attributes; ``f`` is then open on it for
+    reading. :meth:`close` fsyncs it, renames it to ``volumes.h5``, removes the units folder
+    and any other ``volumes.d/*`` folder (an earlier result's).
+
+    ``<gen>`` is a fresh name per started run (kept in ``volumes.h5.units/run.json``): a
+    different request in the same run folder never touches the earlier result's files, which
+    stay readable until the new ``volumes.h5`` replaces the old one.
+
+    A later run with the same ``run_key`` (hash of scene and request, kept in
+    ``volumes.h5.units/run.json``) keeps the intact units and the finished dataset files and
     skips what they hold; a damaged unit is dropped with a warning and redone; a leftover
     ``.partial`` (an assembly cut short) is discarded and rebuilt; any other key starts afresh.
     """
@@ -69,29 +96,58 @@ class VolumeWriter:
         self.path = Path(path)
         self.partial = self.path.with_name(self.path.name + ".partial")
         self.units_dir = self.path.with_name(self.path.name + ".units")
+        self.datasets_root = self.path.with_name(self.path.stem + ".d")
         self.keep = (keep_cardiac, keep_resp)
         self.axes = {k: np.asarray(v, np.float64) for k, v in axes.items()}
         self.resumed = False
         self.f = None
+        self.run_key = run_key
         self.units_written = {"recon": 0, "truth": 0}
         self._specs: dict[str, tuple[tuple, int]] = {}  # name -> (on-disk shape, done size)
         self._broadcast: dict[str, tuple[str, ...]] = {}  # name -> axes stored at length 1 (standing for all)
         self._done: dict[str, np.ndarray] = {}
         self._units: dict[str, list[tuple[Path, dict]]] = {}
+        #: bytes under the run's volume paths after each step of :meth:`assemble` (peak bookkeeping)
+        self.disk_trace: list[tuple[str, int]] = []
         self.partial.unlink(missing_ok=True)  # only ever an assembly in progress: rebuilt from the units
         meta_path = self.units_dir / "run.json"
         try:
             meta = json.loads(meta_path.read_text())
         except (OSError, ValueError):
             meta = None
-        if (meta and meta.get("run_key") == run_key and meta.get("format_version") == FORMAT_VERSION):
+        if (meta and meta.get("run_key") == run_key and meta.get("format_version") == UNITS_FORMAT):
             self.resumed = True
             for p, m in units.scan_units(self.units_dir):
                 self._units.setdefault(m["name"], []).append((p, m))
+            gen = meta.get("datasets")
+            if not gen:  # units of an earlier version's interrupted run: a folder for its datasets
+                gen = self._new_gen()
+                units.write_json_atomic(meta_path, dict(meta, datasets=gen))
         else:
             shutil.rmtree(self.units_dir, ignore_errors=True)
             self.units_dir.mkdir(parents=True)
-            units.write_json_atomic(meta_path, {"run_key": run_key, "format_version": FORMAT_VERSION})
+            gen = self._new_gen()
+            self._drop_datasets(keep=_linked_gen(self.path))  # folders of interrupted runs; not the result's
+            units.write_json_atomic(meta_path, {"run_key": run_key, "format_version": UNITS_FORMAT,
+                                                "datasets": gen})
+        self.datasets_dir = self.datasets_root / gen
+        self.datasets_dir.mkdir(parents=True, exist_ok=True)
+        for p in self.datasets_dir.glob("*.partial"):  # a dataset's assembly cut short
+            p.unlink(missing_ok=True)
+
+    @staticmethod
+    def _new_gen() -> str:
+        return f"{time.strftime('%Y%m%dT%H%M%S')}-{secrets.token_hex(3)}"
+
+    def _drop_datasets(self, keep: str | None) -> None:
+        if self.datasets_root.is_dir():
+            for p in self.datasets_root.iterdir():
+                if p.name != keep:
+                    shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+
+    def dataset_path(self, name: str) -> Path:
+        """The file that holds dataset ``name`` once assembled: ``volumes.d/<gen>/<name with ~>.h5``."""
+        return self.datasets_dir / f"{name.replace('/', '~')}.h5"
 
     def _dims(self):
         return tuple(d for d, keep in zip(DIMS, self.keep + (True, True, True), strict=True) if keep)
@@ -99,6 +155,9 @@ class VolumeWriter:
     def _squeeze(self, vol: np.ndarray) -> np.ndarray:
         drop = tuple(i for i, keep in enumerate(self.keep) if not keep)
         return vol.reshape(tuple(s for i, s in enumerate(vol.shape) if i not in drop))
+
+    def _chunks(self, shape: tuple) -> tuple:
+        return (1,) * (len(shape) - 2) + tuple(shape[-2:])
 
     def create(self, name: str, full_shape: tuple, done_size: int, broadcast: tuple = ()) -> None:
         """Declare dataset ``name`` with a ``done`` mask of ``done_size`` (slices or flattened targets).
@@ -117,16 +176,36 @@ class VolumeWriter:
         shape = tuple(n for i, n in enumerate(full_shape) if i >= 2 or self.keep[i])
         self._specs[name] = (shape, done_size)
         done = np.zeros(done_size, bool)
+        assembled = self._assembled_done(name, shape, done_size)
+        if assembled is not None:
+            done |= assembled
         kept = []
         for p, m in self._units.get(name, []):
             sel = np.asarray(m["z"] if "z" in m else [m["target"]], np.int64)
             if tuple(m["shape"]) != shape or sel.max(initial=-1) >= done_size or done[sel].any():
-                p.unlink(missing_ok=True)  # from another layout, or overlapping: redo
+                p.unlink(missing_ok=True)  # from another layout, overlapping or already assembled: redo/drop
                 continue
             done[sel] = True
             kept.append((p, m))
         self._units[name] = kept
         self._done[name] = done
+
+    def _assembled_done(self, name: str, shape: tuple, done_size: int) -> np.ndarray | None:
+        """The done mask of ``name``'s finished dataset file of this run (None: none, or unusable: removed)."""
+        p = self.dataset_path(name)
+        if not p.exists():
+            return None
+        try:
+            with h5py.File(p, "r") as f:
+                ds = f["volume"]
+                ok = (f.attrs.get("run_key") == self.run_key and ds.shape == shape and ds.dtype == self.dtype)
+                done = np.asarray(ds.attrs["done"], bool)
+            if ok and done.shape == (done_size,):
+                return done
+        except (OSError, KeyError, ValueError):
+            pass
+        p.unlink(missing_ok=True)  # damaged or from another layout: rebuilt from units / recomputed
+        return None
 
     def done(self, name: str) -> np.ndarray:
         """Boolean mask of the finished blocks of ``name`` (slices or flattened targets)."""
@@ -134,7 +213,9 @@ class VolumeWriter:
 
     def _unit(self, name: str, vol: np.ndarray, meta: dict, fault: str, stem: str) -> None:
         meta = dict(meta, name=name, shape=list(self._specs[name][0]))
-        p = units.write_unit(self.units_dir, stem, {"data": np.ascontiguousarray(vol, self.dtype)}, meta, fault)
+        vol = np.ascontiguousarray(vol, self.dtype)
+        p = units.write_unit(self.units_dir, stem, {"data": vol}, meta, fault,
+                             compress={"data": self._chunks(vol.shape)}, filters=units.VOLUME_FILTERS)
         self._units[name].append((p, meta))
         self.units_written[fault] += 1
 
@@ -183,7 +264,7 @@ class VolumeWriter:
         if self._done[name][k]:
             return True
         try:
-            _, meta = units.read_unit(path)
+            meta = units.read_meta(path)
         except (OSError, ValueError, KeyError, EOFError):
             return False
         if (meta.get("name") != name or meta.get("target") != k
@@ -194,32 +275,105 @@ class VolumeWriter:
         self.units_written["adopted"] = self.units_written.get("adopted", 0) + 1
         return True
 
+    # -- assembly ------------------------------------------------------------------------
+    def _disk_bytes(self) -> int:
+        """Bytes now under the run's volume paths (units, dataset files, the link file)."""
+        total = 0
+        for root in (self.units_dir, self.datasets_root):
+            if root.is_dir():
+                total += sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+        for p in (self.partial, self.path):
+            if p.exists():
+                total += p.stat().st_size
+        return total
+
+    def _copy_unit(self, ds: h5py.Dataset, p: Path, m: dict) -> None:
+        """Write unit ``p`` into ``ds``: its compressed chunks as they are where they match, else decoded."""
+        nt = ds.ndim - 3
+        with units.open_unit(p) as (uf, arrays, _):  # checksum checked again
+            src = uf["data"] if uf is not None else None
+            if "z" in m:
+                z = np.asarray(m["z"], np.int64)
+                place = lambda off: off[:nt] + (int(z[off[nt]]),) + off[nt + 1:]  # noqa: E731
+            else:
+                place = lambda off: tuple(m["sel"]) + off  # noqa: E731
+            if (src is not None and src.chunks == ds.chunks and src.dtype == ds.dtype
+                    and (src.compression, src.shuffle, src.fletcher32) == (ds.compression, ds.shuffle, ds.fletcher32)
+                    and src.id.get_num_chunks() == int(np.prod(src.shape[:-2]))):
+                for c in range(src.id.get_num_chunks()):
+                    info = src.id.get_chunk_info(c)
+                    mask, raw = src.id.read_direct_chunk(info.chunk_offset)
+                    ds.id.write_direct_chunk(place(tuple(info.chunk_offset)), raw, mask)
+                return
+            data = arrays["data"] if src is None else src[()]
+            if "z" in m:
+                ds[(slice(None),) * nt + (z.tolist(),)] = data
+            else:
+                ds[tuple(m["sel"])] = data
+
+    def _assemble_dataset(self, name: str) -> None:
+        """``volumes.d/<gen>/<name>.h5`` from its units (and its earlier file, if any); then drop the units."""
+        shape, _ = self._specs[name]
+        final = self.dataset_path(name)
+        pending = self._units[name]
+        if final.exists() and not pending:
+            return
+        part = final.with_name(final.name + ".partial")
+        if final.exists():  # an assembled dataset that a resumed run extends (rare): copied, then added to
+            shutil.copyfile(final, part)
+        with h5py.File(part, "r+" if final.exists() else "w") as f:
+            if "volume" not in f:
+                f.attrs.update({"format_version": FORMAT_VERSION, "run_key": self.run_key, "name": name})
+                ds = f.create_dataset("volume", shape=shape, dtype=self.dtype, chunks=self._chunks(shape),
+                                      **units.VOLUME_FILTERS)
+                ds.attrs["dims"] = list(self._dims())
+                ds.attrs["broadcast"] = list(self._broadcast[name])
+                ds.attrs["units"] = "HU"
+            ds = f["volume"]
+            for p, m in pending:
+                self._copy_unit(ds, p, m)
+                faults.point("assemble-volumes")
+            ds.attrs["done"] = self._done[name].astype(np.uint8)
+        units.fsync_file(part)
+        faults.point("rename-dataset")
+        os.replace(part, final)
+        units.fsync_dir(final.parent)
+        self.disk_trace.append((f"renamed {name}", self._disk_bytes()))
+        faults.point("drop-units")
+        for p, _ in pending:  # in the fsync'd, renamed file now: the units go
+            p.unlink(missing_ok=True)
+        units.fsync_dir(self.units_dir)
+        self._units[name] = []
+        self.disk_trace.append((f"dropped units of {name}", self._disk_bytes()))
+
     def assemble(self) -> h5py.File:
-        """Build ``volumes.h5.partial`` from the units; returns it open for reading (also ``self.f``)."""
+        """Assemble every dataset file, then ``volumes.h5.partial`` over them; returns it open for reading."""
+        self.disk_trace.append(("start", self._disk_bytes()))
+        for name in self._specs:
+            self._assemble_dataset(name)
+        rel = self.datasets_dir.relative_to(self.path.parent).as_posix()
         with h5py.File(self.partial, "w") as f:
             f.attrs["format_version"] = FORMAT_VERSION
+            f.attrs["datasets_dir"] = rel
             for k, v in self.axes.items():
                 f[f"axes/{k}"] = v
             for name, (shape, _) in self._specs.items():
-                chunks = tuple(1 for _ in shape[:-3]) + (1,) + tuple(shape[-2:])
-                ds = f.create_dataset(name, shape=shape, dtype=self.dtype, chunks=chunks)
+                layout = h5py.VirtualLayout(shape=shape, dtype=self.dtype)
+                layout[...] = h5py.VirtualSource(f"{rel}/{self.dataset_path(name).name}", "volume", shape=shape,
+                                                 dtype=self.dtype)
+                ds = f.create_virtual_dataset(name, layout, fillvalue=np.nan)
                 ds.attrs["dims"] = list(self._dims())
                 ds.attrs["broadcast"] = list(self._broadcast[name])
                 ds.attrs["units"] = "HU"
                 ds.attrs["done"] = self._done[name].astype(np.uint8)
-                for p, m in self._units[name]:
-                    data = units.read_unit(p)[0]["data"]  # checksum checked again
-                    if "z" in m:
-                        ds[(slice(None),) * (len(shape) - 3) + (list(m["z"]),)] = data
-                    else:
-                        ds[tuple(m["sel"])] = data
-                    faults.point("assemble-volumes")
+                ds.attrs["source"] = f"{rel}/{self.dataset_path(name).name}"
         units.fsync_file(self.partial)
+        self.disk_trace.append(("assembled", self._disk_bytes()))
         self.f = h5py.File(self.partial, "r")
         return self.f
 
     def close(self) -> None:
-        """Assemble (if not yet), rename to ``volumes.h5`` and remove the units."""
+        """Assemble (if not yet), rename to ``volumes.h5``, remove the units and earlier results' files."""
         if self.f is None:
             self.assemble()
         self.f.close()
@@ -227,6 +381,7 @@ class VolumeWriter:
         self.partial.replace(self.path)
         units.fsync_dir(self.path.parent)
         shutil.rmtree(self.units_dir, ignore_errors=True)
+        self._drop_datasets(keep=self.datasets_dir.name)
 
     def abort(self) -> None:
         """Close the assembly file if open; the units stay for the next run."""
@@ -235,6 +390,34 @@ class VolumeWriter:
                 self.f.close()
             except Exception:  # noqa: BLE001 - best-effort cleanup on a failing run: the original error matters
                 pass
+
+
+def _linked_gen(path: Path) -> str | None:
+    """The ``volumes.d/<gen>`` folder name a finished ``volumes.h5`` reads from (None: none or old layout)."""
+    try:
+        with h5py.File(path, "r") as f:
+            rel = f.attrs.get("datasets_dir")
+    except OSError:
+        return None
+    return Path(str(rel)).name if rel else None
+
+
+def check_sources(f: h5py.File, p: Path) -> None:
+    """Raise a one-line :class:`StoreError` when a dataset file a ``volumes.h5`` reads from is missing."""
+    if f.attrs.get("format_version") != FORMAT_VERSION:
+        return
+    rel = f.attrs.get("datasets_dir")
+    folder = p.parent / str(rel)
+    missing = []
+
+    def visit(name, obj):
+        src = obj.attrs.get("source") if isinstance(obj, h5py.Dataset) else None
+        if src is not None and not (p.parent / str(src)).is_file():
+            missing.append(name)
+    f.visititems(visit)
+    if missing:
+        raise StoreError(f"{p}: {len(missing)} of its dataset files are missing from {folder} (first: {missing[0]}); "
+                         f"copy or move the run folder whole, volumes.h5 with its {p.stem}.d/ folder")
 
 
 def open_volumes(path) -> h5py.File:
@@ -249,10 +432,15 @@ def open_volumes(path) -> h5py.File:
     except OSError as e:
         raise StoreError(f"{p}: not a readable HDF5 file ({e})") from None
     version = f.attrs.get("format_version")
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         f.close()
         raise StoreError(f"{p}: volume format {version!r} is not {FORMAT_VERSION}; "
                          f"re-run `clrecon run` with this version")
+    try:
+        check_sources(f, p)
+    except StoreError:
+        f.close()
+        raise
     return f
 
 

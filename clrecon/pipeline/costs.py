@@ -10,6 +10,15 @@ from clrecon.reconstruction.rebin import slice_window_mm
 from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, slab_bytes_per_slice, slices_per_slab
 
 GiB = 1024 ** 3
+#: Modelled compression of the projection store and its units (LZF + shuffle on float32 line
+#: integrals; measured 2.38x on paper-p002's 160 689 projections (34.5 GiB raw, 14.5 GiB
+#: stored), 2.0-2.1x on thorax-like test data: the lower figure, so the model errs high).
+PROJECTION_RATIO = 2.0
+#: Modelled compression of the volumes and their units (LZF + shuffle on HU volumes, one chunk
+#: per slice; measured on a paper-p010 slab in float16, the zero outside the field of view
+#: included: 2.9x as units, 3.5x as dataset files; float32 and tiny grids compress less: 2.0
+#: errs high on the paper scenes).
+VOLUME_RATIO = 2.0
 
 
 def scene_costs(scene) -> dict:
@@ -59,10 +68,52 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     plans = min(KEEP_PLANS_BYTES, 40.0 * nz * sc.views_per_rotation * n_targets * 8 * len(methods))
     slab_sinos = 2 * 32 * sc.views_per_rotation * sc.n_cols * 4
     peak = chunk + slab * per_slice + plans + slab_sinos + 2 * nz * rc.ny * rc.nx * 4
-    return {"projections": n_proj, "projections_needed": needed, "store_bytes": sum(n_proj.values()) * proj_bytes,
-            "needed_store_bytes": sum(needed.values()) * proj_bytes,
-            "volume_bytes": int(vol_bytes * n_vols), "n_volumes": round(n_vols, 3), "n_targets": n_targets,
-            "peak_memory_bytes": int(peak), "slab_slices": slab}
+    out = {"projections": n_proj, "projections_needed": needed, "store_bytes": sum(n_proj.values()) * proj_bytes,
+           "needed_store_bytes": sum(needed.values()) * proj_bytes, "projection_bytes": proj_bytes,
+           "volume_bytes": int(vol_bytes * n_vols), "n_volumes": round(n_vols, 3), "n_targets": n_targets,
+           "recon_bytes_per_pitch": int(vol_bytes * n_var * per_pitch_variant), "truth_bytes": int(2 * vol_bytes),
+           "largest_dataset_bytes": int(vol_bytes), "peak_memory_bytes": int(peak), "slab_slices": slab}
+    out.update(disk_model(out))
+    return out
+
+
+def disk_model(c: dict, existing: dict | None = None, present_out: int = 0, truth_copies: bool = False) -> dict:
+    """Modelled disk growth of a run, walked as it happens (docs/data-flow.md, "Disk").
+
+    Per pitch, in order: its projection units (compressed) and the store assembled from them
+    coexist (``existing[pitch]`` = bytes of an unfinished store already there, copied to
+    ``.partial``; a complete store: ``None`` = nothing to do), then the store keeps its new
+    projections and that pitch's reconstruction units are written; at the end the truth units,
+    and one dataset file is assembled at a time next to the units not yet assembled: + the
+    largest dataset. ``present_out``: bytes of units and dataset files an interrupted run
+    left (not written again). ``truth_copies``: the truth cache is on another file system
+    (it copies the truths instead of linking them). Compressed sizes: the raw bytes over
+    :data:`PROJECTION_RATIO` and :data:`VOLUME_RATIO`.
+
+    Returns bytes: ``cache_disk`` (the projection-store folder's peak growth), ``out_disk``
+    (the run directory's: volumes plus one dataset) and ``disk_peak`` (both on one file
+    system: the largest growth at any instant, which is less than their sum since the store's
+    assembly transient is over before the volumes are written).
+    """
+    existing = existing or {}
+    grown = cache_peak = cache_grown = peak = 0.0
+    for p, n_needed in c["projections_needed"].items():
+        old = existing.get(p, 0)
+        if old is None:  # complete store: nothing written
+            grown += c["recon_bytes_per_pitch"] / VOLUME_RATIO
+            continue
+        new = n_needed * c["projection_bytes"] / PROJECTION_RATIO
+        peak = max(peak, grown + old + 2 * new)
+        cache_peak = max(cache_peak, cache_grown + old + 2 * new)
+        grown += new + c["recon_bytes_per_pitch"] / VOLUME_RATIO
+        cache_grown += new
+    truths = c["truth_bytes"] / VOLUME_RATIO
+    out = max(0.0, c["volume_bytes"] / VOLUME_RATIO + c["largest_dataset_bytes"] / VOLUME_RATIO - present_out)
+    peak = max(peak, cache_grown + out)
+    if truth_copies:
+        cache_peak = max(cache_peak, cache_grown + truths)
+        peak += truths
+    return {"cache_disk": int(cache_peak), "out_disk": int(out), "disk_peak": int(peak)}
 
 
 def detector_label(sc) -> str:
@@ -77,7 +128,7 @@ def detector_label(sc) -> str:
 
 def describe_scenes() -> str:
     lines = [f"{'scene':<12} {'pitch':>6} {'projections':>12} {'scan s':>7} {'detector':>16} {'volume':>16} "
-             f"{'targets':>7} {'store GiB':>9} {'volumes GiB':>11} {'peak mem GiB':>12}"]
+             f"{'targets':>7} {'store GiB':>9} {'volumes GiB':>11} {'peak mem GiB':>12} {'peak disk GiB':>13}"]
     for name in builtin_scene_names():
         try:
             s = load_scene(name)
@@ -93,11 +144,15 @@ def describe_scenes() -> str:
                 f"{f'{rc.nx}x{rc.ny}x{rc.nz}':>16} {c['n_targets'] if i == 0 else '':>7} "
                 f"{c['projections'][p] * sc.n_rows * sc.n_cols * 4 / GiB:>9.2f} "
                 f"{c['volume_bytes'] / GiB if i == 0 else 0:>11.2f} "
-                f"{c['peak_memory_bytes'] / GiB if i == 0 else 0:>12.2f}")
+                f"{c['peak_memory_bytes'] / GiB if i == 0 else 0:>12.2f} "
+                f"{c['disk_peak'] / GiB if i == 0 else 0:>13.2f}")
         if s.description:
             lines.append(f"{'':<12} {s.description}")
     lines.append("detector: columns x rows, cyl = cylindrical (equiangular) arc, then the flying focal spot (phi, z)")
     lines.append("store: noise-free line integrals, float32 before compression, all projections (a run stores only"
                  " those its slices use); volumes: every method x pitch x noise variant + ground truth + phantom"
-                 " (r4dct once per amplitude, helical once), in recon.volume_dtype (paper scenes: float16)")
+                 " (r4dct once per amplitude, helical once), in recon.volume_dtype (paper scenes: float16), before"
+                 " compression; peak disk: the modelled most the store folder and the run directory hold at once"
+                 " (one file system, every projection and slice, transients included, compressed: store / 2.0,"
+                 " volumes / 2.0)")
     return "\n".join(lines)

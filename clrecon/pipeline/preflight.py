@@ -7,11 +7,16 @@ both are on one file system) and available memory (``MemAvailable`` of ``/proc/m
 ``os.sysconf``). Beyond it: one :class:`~clrecon.core.errors.ClreconError` line naming both
 numbers and the override (``--force`` / ``force=True``).
 
-Disk need, from the crash-safe layout (:mod:`clrecon.core.units`): projection units of the
-needed projections (raw float32) plus the assembled store (the old ``.h5`` copied, plus the
-new projections; LZF-compressed, counted raw), i.e. 2 x needed + the existing store, or
-nothing when the existing store is complete; volume units plus the assembled ``volumes.h5``
-(2 x the volumes), less the units an interrupted run already left. The truth cache
+Disk need, from the crash-safe layout (:mod:`clrecon.core.units`), walked in the order the run
+writes (:func:`clrecon.pipeline.costs.disk_model`): per pitch, the compressed projection units of
+the needed projections and the store assembled from them (an unfinished old ``.h5`` copied,
+plus the new projections), or nothing when the existing store is complete; then the compressed
+volume units, of which one dataset at a time is assembled into its own file before its units
+are deleted (the volumes + one dataset), less the units and dataset files an interrupted run
+already left. Compressed sizes are the raw ones over ``costs.PROJECTION_RATIO`` and
+``costs.VOLUME_RATIO`` (2.0 each, below what the paper scenes measure). On one file system the
+check is against the largest growth at any instant (``disk_peak``): the store's assembly
+transient is over before the volumes are written. The truth cache
 (:mod:`clrecon.evaluation.truth_cache`) hard-links the truth units, so it costs nothing more
 at the peak; where the cache is on another file system the link is a copy, and the two truth
 volumes are counted at the cache too.
@@ -19,11 +24,13 @@ volumes are counted at the cache too.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
 
 from clrecon.core.errors import ClreconError
+from clrecon.pipeline.costs import disk_model
 
 GiB = 1024 ** 3
 
@@ -58,7 +65,20 @@ def available_memory_bytes() -> int:
 def _dir_bytes(path: Path) -> int:
     if not path.is_dir():
         return 0
-    return sum(p.stat().st_size for p in path.iterdir() if p.is_file())
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def _left_by_interrupted_run(out_dir: Path) -> int:
+    """Bytes of volume units and dataset files an interrupted run left in ``out_dir`` (kept on resume)."""
+    units_dir = Path(out_dir) / "volumes.h5.units"
+    total = _dir_bytes(units_dir)
+    try:
+        gen = json.loads((units_dir / "run.json").read_text()).get("datasets")
+    except (OSError, ValueError):
+        gen = None
+    if gen:
+        total += _dir_bytes(Path(out_dir) / "volumes.d" / gen)
+    return total
 
 
 def _gib(b: float) -> str:
@@ -69,23 +89,20 @@ def needs(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
     """Bytes this run needs: ``memory``, ``cache_disk``, ``out_disk``."""
     import h5py
 
-    proj_bytes = scene.scanner.n_rows * scene.scanner.n_cols * 4
-    cache = 0
-    for p, n_needed in costs["projections_needed"].items():
+    existing: dict = {}
+    for p in costs["projections_needed"]:
         h = Path(cache_dir) / f"{scene.scan_hash(p)}.h5"
-        existing = h.stat().st_size if h.exists() else 0
-        if existing:
+        existing[p] = h.stat().st_size if h.exists() else 0
+        if existing[p]:
             try:
                 with h5py.File(h, "r") as f:
                     if bool(f.attrs.get("complete")):
-                        continue
+                        existing[p] = None
             except OSError:
                 pass
-        cache += 2 * n_needed * proj_bytes + existing
-    out = max(0, 2 * costs["volume_bytes"] - _dir_bytes(Path(out_dir) / "volumes.h5.units"))
-    if _device(cache_dir) != _device(out_dir):  # the truth cache copies instead of linking
-        cache += int(2 * costs["volume_bytes"] / max(costs["n_volumes"], 1))
-    return {"memory": costs["peak_memory_bytes"], "cache_disk": cache, "out_disk": int(out)}
+    disk = disk_model(costs, existing, present_out=_left_by_interrupted_run(out_dir),
+                      truth_copies=_device(cache_dir) != _device(out_dir))  # the truth cache copies, not links
+    return {"memory": costs["peak_memory_bytes"], **disk}
 
 
 def check(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
@@ -98,8 +115,7 @@ def check(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
                            f"the machine has {_gib(mem)} available; narrow --slices/--targets/--methods or {force}")
     disks = [("the projection store", cache_dir, need["cache_disk"]), ("the run directory", out_dir, need["out_disk"])]
     if _device(cache_dir) == _device(out_dir):
-        disks = [(f"the projection store and the run directory ({cache_dir})", out_dir,
-                  need["cache_disk"] + need["out_disk"])]
+        disks = [(f"the projection store and the run directory ({cache_dir})", out_dir, need["disk_peak"])]
     for what, path, b in disks:
         free = free_disk_bytes(path)
         if b > free:

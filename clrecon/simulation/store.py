@@ -28,7 +28,17 @@ name, fsync'd and renamed with its BLAKE2b checksum in its name (:mod:`clrecon.c
 When the projecting is done the store is *assembled*: the existing ``<hash>.h5`` (if any) is
 copied to ``<hash>.h5.partial`` (or a new file is created there), the units are written into
 it with their ``present`` entries, it is fsync'd and renamed to ``<hash>.h5``, and the units
-folder is removed. So the finished ``.h5`` is never written in place, a SIGKILL at any
+folder is removed.
+
+Disk (docs/data-flow.md, "Disk"): a unit is written compressed with the store's own filters
+(an HDF5 image, LZF + shuffle + Fletcher-32), so the units and the assembled store coexist at
+about 2 x the compressed projections (raw ``.npz`` units, as written before, were 2.4 x larger
+than their share of the store on paper-p002). A contiguous unit is cut on the store's chunk
+grid: ``head`` (the projections up to the next multiple of the chunk rows), ``data`` (whole
+chunks, chunked like the store) and ``tail``; the assembly copies ``data``'s compressed chunks
+into the store as they are (``write_direct_chunk``: no second compression, bit-identical) and
+writes only head and tail decoded. Other units (sparse index sets, an earlier version's
+``.npz``) are decoded and written. So the finished ``.h5`` is never written in place, a SIGKILL at any
 instant can only tear the unit being written (a ``.tmp`` file, deleted on the next open) or
 the assembly copy (``.partial``, always discarded and rebuilt on the next open), and a
 unit damaged later fails its checksum, is dropped with a warning and simulated again. The
@@ -126,6 +136,8 @@ class ProjectionStore:
         self.simulate_s = 0.0
         #: unit files written by this process (chunks of projections)
         self.units_written = 0
+        #: HDF5 chunks the last assembly copied from the units without decoding them
+        self.chunks_copied = 0
 
     # -- opening -----------------------------------------------------------------------
     @classmethod
@@ -217,9 +229,14 @@ class ProjectionStore:
             return bool(np.allclose(stored, want, rtol=0.0, atol=_FLOAT_ATOL))
         return bool(np.array_equal(stored, want))
 
+    def _block(self) -> int:
+        """Projections per HDF5 chunk (about :data:`CHUNK_BYTES`), in the store and in its units."""
+        n, r, c = self.shape
+        return int(np.clip(CHUNK_BYTES // (r * c * 4), 1, n))
+
     def _create(self, path: Path) -> None:
         n, r, c = self.shape
-        block = int(np.clip(CHUNK_BYTES // (r * c * 4), 1, n))
+        block = self._block()
         self.cache_dir.mkdir(parents=True, exist_ok=True)
         with h5py.File(path, "w") as f:
             # fletcher32: every chunk carries a checksum, so a corrupted file fails on read
@@ -306,16 +323,21 @@ class ProjectionStore:
         else:
             self._create(self.partial_path)
         present = np.zeros(self.shape[0], dtype=bool)
+        self.chunks_copied = 0
         with h5py.File(self.partial_path, "r+", rdcc_nbytes=CACHE_BYTES) as f:
             ds = f["projections"]
             present |= f["present"][...]
             for p, _ in self._units:
-                arrays, _meta = units.read_unit(p)  # checksum checked again: raises if damaged since
-                idx, arr = arrays["indices"], arrays["data"]
-                breaks = np.flatnonzero(np.diff(idx) != 1) + 1
-                for lo, hi in zip(np.concatenate([[0], breaks]), np.concatenate([breaks, [idx.size]]),
-                                  strict=True):
-                    ds[idx[lo]:idx[hi - 1] + 1] = arr[lo:hi]
+                with units.open_unit(p) as (uf, arrays, _meta):  # checksum checked again: raises if damaged since
+                    idx = (uf if uf is not None else arrays)["indices"][()]
+                    if uf is not None and "head" in uf:
+                        self.chunks_copied += self._copy_aligned(ds, uf, int(idx[0]))
+                    else:  # any index set (or an earlier version's .npz unit): decoded and written
+                        arr = uf["data"][()] if uf is not None else arrays["data"]
+                        breaks = np.flatnonzero(np.diff(idx) != 1) + 1
+                        for lo, hi in zip(np.concatenate([[0], breaks]), np.concatenate([breaks, [idx.size]]),
+                                          strict=True):
+                            ds[idx[lo]:idx[hi - 1] + 1] = arr[lo:hi]
                 present[idx] = True
                 faults.point("assemble-store")
             f["present"][...] = present
@@ -327,6 +349,37 @@ class ProjectionStore:
         shutil.rmtree(self.units_path, ignore_errors=True)
         self._units = []
         self._present = present
+
+    @staticmethod
+    def _copy_aligned(ds: h5py.Dataset, uf: h5py.File, first: int) -> int:
+        """A contiguous unit into the store: head and tail rows decoded, the body's chunks copied as they are.
+
+        Returns the number of chunks copied compressed.
+
+        The body starts on a multiple of the store's chunk rows and is chunked like the store with
+        the same filters, so each of its compressed chunks is a whole chunk of the store
+        (``write_direct_chunk``): no second compression, bit-identical.
+        """
+        h, body, tail = len(uf["head"]), uf["data"], uf["tail"]
+        if h:
+            ds[first:first + h] = uf["head"][()]
+        start = first + h
+        copied = 0
+        if len(body):
+            same = (body.chunks == ds.chunks and body.compression == ds.compression == "lzf" and body.shuffle
+                    and ds.shuffle and body.fletcher32 and ds.fletcher32)
+            n_chunks = body.id.get_num_chunks()
+            if same and n_chunks * ds.chunks[0] == len(body):
+                for c in range(n_chunks):
+                    off = body.id.get_chunk_info(c).chunk_offset
+                    mask, raw = body.id.read_direct_chunk(off)
+                    ds.id.write_direct_chunk((start + off[0],) + tuple(off[1:]), raw, mask)
+                copied = n_chunks
+            else:  # another chunking (CHUNK_BYTES changed since the store was made): decoded
+                ds[start:start + len(body)] = body[()]
+        if len(tail):
+            ds[start + len(body):start + len(body) + len(tail)] = tail[()]
+        return copied
 
     def write(self, indices, data) -> None:
         """Store projections ``indices`` (increasing ints, shape (m,)) = ``data`` (m, R, C).
@@ -348,8 +401,16 @@ class ProjectionStore:
             raise ValueError(f"indices must increase strictly within [0, {self.shape[0]})")
         arr = np.ascontiguousarray(arr, dtype=np.float32)
         meta = {"scan_hash": self.scan_hash, "indices": idx.tolist()}
-        p = units.write_unit(self.units_path, f"p{idx[0]:09d}-{idx[-1]:09d}", {"indices": idx, "data": arr},
-                             meta, fault="simulate")
+        block, det = self._block(), tuple(self.shape[1:])
+        if idx[-1] - idx[0] + 1 == idx.size:  # contiguous: cut on the store's chunk grid
+            h = min(int(-idx[0] % block), idx.size)
+            nb = (idx.size - h) // block
+            arrays = {"indices": idx, "head": arr[:h], "data": arr[h:h + nb * block], "tail": arr[h + nb * block:]}
+            compress = {k: (block if k == "data" else max(len(arrays[k]), 1),) + det for k in ("head", "data", "tail")}
+        else:
+            arrays, compress = {"indices": idx, "data": arr}, {"data": (min(block, idx.size),) + det}
+        p = units.write_unit(self.units_path, f"p{idx[0]:09d}-{idx[-1]:09d}", arrays, meta, fault="simulate",
+                             compress=compress)
         self._units.append((p, meta))
         self._present[idx] = True
         self.units_written += 1
