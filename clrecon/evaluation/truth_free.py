@@ -387,37 +387,54 @@ def cross_validate(store, table, slices_z, recon_cfg, targets, variants, box, tf
                                           "Poisson + electronic, delta method at the measured line integrals)"},
            "folds": {s: int(f.held.size) for s, f in folds.items()},
            "errors": {}}
-    t_w = t_e = 0.0
-    for s, f in folds.items():
-        hv = heart_v[groups.group_view[f.group]]
-        masks = {"row": None, "heart": hv}
-        for k in tf.kernels:
-            t1 = time.perf_counter()
-            idx, w = fold_weights(f, k, opts)
-            t_w += time.perf_counter() - t1
-            t1 = time.perf_counter()
-            lf = replace(f, held=pos[f.held])
-            for v in variants:
-                rows, var = rows_by_v[v]
-                sums = fold_errors(rows, lf, np.maximum(pos[idx], 0), w, masks, var)
-                ent = res["errors"].setdefault(v, {}).setdefault(s, {}).setdefault(k.label, {})
-                for r, (sq, fl, n) in sums.items():
-                    es = ErrorSums(sq, fl, n)
-                    ent[r] = {"rms_hu_mm": es.rms(var is not None) * 1000.0 / recon_cfg.mu_water_per_mm,
-                              "rms_raw_hu_mm": es.rms(False) * 1000.0 / recon_cfg.mu_water_per_mm,
-                              "cells": n}
-            t_e += time.perf_counter() - t1
-    res["choice"] = {v: choose(res, v, tf) for v in variants}
-    res["seconds"] = {"plan": round(t_plan, 3), "read_rebin": round(t_read, 3), "weights": round(t_w, 3),
-                      "errors": round(t_e, 3), "total": round(time.perf_counter() - t0, 3)}
+    t1 = time.perf_counter()
+    for v in variants:
+        rows, var = rows_by_v[v]
+        res["errors"][v] = kernel_errors(folds, rows, var, tf.kernels, opts, pos=pos,
+                                         masks_of=lambda f: {"row": None, "heart": heart_v[groups.group_view[f.group]]},
+                                         scale=1000.0 / recon_cfg.mu_water_per_mm)
+    t_e = time.perf_counter() - t1
+    res["choice"] = {v: choose(res["errors"][v], tf) for v in variants}
+    res["seconds"] = {"plan": round(t_plan, 3), "read_rebin": round(t_read, 3), "weights_errors": round(t_e, 3),
+                      "total": round(time.perf_counter() - t0, 3)}
     return res
 
 
-def choose(res: dict, variant: str, tf: TruthFreeConfig) -> dict:
-    """The kernel with the smallest CV error of ``tf.choose_by`` = (scheme, region) in ``variant``."""
-    s, r = tf.choose_by
-    errs = {k.label: res["errors"][variant][s][k.label][r]["rms_hu_mm"] for k in tf.kernels}
-    best = min(tf.kernels, key=lambda k: (np.nan_to_num(errs[k.label], nan=np.inf)))
+def kernel_errors(folds: dict, rows, row_var, kernels, options: dict, pos=None, masks_of=None,
+                  scale: float = 1.0) -> dict:
+    """``{scheme: {kernel label: {region: {rms_hu_mm, rms_raw_hu_mm, cells}}}}`` of the folds ``folds``
+    (``{scheme: Folds}``) on ``rows`` (n, C) with noise variance ``row_var`` (n, C) or None.
+
+    ``pos`` maps the folds' flat candidate ids to rows of ``rows`` (default identity);
+    ``masks_of(folds) -> {region: (F, C) bool or None}`` (default: the whole row); ``scale``
+    multiplies the RMS (line integral -> HU mm). ``rms_hu_mm`` has the held-out row's own noise
+    variance subtracted when ``row_var`` is given, ``rms_raw_hu_mm`` never.
+    """
+    out = {}
+    for s, f in folds.items():
+        masks = masks_of(f) if masks_of is not None else {"row": None}
+        lf = f if pos is None else replace(f, held=pos[f.held])
+        for k in kernels:
+            idx, w = fold_weights(f, k, options)
+            if pos is not None:
+                idx = np.maximum(pos[idx], 0)
+            sums = fold_errors(rows, lf, idx, w, masks, row_var)
+            ent = out.setdefault(s, {}).setdefault(k.label, {})
+            for r, (sq, fl, n) in sums.items():
+                es = ErrorSums(sq, fl, n)
+                ent[r] = {"rms_hu_mm": es.rms(row_var is not None) * scale, "rms_raw_hu_mm": es.rms(False) * scale,
+                          "cells": n}
+    return out
+
+
+def choose(errors: dict, tf: TruthFreeConfig = None, kernels=None, by=None) -> dict:
+    """The kernel with the smallest CV error of (scheme, region) ``by`` (default ``tf.choose_by``) in
+    ``errors`` (one variant's :func:`kernel_errors`)."""
+    tf = tf or TruthFreeConfig()
+    kernels = kernels or tf.kernels
+    s, r = by or tf.choose_by
+    errs = {k.label: errors[s][k.label][r]["rms_hu_mm"] for k in kernels}
+    best = min(kernels, key=lambda k: np.nan_to_num(errs[k.label], nan=np.inf))
     return {"kernel": best.to_dict(), "label": best.label, "by": {"scheme": s, "region": r}, "rms_hu_mm": errs}
 
 

@@ -339,11 +339,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     if dist is not None:  # what the workers computed, in place of this process's (empty) records
         distributed.merge_records(dist, times, sim_info, method_seconds, method_plan_seconds, diagnostics, sampling,
                                   units_written)
-    for name in ("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp", "truth_free",
-                 "groundtruth", "phantom_truth", "metrics"):
+    for name in (("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp")
+                 + (("truth_free",) if want_tf else ()) + ("groundtruth", "phantom_truth", "metrics")):
         stages[name] = {"ran": name in times.seconds, "seconds": round(times.seconds.get(name, 0.0), 3)}
-    if not want_tf:
-        stages["truth_free"]["skipped_because"] = "recon.truth_free = false and no cv_tuned method"
     if not scene.noise.enabled:
         stages["noise"]["skipped_because"] = "scene has noise.enabled = false"
     total_sim = sum(v["projections_simulated"] for v in sim_info.values())
