@@ -226,3 +226,15 @@ def test_cv_tuned_with_knobs_equals_the_method_with_those_knobs(tmp_path):
     v1 = reconstruct.reconstruct(tuned, store, p1)
     v2 = reconstruct.reconstruct(knobs, store, p2)
     assert np.array_equal(v1[("noise-free", "cv_tuned")], v2[("noise-free", "local_linear")])
+
+
+def test_bench_truth_free_cost_and_trust_study_run_on_tiny(tmp_path):
+    from clrecon.bench import suite, truth_free_trust
+
+    cost = suite.bench_truth_free_section(quick=True, scene="tiny")
+    assert cost["truth_free_s"] > 0 and cost["reconstruction_s"] > 0 and cost["ratio"] > 0
+    res = truth_free_trust.run_study(tmp_path, ("tiny",), log=lambda *a, **k: None)
+    an = res["analysis"]
+    assert an["n_configurations"] == 2 * len(tf.DEFAULT_KERNELS)  # 1 pitch x 2 variants x kernels
+    assert -1.0 <= an["spearman"]["small:nndm:heart"] <= 1.0
+    assert {e["variant"] for e in an["selection"]} == {"noise-free", "noisy"}
