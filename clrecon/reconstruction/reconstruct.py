@@ -28,6 +28,7 @@ import numpy as np
 from clrecon.core.conventions import voxel_coords
 from clrecon.core.detector import spot_shift_in_frame
 from clrecon.core.errors import ClreconError
+from clrecon.core.runtime import get_runtime
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction import interpolation, parallel_fbp, rebin
 from clrecon.reconstruction.interpolation import weights as interpolate
@@ -313,7 +314,6 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-
         slab_size = slab_slices(cfg, plan_, len(tuple(variants)))
     results: dict = {}
     if rt is None:
-        from clrecon.core.runtime import get_runtime
         rt = get_runtime()
     cap = int(rt.max_alloc_bytes if max_buffer_bytes is None else max_buffer_bytes)
     row_bytes = 4 * cfg.scanner.n_cols
