@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -68,6 +69,7 @@ def run_case(name: str, out: Path, cache: Path, log=print) -> dict:
               log=lambda *a, **k: None)
     t0 = time.perf_counter()
     plain = tuple(k for k in DEFAULT_KERNELS if not _recon_overrides(k))
+    shutil.rmtree(out / f"{name}-cv", ignore_errors=True)  # a resumed run would not cross-validate again
     res0 = run(base.replace(recon={"truth_free": True}), out / f"{name}-cv", methods=[k.method for k in plain], **kw)
     seconds = {"cv_run": time.perf_counter() - t0, "truth_free_stage": res0["stages"]["truth_free"]["seconds"]}
     mae = {}
@@ -106,7 +108,9 @@ def run_case(name: str, out: Path, cache: Path, log=print) -> dict:
         rows.append({"case": name, "pitch": pk, "variant": v, "kernel": lab, "mae_large": e["large"],
                      "mae_small": e["small"],
                      **{f"cv_{s}_{r}{suf}": cv[s][lab][r][key] for s in cv for r in ("row", "heart")
-                        for suf, key in (("", "rms_hu_mm"), ("_raw", "rms_raw_hu_mm"))}})
+                        for suf, key in (("", "rms_hu_mm"), ("_raw", "rms_raw_hu_mm"))},
+                     **{f"cv_{s}_img_{f}": cv[s][lab]["image"][f]["rms_hu"] for s in cv if "image" in cv[s][lab]
+                        for f in ("small", "large")}})
     return {"case": name, "scene": scene_name, "slices": list(sl), "targets": {"cardiac": card, "resp": resp},
             "rows": rows, "windows": windows, "seconds": seconds,
             "truth_free_config": {pk: tf[pk]["config"] for pk in tf},
@@ -130,32 +134,40 @@ def analyse(cases: list[dict]) -> dict:
 
     rows = [r for c in cases for r in c["rows"]]
     out = {"n_configurations": len(rows), "spearman": {}, "spearman_within_case": {}, "selection": []}
-    pairs = {"small": "heart", "large": "row"}
-    for fov, region in pairs.items():
-        for s in ("loto", "nndm"):
-            for suf in ("", "_raw"):
-                key = f"cv_{s}_{region}{suf}"
+    schemes = sorted({k.split("_", 2)[1] if not k.startswith("cv_nndm_c") else "nndm_c"
+                      for k in rows[0] if k.startswith("cv_")}) if rows else []
+    measures = {"small": ["heart", "heart_raw", "img_small"], "large": ["row", "row_raw", "img_large"]}
+    for fov, regions in measures.items():
+        for s in schemes:
+            for region in regions:
+                key = f"cv_{s}_{region}"
+                if key not in rows[0]:
+                    continue
                 x = [r[key] for r in rows]
                 y = [r[f"mae_{fov}"] for r in rows]
                 rho = spearmanr(x, y).statistic if len(rows) > 2 else float("nan")
-                out["spearman"][f"{fov}:{s}:{region}{suf}"] = float(rho)
+                out["spearman"][f"{fov}:{s}:{region}"] = float(rho)
                 within = {}
                 for c in {(r["case"], r["pitch"], r["variant"]) for r in rows}:
                     sub = [r for r in rows if (r["case"], r["pitch"], r["variant"]) == c]
                     if len(sub) > 2:
                         within["/".join(c)] = float(spearmanr([r[key] for r in sub],
                                                               [r[f"mae_{fov}"] for r in sub]).statistic)
-                out["spearman_within_case"][f"{fov}:{s}:{region}{suf}"] = within
+                out["spearman_within_case"][f"{fov}:{s}:{region}"] = within
     for c in sorted({(r["case"], r["pitch"], r["variant"]) for r in rows}):
         sub = {r["kernel"]: r for r in rows if (r["case"], r["pitch"], r["variant"]) == c}
         ent = {"case": c[0], "pitch": c[1], "variant": c[2]}
-        for fov, region in pairs.items():
+        for fov, regions in measures.items():
             best2 = min(sub["barycentric"][f"mae_{fov}"], sub["local_linear"][f"mae_{fov}"])
-            for s in ("loto", "nndm"):
-                pick = min(sub, key=lambda k: sub[k][f"cv_{s}_{region}"])
-                ent[f"{fov}:{s}:choice"] = pick
-                ent[f"{fov}:{s}:mae"] = sub[pick][f"mae_{fov}"]
-                ent[f"{fov}:{s}:gain_pct"] = 100.0 * (1.0 - sub[pick][f"mae_{fov}"] / best2)
+            for s in schemes:
+                for region in (regions[0], regions[2]):
+                    key = f"cv_{s}_{region}"
+                    if key not in sub["barycentric"]:
+                        continue
+                    pick = min(sub, key=lambda k, key=key: sub[k][key])
+                    ent[f"{fov}:{s}:{region}:choice"] = pick
+                    ent[f"{fov}:{s}:{region}:mae"] = sub[pick][f"mae_{fov}"]
+                    ent[f"{fov}:{s}:{region}:gain_pct"] = 100.0 * (1.0 - sub[pick][f"mae_{fov}"] / best2)
             orc = min(sub, key=lambda k: sub[k][f"mae_{fov}"])
             ent[f"{fov}:best_of_bary_ll"] = best2
             ent[f"{fov}:oracle"] = orc

@@ -16,7 +16,13 @@ Held-out folds (``scheme``):
   2022, simplified): with k every candidate closer to (c_k, a_k) than a radius r_k is removed
   too, r_k taken from the distribution of the real task's target-to-nearest-candidate
   distances (deterministic quantiles), so the held-out prediction is about as far from its
-  data as the reconstruction's targets are.
+  data as the reconstruction's targets are;
+- ``"nndm_c"``: the same in cardiac phase alone: every candidate within |dc| < r_k of c_k is
+  removed, r_k from the targets' distances to their nearest candidate in c. A periodic beat
+  puts a view's candidates on a few cardiac-phase lines (docs/algorithms.md "Candidate
+  selection": 5 lines 0.2 apart on ``demo``) while the targets lie between them; ``loto`` and
+  ``nndm`` then predict a row from its own line, ``nndm_c`` from the neighbouring lines, as
+  the reconstruction must.
 
 How the per-group targets are made: ``batch_weights`` solves the same targets for every
 group, while every held-out row has its own (c_k, a_k). Each fold is therefore its own group
@@ -44,12 +50,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from clrecon.core.conventions import circular_difference, source_positions
+from clrecon.evaluation import metrics
+from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction import rebin
 from clrecon.reconstruction import reconstruct as rc_mod
 from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.simulation import noise as noise_mod
 
-SCHEMES = ("loto", "nndm")
+SCHEMES = ("loto", "nndm", "nndm_c")
 REGIONS = ("row", "heart")
 #: Golden-ratio sequence for the NNDM radii quantiles (deterministic, low discrepancy).
 _GOLDEN = 0.6180339887498949
@@ -142,8 +150,9 @@ def make_folds(c, a, offsets, dz=None, groups=None, scheme: str = "loto", nn_dis
                use_cardiac: bool = True, use_resp: bool = True, min_members: int = 1) -> Folds:
     """Every held-out fold of the groups ``groups`` (default all) of the CSR candidate set.
 
-    ``scheme``: ``"loto"`` or ``"nndm"`` (needs ``nn_distances``, the real task's
-    target-to-nearest-candidate distances, :func:`target_nearest_distances`). The held-out
+    ``scheme``: ``"loto"``, ``"nndm"`` or ``"nndm_c"`` (need ``nn_distances``, the real task's
+    target-to-nearest-candidate distances, :func:`target_nearest_distances`; for ``"nndm_c"``
+    in cardiac phase alone). The held-out
     candidate is never among its fold's members (tests/test_truth_free.py checks it). Folds
     with fewer than ``min_members`` members left are dropped.
     """
@@ -162,7 +171,7 @@ def make_folds(c, a, offsets, dz=None, groups=None, scheme: str = "loto", nn_dis
     held = np.repeat(off[gsel], cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
     fgroup = np.repeat(gsel, cnt)
     F = held.size
-    if scheme == "nndm":
+    if scheme in ("nndm", "nndm_c"):
         nd = np.sort(np.asarray(nn_distances, float))
         if nd.size == 0:
             raise ValueError("nndm: nn_distances is empty")
@@ -180,6 +189,8 @@ def make_folds(c, a, offsets, dz=None, groups=None, scheme: str = "loto", nn_dis
     keep = member != k
     if scheme == "nndm":
         keep &= np.sqrt(dcs * dcs + das * das) >= radius[owner]
+    elif scheme == "nndm_c":
+        keep &= np.abs(dcs) >= radius[owner]
     member, owner, dcs, das = member[keep], owner[keep], dcs[keep], das[keep]
     nm = np.bincount(owner, minlength=F)
     ok = nm >= min_members
@@ -226,14 +237,15 @@ class ErrorSums:
         return float(np.sqrt(max(ms, 0.0)))
 
 
-def fold_errors(rows, folds: Folds, index, weight, masks=None, row_var=None, chunk: int = 4096):
+def fold_errors(rows, folds: Folds, index, weight, masks=None, row_var=None, chunk: int = 4096, signed=None):
     """Sums of squared prediction errors of the folds: ``{region: (sum e^2, sum var(y_k), cells)}``.
 
     ``rows`` (n, C) rebinned rows of the flat candidates; ``index``/``weight`` (F, K) from
     :func:`fold_weights`; ``masks`` ``{region: (F, C) bool}`` or ``{region: callable(fold ids)
     -> (f, C) bool}`` (default: the whole row only); ``row_var`` (n, C) noise variance of each
     row, or None (no floor). The held-out row never enters its own prediction (its index is
-    not a member of its fold).
+    not a member of its fold). ``signed``: an (F, C) array that receives the signed errors
+    e_k (0 for a fold without weights), for the image-fold error.
     """
     masks = masks or {"row": None}
     out = {r: [0.0, 0.0, 0] for r in masks}
@@ -244,7 +256,10 @@ def fold_errors(rows, folds: Folds, index, weight, masks=None, row_var=None, chu
         w = weight[f0:f1]
         pred = np.einsum("fk,fkc->fc", w, rows[index[f0:f1]].astype(np.float64))
         live = w.sum(axis=1) > 0
-        e2 = np.where(live[:, None], (y - pred) ** 2, 0.0)
+        e = np.where(live[:, None], y - pred, 0.0)
+        if signed is not None:
+            signed[f0:f1] = e
+        e2 = e * e
         v = None if row_var is None else row_var[folds.held[f0:f1]].astype(np.float64)
         for r, m in masks.items():
             mm = np.ones_like(e2, bool) if m is None else (m(np.arange(f0, f1)) if callable(m) else m[f0:f1])
@@ -341,6 +356,7 @@ class TruthFreeConfig:
     max_slices: int = 4
     view_step: int = 4
     choose_by: tuple = ("nndm", "heart")  # the (scheme, region) cv_tuned minimises
+    image_fold: bool = True  # also the image-fold error (FBP of each held-out fold's error sinogram)
 
 
 def cross_validate(store, table, slices_z, recon_cfg, targets, variants, box, tf: TruthFreeConfig = TruthFreeConfig(),
@@ -364,7 +380,9 @@ def cross_validate(store, table, slices_z, recon_cfg, targets, variants, box, tf
     opts = rc_mod.weight_options(recon_cfg, targets)
     use_c, use_r = recon_cfg.use_cardiac, recon_cfg.use_resp
     nd = target_nearest_distances(c, a, groups.offsets, targets.pairs, use_c, use_r)
-    folds = {s: make_folds(c, a, groups.offsets, groups.dz_mm, gsel, s, nd, use_c, use_r) for s in tf.schemes}
+    nd_c = target_nearest_distances(c, a, groups.offsets, targets.pairs, use_c, False) if use_c else nd
+    folds = {s: make_folds(c, a, groups.offsets, groups.dz_mm, gsel, s, nd_c if s == "nndm_c" else nd, use_c, use_r)
+             for s in tf.schemes if use_c or s != "nndm_c"}
     used = np.unique(np.concatenate([np.concatenate([f.held, f.member]) for f in folds.values()]))
     t_plan = time.perf_counter() - t0
     t1 = time.perf_counter()
@@ -379,10 +397,12 @@ def cross_validate(store, table, slices_z, recon_cfg, targets, variants, box, tf
     first = groups.offsets[:-1][groups.counts > 0]
     view_angle[groups.group_view[groups.counts > 0]] = angle[first]
     heart_v = heart_channels(view_angle[views], sc, box)
+    img_masks = image_masks(recon_cfg, box)
     res = {"config": {"kernels": [k.label for k in tf.kernels], "schemes": list(tf.schemes),
                       "slices_z_mm": list(map(float, zs)), "view_step": tf.view_step,
                       "units": "HU mm (line integral x 1000 / mu_water)",
                       "nndm_median_radius": float(np.median(nd)) if nd.size else None,
+                      "nndm_c_median_radius": float(np.median(nd_c)) if nd_c.size else None,
                       "floor_subtracted": "noisy variant: the held-out row's own noise variance (noise model, "
                                           "Poisson + electronic, delta method at the measured line integrals)"},
            "folds": {s: int(f.held.size) for s, f in folds.items()},
@@ -390,9 +410,14 @@ def cross_validate(store, table, slices_z, recon_cfg, targets, variants, box, tf
     t1 = time.perf_counter()
     for v in variants:
         rows, var = rows_by_v[v]
+        imf = None
+        if tf.image_fold:
+            def imf(f, e):
+                return image_fold_errors(f, e, groups.offsets, nv, max(tf.view_step, 1), recon_cfg.fbp,
+                                         recon_cfg.filter, img_masks, recon_cfg.mu_water_per_mm, rt=rt)
         res["errors"][v] = kernel_errors(folds, rows, var, tf.kernels, opts, pos=pos,
                                          masks_of=lambda f: {"row": None, "heart": heart_v[groups.group_view[f.group]]},
-                                         scale=1000.0 / recon_cfg.mu_water_per_mm)
+                                         scale=1000.0 / recon_cfg.mu_water_per_mm, image_fold=imf)
     t_e = time.perf_counter() - t1
     res["choice"] = {v: choose(res["errors"][v], tf) for v in variants}
     res["seconds"] = {"plan": round(t_plan, 3), "read_rebin": round(t_read, 3), "weights_errors": round(t_e, 3),
@@ -401,14 +426,15 @@ def cross_validate(store, table, slices_z, recon_cfg, targets, variants, box, tf
 
 
 def kernel_errors(folds: dict, rows, row_var, kernels, options: dict, pos=None, masks_of=None,
-                  scale: float = 1.0) -> dict:
+                  scale: float = 1.0, image_fold=None) -> dict:
     """``{scheme: {kernel label: {region: {rms_hu_mm, rms_raw_hu_mm, cells}}}}`` of the folds ``folds``
     (``{scheme: Folds}``) on ``rows`` (n, C) with noise variance ``row_var`` (n, C) or None.
 
     ``pos`` maps the folds' flat candidate ids to rows of ``rows`` (default identity);
     ``masks_of(folds) -> {region: (F, C) bool or None}`` (default: the whole row); ``scale``
     multiplies the RMS (line integral -> HU mm). ``rms_hu_mm`` has the held-out row's own noise
-    variance subtracted when ``row_var`` is given, ``rms_raw_hu_mm`` never.
+    variance subtracted when ``row_var`` is given, ``rms_raw_hu_mm`` never. ``image_fold(folds,
+    signed errors (F, C)) -> {region: {...}}``: entries added per kernel under ``"image"``.
     """
     out = {}
     for s, f in folds.items():
@@ -418,13 +444,58 @@ def kernel_errors(folds: dict, rows, row_var, kernels, options: dict, pos=None, 
             idx, w = fold_weights(f, k, options)
             if pos is not None:
                 idx = np.maximum(pos[idx], 0)
-            sums = fold_errors(rows, lf, idx, w, masks, row_var)
+            signed = None if image_fold is None else np.zeros((f.held.size, rows.shape[1]), np.float32)
+            sums = fold_errors(rows, lf, idx, w, masks, row_var, signed=signed)
             ent = out.setdefault(s, {}).setdefault(k.label, {})
+            if image_fold is not None:
+                ent["image"] = image_fold(f, signed)
             for r, (sq, fl, n) in sums.items():
                 es = ErrorSums(sq, fl, n)
                 ent[r] = {"rms_hu_mm": es.rms(row_var is not None) * scale, "rms_raw_hu_mm": es.rms(False) * scale,
                           "cells": n}
     return out
+
+
+def image_fold_errors(folds: Folds, signed, offsets, views_per_rotation: int, view_step: int, geom, window: str,
+                      masks: dict, mu_water: float, rt=None) -> dict:
+    """Image-fold error: FBP of the held-out folds' error sinograms, RMS (HU) in image regions.
+
+    Fold rank r of slice s is, at every sampled view, the r-th candidate turn (in z order) of
+    that (slice, view); its signed row errors form one sinogram over the sampled views, and
+    FBP (linear) turns it into the image error that fold alone would make. Only ranks present
+    at every sampled view are used. ``masks`` ``{region: (ny, nx) bool}``; ``geom`` the scan's
+    fan-beam geometry (its ``n_views`` is divided by ``view_step``, which must divide it).
+    Returns ``{region: {"rms_hu": ..., "images": n}}``. Not floor-subtracted: in the noisy
+    variant it includes the held-out rows' own noise image.
+    """
+    nvs = views_per_rotation // view_step
+    if views_per_rotation % view_step or folds.held.size == 0:
+        return {r: {"rms_hu": float("nan"), "images": 0} for r in masks}
+    g = folds.group
+    sl = g // views_per_rotation
+    vi = (g % views_per_rotation) // view_step
+    rank = folds.held - offsets[g]
+    R = int(rank.max()) + 1
+    key = sl * R + rank
+    S = int(sl.max()) + 1
+    count = np.bincount(key, minlength=S * R)
+    keep = np.flatnonzero(count == nvs)
+    out = {r: [0.0, 0] for r in masks}
+    if keep.size == 0:
+        return {r: {"rms_hu": float("nan"), "images": 0} for r in masks}
+    pos = np.full(S * R, -1)
+    pos[keep] = np.arange(keep.size)
+    sino = np.zeros((keep.size, nvs, signed.shape[1]), np.float32)
+    ok = pos[key] >= 0
+    sino[pos[key][ok], vi[ok]] = signed[ok]
+    geo = replace(geom, n_views=nvs)
+    for b0 in range(0, keep.size, 64):
+        img = fbp_mod.fbp(sino[b0:b0 + 64], geo, window, runtime=rt).astype(np.float64) * (1000.0 / mu_water)
+        for r, m in masks.items():
+            out[r][0] += float((img[:, m] ** 2).sum())
+            out[r][1] += int(m.sum()) * img.shape[0]
+    return {r: {"rms_hu": float(np.sqrt(sq / n)) if n else float("nan"), "images": int(keep.size)}
+            for r, (sq, n) in out.items()}
 
 
 def choose(errors: dict, tf: TruthFreeConfig = None, kernels=None, by=None) -> dict:
@@ -436,6 +507,15 @@ def choose(errors: dict, tf: TruthFreeConfig = None, kernels=None, by=None) -> d
     errs = {k.label: errors[s][k.label][r]["rms_hu_mm"] for k in kernels}
     best = min(kernels, key=lambda k: np.nan_to_num(errs[k.label], nan=np.inf))
     return {"kernel": best.to_dict(), "label": best.label, "by": {"scheme": s, "region": r}, "rms_hu_mm": errs}
+
+
+def image_masks(recon_cfg, box) -> dict:
+    """``{"large": the reconstruction circle, "small": the heart box inside it}`` (ny, nx) bool,
+    the fields of view of :func:`clrecon.evaluation.metrics.fov_masks`."""
+    g = recon_cfg.fbp
+    return metrics.fov_masks(metrics.MetricsConfig(nx=g.nx, ny=g.ny, voxel_mm=g.voxel_mm,
+                                                   large_radius_mm=recon_cfg.object_radius_mm,
+                                                   small_fov_mm=tuple(box)))
 
 
 def sample_slices(slices_z, n: int) -> np.ndarray:

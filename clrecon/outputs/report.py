@@ -173,17 +173,28 @@ def truth_free_markdown(results: dict) -> list[str]:
              "variant: the held-out row's own noise variance (noise model) is subtracted. No ground truth is "
              "used (docs/truth-free.md). `cv_tuned` uses the kernel marked *.", ""]
     for pk, ent in tf.items():
+        if "errors" not in ent:
+            lines += [f"Pitch {pk[1:]}: not cross-validated ({ent.get('skipped_because', '')}).", ""]
+            continue
         cfg = ent["config"]
         for v, byscheme in ent["errors"].items():
             pick = ent["choice"][v]["label"]
             lines += [f"Pitch {pk[1:]}, {v}: {len(cfg['slices_z_mm'])} slices, every {cfg['view_step']}th view, "
-                      + ", ".join(f"{n} {s} folds" for s, n in ent["folds"].items()) + ".", "",
-                      "| kernel | " + " | ".join(f"{s} row | {s} heart" for s in byscheme) + " |",
-                      "|---|" + "---|---|" * len(byscheme)]
+                      + ", ".join(f"{n} {s} folds" for s, n in ent["folds"].items())
+                      + ". Row and heart: HU mm; image small / large: RMS (HU) of the FBP of each fold's error "
+                      "sinogram in the small / large FOV.", "",
+                      "| kernel | " + " | ".join(f"{s} row | {s} heart | {s} image small | {s} image large"
+                                                for s in byscheme) + " |",
+                      "|---|" + "---|---|---|---|" * len(byscheme)]
             for lab in cfg["kernels"]:
-                lines.append(f"| {lab}{' *' if lab == pick else ''} | " + " | ".join(
-                    f"{byscheme[s][lab]['row']['rms_hu_mm']:.1f} | {byscheme[s][lab]['heart']['rms_hu_mm']:.1f}"
-                    for s in byscheme) + " |")
+                cells = []
+                for s in byscheme:
+                    e = byscheme[s][lab]
+                    im = e.get("image") or {}
+                    cells.append(f"{e['row']['rms_hu_mm']:.1f} | {e['heart']['rms_hu_mm']:.1f} | "
+                                 f"{im.get('small', {}).get('rms_hu', float('nan')):.1f} | "
+                                 f"{im.get('large', {}).get('rms_hu', float('nan')):.1f}")
+                lines.append(f"| {lab}{' *' if lab == pick else ''} | " + " | ".join(cells) + " |")
             lines.append("")
     return lines
 

@@ -206,6 +206,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             run_methods, todo = slabs_mod.unfinished(writer, pk, variants, methods)
             if todo.size == 0:
                 log(f"[{pk}] already reconstructed (resumed run)")
+                if want_tf:
+                    truth_free_res[pk] = {"skipped_because": "this pitch was reconstructed by an earlier run "
+                                          "(resumed): run into a fresh output folder to cross-validate it"}
                 sim_info[pk] = {"projections_total": scene.scan.projection_count(scene.scanner, pitch),
                                 "projections_needed": 0, "projections_simulated": 0, "projections_reused": 0,
                                 "store": ""}
