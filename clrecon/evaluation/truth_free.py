@@ -50,6 +50,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from clrecon.core.conventions import circular_difference, source_positions
+from clrecon.core.detector import spot_shift_in_frame
 from clrecon.evaluation import metrics
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction import rebin
@@ -272,7 +273,7 @@ def fold_errors(rows, folds: Folds, index, weight, masks=None, row_var=None, chu
 
 # ---------------------------------------------------------------------------------------
 # scan side: rows, noise variance, heart channels
-def rebinned_noise_variance(data, slot, dz, scanner, cfg, rt=None, first_row: int = 0) -> np.ndarray:
+def rebinned_noise_variance(data, slot, dz, scanner, cfg, rt=None, first_row: int = 0, pair_shift=None) -> np.ndarray:
     """Noise variance (p, C) of SSRB rows of the projections ``data`` (m, R, C) under the noise model.
 
     Per detector cell (delta method of p = -ln(N / I0), N = Poisson(lambda) + Normal(0,
@@ -280,7 +281,9 @@ def rebinned_noise_variance(data, slot, dz, scanner, cfg, rt=None, first_row: in
     the data given (plug-in: the measured line integrals; no truth). SSRB is, per column, a
     2-tap interpolation between detector rows times a scale, so its variance is
     A A_v + B B_v with A = SSRB(even-row indicator), A_v = SSRB(indicator x var) and B, B_v
-    the same for the odd rows (exact for 2 taps; the kernel itself is used).
+    the same for the odd rows (exact for 2 taps; the kernel itself is used). With a flying
+    focal spot in phi the curved SSRB also interpolates between columns (4 taps): then an
+    approximation (the column taps' squares are not separated).
     """
     p = np.asarray(data, np.float64)
     lam = float(cfg.i0_photons) * np.exp(-p)
@@ -290,9 +293,10 @@ def rebinned_noise_variance(data, slot, dz, scanner, cfg, rt=None, first_row: in
     out = np.zeros((len(slot), p.shape[2]))
     for ind in (even, ~even):
         ones = np.broadcast_to(ind, p.shape).astype(np.float32)
-        A = rebin.ssrb_rows(ones, slot, dz, scanner, rt=rt, first_row=first_row).astype(np.float64)
-        Av = rebin.ssrb_rows((ind * var).astype(np.float32), slot, dz, scanner, rt=rt,
-                             first_row=first_row).astype(np.float64)
+        A = rebin.ssrb_rows(ones, slot, dz, scanner, rt=rt, first_row=first_row,
+                            pair_shift=pair_shift).astype(np.float64)
+        Av = rebin.ssrb_rows((ind * var).astype(np.float32), slot, dz, scanner, rt=rt, first_row=first_row,
+                             pair_shift=pair_shift).astype(np.float64)
         out += A * Av
     return out
 
@@ -311,16 +315,20 @@ def read_rows(store, groups: rebin.CandidateGroups, flat, scanner, variants, noi
     for b0 in range(0, n, chunk):
         sel = order[b0:b0 + chunk]
         wanted, slot = np.unique(proj[sel], return_inverse=True)
-        r_lo, r_hi = rebin.ssrb_row_range(dz[sel], scanner)
+        shift = None
+        if getattr(store.table, "focal_shift", None) is not None:  # flying focal spot: SSRB from each spot
+            shift = spot_shift_in_frame(store.table.focal_shift[proj[sel]], scanner.sid_mm)
+        r_lo, r_hi = rebin.ssrb_row_range(dz[sel], scanner, shift)
         clean = store.read_indices(wanted, noisy=False, rows=(r_lo, r_hi))
         for v in variants:
             data = clean if v != "noisy" else noise_mod.add_noise(clean, wanted, noise_cfg, first_row=r_lo)
             rows, var = out[v]
             s32 = slot.astype(np.int32).ravel()
-            rows[sel] = rebin.ssrb_rows(data, s32, dz[sel].astype(np.float32), scanner, rt=rt, first_row=r_lo)
+            rows[sel] = rebin.ssrb_rows(data, s32, dz[sel].astype(np.float32), scanner, rt=rt, first_row=r_lo,
+                                        pair_shift=shift)
             if var is not None:
                 var[sel] = rebinned_noise_variance(data, s32, dz[sel].astype(np.float32), scanner, noise_cfg,
-                                                   rt=rt, first_row=r_lo)
+                                                   rt=rt, first_row=r_lo, pair_shift=shift)
     return out
 
 
@@ -488,7 +496,10 @@ def image_fold_errors(folds: Folds, signed, offsets, views_per_rotation: int, vi
     sino = np.zeros((keep.size, nvs, signed.shape[1]), np.float32)
     ok = pos[key] >= 0
     sino[pos[key][ok], vi[ok]] = signed[ok]
-    geo = replace(geom, n_views=nvs)
+    sh = tuple(getattr(geom, "source_shifts", ()) or ())
+    # a flying focal spot's cycle, as the sampled views see it (view i is scan view i * view_step)
+    geo = replace(geom, n_views=nvs, **({"source_shifts": tuple(sh[(i * view_step) % len(sh)] for i in range(len(sh)))}
+                                         if sh else {}))
     for b0 in range(0, keep.size, 64):
         img = fbp_mod.fbp(sino[b0:b0 + 64], geo, window, runtime=rt).astype(np.float64) * (1000.0 / mu_water)
         for r, m in masks.items():
