@@ -238,3 +238,31 @@ def test_bench_truth_free_cost_and_trust_study_run_on_tiny(tmp_path):
     assert an["n_configurations"] == 2 * len(tf.DEFAULT_KERNELS)  # 1 pitch x 2 variants x kernels
     assert -1.0 <= an["spearman"]["small:nndm:heart"] <= 1.0
     assert {e["variant"] for e in an["selection"]} == {"noise-free", "noisy"}
+
+
+def test_image_fold_error_is_the_fbp_of_the_fold_sinogram():
+    from clrecon.reconstruction import fbp as fbp_mod
+
+    sc = clrecon.load_scene("tiny")
+    cfg = reconstruct.ReconstructionConfig.from_scene(sc)
+    nv, step, C = sc.scanner.views_per_rotation, 2, sc.scanner.n_cols
+    # one slice, every view has 3 candidates; fold f holds out candidate rank f % 3 of view f // 3
+    off = np.arange(nv + 1) * 3
+    held = np.arange(3 * nv)
+    g = held // 3
+    keep = (g % step) == 0
+    folds = tf.Folds(held=held[keep], offsets=np.zeros(keep.sum() + 1, np.int64), member=np.zeros(0, np.int64),
+                     c=np.zeros(0), a=np.zeros(0), dz=np.zeros(0), group=g[keep], radius=np.zeros(keep.sum()))
+    rng = np.random.default_rng(7)
+    signed = rng.normal(size=(keep.sum(), C)).astype(np.float32) * 1e-3
+    masks = tf.image_masks(cfg, tuple(sc.recon.small_fov_mm))
+    res = tf.image_fold_errors(folds, signed, off, nv, step, cfg.fbp, cfg.filter, masks, cfg.mu_water_per_mm)
+    assert res["large"]["images"] == 3
+    import dataclasses
+    geo = dataclasses.replace(cfg.fbp, n_views=nv // step)
+    sino = signed.reshape(nv // step, 3, C).transpose(1, 0, 2)
+    img = fbp_mod.fbp(sino, geo, cfg.filter).astype(np.float64) * 1000.0 / cfg.mu_water_per_mm
+    want = np.sqrt(np.mean(img[:, masks["large"]] ** 2))
+    assert res["large"]["rms_hu"] == pytest.approx(want, rel=1e-6)
+    zero = tf.image_fold_errors(folds, signed * 0, off, nv, step, cfg.fbp, cfg.filter, masks, cfg.mu_water_per_mm)
+    assert zero["small"]["rms_hu"] == 0.0
