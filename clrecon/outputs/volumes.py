@@ -150,7 +150,8 @@ class VolumeWriter:
         new = ~self._done[name][z]
         if not new.any():
             return
-        v, z = v[(slice(None),) * (v.ndim - 3) + (new,)], z[new]
+        if not new.all():  # (a resumed run) only the slices not yet written; else no copy
+            v, z = v[(slice(None),) * (v.ndim - 3) + (new,)], z[new]
         self._unit(name, v, {"z": z.tolist()}, "recon", f"{name.replace('/', '~')}.z{z[0]:05d}-{z[-1]:05d}")
         self._done[name][z] = True
 

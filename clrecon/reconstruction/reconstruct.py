@@ -475,8 +475,10 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
         pos = np.where(w != 0, np.clip(pos, 0, len(ukeys) - 1), 0).astype(np.int32)
         Sn, V, T, K = idx.shape
         # sinogram b = s * T + t (slice-major, as the images are reshaped below), (B, V, K)
-        per_method[m] = (pos.transpose(0, 2, 1, 3).reshape(Sn * T, V, K),
-                         w.transpose(0, 2, 1, 3).reshape(Sn * T, V, K).astype(np.float32), tshape)
+        # padded to whole 16-lane groups once (not once per launch); pos is in [0, len(ukeys))
+        per_method[m] = interpolate.pad_interleaved(pos.transpose(0, 2, 1, 3).reshape(Sn * T, V, K),
+                                                    w.transpose(0, 2, 1, 3).reshape(Sn * T, V, K).astype(np.float32)
+                                                    ) + (tshape, Sn * T)
         times.add("plan", time.perf_counter() - t1)
         times.add(f"plan:{m}", time.perf_counter() - t1)  # the method's share of "plan"
     step = fbp_mod.groups_per_launch(geom) * fbp_mod.BATCH_LANES
@@ -497,14 +499,13 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
         t_upload = time.perf_counter() - t1
         times.add("interpolate", t_upload)
         try:
-            for m, (pos_b, w_b, tshape) in per_method.items():
-                B = pos_b.shape[0]
+            for m, (pos_b, w_b, tshape, B) in per_method.items():
                 img = np.empty((B, geom.ny, geom.nx), np.float32)
                 t_interp = t_fbp = 0.0
                 for b0 in range(0, B, step):
                     t1 = time.perf_counter()
-                    buf, G = interpolate.apply_weights_interleaved(d_rows, pos_b[b0:b0 + step], w_b[b0:b0 + step],
-                                                                   rt=rt)
+                    buf, G = interpolate.apply_padded_interleaved(d_rows, pos_b[b0:b0 + step], w_b[b0:b0 + step],
+                                                                  min(step, B - b0), rt=rt)
                     t2 = time.perf_counter()
                     if par is None:
                         mu = fbp_mod.backproject_interleaved(buf, G, geom, runtime=rt)
@@ -523,7 +524,7 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
                 # upload split evenly): the "error against run time" figure
                 times.add(f"method:{m}:{v}", t_interp + t_fbp + (t_filter + t_upload) / len(per_method))
                 img = img.reshape(Sn, tshape[0], tshape[1], geom.ny, geom.nx).transpose(1, 2, 0, 3, 4)
-                emit((v, m), np.ascontiguousarray(img))
+                emit((v, m), img)  # a transposed view: the writer makes its one (dtype-converting) copy
                 del img
                 if progress is not None:  # one step per slice of each (variant, method)
                     progress.update(s1 - s0)

@@ -136,16 +136,42 @@ def apply_weights_interleaved(rows: DeviceRows, index, weight, rt=None):
     live = weight != 0
     if np.any(live) and (index[live].min() < 0 or index[live].max() >= P):
         raise ValueError(f"index: entries with non-zero weight must lie in [0, {P})")
-    rt = rt or rows.rt
     G = max(1, -(-B // 16))
     idx = np.zeros((G * 16, V, K), np.int32)
     wgt = np.zeros((G * 16, V, K), np.float32)
     idx[:B] = np.where(live, index, 0)
     wgt[:B] = weight
+    return apply_padded_interleaved(rows, idx, wgt, B, rt=rt)
+
+
+def pad_interleaved(index: np.ndarray, weight: np.ndarray):
+    """``(index, weight)`` (B, V, K) as the padded int32/float32 pair that
+    :func:`apply_padded_interleaved` takes: B rounded up to a multiple of 16 with zero-weight
+    sinograms, index 0 wherever the weight is 0. The caller guarantees that every index with
+    non-zero weight lies in ``[0, P)`` (the reconstruction makes them so); done once per method
+    instead of once per launch."""
+    B, V, K = index.shape
+    G = max(1, -(-B // 16))
+    idx = np.zeros((G * 16, V, K), np.int32)
+    wgt = np.zeros((G * 16, V, K), np.float32)
+    idx[:B] = np.where(weight != 0, index, 0)
+    wgt[:B] = weight
+    return idx, wgt
+
+
+def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray, B: int, rt=None):
+    """:func:`apply_weights_interleaved` of already padded, checked arrays (:func:`pad_interleaved`):
+    ``idx`` int32 and ``wgt`` float32 of shape (16 G, V, K), of which the first ``B`` sinograms are
+    real. No validation here (the public function does it)."""
+    P, C = rows.shape
+    rt = rt or rows.rt
+    V, K = idx.shape[1:]
+    G = max(1, -(-B // 16))
     d_out = rt.empty((G, V, C + 2, 16), np.float32)
     if B == 0 or P == 0 or C == 0 or V == 0 or K == 0:
         rt.cl.enqueue_fill_buffer(rt.queue, d_out, np.float32(0), 0, G * V * (C + 2) * 16 * 4).wait()
         return d_out, G
+    idx, wgt = idx[:G * 16], wgt[:G * 16]
     knl = rt.kernel("interp.cl", "apply_weights_interleaved16")
     d_idx = rt.to_device(idx, np.int32, "index")
     d_w = rt.to_device(wgt, np.float32, "weight")

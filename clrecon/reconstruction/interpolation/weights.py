@@ -41,9 +41,11 @@ from clrecon.reconstruction.interpolation._common import chunk as _chunk
 from clrecon.reconstruction.interpolation._common import deltas as _deltas
 from clrecon.reconstruction.interpolation.apply import (  # noqa: F401
     DeviceRows,
+    apply_padded_interleaved,
     apply_weights,
     apply_weights_interleaved,
     apply_weights_reference,
+    pad_interleaved,
 )
 from clrecon.reconstruction.interpolation.barycentric import (  # noqa: F401
     BARY_EPS,
