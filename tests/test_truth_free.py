@@ -266,3 +266,22 @@ def test_image_fold_error_is_the_fbp_of_the_fold_sinogram():
     assert res["large"]["rms_hu"] == pytest.approx(want, rel=1e-6)
     zero = tf.image_fold_errors(folds, signed * 0, off, nv, step, cfg.fbp, cfg.filter, masks, cfg.mu_water_per_mm)
     assert zero["small"]["rms_hu"] == 0.0
+
+
+def test_truth_free_and_cv_tuned_on_a_measured_scan(tmp_path):
+    # no ground truth: the cross-validation still runs, and cv_tuned reconstructs
+    from clrecon.outputs.export import export
+
+    sc = clrecon.load_scene("tiny")
+    kw = dict(cache_dir=tmp_path / "cache", progress=False, log=lambda *a, **k: None)
+    run(sc.replace(recon={"truth_free": True}), tmp_path / "sim", methods=["nearest", "cv_tuned"], report=False, **kw)
+    export(tmp_path / "sim", "dicom-ct-pd", out=tmp_path / "exp")
+    meas = clrecon.load_scene(tmp_path / "exp" / "measured.toml").replace(recon={"truth_free": True})
+    res = run(meas, tmp_path / "meas", methods=["nearest", "cv_tuned"], report=True, **kw)
+    assert res["measured"] and not res["ground_truth"]["available"]
+    ent = res["truth_free"]["p0.100"]
+    assert list(ent["errors"]) == res["request"]["variants"]
+    for v in ent["errors"]:
+        assert np.isfinite(ent["errors"][v]["loto"]["barycentric"]["heart"]["rms_hu_mm"])
+    with h5py.File(tmp_path / "meas" / "volumes.h5", "r") as f:
+        assert any(k == "cv_tuned" for v in f["recon/p0.100"] for k in f[f"recon/p0.100/{v}"])
