@@ -35,7 +35,7 @@ def test_folds_never_hold_the_held_out_row_among_its_members():
     rng = np.random.default_rng(0)
     c, a, off = _points(rng, groups=6, n=9)
     nd = rng.uniform(0.02, 0.2, size=50)
-    for scheme in tf.SCHEMES:
+    for scheme in ("loto", "nndm", "nndm_c"):
         f = tf.make_folds(c, a, off, scheme=scheme, nn_distances=nd)
         assert f.held.size > 0
         for i in range(f.held.size):
@@ -285,3 +285,18 @@ def test_truth_free_and_cv_tuned_on_a_measured_scan(tmp_path):
         assert np.isfinite(ent["errors"][v]["loto"]["barycentric"]["heart"]["rms_hu_mm"])
     with h5py.File(tmp_path / "meas" / "volumes.h5", "r") as f:
         assert any(k == "cv_tuned" for v in f["recon/p0.100"] for k in f[f"recon/p0.100/{v}"])
+
+
+def test_interior_folds_are_the_loto_folds_inside_their_members():
+    rng = np.random.default_rng(8)
+    c, a, off = _points(rng, groups=8, n=9)
+    f = tf.make_folds(c, a, off)
+    fi = tf.interior_folds(f, OPTS)
+    assert 0 < fi.held.size < f.held.size
+    for i in range(fi.held.size):  # members unchanged, held-out point inside their hull
+        j = int(np.flatnonzero(f.held == fi.held[i])[0])
+        assert np.array_equal(fi.member[fi.offsets[i]:fi.offsets[i + 1]], f.member[f.offsets[j]:f.offsets[j + 1]])
+        from scipy.spatial import Delaunay
+        pts = np.stack([fi.c[fi.offsets[i]:fi.offsets[i + 1]], fi.a[fi.offsets[i]:fi.offsets[i + 1]]], axis=1)
+        per = np.concatenate([pts + [s, 0.0] for s in (-1.0, 0.0, 1.0)])  # cardiac phase is periodic
+        assert Delaunay(per).find_simplex([[0.5, 0.5]])[0] >= 0

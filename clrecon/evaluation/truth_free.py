@@ -22,7 +22,12 @@ Held-out folds (``scheme``):
   puts a view's candidates on a few cardiac-phase lines (docs/algorithms.md "Candidate
   selection": 5 lines 0.2 apart on ``demo``) while the targets lie between them; ``loto`` and
   ``nndm`` then predict a row from its own line, ``nndm_c`` from the neighbouring lines, as
-  the reconstruction must.
+  the reconstruction must;
+- ``"interior"``: the ``loto`` folds whose held-out point lies inside the remaining points, i.e.
+  in a Delaunay triangle of them (periodic in c) whose vertices are all within 0.3 in c
+  (barycentric's own triangle test, ``Weights.branch``). Removing one of ~9 turns often leaves
+  the point outside the others, which a target is less often (docs/truth-free.md "Where it
+  fails"); these folds test interpolation, as the targets mostly need.
 
 How the per-group targets are made: ``batch_weights`` solves the same targets for every
 group, while every held-out row has its own (c_k, a_k). Each fold is therefore its own group
@@ -58,7 +63,7 @@ from clrecon.reconstruction import reconstruct as rc_mod
 from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.simulation import noise as noise_mod
 
-SCHEMES = ("loto", "nndm", "nndm_c")
+SCHEMES = ("loto", "nndm", "nndm_c", "interior")
 REGIONS = ("row", "heart")
 #: Golden-ratio sequence for the NNDM radii quantiles (deterministic, low discrepancy).
 _GOLDEN = 0.6180339887498949
@@ -157,8 +162,8 @@ def make_folds(c, a, offsets, dz=None, groups=None, scheme: str = "loto", nn_dis
     candidate is never among its fold's members (tests/test_truth_free.py checks it). Folds
     with fewer than ``min_members`` members left are dropped.
     """
-    if scheme not in SCHEMES:
-        raise ValueError(f"scheme = {scheme!r}: must be one of {', '.join(SCHEMES)}")
+    if scheme not in SCHEMES or scheme == "interior":  # interior: interior_folds of the loto folds
+        raise ValueError(f"scheme = {scheme!r}: must be one of loto, nndm, nndm_c (interior: interior_folds)")
     c = np.asarray(c, float) % 1.0
     a = np.asarray(a, float)
     off = np.asarray(offsets, np.int64)
@@ -207,10 +212,28 @@ def make_folds(c, a, offsets, dz=None, groups=None, scheme: str = "loto", nn_dis
                  group=fgroup, radius=radius)
 
 
+def interior_folds(folds: Folds, options: dict) -> Folds:
+    """The folds whose held-out point lies in a triangle of its members (barycentric's triangle
+    branch at the shifted target (0.5, 0.5)), as a new :class:`Folds`."""
+    if folds.held.size == 0:
+        return folds
+    w = interpolate.batch_weights("barycentric", folds.c, folds.a, folds.offsets, np.array([[0.5, 0.5]]),
+                                  dz=folds.dz, allow_empty=True, **options)
+    keep = w.branch[:, 0] == 0 if w.branch is not None else np.zeros(folds.held.size, bool)
+    n = np.diff(folds.offsets)
+    sel = np.repeat(keep, n)
+    off = np.zeros(int(keep.sum()) + 1, np.int64)
+    np.cumsum(n[keep], out=off[1:])
+    return Folds(held=folds.held[keep], offsets=off, member=folds.member[sel], c=folds.c[sel], a=folds.a[sel],
+                 dz=folds.dz[sel], group=folds.group[keep], radius=folds.radius[keep])
+
+
 def fold_weights(folds: Folds, kernel: Kernel, options: dict):
     """The kernel's weights of every fold at its held-out point: ``(index (F, K) flat candidates,
     weight (F, K) float64)``. ``options``: batch_weights keywords (kernel knobs put in)."""
     o = kernel.options(options)
+    if folds.held.size == 0:
+        return np.zeros((0, 1), np.int64), np.zeros((0, 1))
     w = interpolate.batch_weights(kernel.method, folds.c, folds.a, folds.offsets, np.array([[0.5, 0.5]]),
                                   dz=folds.dz, allow_empty=True, **o)
     idx = folds.member[np.minimum(w.index[:, 0, :], max(folds.member.size - 1, 0))]
@@ -390,7 +413,11 @@ def cross_validate(store, table, slices_z, recon_cfg, targets, variants, box, tf
     nd = target_nearest_distances(c, a, groups.offsets, targets.pairs, use_c, use_r)
     nd_c = target_nearest_distances(c, a, groups.offsets, targets.pairs, use_c, False) if use_c else nd
     folds = {s: make_folds(c, a, groups.offsets, groups.dz_mm, gsel, s, nd_c if s == "nndm_c" else nd, use_c, use_r)
-             for s in tf.schemes if use_c or s != "nndm_c"}
+             for s in tf.schemes if (use_c or s != "nndm_c") and s != "interior"}
+    if "interior" in tf.schemes:
+        base = folds["loto"] if "loto" in folds else make_folds(c, a, groups.offsets, groups.dz_mm, gsel, "loto",
+                                                                 None, use_c, use_r)
+        folds["interior"] = interior_folds(base, opts)
     used = np.unique(np.concatenate([np.concatenate([f.held, f.member]) for f in folds.values()]))
     t_plan = time.perf_counter() - t0
     t1 = time.perf_counter()
