@@ -542,6 +542,8 @@ def choose(errors: dict, tf: TruthFreeConfig = None, kernels=None, by=None) -> d
     tf = tf or TruthFreeConfig()
     kernels = kernels or tf.kernels
     s, r = by or tf.choose_by
+    if s not in errors:  # the configured scheme was not run: the first one that was
+        s = next(iter(errors))
     errs = {k.label: errors[s][k.label][r]["rms_hu_mm"] for k in kernels}
     best = min(kernels, key=lambda k: np.nan_to_num(errs[k.label], nan=np.inf))
     return {"kernel": best.to_dict(), "label": best.label, "by": {"scheme": s, "region": r}, "rms_hu_mm": errs}
