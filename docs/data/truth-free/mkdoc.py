@@ -1,5 +1,5 @@
 import json, glob, sys
-d = "/tmp/tf/trust"
+d = "docs/data/truth-free"
 cases = [json.load(open(f)) for f in sorted(glob.glob(f"{d}/case-*.json"))]
 from clrecon.bench.truth_free_trust import analyse
 an = analyse(cases)
