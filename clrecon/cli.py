@@ -254,7 +254,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", metavar="FILE", help="also write every number and the machine description here")
     b.add_argument("--only", help="comma list from backprojection,projector,voxel-projector,interpolation,"
                    "end-to-end,memory,scaling; also, only when named: tradeoff (error against run time, ~20 min) "
-                   "and distributed (Dask overhead, speedup 1 -> 2 workers, paper-p002 on N nodes, ~5 min)")
+                   "distributed (Dask overhead, speedup 1 -> 2 workers, paper-p002 on N nodes, ~5 min), truth_free "
+                   "(cost of recon.truth_free against the reconstruction, ~2 min) and truth_free_trust (CV error "
+                   "against true MAE, docs/truth-free.md, ~1 h)")
     b.add_argument("--repeats", type=int, help="timed repeats per figure (default 3; --quick 1); the median is shown")
     b.set_defaults(func=cmd_bench)
     return p

@@ -65,6 +65,10 @@ Sections (``--only`` picks some):
     :func:`clrecon.bench.distributed.bench_distributed_section`: Dask task overhead, the speedup
     of a small run from 1 to 2 local workers, and paper-p002's modelled wall time on 1, 10 and
     100 nodes from unit costs measured here (module docstring: the model's assumptions).
+``truth_free`` (only when named): the cost of ``recon.truth_free`` against the reconstruction it
+    accompanies (demo, 4 middle slices; :func:`bench_truth_free_section`).
+``truth_free_trust`` (only when named, about an hour): Spearman of the cross-validated error against
+    the true MAE and the CV choice's gain (:mod:`clrecon.bench.truth_free_trust`, docs/truth-free.md).
 ``tradeoff`` (only with ``--only tradeoff``: not in the default set, about 20 minutes)
     :func:`clrecon.bench.tradeoff.run_tradeoff`: per method, the knobs that trade seconds for
     error (local-linear neighbours, kappa, sigma; candidate turns; views; grid) swept on demo
@@ -92,7 +96,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clrecon.bench import detectors, paper
+from clrecon.bench import detectors, paper, truth_free_trust
 from clrecon.bench.backprojector import bench_backprojector
 from clrecon.bench.backprojector import report_lines as backprojector_report_lines
 from clrecon.bench.distributed import bench_distributed_section
@@ -121,7 +125,7 @@ SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
 SECTIONS = SECTIONS + paper.SECTIONS + ("backprojector",)
 #: Sections run only when ``--only`` names them (long).
-EXTRA_SECTIONS = ("tradeoff", "distributed")
+EXTRA_SECTIONS = ("tradeoff", "distributed", "truth_free", "truth_free_trust")
 
 #: Goals of the issue (bench output marks them).
 GOAL_BACKPROJECTION_GUPS = 4.0
@@ -392,6 +396,28 @@ def bench_end_to_end_section(quick: bool = False, scene="demo") -> dict:
             "load_average_1min_before": load, "total_seconds": res["total_seconds"], "wall_s": wall,
             "cpu_s": (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime), "stages": stages,
             "method_seconds": res.get("method_seconds", {})}
+
+
+def bench_truth_free_section(quick: bool = False, scene="demo") -> dict:
+    """Cost of ``recon.truth_free`` against the reconstruction it accompanies: ``run`` on the scene's
+    4 middle slices (quick: 2) with it on, the truth_free stage's seconds next to the
+    reconstruction's (read + noise + rebin + interpolate + fbp), same run, same cache."""
+    sc = load_scene(scene) if isinstance(scene, str) else scene
+    nz = sc.recon.nz
+    half = 1 if quick else 2
+    slices = (max(0, nz // 2 - half), min(nz, nz // 2 + half))
+    load = load1()
+    with tempfile.TemporaryDirectory(prefix="clrecon-bench-tf-") as tmp:
+        res = run(sc.replace(recon={"truth_free": True}), Path(tmp) / "run", slice_range=slices,
+                  cache_dir=Path(tmp) / "cache", progress=False, report=False, log=lambda *a, **k: None)
+    st = res["stages"]
+    recon_s = sum(st[k]["seconds"] for k in ("read", "noise", "rebin", "interpolate", "fbp") if k in st)
+    tf_s = st["truth_free"]["seconds"]
+    per_pitch = {pk: e["seconds"] for pk, e in res["truth_free"].items()}
+    return {"scene": sc.name, "slices": list(slices), "methods": list(res["request"]["methods"]),
+            "variants": list(res["request"]["variants"]), "load_average_1min_before": load,
+            "truth_free_s": tf_s, "reconstruction_s": recon_s, "ratio": tf_s / recon_s if recon_s else None,
+            "per_pitch": per_pitch, "folds": {pk: e["folds"] for pk, e in res["truth_free"].items()}}
 
 
 def _status_kib(field_name: str) -> int:
@@ -692,6 +718,18 @@ def format_report(res: dict) -> str:
                        f"{1e3 * r['reconstruct_s'] / r['sinograms']:>8.1f}")
     out.extend(paper.format_report(res))
     out.extend(backprojector_report_lines(res.get("backprojector")))
+    tfc = res.get("truth_free")
+    if tfc:
+        out.append(f"truth-free CV ({tfc['scene']}, slices {tfc['slices'][0]}:{tfc['slices'][1]}, "
+                   f"{', '.join(tfc['methods'])}; {', '.join(tfc['variants'])}): {tfc['truth_free_s']:.1f} s "
+                   f"against {tfc['reconstruction_s']:.1f} s of reconstruction (x{tfc['ratio']:.2f}), "
+                   f"load {tfc['load_average_1min_before']}")
+    tt = res.get("truth_free_trust")
+    if tt:
+        an = tt["analysis"]
+        out.append(f"truth-free trust ({', '.join(tt['cases'])}; {an['n_configurations']} configurations): Spearman "
+                   + ", ".join(f"{k} {v:.2f}" for k, v in an["spearman"].items() if not k.endswith("_raw"))
+                   + f"; files in {tt.get('out_dir', '')}")
     tr = res.get("tradeoff")
     if tr:
         ld = tr["load_average_1min"]
@@ -730,6 +768,9 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "backprojector": lambda: bench_backprojector(n_images=16 if quick else 32, repeats=repeats),
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
         "distributed": lambda: bench_distributed_section(quick, repeats),
+        "truth_free": lambda: bench_truth_free_section(quick),
+        "truth_free_trust": lambda: truth_free_trust.bench_section(
+            quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
     }
     for name in SECTIONS + EXTRA_SECTIONS:
         if name in only:

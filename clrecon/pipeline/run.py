@@ -14,6 +14,7 @@ stages ran, which were skipped and why.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -32,7 +33,7 @@ from clrecon.core.errors import ClreconError
 from clrecon.core.progress import progress as progress_counter
 from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
-from clrecon.evaluation import claims, groundtruth, metrics, motion
+from clrecon.evaluation import claims, groundtruth, metrics, motion, truth_free
 from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key, read_volume
@@ -51,6 +52,10 @@ RESULTS_FORMAT = 1
 #: respiratory-only study (5DCT + the cardiac-blind, respiratory-grid methods such as r4dct).
 FIVE_D_METHODS = interpolation.five_d_methods()
 RESP_ONLY_METHODS = FIVE_D_METHODS + interpolation.resp_grid_methods()
+#: The self-tuning method: planned after the truth-free cross-validation chose its kernel.
+TUNED = "cv_tuned"
+#: recon keys added after run directories existed: left out of the run key at these defaults.
+_RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False}
 
 
 def _progress(total: int, desc: str, enabled: bool, unit: str = "it"):
@@ -156,8 +161,12 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     axes = {"cardiac_phase": targets.cardiac, "resp_amplitude": targets.resp, "z_mm": slices_z,
             "y_mm": reconstruct.voxel_coords(rc.ny, rc.voxel_mm), "x_mm": reconstruct.voxel_coords(rc.nx, rc.voxel_mm)}
     full_shape = targets.shape + (len(slices_z), rc.ny, rc.nx)
+    scene_d = scene.to_dict()
+    for k, v in _RECON_LATER.items():  # keys added later hash only away from their defaults
+        if scene_d["recon"].get(k) == v:
+            scene_d["recon"].pop(k)
     run_key = hashlib.sha256(json.dumps(
-        {"scene": scene.to_dict(), "methods": methods, "pitches": pitches, "variants": variants,
+        {"scene": scene_d, "methods": methods, "pitches": pitches, "variants": variants,
          "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT},
         sort_keys=True, default=_json_default).encode()).hexdigest()
     writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
@@ -174,6 +183,11 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     recorded_summary: dict = {}  # per pitch: views left out by the recorded traces (lost / invalid stretches)
     stage_counts: dict = {}  # work counts of the reconstruction: detector cells read, noise cells drawn
     dist = None
+    tuned = TUNED in methods
+    want_tf = bool(rc.truth_free) or tuned
+    truth_free_res: dict = {}
+    if client is not None and want_tf:
+        raise ClreconError("recon.truth_free and the cv_tuned method run in one process: drop --workers/--cluster")
     if client is not None and scene.measured:
         raise ClreconError("a measured scan (scan.source = 'dicom-ct-pd') runs in one process: "
                            "drop --workers/--cluster")
@@ -192,14 +206,27 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             run_methods, todo = slabs_mod.unfinished(writer, pk, variants, methods)
             if todo.size == 0:
                 log(f"[{pk}] already reconstructed (resumed run)")
+                if want_tf:
+                    truth_free_res[pk] = {"skipped_because": "this pitch was reconstructed by an earlier run "
+                                          "(resumed): run into a fresh output folder to cross-validate it"}
                 sim_info[pk] = {"projections_total": scene.scan.projection_count(scene.scanner, pitch),
                                 "projections_needed": 0, "projections_simulated": 0, "projections_reused": 0,
                                 "store": ""}
                 continue
             log(f"[{pk}] planning {todo.size} slices x {n_t} targets x {len(run_methods)} methods")
-            pp = slabs_mod.plan_pitch(scene, recon_cfg, pitch, slices_z, todo, targets, run_methods, len(variants),
+            fixed_methods = tuple(m for m in run_methods if m != TUNED)
+            run_tuned = TUNED in run_methods
+            pp = slabs_mod.plan_pitch(scene, recon_cfg, pitch, slices_z, todo, targets, fixed_methods, len(variants),
                                       progress)
             table, slabs, plans, needed, plan_s = pp.table, pp.slabs, pp.plans, pp.needed, pp.method_plan_seconds
+            if want_tf:  # the folds read every candidate of the sampled slices; cv_tuned may choose any kernel
+                t0 = time.perf_counter()
+                needed = needed.copy()
+                needed[truth_free.needed_projections(recon_cfg, pp.plan_table, slices_z[todo])] = True
+                if run_tuned:
+                    needed[np.unique(reconstruct.candidate_groups_of(recon_cfg, pp.plan_table,
+                                                                     slices_z[todo]).projection)] = True
+                times.add("plan", time.perf_counter() - t0)
             times.add("signals", pp.signals_seconds)
             times.add("plan", pp.plan_seconds)
             diagnostics[pk] = pp.diagnostics
@@ -217,6 +244,12 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                             "store": str(getattr(store, "path", "")), "slabs": len(slabs),
                             "slab_slices": [int(b - a) for a, b in slabs]}
             units_written["projections"] += int(getattr(store, "units_written", 0))
+            if want_tf:
+                log(f"[{pk}] truth-free cross-validation")
+                t0 = time.perf_counter()
+                truth_free_res[pk] = truth_free.cross_validate(store, pp.plan_table, slices_z[todo], recon_cfg,
+                                                               targets, variants, tuple(rc.small_fov_mm), rt=rt)
+                times.add("truth_free", time.perf_counter() - t0)
 
             bar = _progress(todo.size * len(variants) * len(run_methods), f"reconstruct {pk}", progress,
                             "slice-volumes")
@@ -238,9 +271,21 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                     for m, sec in plan.method_seconds.items():
                         plan_s[m] = plan_s.get(m, 0.0) + sec
                 plans[k] = None
-                reconstruct.reconstruct(recon_cfg, store, plan, variants=variants, rt=rt, times=ptimes,
-                                        progress=bar, on_slab=on_slab, slab_size=len(sel))
+                if fixed_methods:
+                    reconstruct.reconstruct(recon_cfg, store, plan, variants=variants, rt=rt, times=ptimes,
+                                            progress=bar, on_slab=on_slab, slab_size=len(sel))
                 del plan
+                for v in variants if run_tuned else ():  # cv_tuned: the kernel chosen for this variant
+                    t0 = time.perf_counter()
+                    kern = truth_free.Kernel.from_dict(truth_free_res[pk]["choice"][v]["kernel"])
+                    cfg_v = dataclasses.replace(recon_cfg, tuned=(kern.method, tuple(sorted(
+                        (k, x) for k, x in kern.to_dict().items() if k != "method"))))
+                    plan_v = reconstruct.plan(cfg_v, pp.plan_table, slices_z[sel], targets, (TUNED,))
+                    times.add("plan", time.perf_counter() - t0)
+                    plan_s[TUNED] = plan_s.get(TUNED, 0.0) + plan_v.method_seconds[TUNED]
+                    reconstruct.reconstruct(cfg_v, store, plan_v, variants=(v,), rt=rt, times=ptimes,
+                                            progress=bar, on_slab=on_slab, slab_size=len(sel))
+                    del plan_v
             stage_counts.update({k: stage_counts.get(k, 0) + n for k, n in ptimes.counts.items()})
             bar.close()
             method_seconds[pk] = {}
@@ -305,8 +350,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     if dist is not None:  # what the workers computed, in place of this process's (empty) records
         distributed.merge_records(dist, times, sim_info, method_seconds, method_plan_seconds, diagnostics, sampling,
                                   units_written)
-    for name in ("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp", "write_volumes",
-                 "groundtruth", "phantom_truth", "assemble_volumes", "metrics"):
+    for name in (("signals", "plan", "simulate", "read", "noise", "rebin", "interpolate", "fbp", "write_volumes")
+                 + (("truth_free",) if want_tf else ())
+                 + ("groundtruth", "phantom_truth", "assemble_volumes", "metrics")):
         stages[name] = {"ran": name in times.seconds, "seconds": round(times.seconds.get(name, 0.0), 3)}
     if not scene.noise.enabled:
         stages["noise"]["skipped_because"] = "scene has noise.enabled = false"
@@ -352,6 +398,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                          "why": "measured scan: error against truth is unavailable" if scene.measured else ""},
         "recorded_signals": recorded_summary,
     }
+    if want_tf:
+        results["truth_free"] = truth_free_res
     if dist is not None:
         results["distributed"] = dist.summary
     results["claims"] = claims.evaluate_claims(results)  # the paper's claims, measured

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from clrecon.core.config import BOOL, NONNEGINT, POS, POSINT, F, Section, _num, _posint, field_of, one_of
+from clrecon.core.config import BOOL, NONNEG, NONNEGINT, POS, POSINT, F, Section, _num, _posint, field_of, one_of
 from clrecon.core.errors import SceneError
 from clrecon.reconstruction.backprojectors import BACKPROJECTORS
 from clrecon.reconstruction.filters import FILTERS as _FILTER_REGISTRY
 from clrecon.reconstruction.interpolation import METHODS as _METHOD_REGISTRY
+from clrecon.reconstruction.interpolation import default_methods as _default_methods
 from clrecon.reconstruction.interpolation.local_linear import LL_MAX_SLOTS, LL_POINT_RULES
 
 METHODS = _METHOD_REGISTRY.names
@@ -39,7 +40,7 @@ class ReconConfig(Section):
                                "target cardiac phases")
     resp_bins: int = _f(10, "an integer in 1..50", lambda x: _posint(x) and x <= 50,
                         "respiratory amplitude bins of equal width; targets at the bin midpoints")
-    methods: tuple = _f(METHODS, "a non-empty list from " + ", ".join(METHODS),
+    methods: tuple = _f(_default_methods(), "a non-empty list from " + ", ".join(METHODS),
                         lambda v: isinstance(v, tuple) and len(v) > 0 and all(m in METHODS for m in v)
                         and len(set(v)) == len(v), "reconstruction methods")
     kappa: float = F(1.0, POS, "von Mises concentration of the local-linear cardiac kernel")
@@ -54,6 +55,11 @@ class ReconConfig(Section):
                                  "('nearest')")
     max_turns: int = F(0, NONNEGINT, "0: every candidate turn within the SSRB window; N > 0: only the N candidates "
                        "nearest in z per (slice, view), for every method")
+    candidate_window_mm: float = F(0.0, NONNEG, "candidate window |slice z - source z| (mm); 0: the SSRB-exact "
+                                   "window (no SSRB row off the detector); the 5DCT paper: half the detector width "
+                                   "projected to the isocentre, ~28 mm (rows off the detector clamp to its edge)")
+    truth_free: bool = F(False, BOOL, "cross-validate every method in sinogram space (no truth needed): "
+                         "results.json['truth_free'] and a report section (clrecon.evaluation.truth_free)")
     filter: str = _f("ram-lak", "one of " + ", ".join(FILTERS), lambda x: x in FILTERS, "ramp filter window")
     backprojector: str = F("direct", one_of(BACKPROJECTORS), "FBP path (clrecon.reconstruction.backprojectors): "
                            "'direct' fan-beam backprojection of every view (the paper runs), or 'parallel-rebin' "

@@ -150,7 +150,7 @@ class CandidateGroups:
 
 
 def candidate_groups(table: ProjectionTable, slice_z_mm, scanner: ScannerConfig,
-                     object_radius_mm: float) -> CandidateGroups:
+                     object_radius_mm: float, window_mm: float | None = None) -> CandidateGroups:
     """Candidates of every (slice, view) for a set of slices, vectorised.
 
     Parameters
@@ -162,6 +162,12 @@ def candidate_groups(table: ProjectionTable, slice_z_mm, scanner: ScannerConfig,
     scanner : ScannerConfig
     object_radius_mm : float
         See :func:`slice_window_mm`.
+    window_mm : float, optional
+        Half-width of the candidate window |slice_z - z_k| (mm); default (None or 0) the
+        SSRB-exact :func:`slice_window_mm`. A wider window (the 5DCT paper: half the detector
+        width projected to the isocentre, ~28 mm, ``recon.candidate_window_mm``) takes turns
+        whose outer columns' SSRB rows lie off the detector: the kernel clamps them to the
+        edge row.
 
     Returns
     -------
@@ -170,7 +176,7 @@ def candidate_groups(table: ProjectionTable, slice_z_mm, scanner: ScannerConfig,
     """
     zs = np.atleast_1d(np.asarray(slice_z_mm, dtype=np.float64))
     nv = int(table.views_per_rotation)
-    w = slice_window_mm(scanner, object_radius_mm)
+    w = float(window_mm) if window_mm else slice_window_mm(scanner, object_radius_mm)
     zk = np.asarray(table.source_z_mm, dtype=np.float64)
     # Sort the table once by z so each slice is a contiguous range (a helical table already is).
     order = np.argsort(zk, kind="stable")

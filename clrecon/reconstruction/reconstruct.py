@@ -88,6 +88,11 @@ class ReconstructionConfig:
     local_linear_count: int = 2
     max_turns: int = 0
     backprojector: str = "direct"
+    #: candidate window half-width (mm), 0: the SSRB-exact window (``recon.candidate_window_mm``)
+    candidate_window_mm: float = 0.0
+    #: ``cv_tuned``'s chosen kernel ``(method, ((knob, value), ...))`` (set by the run from the
+    #: truth-free cross-validation, :mod:`clrecon.evaluation.truth_free`); None: not chosen
+    tuned: tuple | None = None
 
     @classmethod
     def from_scene(cls, scene) -> ReconstructionConfig:
@@ -98,7 +103,8 @@ class ReconstructionConfig:
                    sigma=rc.sigma, use_cardiac=scene.has_cardiac, use_resp=scene.has_respiratory,
                    resp_bin_width=1.0 / rc.resp_bins, extrapolate=rc.local_linear_extrapolate,
                    local_linear_points=rc.local_linear_points, local_linear_count=rc.local_linear_count,
-                   max_turns=rc.max_turns, backprojector=rc.backprojector)
+                   max_turns=rc.max_turns, backprojector=rc.backprojector,
+                   candidate_window_mm=rc.candidate_window_mm)
 
 
 def slice_positions(scene, slice_range: tuple | None = None) -> np.ndarray:
@@ -166,7 +172,7 @@ def plan(cfg: ReconstructionConfig, table: ProjectionTable, slices_z: np.ndarray
     sc = cfg.scanner
     nv = sc.views_per_rotation
     p = Plan(slices_z=np.asarray(slices_z, float))
-    groups = rebin.candidate_groups(table, p.slices_z, sc, cfg.object_radius_mm)
+    groups = rebin.candidate_groups(table, p.slices_z, sc, cfg.object_radius_mm, cfg.candidate_window_mm)
     if groups.empty.any():
         g = int(np.flatnonzero(groups.empty)[0])
         z = p.slices_z[g // nv]
@@ -196,6 +202,13 @@ def plan(cfg: ReconstructionConfig, table: ProjectionTable, slices_z: np.ndarray
         p.method_seconds[m] += t_shared / len(p.method_seconds)
     p.seconds = time.perf_counter() - t0
     return p
+
+
+def candidate_groups_of(cfg: ReconstructionConfig, table: ProjectionTable, slices_z) -> rebin.CandidateGroups:
+    """The candidates :func:`plan` uses for ``slices_z``: the candidate window, then ``max_turns``."""
+    groups = rebin.candidate_groups(table, np.asarray(slices_z, float), cfg.scanner, cfg.object_radius_mm,
+                                    cfg.candidate_window_mm)
+    return limit_turns(groups, cfg.max_turns) if cfg.max_turns > 0 else groups
 
 
 def limit_turns(groups: rebin.CandidateGroups, max_turns: int) -> rebin.CandidateGroups:
@@ -242,7 +255,7 @@ def weight_options(cfg: ReconstructionConfig, targets: Targets) -> dict:
     return dict(kappa=cfg.kappa, sigma=cfg.sigma, use_cardiac=cfg.use_cardiac, use_resp=cfg.use_resp,
                 cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=cfg.resp_bin_width,
                 extrapolate=cfg.extrapolate, local_linear_points=cfg.local_linear_points,
-                local_linear_count=cfg.local_linear_count)
+                local_linear_count=cfg.local_linear_count, tuned=cfg.tuned)
 
 
 def _cardiac_bin_width(targets: Targets) -> float:

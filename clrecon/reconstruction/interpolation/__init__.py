@@ -17,6 +17,7 @@ from clrecon.reconstruction.interpolation import r4dct
 from clrecon.reconstruction.interpolation import nearest
 from clrecon.reconstruction.interpolation import bin
 from clrecon.reconstruction.interpolation import helical
+from clrecon.reconstruction.interpolation import cv_tuned
 # isort: on
 
 from clrecon.reconstruction.interpolation.apply import (
@@ -29,6 +30,7 @@ from clrecon.reconstruction.interpolation.base import Method, Options
 from clrecon.reconstruction.interpolation.registry import (
     METHODS,
     by_rank,
+    default_methods,
     figure_order,
     five_d_methods,
     markers,
@@ -41,6 +43,7 @@ from clrecon.reconstruction.interpolation.weights import NoCandidatesError, Weig
 __all__ = [
     "METHODS", "DeviceRows", "Method", "NoCandidatesError", "Options", "Weights", "apply_weights",
     "apply_weights_interleaved", "apply_weights_reference", "barycentric", "batch_weights", "bin", "by_rank",
+    "cv_tuned", "default_methods",
     "figure_order", "five_d_methods", "helical", "local_linear", "markers", "method_names", "method_weights",
     "nearest", "r4dct", "register_method", "resp_grid_methods",
 ]

@@ -62,6 +62,8 @@ class Options:
     extrapolate: bool = False
     local_linear_points: str = "quadrants"
     local_linear_count: int = 2
+    #: ``cv_tuned``: the chosen fixed kernel ``(method, ((knob, value), ...))``, or None
+    tuned: tuple | None = None
 
 
 #: ``weights(ch, targets, dc, da, d2, opts) -> (index (g, T, K) int, weight (g, T, K) float64)``:
@@ -104,6 +106,9 @@ class Method:
         present wins); figures show the methods the other way round, simplest first.
     weights : WeightsFn
         The method itself (see :data:`WeightsFn`).
+    opt_in : bool
+        Not in the ``recon.methods`` default (:func:`~clrecon.reconstruction.interpolation.registry.default_methods`):
+        run only when a scene or ``--methods`` names it (``cv_tuned``).
     """
 
     name: str
@@ -115,6 +120,7 @@ class Method:
     marker: str
     rank: int
     weights: WeightsFn
+    opt_in: bool = False
 
     def __post_init__(self):
         if self.target_grid not in TARGET_GRIDS:

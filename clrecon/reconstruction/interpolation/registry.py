@@ -15,12 +15,13 @@ METHODS: Registry[Method] = Registry("interpolation method")
 
 
 def register_method(*, name: str, label: str, neighbours: int | None, target_grid: str, axes: tuple,
-                    five_d: bool, marker: str, rank: int):
+                    five_d: bool, marker: str, rank: int, opt_in: bool = False):
     """Decorator registering a ``weights`` function as method ``name`` (see :class:`Method`)."""
 
     def add(fn):
         METHODS.register(name)(Method(name=name, label=label, neighbours=neighbours, target_grid=target_grid,
-                                      axes=tuple(axes), five_d=five_d, marker=marker, rank=rank, weights=fn))
+                                      axes=tuple(axes), five_d=five_d, marker=marker, rank=rank, weights=fn,
+                                      opt_in=opt_in))
         return fn
 
     return add
@@ -29,6 +30,11 @@ def register_method(*, name: str, label: str, neighbours: int | None, target_gri
 def method_names() -> tuple[str, ...]:
     """Every method, in registration order (the ``recon.methods`` default)."""
     return METHODS.names
+
+
+def default_methods() -> tuple[str, ...]:
+    """The ``recon.methods`` default: every method but the opt-in ones (``Method.opt_in``), in registration order."""
+    return tuple(n for n, m in METHODS.items() if not m.opt_in)
 
 
 def by_rank(names=None) -> tuple[str, ...]:

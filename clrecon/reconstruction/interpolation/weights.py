@@ -162,7 +162,8 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
                   use_cardiac: bool = True, use_resp: bool = True, allow_empty: bool = False,
                   chunk_groups: int = 1024, workers: int | None = None, rt=None,
                   precision: str | None = None, extrapolate: bool = False, dz=None,
-                  local_linear_points: str = "quadrants", local_linear_count: int = 2) -> Weights:
+                  local_linear_points: str = "quadrants", local_linear_count: int = 2,
+                  tuned: tuple | None = None) -> Weights:
     """Interpolation weights for many (slice, view) groups at once.
 
     Parameters
@@ -207,6 +208,9 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
         in mm (a sign is dropped; :attr:`clrecon.reconstruction.rebin.CandidateGroups.dz_mm`).
         Only the phase-blind methods read it (``helical``, which requires it); the phase
         methods' weights do not depend on it.
+    tuned : tuple, optional
+        ``cv_tuned`` only: the fixed kernel it uses, ``(method, ((knob, value), ...))``
+        (:mod:`~clrecon.reconstruction.interpolation.cv_tuned`).
 
     Returns
     -------
@@ -240,7 +244,7 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
     opts = Options(kappa=kappa, sigma=sigma, cardiac_bin_width=cardiac_bin_width, resp_bin_width=resp_bin_width,
                    use_cardiac=use_cardiac, use_resp=use_resp, workers=workers, rt=rt, precision=precision,
                    extrapolate=extrapolate, local_linear_points=local_linear_points,
-                   local_linear_count=int(local_linear_count))
+                   local_linear_count=int(local_linear_count), tuned=tuned)
     # differences along an axis the method does not use are left at zero (not computed)
     use_c, use_r = use_cardiac and "cardiac" in m.axes, use_resp and "resp" in m.axes
 
