@@ -281,7 +281,8 @@ def method_weights(method: str, c, a, targets, *, kappa: float = 1.0, sigma: flo
                    cardiac_bin_width: float = 0.2, resp_bin_width: float = 0.1,
                    use_cardiac: bool = True, use_resp: bool = True, rt=None,
                    precision: str | None = None, extrapolate: bool = False, dz=None,
-                   local_linear_points: str = "quadrants", local_linear_count: int = 2) -> Weights:
+                   local_linear_points: str = "quadrants", local_linear_count: int = 2,
+                   tuned: tuple | None = None) -> Weights:
     """Interpolation weights for one (slice, view): candidates (n,) -> Weights (T, K) into 0..n-1.
 
     See :func:`batch_weights` for the parameters (``dz`` (n,) mm); raises
@@ -292,6 +293,6 @@ def method_weights(method: str, c, a, targets, *, kappa: float = 1.0, sigma: flo
                       cardiac_bin_width=cardiac_bin_width, resp_bin_width=resp_bin_width,
                       use_cardiac=use_cardiac, use_resp=use_resp, workers=1, rt=rt, precision=precision,
                       extrapolate=extrapolate, dz=dz, local_linear_points=local_linear_points,
-                      local_linear_count=local_linear_count)
+                      local_linear_count=local_linear_count, tuned=tuned)
     return Weights(index=w.index[0], weight=w.weight[0], branch=None if w.branch is None else w.branch[0])
 
