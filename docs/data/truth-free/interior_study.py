@@ -1,13 +1,20 @@
 """Adds the interior scheme's CV errors to the trust study's cases (same scans, slices, targets, store)."""
-import json, glob, time, os
-import numpy as np, clrecon
-from clrecon.evaluation import truth_free as tf
-from clrecon.reconstruction import reconstruct as rc
+
+import json
+import os
+import time
+
+import numpy as np
+
+import clrecon
 from clrecon.bench.truth_free_trust import CASES
-from clrecon.pipeline.variants import noise_variants
+from clrecon.evaluation import truth_free as tf
 from clrecon.pipeline.run import resolve_targets
+from clrecon.pipeline.variants import noise_variants
+from clrecon.reconstruction import reconstruct as rc
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate
+
 cfgtf = tf.TruthFreeConfig(schemes=("interior",), image_fold=False, choose_by=("interior", "heart"))
 out = {}
 for name in ("demo", "demo-hrv", "paper-p010"):
@@ -19,9 +26,14 @@ for name in ("demo", "demo-hrv", "paper-p010"):
     for pitch in sc.scan.pitches:
         t0 = time.time()
         table = projection_table(sc, pitch)
-        need = np.zeros(len(table), bool); need[tf.needed_projections(cfg, table, zs, cfgtf)] = True
+        need = np.zeros(len(table), bool)
+        need[tf.needed_projections(cfg, table, zs, cfgtf)] = True
         store = simulate.simulate(sc, pitch, needed=need, cache_dir="/tmp/tf/cache", progress=False)
         r = tf.cross_validate(store, table, zs, cfg, targets, noise_variants(sc), tuple(sc.recon.small_fov_mm), cfgtf)
         out[f"{name}/p{pitch:.3f}".replace("p0.1", "p0.1").replace("p0.0", "p0.0")] = r
         print(name, pitch, round(time.time() - t0), r["folds"], flush=True)
-json.dump({"cases": out, "load": os.getloadavg(), "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime())}, open("docs/data/truth-free/interior.json", "w"), indent=1)
+json.dump(
+    {"cases": out, "load": os.getloadavg(), "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime())},
+    open("docs/data/truth-free/interior.json", "w"),
+    indent=1,
+)
