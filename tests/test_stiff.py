@@ -10,6 +10,8 @@ when the second point is > 0.3 away in c).
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 import pytest
 
@@ -81,7 +83,9 @@ def _stiff_rows(kind: str, rng, n: int = 400):
 @pytest.mark.parametrize("kind", ["random", "collinear", "near_collinear", "duplicates", "one_amplitude",
                                   "fewer_than_three"])
 def test_local_linear_kernel_single_and_double_match_the_reference(kind, kappa, sigma):
-    rng = np.random.default_rng(abs(hash((kind, kappa, sigma))) % 2 ** 32)
+    # a fixed seed per case (hash() of a str changes with every process's PYTHONHASHSEED, which
+    # made this test draw new rows in each run; the rare rows the single path fails on are below)
+    rng = np.random.default_rng(zlib.crc32(repr((kind, kappa, sigma)).encode()))
     dc, da, count = _stiff_rows(kind, rng)
     ref = ip.local_linear_solve_reference(dc, da, count, kappa, sigma)
     scale = _scale(ref)
@@ -93,6 +97,17 @@ def test_local_linear_kernel_single_and_double_match_the_reference(kind, kappa, 
         err = np.abs(got - ref).max(1) / scale
         tol = TOL["ll_double"] if precision == "double" else TOL["ll_single_raw"]
         assert err.max() < tol, (precision, err.max())
+
+
+@pytest.mark.xfail(strict=True, reason="known defect, not fixed: the single-precision local linear solve loses "
+                   "the weights on rare near-collinear rows (2 of 1500 random draws at kappa 100, sigma 0.15: "
+                   "0.26 and 0.50 of the scale; 9.7 in one CI draw)")
+@pytest.mark.parametrize("seed", [715, 933])
+def test_local_linear_single_fails_on_rare_near_collinear_rows(seed):
+    dc, da, count = _stiff_rows("near_collinear", np.random.default_rng(seed))
+    ref = ip.local_linear_solve_reference(dc, da, count, 100.0, 0.15)
+    got = ip.local_linear_solve(dc, da, count, 100.0, 0.15, precision="single")
+    assert (np.abs(got - ref).max(1) / _scale(ref)).max() < TOL["ll_single_raw"]
 
 
 @pytest.mark.parametrize("kappa,sigma", KERNELS)
