@@ -136,11 +136,7 @@ def apply_weights_interleaved(rows: DeviceRows, index, weight, rt=None):
     live = weight != 0
     if np.any(live) and (index[live].min() < 0 or index[live].max() >= P):
         raise ValueError(f"index: entries with non-zero weight must lie in [0, {P})")
-    G = max(1, -(-B // 16))
-    idx = np.zeros((G * 16, V, K), np.int32)
-    wgt = np.zeros((G * 16, V, K), np.float32)
-    idx[:B] = np.where(live, index, 0)
-    wgt[:B] = weight
+    idx, wgt = pad_interleaved(index, weight)
     return apply_padded_interleaved(rows, idx, wgt, B, rt=rt)
 
 
