@@ -65,10 +65,11 @@ def test_separate_file_systems_are_checked_separately(tmp_path, monkeypatch):
     # compressed units and the store assembled from them coexist; the truth cache copies the two
     # truth volumes where it cannot hard-link (another file system)
     store = costs["needed_store_bytes"] / PROJECTION_RATIO
-    truths = costs["truth_bytes"] / VOLUME_RATIO
+    assert costs["volume_compression"] == "none"  # tiny's volumes are far below AUTO_COMPRESS_BYTES: raw
+    truths = costs["truth_bytes"]
     assert need["cache_disk"] == int(max(2 * store, store + truths))
     # the volumes and one dataset file assembled next to the units of the others
-    assert need["out_disk"] == int((costs["volume_bytes"] + costs["largest_dataset_bytes"]) / VOLUME_RATIO)
+    assert need["out_disk"] == int(costs["volume_bytes"] + costs["largest_dataset_bytes"])
     free = {"cache": need["cache_disk"] - 1, "out": 10 * GiB}
     monkeypatch.setattr(preflight, "free_disk_bytes", lambda p: free["cache" if "cache" in str(p) else "out"])
     with pytest.raises(ClreconError, match="the projection store needs"):
@@ -110,6 +111,22 @@ def test_disk_model_walks_the_run_in_order():
     assert d["disk_peak"] == int(max(2 * s1, s1 + 4000 / v + 2 * s2, s1 + s2 + 11000 / v))
     done = disk_model(c, existing={0.02: None, 0.1: None}, present_out=3000)
     assert done["cache_disk"] == 0 and done["out_disk"] == int(11000 / v - 3000)
+    # uncompressed volumes count raw
+    raw = disk_model(dict(c, volume_compression="none"))
+    assert raw["out_disk"] == 11000 and raw["cache_disk"] == d["cache_disk"]
     # paper-p002 whole: within the 40 GiB of issue 20 (it was 125 GiB with raw units and a whole copy)
     assert scene_costs(load_scene("paper-p002"))["disk_peak"] <= 40 * GiB
     assert scene_costs(load_scene("paper-p010"))["disk_peak"] <= 40 * GiB
+
+
+def test_auto_volume_compression_compresses_only_large_runs():
+    """recon.volume_compression = "auto": LZF for the paper scenes' volumes, none for demo and tiny."""
+    from clrecon.outputs.volumes import AUTO_COMPRESS_BYTES, resolve_compression
+
+    assert scene_costs(load_scene("paper-p010"))["volume_compression"] == "lzf"
+    assert scene_costs(load_scene("demo"))["volume_compression"] == "none"
+    assert resolve_compression("auto", AUTO_COMPRESS_BYTES) == "lzf"
+    assert resolve_compression("auto", AUTO_COMPRESS_BYTES - 1) == "none"
+    assert resolve_compression("lzf", 0) == "lzf" and resolve_compression("none", 10 * AUTO_COMPRESS_BYTES) == "none"
+    with pytest.raises(ValueError, match="allowed auto, lzf, none"):
+        resolve_compression("gzip", 0)

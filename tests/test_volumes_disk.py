@@ -40,8 +40,9 @@ def _vol(k: int) -> np.ndarray:
     return v.astype(np.float32)
 
 
-def _fill(path, run_key="k", slabs=((0, 3), (3, 6))) -> VolumeWriter:
-    w = VolumeWriter(path / "volumes.h5", AXES, True, True, run_key=run_key, dtype="float16")
+def _fill(path, run_key="k", slabs=((0, 3), (3, 6)), compression="lzf") -> VolumeWriter:
+    w = VolumeWriter(path / "volumes.h5", AXES, True, True, run_key=run_key, dtype="float16",
+                     compression=compression)
     for k, name in enumerate(NAMES):
         w.create(name, SHAPE, NZ)
         for a, b in slabs:
@@ -104,6 +105,37 @@ def test_direct_chunk_copy_is_bit_identical_to_a_plain_write(tmp_path):
             assert fa[name][()].tobytes() == fb[name][()].tobytes() == _vol(
                 9 if name == "groundtruth" else NAMES.index(name)).astype(np.float16).reshape(
                 fa[name].shape).tobytes()
+
+
+def test_uncompressed_volumes_hold_the_same_values_and_resume_over_compressed_units(tmp_path):
+    """recon.volume_compression = "none" (auto on small runs): plain chunks, the same bytes read back;
+    a run resumed with the other setting copies the earlier units in (decoded), values unchanged."""
+    a, b = tmp_path / "lzf", tmp_path / "none"
+    _fill(a).close()
+    _fill(b, compression="none").close()
+    with open_volumes(a) as fa, open_volumes(b) as fb:
+        for name in NAMES + ["groundtruth"]:
+            assert fa[name][()].tobytes() == fb[name][()].tobytes()
+    for d, want in ((a, "lzf"), (b, None)):
+        files = sorted((d / "volumes.d").rglob("*.h5"))
+        assert len(files) == len(NAMES) + 1
+        for p in files:
+            with h5py.File(p, "r") as f:
+                assert f["volume"].compression == want, p
+    # units written compressed, assembled by an uncompressed writer (same run key): decoded, same values
+    c = tmp_path / "mixed"
+    w = _fill(c)
+    w2 = VolumeWriter(c / "volumes.h5", AXES, True, True, run_key="k", dtype="float16", compression="none")
+    assert w2.resumed
+    for k, name in enumerate(NAMES):
+        w2.create(name, SHAPE, NZ)
+    w2.create("groundtruth", SHAPE, 6)
+    w2.close()
+    with open_volumes(c) as fc, open_volumes(a) as fa:
+        for name in NAMES + ["groundtruth"]:
+            assert fc[name][()].tobytes() == fa[name][()].tobytes()
+    with pytest.raises(ValueError, match="allowed lzf, none"):
+        VolumeWriter(tmp_path / "x" / "volumes.h5", AXES, True, True, compression="gzip")
 
 
 def test_a_moved_or_copied_run_folder_still_reads(tmp_path):

@@ -51,6 +51,23 @@ READABLE_VERSIONS = (1, 2)
 UNITS_FORMAT = 1
 #: Allowed on-disk dtypes of the volumes (``recon.volume_dtype``).
 VOLUME_DTYPES = ("float32", "float16")
+#: ``recon.volume_compression = "auto"`` compresses (LZF + shuffle) a run whose volumes are at least
+#: this many bytes raw. Below it the compression costs more time than its disk is worth: on demo
+#: (0.99 GB raw, 0.61 GB compressed, 26 datasets) writing the compressed units took 9.2 s of an
+#: 80 s run and every read of a volume decompresses it again (docs/data-flow.md, "Disk").
+AUTO_COMPRESS_BYTES = 4 * 1024 ** 3
+#: Allowed ``recon.volume_compression`` values; the chunk filters of each resolved one.
+VOLUME_COMPRESSIONS = ("auto", "lzf", "none")
+_FILTERS_OF = {"lzf": units.VOLUME_FILTERS, "none": {}}
+
+
+def resolve_compression(choice: str, volume_bytes: int) -> str:
+    """``"lzf"`` or ``"none"`` for ``recon.volume_compression = choice`` and the run's raw volume bytes."""
+    if choice not in VOLUME_COMPRESSIONS:
+        raise ValueError(f"volume compression {choice!r}: allowed {', '.join(VOLUME_COMPRESSIONS)}")
+    if choice == "auto":
+        return "lzf" if volume_bytes >= AUTO_COMPRESS_BYTES else "none"
+    return choice
 
 
 def pitch_key(pitch: float) -> str:
@@ -62,8 +79,9 @@ class VolumeWriter:
 
     Every finished block (a slab of one reconstruction, one target of a truth) is written as
     its own atomic, checksummed unit file in ``volumes.h5.units/`` (:mod:`clrecon.core.units`),
-    compressed with the filters of the final files (LZF + byte shuffle, one chunk per slice:
-    :data:`clrecon.core.units.VOLUME_FILTERS`); nothing is written into HDF5 while computing,
+    compressed with the filters of the final files (one chunk per slice; ``compression = "lzf"``:
+    LZF + byte shuffle, :data:`clrecon.core.units.VOLUME_FILTERS`; ``"none"``: chunked, no filter,
+    as :func:`resolve_compression` picks for small runs); nothing is written into HDF5 while computing,
     so a SIGKILL at any instant can only lose the block being written.
 
     :meth:`assemble` then builds the datasets one by one: ``volumes.d/<gen>/<name>.h5.partial``
@@ -89,10 +107,14 @@ class VolumeWriter:
     """
 
     def __init__(self, path: Path, axes: dict, keep_cardiac: bool, keep_resp: bool, run_key: str = "",
-                 dtype: str = "float32"):
+                 dtype: str = "float32", compression: str = "lzf"):
         if dtype not in VOLUME_DTYPES:
             raise ValueError(f"volume dtype {dtype!r}: allowed {', '.join(VOLUME_DTYPES)}")
+        if compression not in _FILTERS_OF:
+            raise ValueError(f"volume compression {compression!r}: allowed {', '.join(_FILTERS_OF)}")
         self.dtype = np.dtype(dtype)
+        self.compression = compression
+        self.filters = _FILTERS_OF[compression]
         self.path = Path(path)
         self.partial = self.path.with_name(self.path.name + ".partial")
         self.units_dir = self.path.with_name(self.path.name + ".units")
@@ -215,7 +237,7 @@ class VolumeWriter:
         meta = dict(meta, name=name, shape=list(self._specs[name][0]))
         vol = np.ascontiguousarray(vol, self.dtype)
         p = units.write_unit(self.units_dir, stem, {"data": vol}, meta, fault,
-                             compress={"data": self._chunks(vol.shape)}, filters=units.VOLUME_FILTERS)
+                             compress={"data": self._chunks(vol.shape)}, filters=self.filters)
         self._units[name].append((p, meta))
         self.units_written[fault] += 1
 
@@ -325,7 +347,7 @@ class VolumeWriter:
             if "volume" not in f:
                 f.attrs.update({"format_version": FORMAT_VERSION, "run_key": self.run_key, "name": name})
                 ds = f.create_dataset("volume", shape=shape, dtype=self.dtype, chunks=self._chunks(shape),
-                                      **units.VOLUME_FILTERS)
+                                      **self.filters)
                 ds.attrs["dims"] = list(self._dims())
                 ds.attrs["broadcast"] = list(self._broadcast[name])
                 ds.attrs["units"] = "HU"

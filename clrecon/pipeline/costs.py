@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from clrecon.config.scene import builtin_scene_names, load_scene
 from clrecon.core.errors import SceneError
+from clrecon.outputs.volumes import resolve_compression
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.rebin import slice_window_mm
@@ -72,7 +73,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
            "needed_store_bytes": sum(needed.values()) * proj_bytes, "projection_bytes": proj_bytes,
            "volume_bytes": int(vol_bytes * n_vols), "n_volumes": round(n_vols, 3), "n_targets": n_targets,
            "recon_bytes_per_pitch": int(vol_bytes * n_var * per_pitch_variant), "truth_bytes": int(2 * vol_bytes),
-           "largest_dataset_bytes": int(vol_bytes), "peak_memory_bytes": int(peak), "slab_slices": slab}
+           "largest_dataset_bytes": int(vol_bytes), "peak_memory_bytes": int(peak), "slab_slices": slab,
+           "volume_compression": resolve_compression(rc.volume_compression, int(vol_bytes * n_vols))}
     out.update(disk_model(out))
     return out
 
@@ -88,7 +90,8 @@ def disk_model(c: dict, existing: dict | None = None, present_out: int = 0, trut
     largest dataset. ``present_out``: bytes of units and dataset files an interrupted run
     left (not written again). ``truth_copies``: the truth cache is on another file system
     (it copies the truths instead of linking them). Compressed sizes: the raw bytes over
-    :data:`PROJECTION_RATIO` and :data:`VOLUME_RATIO`.
+    :data:`PROJECTION_RATIO` and (``c["volume_compression"] == "lzf"``, the default when absent)
+    :data:`VOLUME_RATIO`; uncompressed volumes count raw.
 
     Returns bytes: ``cache_disk`` (the projection-store folder's peak growth), ``out_disk``
     (the run directory's: volumes plus one dataset) and ``disk_peak`` (both on one file
@@ -96,19 +99,20 @@ def disk_model(c: dict, existing: dict | None = None, present_out: int = 0, trut
     assembly transient is over before the volumes are written).
     """
     existing = existing or {}
+    vol_ratio = VOLUME_RATIO if c.get("volume_compression", "lzf") == "lzf" else 1.0
     grown = cache_peak = cache_grown = peak = 0.0
     for p, n_needed in c["projections_needed"].items():
         old = existing.get(p, 0)
         if old is None:  # complete store: nothing written
-            grown += c["recon_bytes_per_pitch"] / VOLUME_RATIO
+            grown += c["recon_bytes_per_pitch"] / vol_ratio
             continue
         new = n_needed * c["projection_bytes"] / PROJECTION_RATIO
         peak = max(peak, grown + old + 2 * new)
         cache_peak = max(cache_peak, cache_grown + old + 2 * new)
-        grown += new + c["recon_bytes_per_pitch"] / VOLUME_RATIO
+        grown += new + c["recon_bytes_per_pitch"] / vol_ratio
         cache_grown += new
-    truths = c["truth_bytes"] / VOLUME_RATIO
-    out = max(0.0, c["volume_bytes"] / VOLUME_RATIO + c["largest_dataset_bytes"] / VOLUME_RATIO - present_out)
+    truths = c["truth_bytes"] / vol_ratio
+    out = max(0.0, c["volume_bytes"] / vol_ratio + c["largest_dataset_bytes"] / vol_ratio - present_out)
     peak = max(peak, cache_grown + out)
     if truth_copies:
         cache_peak = max(cache_peak, cache_grown + truths)

@@ -55,7 +55,7 @@ RESP_ONLY_METHODS = FIVE_D_METHODS + interpolation.resp_grid_methods()
 #: The self-tuning method: planned after the truth-free cross-validation chose its kernel.
 TUNED = "cv_tuned"
 #: recon keys added after run directories existed: left out of the run key at these defaults.
-_RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False}
+_RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False, "volume_compression": "auto"}
 
 
 def _progress(total: int, desc: str, enabled: bool, unit: str = "it"):
@@ -170,7 +170,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
          "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT},
         sort_keys=True, default=_json_default).encode()).hexdigest()
     writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
-                          run_key=run_key, dtype=rc.volume_dtype)
+                          run_key=run_key, dtype=rc.volume_dtype, compression=run_costs["volume_compression"])
     if writer.resumed:
         log("resuming an interrupted run: finished slices and targets are kept")
     n_t = targets.shape[0] * targets.shape[1]
@@ -392,7 +392,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         "respiratory_only": resp_only,
         "motion": motion_res,
         "motion_definitions": motion.definitions(motion.MotionConfig.from_scene(scene, slices_z)),
-        "outputs": {"volumes": "volumes.h5", "report": "report.md" if report else None},
+        "outputs": {"volumes": "volumes.h5", "report": "report.md" if report else None,
+                    "volume_compression": writer.compression},
         "measured": bool(scene.measured),
         "ground_truth": {"available": not scene.measured,
                          "why": "measured scan: error against truth is unavailable" if scene.measured else ""},
