@@ -194,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--slices", help="START:STOP slice index range (only the projections those need are simulated)")
     r.add_argument("--pitch", help="comma list of the scene's pitches to run")
     r.add_argument("--cache", help="projection store folder (default: $CLRECON_CACHE or ~/.cache/clrecon)")
-    r.add_argument("--no-progress", action="store_true", help="no progress bars")
+    r.add_argument("--no-progress", action="store_true", help=NO_PROGRESS_HELP)
     r.add_argument("--force", action="store_true",
                    help="run even if the pre-flight check says the memory or disk will not suffice")
     _add_cluster_args(r)
@@ -205,7 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("study", help="study TOML file")
     sw.add_argument("--out", help="study folder (default: the file's `out`, else runs/<study name>)")
     sw.add_argument("--cache", help="projection store folder (default: $CLRECON_CACHE or ~/.cache/clrecon)")
-    sw.add_argument("--no-progress", action="store_true", help="no progress bars")
+    sw.add_argument("--no-progress", action="store_true", help=NO_PROGRESS_HELP)
     _add_cluster_args(sw)
     sw.set_defaults(func=cmd_sweep)
 
@@ -264,6 +264,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _terminate(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
+
+
+NO_PROGRESS_HELP = ("no progress at all: neither the bars on a terminal nor the lines with an ETA that a "
+                    "non-terminal stderr (nohup, a batch job) gets every CLRECON_PROGRESS_INTERVAL s")
 
 
 def main(argv=None) -> int:

@@ -124,10 +124,10 @@ def test_uncompressed_volumes_hold_the_same_values_and_resume_over_compressed_un
                 assert f["volume"].compression == want, p
     # units written compressed, assembled by an uncompressed writer (same run key): decoded, same values
     c = tmp_path / "mixed"
-    w = _fill(c)
+    _fill(c)
     w2 = VolumeWriter(c / "volumes.h5", AXES, True, True, run_key="k", dtype="float16", compression="none")
     assert w2.resumed
-    for k, name in enumerate(NAMES):
+    for name in NAMES:
         w2.create(name, SHAPE, NZ)
     w2.create("groundtruth", SHAPE, 6)
     w2.close()

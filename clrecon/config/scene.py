@@ -243,11 +243,12 @@ def _section_class(sec: str, raw: dict):
 
 def _resolve_paths(cls, raw: Any, source: str):
     """A section's path keys (``cls.PATH_KEYS``, e.g. a voxel phantom's ``frames``) that are
-    relative, made relative to the scene file's folder (unchanged without a scene file)."""
+    relative, made absolute from the scene file's folder (unchanged without a scene file), so
+    that ``results.json`` records where the data was whatever the working folder."""
     keys = getattr(cls, "PATH_KEYS", ())
     if not (keys and source and isinstance(raw, dict)):
         return raw
-    base = Path(source).parent
+    base = Path(source).resolve().parent
     return {k: (str(base / v) if k in keys and isinstance(v, str) and v.strip() and not Path(v).is_absolute() else v)
             for k, v in raw.items()}
 
