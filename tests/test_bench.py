@@ -136,3 +136,21 @@ def test_measured_section_tiny():
     r = bench_measured_section(quick=True, scene_name="tiny")
     assert r["views"] == 300 and r["views_per_s"] > 0 and r["read_bytes_views_per_s"] > r["views_per_s"]
     assert r["meets_goal"] == (r["views_per_s"] >= 200) and "DICOM-CT-PD import" in "\n".join(report_lines(r))
+
+
+def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
+    """The volume row writes, assembles and reads both settings (the uncompressed one on more disk);
+    the posing row poses the same states both ways; speedups are the reference over the lever."""
+    from clrecon.bench import levers
+
+    small = levers._ct_like
+    monkeypatch.setattr(levers, "_ct_like", lambda shape, k: small((2, 1, 8, 32, 32), k))
+    res = levers.bench_levers(quick=True, repeats=1)
+    v, p = res["volumes"], res["posing"]
+    assert v["datasets"] == 2 and v["raw_bytes"] == 2 * 2 * 8 * 32 * 32 * 4
+    assert v["median"]["none"]["disk_bytes"] > v["median"]["lzf"]["disk_bytes"] > 0
+    assert v["speedup"] == pytest.approx(v["total_s"]["lzf"] / v["total_s"]["none"])
+    assert p["block"] == p["chunk"] * levers.simulate_mod.BLOCK_CHUNKS and p["repeats"] >= 2
+    assert p["speedup"] == pytest.approx(p["median_s"]["chunk"] / p["median_s"]["block"])
+    text = bench.format_report({"machine": bench.machine(), "levers": res})
+    assert "phantom posing" in text and "volumes" in text and "levers" in bench.SECTIONS

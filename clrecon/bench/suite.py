@@ -61,6 +61,10 @@ Sections (``--only`` picks some):
     ``recon.backprojector`` on the same 32 thorax sinograms of paper-p010 (512^2, 984 views x
     900 columns, from the device as the reconstruction runs them), each option's ``speedup``
     over ``direct`` in the same run (repeats alternating), and the pixel-wise difference (HU).
+``levers``
+    :func:`clrecon.bench.levers.bench_levers`: the demo run's speed levers against what each
+    replaced, in the same run: uncompressed against LZF volumes (write + assemble + read of
+    demo-sized datasets) and the phantom posed per simulation block against per chunk.
 ``distributed`` (only with ``--only distributed``: needs ``clrecon[dask]``, a few minutes)
     :func:`clrecon.bench.distributed.bench_distributed_section`: Dask task overhead, the speedup
     of a small run from 1 to 2 local workers, and paper-p002's modelled wall time on 1, 10 and
@@ -102,6 +106,8 @@ from clrecon.bench.backprojector import report_lines as backprojector_report_lin
 from clrecon.bench.distributed import bench_distributed_section
 from clrecon.bench.distributed import report_lines as distributed_report_lines
 from clrecon.bench.fbp import bench_backprojection
+from clrecon.bench.levers import bench_levers
+from clrecon.bench.levers import report_lines as levers_report_lines
 from clrecon.bench.measured import bench_measured_section
 from clrecon.bench.measured import report_lines as measured_report_lines
 from clrecon.bench.projector import bench_projector
@@ -123,7 +129,7 @@ from clrecon.simulation import simulate
 SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling",
             "detectors", "measured")
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
-SECTIONS = SECTIONS + paper.SECTIONS + ("backprojector",)
+SECTIONS = SECTIONS + paper.SECTIONS + ("backprojector", "levers")
 #: Sections run only when ``--only`` names them (long).
 EXTRA_SECTIONS = ("tradeoff", "distributed", "truth_free", "truth_free_trust")
 
@@ -740,6 +746,7 @@ def format_report(res: dict) -> str:
                    f"{tr['out_dir']}/tradeoff.png; * = on the method's Pareto front")
         out.extend("   " + line for line in tradeoff_table(tr).splitlines())
     out.extend(distributed_report_lines(res.get("distributed")))
+    out.extend(levers_report_lines(res.get("levers")))
     out.extend(detectors.format_lines(res.get("detectors")))
     out.extend(measured_report_lines(res.get("measured")))
     return "\n".join(out)
@@ -766,6 +773,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "measured": lambda: bench_measured_section(quick, repeats),
         **{name: (lambda name=name: paper.run_section(name, quick, repeats)) for name in paper.SECTIONS},
         "backprojector": lambda: bench_backprojector(n_images=16 if quick else 32, repeats=repeats),
+        "levers": lambda: bench_levers(quick, repeats),
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
         "distributed": lambda: bench_distributed_section(quick, repeats),
         "truth_free": lambda: bench_truth_free_section(quick),

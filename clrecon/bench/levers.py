@@ -1,0 +1,137 @@
+"""``bench --only levers``: the speed levers of the demo run, each against its same-run reference.
+
+Each row times the lever and what it replaced on the same data in the same process, the
+repeats alternating (so that a change of the machine's load hits both), medians reported:
+
+- ``volumes``: :class:`clrecon.outputs.volumes.VolumeWriter` writing CT-like HU volumes
+  (float32, a disk of smooth structure and 3 HU noise inside the field of view, 0 outside, as
+  the reconstruction writes them: one unit per slab of 8 slices), assembling them and reading
+  every dataset back, with ``compression = "none"`` (what ``recon.volume_compression = "auto"``
+  picks below :data:`clrecon.outputs.volumes.AUTO_COMPRESS_BYTES`) against ``"lzf"``;
+- ``posing``: the analytic phantom posed at demo's first pitch-0.02 projection states in calls
+  of one block (:data:`clrecon.simulation.simulate.BLOCK_CHUNKS` chunks, the simulation's
+  calls since 2026-12-02) against calls of one 256-projection chunk (before).
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from clrecon.bench.timing import load1
+from clrecon.config.scene import load_scene
+from clrecon.outputs.volumes import VolumeWriter, open_volumes
+from clrecon.scan.table import projection_table
+from clrecon.simulation import simulate as simulate_mod
+from clrecon.simulation.projector import phantom_for_scene
+
+
+def _ct_like(shape, k: int) -> np.ndarray:
+    """(n_c, n_r, nz, ny, nx) float32 HU: smooth structure + 3 HU noise in the FOV disk, 0 outside."""
+    rng = np.random.default_rng(k)
+    nz, ny, nx = shape[-3:]
+    y, x = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
+    base = 40.0 * np.round(25 * np.cos(y / 9.0 + k) * np.sin(x / 7.0))
+    v = base + rng.normal(0.0, 3.0, shape)
+    v[..., (y - ny / 2) ** 2 + (x - nx / 2) ** 2 > (nx / 2) ** 2] = 0.0
+    return v.astype(np.float32)
+
+
+def _volumes_once(folder: Path, compression: str, data: dict, axes: dict) -> dict:
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    w = VolumeWriter(folder / "volumes.h5", axes, True, True, run_key="bench", compression=compression)
+    t0 = time.perf_counter()
+    for name, v in data.items():
+        w.create(name, v.shape, v.shape[2])
+        for z0 in range(0, v.shape[2], 8):
+            w.write(name, v[:, :, z0:z0 + 8], np.arange(z0, min(z0 + 8, v.shape[2])))
+    t1 = time.perf_counter()
+    w.close()
+    t2 = time.perf_counter()
+    with open_volumes(folder) as f:
+        for name in data:
+            f[name][()]
+    t3 = time.perf_counter()
+    disk = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+    shutil.rmtree(folder, ignore_errors=True)
+    return {"write_s": t1 - t0, "assemble_s": t2 - t1, "read_s": t3 - t2, "disk_bytes": disk}
+
+
+def bench_volumes(quick: bool = False, repeats: int = 3) -> dict:
+    """Write + assemble + read seconds of uncompressed against LZF volumes (module docstring)."""
+    n_sets = 2 if quick else 8
+    shape = (10, 5, 16, 128, 128)  # demo's 50 targets x 16 slices of 128^2
+    data = {f"recon/p0.020/noise-free/m{k}": _ct_like(shape, k) for k in range(n_sets)}
+    axes = {"cardiac_phase": np.linspace(0, 0.9, 10), "resp_amplitude": np.linspace(0.1, 0.9, 5),
+            "z_mm": np.arange(16.0), "y_mm": np.arange(128.0), "x_mm": np.arange(128.0)}
+    raw = sum(v.nbytes for v in data.values())
+    runs = {"none": [], "lzf": []}
+    load = [load1()]
+    with tempfile.TemporaryDirectory(prefix="clrecon-bench-volumes-") as tmp:
+        for _ in range(max(1, repeats)):
+            for c in ("none", "lzf"):
+                runs[c].append(_volumes_once(Path(tmp) / c, c, data, axes))
+        load.append(load1())
+    med = {c: {k: float(np.median([r[k] for r in rs])) for k in rs[0]} for c, rs in runs.items()}
+    tot = {c: m["write_s"] + m["assemble_s"] + m["read_s"] for c, m in med.items()}
+    return {"raw_bytes": raw, "datasets": n_sets, "median": med, "total_s": tot,
+            "speedup": tot["lzf"] / tot["none"] if tot["none"] > 0 else float("nan"), "load": load,
+            "repeats": max(1, repeats)}
+
+
+def bench_posing(quick: bool = False, repeats: int = 3) -> dict:
+    """Seconds to pose the phantom at demo's projection states in block-sized against chunk-sized calls."""
+    scene = load_scene("demo")
+    table = projection_table(scene, 0.02)
+    n = min(len(table), 4096 if quick else 8192)
+    c, a = table.state_cardiac[:n], table.state_resp[:n]
+    phantom = phantom_for_scene(scene)
+    chunk = simulate_mod.CHUNK
+    block = chunk * simulate_mod.BLOCK_CHUNKS
+
+    def pose(step):
+        t0 = time.perf_counter()
+        for s in range(0, n, step):
+            phantom.objects_batch(c[s:s + step], a[s:s + step])
+        return time.perf_counter() - t0
+
+    pose(block)  # warm-up
+    times = {"chunk": [], "block": []}
+    load = [load1()]
+    for _ in range(max(2, repeats)):  # at least 2: one call of a block is short and noisy
+        times["chunk"].append(pose(chunk))
+        times["block"].append(pose(block))
+    load.append(load1())
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return {"states": n, "chunk": chunk, "block": block, "median_s": med,
+            "speedup": med["chunk"] / med["block"] if med["block"] > 0 else float("nan"), "load": load,
+            "repeats": max(2, repeats)}
+
+
+def bench_levers(quick: bool = False, repeats: int = 3) -> dict:
+    """Both lever rows (module docstring)."""
+    return {"volumes": bench_volumes(quick, repeats), "posing": bench_posing(quick, repeats)}
+
+
+def report_lines(res: dict | None) -> list[str]:
+    """The bench report's lines for ``bench --only levers``."""
+    if not res:
+        return []
+    v, p = res["volumes"], res["posing"]
+    mn, ml = v["median"]["none"], v["median"]["lzf"]
+    return [
+        "levers (each against its same-run reference, alternating, medians):",
+        f"   volumes, {v['datasets']} demo-sized datasets ({v['raw_bytes'] / 1e9:.2f} GB raw), write + assemble + "
+        f"read: none {v['total_s']['none']:.2f} s ({mn['write_s']:.2f} + {mn['assemble_s']:.2f} + "
+        f"{mn['read_s']:.2f}), lzf {v['total_s']['lzf']:.2f} s ({ml['write_s']:.2f} + {ml['assemble_s']:.2f} + "
+        f"{ml['read_s']:.2f}): speedup {v['speedup']:.2f}x; disk {mn['disk_bytes'] / 1e9:.2f} vs "
+        f"{ml['disk_bytes'] / 1e9:.2f} GB (load {v['load'][0]:.1f} -> {v['load'][-1]:.1f})",
+        f"   phantom posing, {p['states']} demo states: blocks of {p['block']} {p['median_s']['block']:.2f} s, "
+        f"chunks of {p['chunk']} {p['median_s']['chunk']:.2f} s: speedup {p['speedup']:.2f}x "
+        f"(load {p['load'][0]:.1f} -> {p['load'][-1]:.1f})",
+    ]
