@@ -37,6 +37,9 @@ def test_run_directory_is_complete_and_valid(tiny_run):
     assert 1 <= samp["distinct_cardiac_phases_per_view"]["min"] <= samp["distinct_cardiac_phases_per_view"]["max"] <= 5
     assert samp["distinct_cardiac_phases_per_view"]["max"] <= samp["candidates_per_view"]["max"]
     assert "distinct cardiac phases among" in (out / "report.md").read_text()
+    # measured memory and disk beside the pre-flight's model; small runs' volumes are not compressed
+    assert "## Memory and disk (measured against the pre-flight model)" in (out / "report.md").read_text()
+    assert on_disk["outputs"]["volume_compression"] == "none"
     assert not list(out.glob("*.partial"))
     s = load_scene("tiny")
     with open_volumes(out) as f:

@@ -199,6 +199,33 @@ def truth_free_markdown(results: dict) -> list[str]:
     return lines
 
 
+def resources_markdown(results: dict, out_dir: Path) -> list[str]:
+    """Measured peak memory and disk of the run beside the pre-flight's model (GiB), for planning the next one.
+
+    Memory: this process's peak resident set so far (``ru_maxrss``); disk: the run folder's
+    files now (volumes, report) against the modelled ``out_disk`` (the run folder's peak).
+    """
+    import resource
+    import sys
+
+    need = (results.get("preflight") or {}).get("needs_bytes") or {}
+    if not need:
+        return []
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
+    disk = sum(p.stat().st_size for p in Path(out_dir).rglob("*") if p.is_file())
+    gib = 1024 ** 3
+    lines = ["## Memory and disk (measured against the pre-flight model)", "", "| | measured | modelled |",
+             "|---|---|---|", f"| peak memory (resident, this process) | {rss / gib:.2f} GiB | "
+             f"{need.get('memory', 0) / gib:.2f} GiB |",
+             f"| run folder (volumes, report, figures) | {disk / gib:.2f} GiB | "
+             f"{need.get('out_disk', 0) / gib:.2f} GiB (its modelled peak) |", ""]
+    # (the model leaves out the interpreter and OpenCL's own ~0.5-1 GiB: only large runs are compared)
+    if need.get("memory") and rss > 1.25 * need["memory"] and rss > 2 * gib:
+        lines += [f"The peak memory is {rss / need['memory']:.1f}x the model: please report it with the scene "
+                  "(the pre-flight uses the model to refuse runs that would not fit).", ""]
+    return lines
+
+
 def write_report(out_dir: Path, results: dict) -> Path:
     out_dir = Path(out_dir)
     s = results["scene"]
@@ -244,6 +271,7 @@ def write_report(out_dir: Path, results: dict) -> Path:
         why = f" ({st['skipped_because']})" if st.get("skipped_because") else ""
         lines.append(f"| {name} | {'yes' if st['ran'] else 'no' + why} | {st['seconds']:.2f} |")
     lines.append("")
+    lines += resources_markdown(results, out_dir)
     lines += figures.write_figures(out_dir, results)
     path = out_dir / "report.md"
     tmp = path.with_name("report.md.partial")
