@@ -87,3 +87,4 @@ def test_scale_changes_the_triangles_and_local_linear_neighbours():
         W1 = ip.batch_weights(method, c, a, off, TARGETS)
         W4 = ip.batch_weights(method, c, a, off, TARGETS, cardiac_distance_scale=4.0)
         assert not np.array_equal(W1.index, W4.index), method
+
