@@ -208,3 +208,22 @@ def test_max_turns_1_plan_uses_only_the_nearest_turn():
                 best = g.projection[lo + int(np.argmin(np.abs(g.dz_mm[lo:hi])))]
                 used = mp.proj_index[si, v][mp.weight[si, v] != 0]
                 assert np.all(used == best)
+
+
+# ---------------------------------------------------------------------------------------
+# results.json["sampling"] counts the candidates the plan uses (candidate window, max_turns)
+def test_sampling_summary_follows_the_candidate_window_and_max_turns():
+    from clrecon.pipeline import slabs
+
+    s = load_scene("demo").replace(scan={"pitches": [0.02]})
+    targets = reconstruct.Targets((0.0, 0.4), (0.25, 0.75))
+    z = reconstruct.slice_positions(s)[8:9]  # mid-scan: a wider window adds turns
+
+    def cands(scene):
+        cfg = reconstruct.ReconstructionConfig.from_scene(scene)
+        pp = slabs.plan_pitch(scene, cfg, scene.scan.pitches[0], z, np.arange(1), targets, ["nearest"], 1, False)
+        return pp.sampling["candidates_per_view"]["median"]
+
+    n0 = cands(s)
+    assert cands(s.replace(recon={"candidate_window_mm": 2.0 * s.scanner.collimation_iso_mm})) > n0
+    assert cands(s.replace(recon={"max_turns": 1})) == 1

@@ -55,7 +55,8 @@ RESP_ONLY_METHODS = FIVE_D_METHODS + interpolation.resp_grid_methods()
 #: The self-tuning method: planned after the truth-free cross-validation chose its kernel.
 TUNED = "cv_tuned"
 #: recon keys added after run directories existed: left out of the run key at these defaults.
-_RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False, "volume_compression": "auto"}
+_RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False, "volume_compression": "auto",
+                "cardiac_distance_scale": 1.0}
 
 
 def _progress(total: int, desc: str, enabled: bool, unit: str = "it"):

@@ -146,8 +146,10 @@ def plan_pitch(scene, cfg, pitch: float, slices_z, todo, targets, methods, n_var
     slabs, plans, needed, parts, plan_s = plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants,
                                                      progress, plan_table=ptab)
     t2 = time.perf_counter()
+    # the candidates the plan uses: the run's window and max_turns, not the SSRB-exact default
     sampling = sampling_mod.sampling_summary(
-        ptab, rebin.candidate_groups(ptab, slices_z, scene.scanner, cfg.object_radius_mm))
+        ptab, reconstruct.limit_turns(rebin.candidate_groups(ptab, slices_z, scene.scanner, cfg.object_radius_mm,
+                                                             cfg.candidate_window_mm), cfg.max_turns))
     return PitchPlan(table=table, plan_table=ptab, excluded=excluded, slabs=slabs, plans=plans, needed=needed,
                      diagnostics=combine_diagnostics(parts),
                      sampling=sampling, method_plan_seconds=plan_s, signals_seconds=t1 - t0, plan_seconds=t2 - t1)

@@ -53,6 +53,10 @@ class ReconConfig(Section):
     local_linear_count: int = _f(2, f"an integer in 1..{LL_MAX_SLOTS}", lambda x: _posint(x) and x <= LL_MAX_SLOTS,
                                  "local-linear points per quadrant ('quadrants': 4 x count slots) or in all "
                                  "('nearest')")
+    cardiac_distance_scale: float = F(1.0, POS, "s, dimensionless (amplitude units per cardiac cycle): the "
+                                      "phase-space distance is sqrt((s dc)^2 + da^2) for neighbour selection "
+                                      "(local_linear, nearest, barycentric's two-nearest fallback) and barycentric's "
+                                      "Delaunay triangulation runs in (s c, a); 1 = unscaled, as the paper")
     max_turns: int = F(0, NONNEGINT, "0: every candidate turn within the SSRB window; N > 0: only the N candidates "
                        "nearest in z per (slice, view), for every method")
     candidate_window_mm: float = F(0.0, NONNEG, "candidate window |slice z - source z| (mm); 0: the SSRB-exact "

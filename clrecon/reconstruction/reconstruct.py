@@ -86,6 +86,9 @@ class ReconstructionConfig:
     extrapolate: bool
     local_linear_points: str = "quadrants"
     local_linear_count: int = 2
+    #: cardiac axis factor s in the phase-space distance and the Delaunay triangulation
+    #: (dimensionless; ``recon.cardiac_distance_scale``), 1: unscaled
+    cardiac_distance_scale: float = 1.0
     max_turns: int = 0
     backprojector: str = "direct"
     #: candidate window half-width (mm), 0: the SSRB-exact window (``recon.candidate_window_mm``)
@@ -104,7 +107,7 @@ class ReconstructionConfig:
                    resp_bin_width=1.0 / rc.resp_bins, extrapolate=rc.local_linear_extrapolate,
                    local_linear_points=rc.local_linear_points, local_linear_count=rc.local_linear_count,
                    max_turns=rc.max_turns, backprojector=rc.backprojector,
-                   candidate_window_mm=rc.candidate_window_mm)
+                   candidate_window_mm=rc.candidate_window_mm, cardiac_distance_scale=rc.cardiac_distance_scale)
 
 
 def slice_positions(scene, slice_range: tuple | None = None) -> np.ndarray:
@@ -255,7 +258,8 @@ def weight_options(cfg: ReconstructionConfig, targets: Targets) -> dict:
     return dict(kappa=cfg.kappa, sigma=cfg.sigma, use_cardiac=cfg.use_cardiac, use_resp=cfg.use_resp,
                 cardiac_bin_width=_cardiac_bin_width(targets), resp_bin_width=cfg.resp_bin_width,
                 extrapolate=cfg.extrapolate, local_linear_points=cfg.local_linear_points,
-                local_linear_count=cfg.local_linear_count, tuned=cfg.tuned)
+                local_linear_count=cfg.local_linear_count, cardiac_distance_scale=cfg.cardiac_distance_scale,
+                tuned=cfg.tuned)
 
 
 def _cardiac_bin_width(targets: Targets) -> float:

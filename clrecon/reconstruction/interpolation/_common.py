@@ -23,8 +23,12 @@ def chunk(c, a, off, g0, g1, dz=None) -> Chunk:
     return Chunk(c=cc, a=aa, valid=valid, counts=counts, start=off[g0:g1], dz=zz)
 
 
-def deltas(ch: Chunk, targets, use_cardiac: bool, use_resp: bool):
-    """dc, da, squared distance (g, T, N); invalid points have distance inf."""
+def deltas(ch: Chunk, targets, use_cardiac: bool, use_resp: bool, cardiac_scale: float = 1.0):
+    """dc, da, squared distance (g, T, N); invalid points have distance inf.
+
+    The squared distance is ``(cardiac_scale dc)^2 + da^2`` (``recon.cardiac_distance_scale``,
+    dimensionless); dc and da themselves are unscaled.
+    """
     if use_cardiac:
         dc = circular_difference(ch.c[:, None, :], targets[None, :, 0, None])
     else:
@@ -33,7 +37,8 @@ def deltas(ch: Chunk, targets, use_cardiac: bool, use_resp: bool):
         da = ch.a[:, None, :] - targets[None, :, 1, None]
     else:
         da = np.zeros_like(dc)
-    d2 = np.where(ch.valid[:, None, :], dc * dc + da * da, np.inf)
+    sdc = dc if cardiac_scale == 1.0 else cardiac_scale * dc
+    d2 = np.where(ch.valid[:, None, :], sdc * sdc + da * da, np.inf)
     return dc, da, d2
 
 

@@ -62,6 +62,8 @@ class Options:
     extrapolate: bool = False
     local_linear_points: str = "quadrants"
     local_linear_count: int = 2
+    #: factor s of the cardiac axis in the phase-space distance and barycentric's triangulation
+    cardiac_distance_scale: float = 1.0
     #: ``cv_tuned``: the chosen fixed kernel ``(method, ((knob, value), ...))``, or None
     tuned: tuple | None = None
 

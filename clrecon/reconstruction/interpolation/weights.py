@@ -163,7 +163,7 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
                   chunk_groups: int = 1024, workers: int | None = None, rt=None,
                   precision: str | None = None, extrapolate: bool = False, dz=None,
                   local_linear_points: str = "quadrants", local_linear_count: int = 2,
-                  tuned: tuple | None = None) -> Weights:
+                  cardiac_distance_scale: float = 1.0, tuned: tuple | None = None) -> Weights:
     """Interpolation weights for many (slice, view) groups at once.
 
     Parameters
@@ -203,6 +203,13 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
         Local-linear neighbours: ``"quadrants"`` (``count`` nearest per quadrant, K = 4 count;
         default 2, K = 8) or ``"nearest"`` (the ``count`` nearest, K = count), see
         :mod:`~clrecon.reconstruction.interpolation.local_linear`.
+    cardiac_distance_scale : float
+        s > 0, dimensionless (amplitude units per cardiac cycle; ``recon.cardiac_distance_scale``):
+        the phase-space distance is sqrt((s dc)^2 + da^2) wherever a method picks points by
+        distance (local_linear's neighbours, nearest, barycentric's two-nearest fallback and its
+        segment projection), and barycentric triangulates (s c, a). Kernel weights, the 0.3 rule
+        and barycentric coordinates use the unscaled dc (the coordinates are affine-invariant, so
+        only the choice of triangle changes). Default 1: unscaled.
     dz : array_like, optional
         (n,) like ``c``: each candidate's z distance from its group's slice, |z_slice - z_k|
         in mm (a sign is dropped; :attr:`clrecon.reconstruction.rebin.CandidateGroups.dz_mm`).
@@ -225,6 +232,8 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
     c, a, off = _as_points(c, a, offsets)
     dz = _as_dz(dz, c.size)
     targets = _as_targets(targets)
+    if not (cardiac_distance_scale > 0 and np.isfinite(cardiac_distance_scale)):
+        raise ValueError(f"cardiac_distance_scale = {cardiac_distance_scale}: must be finite and > 0")
     if not (kappa > 0 and sigma > 0 and cardiac_bin_width > 0 and resp_bin_width > 0):
         raise ValueError(f"kappa = {kappa}, sigma = {sigma}, cardiac_bin_width = {cardiac_bin_width}, "
                          f"resp_bin_width = {resp_bin_width}: must all be > 0")
@@ -244,7 +253,8 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
     opts = Options(kappa=kappa, sigma=sigma, cardiac_bin_width=cardiac_bin_width, resp_bin_width=resp_bin_width,
                    use_cardiac=use_cardiac, use_resp=use_resp, workers=workers, rt=rt, precision=precision,
                    extrapolate=extrapolate, local_linear_points=local_linear_points,
-                   local_linear_count=int(local_linear_count), tuned=tuned)
+                   local_linear_count=int(local_linear_count),
+                   cardiac_distance_scale=float(cardiac_distance_scale), tuned=tuned)
     # differences along an axis the method does not use are left at zero (not computed)
     use_c, use_r = use_cardiac and "cardiac" in m.axes, use_resp and "resp" in m.axes
 
@@ -252,7 +262,7 @@ def batch_weights(method: str, c, a, offsets, targets, *, kappa: float = 1.0, si
     for g0 in range(0, G, chunk_groups):
         g1 = min(G, g0 + chunk_groups)
         ch = _chunk(c, a, off, g0, g1, dz)
-        dc, da, d2 = _deltas(ch, targets, use_c, use_r)
+        dc, da, d2 = _deltas(ch, targets, use_c, use_r, opts.cardiac_distance_scale)
         res = m.weights(ch, targets, dc, da, d2, opts)
         idx, w = res[0], res[1]
         br = res[2] if len(res) > 2 else None  # optional branch report (g, T)
@@ -282,7 +292,7 @@ def method_weights(method: str, c, a, targets, *, kappa: float = 1.0, sigma: flo
                    use_cardiac: bool = True, use_resp: bool = True, rt=None,
                    precision: str | None = None, extrapolate: bool = False, dz=None,
                    local_linear_points: str = "quadrants", local_linear_count: int = 2,
-                   tuned: tuple | None = None) -> Weights:
+                   cardiac_distance_scale: float = 1.0, tuned: tuple | None = None) -> Weights:
     """Interpolation weights for one (slice, view): candidates (n,) -> Weights (T, K) into 0..n-1.
 
     See :func:`batch_weights` for the parameters (``dz`` (n,) mm); raises
@@ -293,6 +303,7 @@ def method_weights(method: str, c, a, targets, *, kappa: float = 1.0, sigma: flo
                       cardiac_bin_width=cardiac_bin_width, resp_bin_width=resp_bin_width,
                       use_cardiac=use_cardiac, use_resp=use_resp, workers=1, rt=rt, precision=precision,
                       extrapolate=extrapolate, dz=dz, local_linear_points=local_linear_points,
-                      local_linear_count=local_linear_count, tuned=tuned)
+                      local_linear_count=local_linear_count, cardiac_distance_scale=cardiac_distance_scale,
+                      tuned=tuned)
     return Weights(index=w.index[0], weight=w.weight[0], branch=None if w.branch is None else w.branch[0])
 
