@@ -24,6 +24,7 @@ import numpy as np
 
 from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
+from clrecon.core.resources import folder_bytes
 from clrecon.outputs.volumes import VolumeWriter, open_volumes
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate as simulate_mod
@@ -57,7 +58,7 @@ def _volumes_once(folder: Path, compression: str, data: dict, axes: dict) -> dic
         for name in data:
             f[name][()]
     t3 = time.perf_counter()
-    disk = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+    disk = folder_bytes(folder)
     shutil.rmtree(folder, ignore_errors=True)
     return {"write_s": t1 - t0, "assemble_s": t2 - t1, "read_s": t3 - t2, "disk_bytes": disk}
 

@@ -544,9 +544,8 @@ def fig_motion_metrics(results: dict, path: Path) -> str:
 
 # ---------------------------------------------------------------------------------------------
 #: The figures drawn from ``results`` alone (no volumes): name -> function(results, path, *args).
-_RESULTS_FIGURES = {"mae_per_target": lambda results, path, fov: fig_mae_per_target(results, path, fov),
-                    "error_vs_time": lambda results, path: fig_error_vs_time(results, path),
-                    "motion_metrics": lambda results, path: fig_motion_metrics(results, path)}
+_RESULTS_FIGURES = {"mae_per_target": fig_mae_per_target, "error_vs_time": fig_error_vs_time,
+                    "motion_metrics": fig_motion_metrics}
 #: Draw the results-only figures in a second process while this one draws the volume figures
 #: (matplotlib is single-threaded; on demo the report took 7.6 s of an 80 s run, half of it the
 #: two MAE-grid figures). Off (``CLRECON_FIGURE_PROCESS=0``) or unavailable: all in this process.

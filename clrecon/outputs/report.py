@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from clrecon.core.resources import folder_bytes, peak_rss_bytes
 from clrecon.evaluation import claims as claims_mod
 from clrecon.outputs import figures
 from clrecon.reconstruction.diagnostics import pooled as _pooled_diagnostics
@@ -205,14 +206,11 @@ def resources_markdown(results: dict, out_dir: Path) -> list[str]:
     Memory: this process's peak resident set so far (``ru_maxrss``); disk: the run folder's
     files now (volumes, report) against the modelled ``out_disk`` (the run folder's peak).
     """
-    import resource
-    import sys
-
     need = (results.get("preflight") or {}).get("needs_bytes") or {}
     if not need:
         return []
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
-    disk = sum(p.stat().st_size for p in Path(out_dir).rglob("*") if p.is_file())
+    rss = peak_rss_bytes()
+    disk = folder_bytes(out_dir)
     gib = 1024 ** 3
     lines = ["## Memory and disk (measured against the pre-flight model)", "", "| | measured | modelled |",
              "|---|---|---|", f"| peak memory (resident, this process) | {rss / gib:.2f} GiB | "

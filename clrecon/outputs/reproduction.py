@@ -15,6 +15,7 @@ import json
 import sys
 from pathlib import Path
 
+from clrecon.core.resources import folder_bytes
 from clrecon.evaluation import claims as claims_mod
 from clrecon.outputs import report
 
@@ -92,7 +93,7 @@ def stages_table(runs) -> list[str]:
 def _size(p: Path) -> int:
     if p.is_file():
         return p.stat().st_size
-    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file()) if p.is_dir() else 0
+    return folder_bytes(p)
 
 
 def resources_table(runs) -> list[str]:

@@ -39,6 +39,7 @@ import numpy as np
 
 from clrecon.core import faults, units
 from clrecon.core.errors import StoreError
+from clrecon.core.resources import folder_bytes
 
 DIMS = ("cardiac", "resp", "z", "y", "x")
 #: Layout of ``volumes.h5``: 2 = axes + virtual datasets over ``volumes.d/<gen>/<name>.h5``
@@ -302,8 +303,7 @@ class VolumeWriter:
         """Bytes now under the run's volume paths (units, dataset files, the link file)."""
         total = 0
         for root in (self.units_dir, self.datasets_root):
-            if root.is_dir():
-                total += sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+            total += folder_bytes(root)
         for p in (self.partial, self.path):
             if p.exists():
                 total += p.stat().st_size

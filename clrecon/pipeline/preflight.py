@@ -30,6 +30,7 @@ import shutil
 from pathlib import Path
 
 from clrecon.core.errors import ClreconError
+from clrecon.core.resources import folder_bytes
 from clrecon.pipeline.costs import disk_model
 
 GiB = 1024 ** 3
@@ -62,22 +63,16 @@ def available_memory_bytes() -> int:
     return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
 
 
-def _dir_bytes(path: Path) -> int:
-    if not path.is_dir():
-        return 0
-    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
-
-
 def _left_by_interrupted_run(out_dir: Path) -> int:
     """Bytes of volume units and dataset files an interrupted run left in ``out_dir`` (kept on resume)."""
     units_dir = Path(out_dir) / "volumes.h5.units"
-    total = _dir_bytes(units_dir)
+    total = folder_bytes(units_dir)
     try:
         gen = json.loads((units_dir / "run.json").read_text()).get("datasets")
     except (OSError, ValueError):
         gen = None
     if gen:
-        total += _dir_bytes(Path(out_dir) / "volumes.d" / gen)
+        total += folder_bytes(Path(out_dir) / "volumes.d" / gen)
     return total
 
 

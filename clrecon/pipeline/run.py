@@ -19,7 +19,6 @@ import hashlib
 import json
 import os
 import platform
-import resource
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -31,6 +30,7 @@ import numpy as np
 from clrecon.config.scene import Scene
 from clrecon.core.errors import ClreconError
 from clrecon.core.progress import progress as progress_counter
+from clrecon.core.resources import peak_rss_bytes
 from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
 from clrecon.evaluation import claims, groundtruth, metrics, motion, truth_free
@@ -414,9 +414,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     # named so that a run's stage table sums to its wall time
     stages["unaccounted"] = {"ran": True, "seconds": round(
         results["total_seconds"] - sum(st.get("seconds", 0.0) for st in stages.values()), 3)}
-    # ru_maxrss: KiB on Linux (bytes on macOS)
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    results["peak_rss_bytes"] = int(rss if sys.platform == "darwin" else rss * 1024)
+    results["peak_rss_bytes"] = peak_rss_bytes()
     results["load_average"] = {"start": load_start, "end": _load_average()}
     _write_json_atomic(out / "results.json", results)
     return results

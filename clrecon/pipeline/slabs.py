@@ -96,12 +96,11 @@ def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progres
     counts = candidates_per_slice(ptab, slices_z[todo], cfg)
     dense = int(np.argmax(counts)) if todo.size else 0
     probe = reconstruct.plan(cfg, ptab, slices_z[todo[dense:dense + 1]], targets, methods)
-    proj, _ = probe.needed_pairs()
-    n_t = max((int(np.prod(mp.targets_shape)) for mp in probe.methods.values()), default=1)
+    rows, n_t, plan_b = reconstruct.probe_sizes(probe)
     share = counts / max(int(counts[dense]) if todo.size else 1, 1)  # each slice's rows and plan vs the probe's
-    per_slice = reconstruct.slab_bytes_per_slice(len(proj) * share, cfg.scanner.n_cols, n_variants, n_t,
-                                                 cfg.fbp.ny, cfg.fbp.nx, reconstruct.plan_bytes(probe) * share)
-    slabs = slab_ranges(np.atleast_1d(per_slice)[:todo.size])
+    per_slice = reconstruct.slab_bytes_per_slice(rows * share, cfg.scanner.n_cols, n_variants, n_t,
+                                                 cfg.fbp.ny, cfg.fbp.nx, plan_b * share)
+    slabs = slab_ranges(per_slice)
     needed = np.zeros(len(table), bool)
     plans, parts, plan_s, kept = [], [], {}, 0
     bar = progress_counter(len(slabs), "plan", progress and len(slabs) > 1, "slabs")

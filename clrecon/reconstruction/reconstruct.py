@@ -391,14 +391,21 @@ def slices_per_slab(bytes_per_slice: float, budget: float = SLAB_BYTES) -> int:
     return int(max(1, budget // max(bytes_per_slice, 1.0)))
 
 
-def slab_slices(cfg: ReconstructionConfig, probe: Plan, n_variants: int, budget: float = SLAB_BYTES) -> int:
-    """:func:`slices_per_slab` from the plan ``probe`` of a few slices (every slice has the same
-    views and about the same candidates, so its sizes per slice are representative)."""
+def probe_sizes(probe: Plan) -> tuple[float, int, float]:
+    """``(rebinned rows per slice, targets, plan bytes per slice)`` of a plan of a few slices,
+    the inputs of :func:`slab_bytes_per_slice`."""
     S = max(len(probe.slices_z), 1)
     proj, _ = probe.needed_pairs()
     n_t = max((int(np.prod(mp.targets_shape)) for mp in probe.methods.values()), default=1)
-    return slices_per_slab(slab_bytes_per_slice(len(proj) / S, cfg.scanner.n_cols, n_variants, n_t, cfg.fbp.ny,
-                                                cfg.fbp.nx, plan_bytes(probe) / S), budget)
+    return len(proj) / S, n_t, plan_bytes(probe) / S
+
+
+def slab_slices(cfg: ReconstructionConfig, probe: Plan, n_variants: int, budget: float = SLAB_BYTES) -> int:
+    """:func:`slices_per_slab` from the plan ``probe`` of a few slices, their mean size per slice
+    (the run sizes its slabs slice by slice instead: :func:`clrecon.pipeline.slabs.plan_slabs`)."""
+    rows, n_t, plan_b = probe_sizes(probe)
+    return slices_per_slab(slab_bytes_per_slice(rows, cfg.scanner.n_cols, n_variants, n_t, cfg.fbp.ny, cfg.fbp.nx,
+                                                plan_b), budget)
 
 
 class SlabTooLarge(ClreconError, MemoryError):

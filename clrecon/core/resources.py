@@ -1,0 +1,21 @@
+"""What a run uses of the machine, measured: this process's peak memory and a folder's bytes."""
+
+from __future__ import annotations
+
+import resource
+import sys
+from pathlib import Path
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident set so far (bytes; ``ru_maxrss`` is KiB on Linux, bytes on macOS)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(rss if sys.platform == "darwin" else rss * 1024)
+
+
+def folder_bytes(path) -> int:
+    """Bytes of the files under ``path`` (0 if it is not a folder)."""
+    p = Path(path)
+    if not p.is_dir():
+        return 0
+    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
