@@ -16,8 +16,10 @@ from clrecon.config.scene import load_scene
 from clrecon.pipeline.run import run
 
 
-def _cli(out, cache, fault=None):
-    env = dict(os.environ, CLRECON_NO_PROGRESS="1")
+def _cli(out, cache, fault=None, thread="0"):
+    # thread "0": the truths after the reconstruction, so that the units each fault leaves are
+    # fixed (CASES); the thread's own case is test_sigkill_in_the_truth_thread_then_resume
+    env = dict(os.environ, CLRECON_NO_PROGRESS="1", CLRECON_TRUTH_THREAD=thread)
     env.pop("CLRECON_FAULT", None)
     if fault:
         env["CLRECON_FAULT"] = fault
@@ -69,6 +71,18 @@ def test_sigkill_then_resume_is_bit_identical(tmp_path, reference, fault):
     assert not list(cache.glob("*.units")) and not list(cache.glob("*.partial"))
     assert [p.name for p in (out / "volumes.d").iterdir()] == [Path(str(_attr(out, "datasets_dir"))).name]
     assert not list((out / "volumes.d").rglob("*.partial"))
+
+
+def test_sigkill_in_the_truth_thread_then_resume_is_bit_identical(tmp_path, reference):
+    out, cache = tmp_path / "run", tmp_path / "cache"
+    killed = _cli(out, cache, "truth:3", thread="1")   # the 3rd truth unit, mid-write, beside the reconstruction
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    again = _cli(out, cache, thread="1")
+    assert again.returncode == 0, again.stderr
+    res = assert_identical(out, reference, ("metrics", "respiratory_only", "motion"))
+    P, R, T = (reference[1]["units_written"][k] for k in ("projections", "recon", "truth"))
+    got = res["units_written"]
+    assert got["truth"] == T - 2 and got["recon"] <= R and got["projections"] <= P  # nothing done twice
 
 
 def _attr(out, key):

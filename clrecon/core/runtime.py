@@ -15,6 +15,7 @@ needed, and PyOpenCL's own cache (skipped on PoCL) is not relied upon.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import threading
@@ -175,10 +176,34 @@ class Runtime:
 
 _runtimes: dict = {}
 _rt_lock = threading.Lock()
+_thread = threading.local()
+
+
+@contextlib.contextmanager
+def thread_runtime(rt: Runtime):
+    """Within the block, :func:`get_runtime` (no device spec) in *this thread* returns ``rt``.
+
+    For a background thread that runs OpenCL beside the main thread (the truths beside the
+    reconstruction, :mod:`clrecon.pipeline.truth_worker`): it gets its own context, queue and
+    kernel objects, because a kernel object's arguments (``clSetKernelArg``) are not safe to set
+    from two threads at once. Every call that falls back to the default runtime then uses ``rt``.
+    """
+    prev = getattr(_thread, "rt", None)
+    _thread.rt = rt
+    try:
+        yield rt
+    finally:
+        _thread.rt = prev
 
 
 def get_runtime(device_spec: str | None = None) -> Runtime:
-    """The process-wide runtime for a device spec (contexts cannot be pickled or forked)."""
+    """The process-wide runtime for a device spec (contexts cannot be pickled or forked).
+
+    Inside :func:`thread_runtime` (and with no ``device_spec``): that thread's runtime.
+    """
+    local = getattr(_thread, "rt", None)
+    if local is not None and device_spec is None:
+        return local
     key = (os.getpid(), device_spec or os.environ.get("CLRECON_DEVICE", ""))
     with _rt_lock:
         rt = _runtimes.get(key)

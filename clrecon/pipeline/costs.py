@@ -5,6 +5,7 @@ from __future__ import annotations
 from clrecon.config.scene import builtin_scene_names, load_scene
 from clrecon.core.errors import SceneError
 from clrecon.outputs.volumes import resolve_compression
+from clrecon.pipeline import truth_worker
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.rebin import slice_window_mm
@@ -69,6 +70,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     plans = min(KEEP_PLANS_BYTES, 40.0 * nz * sc.views_per_rotation * n_targets * 8 * len(methods))
     slab_sinos = 2 * 32 * sc.views_per_rotation * sc.n_cols * 4
     peak = chunk + slab * per_slice + plans + slab_sinos + 2 * nz * rc.ny * rc.nx * 4
+    if truth_worker.enabled():  # the truths beside the reconstruction: one target's working set on top
+        peak += truth_worker.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx)
     out = {"projections": n_proj, "projections_needed": needed, "store_bytes": sum(n_proj.values()) * proj_bytes,
            "needed_store_bytes": sum(needed.values()) * proj_bytes, "projection_bytes": proj_bytes,
            "volume_bytes": int(vol_bytes * n_vols), "n_volumes": round(n_vols, 3), "n_targets": n_targets,

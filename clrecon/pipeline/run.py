@@ -38,7 +38,7 @@ from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key, read_volume
 from clrecon.pipeline import costs as costs_mod
-from clrecon.pipeline import distributed, preflight
+from clrecon.pipeline import distributed, preflight, truth_worker
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, reconstruct
@@ -192,7 +192,16 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     if client is not None and scene.measured:
         raise ClreconError("a measured scan (scan.source = 'dicom-ct-pd') runs in one process: "
                            "drop --workers/--cluster")
+    truth_job = None  # the truths beside the reconstruction (clrecon.pipeline.truth_worker)
+    beside = None  # its thread's seconds per truth dataset
     try:
+        if not scene.measured and client is None and truth_worker.enabled():
+            gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
+            truths = TruthCache(cache_path, truth_key(scene, slices_z, targets))
+            slabs_mod.declare_truths(writer, full_shape, n_t, truths)  # taking those an earlier run computed
+            # started once the first pitch's projections are there (below): during the planning and
+            # the simulation both cores are already busy, during the reconstruction often only one
+            truth_job = truth_worker.TruthWorker(writer, truths, gt_cfg, slices_z, targets)
         # ---- distributed (docs/distributed.md): the workers compute every missing unit and this
         # process writes them; the serial path below then finds them done and only assembles
         if client is not None:
@@ -245,6 +254,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                             "store": str(getattr(store, "path", "")), "slabs": len(slabs),
                             "slab_slices": [int(b - a) for a, b in slabs]}
             units_written["projections"] += int(getattr(store, "units_written", 0))
+            if truth_job is not None and not truth_job.started:
+                truth_job.start()
             if want_tf:
                 log(f"[{pk}] truth-free cross-validation")
                 t0 = time.perf_counter()
@@ -272,6 +283,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                     for m, sec in plan.method_seconds.items():
                         plan_s[m] = plan_s.get(m, 0.0) + sec
                 plans[k] = None
+                if truth_job is not None:
+                    truth_job.check()  # a failed truth thread stops the run now, not after the reconstruction
                 if fixed_methods:
                     reconstruct.reconstruct(recon_cfg, store, plan, variants=variants, rt=rt, times=ptimes,
                                             progress=bar, on_slab=on_slab, slab_size=len(sel))
@@ -311,6 +324,13 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             vol_file = writer.assemble()
             times.add("assemble_volumes", time.perf_counter() - t0)
             met, resp_only, motion_res = {}, {}, {}
+        elif truth_job is not None:
+            log("ground truth")
+            t0 = time.perf_counter()
+            truth_job.finish(lambda n: _progress(n, "ground truth", progress, "targets"))
+            times.add("groundtruth", time.perf_counter() - t0)
+            beside = truth_job.seconds
+            truth_job = None
         else:
             log("ground truth")
             gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
@@ -329,7 +349,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             for i, j, vol in groundtruth.phantom_truth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
                 truths.put(writer.write_target("phantom", i, j, n_r, vol))
             times.add("phantom_truth", time.perf_counter() - t0)
-
+        if not scene.measured:
             t0 = time.perf_counter()
             vol_file = writer.assemble()
             times.add("assemble_volumes", time.perf_counter() - t0)
@@ -345,6 +365,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         writer.close()
         times.add("assemble_volumes", time.perf_counter() - t0)
     except BaseException:
+        if truth_job is not None:
+            truth_job.stop()
         writer.abort()
         raise
 
@@ -363,6 +385,12 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         stages["simulate"]["skipped_because"] = "every needed projection was already in the projection store"
     stages["simulate"].update(per_pitch=sim_info)
     stages["groundtruth"]["targets_from_cache"] = int(writer.units_written.get("adopted", 0))
+    if beside is not None:  # computed in a thread beside the reconstruction: its own seconds apart
+        stages["phantom_truth"]["ran"] = True
+        for name, key in (("groundtruth", "groundtruth"), ("phantom_truth", "phantom")):
+            stages[name]["beside_seconds"] = round(beside[key], 3)
+        stages["groundtruth"]["waited_for"] = ("the seconds are the run's wait for the truths after the "
+                                               "reconstruction; beside_seconds their thread's own time")
     stages["read"]["cells"] = int(stage_counts.get("read_cells", 0))
     stages["noise"]["cells"] = int(stage_counts.get("noise_cells", 0))
     if scene.measured:

@@ -575,9 +575,10 @@ def fbp_hu(sino, geom: FanBeamGeometry, window: str = "ram-lak", mu_water: float
     return mu_to_hu(fbp(sino, geom, window, runtime=runtime), mu_water).astype(np.float32)
 
 
-def fbp_batched(sino: np.ndarray, geom: FanBeamGeometry, window: str, mu_water: float, batch: int = 64) -> np.ndarray:
+def fbp_batched(sino: np.ndarray, geom: FanBeamGeometry, window: str, mu_water: float, batch: int = 64, *,
+                runtime=None) -> np.ndarray:
     """FBP in HU of (B, V, C) sinograms in batches of ``batch`` (bounded memory)."""
     out = np.empty((sino.shape[0], geom.ny, geom.nx), np.float32)
     for b0 in range(0, sino.shape[0], batch):
-        out[b0:b0 + batch] = fbp_hu(sino[b0:b0 + batch], geom, window, mu_water)
+        out[b0:b0 + batch] = fbp_hu(sino[b0:b0 + batch], geom, window, mu_water, runtime=runtime)
     return out
