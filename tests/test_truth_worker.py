@@ -40,6 +40,7 @@ def test_truths_beside_the_reconstruction_are_bit_identical(tmp_path, foreground
     st = res["stages"]
     assert "beside_seconds" in st["groundtruth"] and st["groundtruth"]["beside_seconds"] > 0
     assert "beside_seconds" not in foreground[1]["stages"]["groundtruth"]
+    assert "| groundtruth | yes, beside the reconstruction (" in (tmp_path / "report.md").read_text()
     # every target in the worker thread, on a runtime of its own (not the run's: kernel objects are not thread-safe)
     assert len(used) == 4 and {name for name, _ in used} == {"clrecon-truths"}
     assert {id(rt) for _, rt in used} != {id(runtime_mod.get_runtime())} and used[0][1] is not None

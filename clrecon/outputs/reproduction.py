@@ -83,7 +83,10 @@ def stages_table(runs) -> list[str]:
         cells = []
         for _, r in runs:
             st = r["stages"].get(n)
-            cells.append("—" if st is None else (f"{st['seconds']:.0f} s" if st["ran"] else "skipped"))
+            cell = "—" if st is None else (f"{st['seconds']:.0f} s" if st["ran"] else "skipped")
+            if st is not None and "beside_seconds" in st:  # a thread beside the reconstruction: its own time
+                cell += f" (+{st['beside_seconds']:.0f} s beside)"
+            cells.append(cell)
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
     lines.append("| **total** | " + " | ".join(f"**{r['total_seconds'] / 60:.1f} min**" if "total_seconds" in r
                                              else "?" for _, r in runs) + " |")
