@@ -145,7 +145,7 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
 
     small = levers._ct_like
     monkeypatch.setattr(levers, "_ct_like", lambda shape, k: small((2, 1, 8, 32, 32), k))
-    res = levers.bench_levers(quick=True, repeats=1)
+    res = levers.bench_levers(quick=True, repeats=1, metrics_scene="tiny")
     v, p = res["volumes"], res["posing"]
     assert v["datasets"] == 2 and v["raw_bytes"] == 2 * 2 * 8 * 32 * 32 * 4
     assert v["median"]["none"]["disk_bytes"] > v["median"]["lzf"]["disk_bytes"] > 0
@@ -154,3 +154,6 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
     assert p["speedup"] == pytest.approx(p["median_s"]["chunk"] / p["median_s"]["block"])
     text = bench.format_report({"machine": bench.machine(), "levers": res})
     assert "phantom posing" in text and "volumes" in text and "levers" in bench.SECTIONS
+    m = res["metrics"]
+    assert m["identical"] is True and m["volumes"] == 2 and set(m["median_s"]) == {"1", "2"}
+    assert "metrics stage" in text and "bit-identical" in text

@@ -8,6 +8,10 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   the reconstruction writes them: one unit per slab of 8 slices), assembling them and reading
   every dataset back, with ``compression = "none"`` (what ``recon.volume_compression = "auto"``
   picks below :data:`clrecon.outputs.volumes.AUTO_COMPRESS_BYTES`) against ``"lzf"``;
+- ``metrics``: the run's metrics stage (:func:`clrecon.pipeline.evaluate.evaluate`) on demo-sized
+  CT-like volumes of 12 reconstructions (2 pitches x 2 variants x 3 methods) and their ground
+  truth, in 2 processes against 1 (``CLRECON_METRICS_PROCESSES``), the results compared for
+  bit identity;
 - ``posing``: the analytic phantom posed at demo's first pitch-0.02 projection states in calls
   of one block (:data:`clrecon.simulation.simulate.BLOCK_CHUNKS` chunks, the simulation's
   calls since 2026-12-02) against calls of one 256-projection chunk (before).
@@ -15,6 +19,8 @@ repeats alternating (so that a change of the machine's load hits both), medians 
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 import tempfile
 import time
@@ -26,13 +32,22 @@ from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
 from clrecon.core.resources import folder_bytes
 from clrecon.outputs.volumes import VolumeWriter, open_volumes
+from clrecon.pipeline import evaluate as evaluate_mod
+from clrecon.pipeline.run import resolve_targets
+from clrecon.reconstruction.reconstruct import slice_positions, voxel_coords
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate as simulate_mod
+from clrecon.simulation.phantom_sources import phantom_from_config
 from clrecon.simulation.projector import phantom_for_scene
 
 
 def _ct_like(shape, k: int) -> np.ndarray:
     """(n_c, n_r, nz, ny, nx) float32 HU: smooth structure + 3 HU noise in the FOV disk, 0 outside."""
+    return _ct_pattern(shape, k)
+
+
+def _ct_pattern(shape, k: int) -> np.ndarray:
+    """:func:`_ct_like`'s volumes (the metrics row's, at its scene's shape)."""
     rng = np.random.default_rng(k)
     nz, ny, nx = shape[-3:]
     y, x = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
@@ -114,9 +129,56 @@ def bench_posing(quick: bool = False, repeats: int = 3) -> dict:
             "repeats": max(2, repeats)}
 
 
-def bench_levers(quick: bool = False, repeats: int = 3) -> dict:
-    """Both lever rows (module docstring)."""
-    return {"volumes": bench_volumes(quick, repeats), "posing": bench_posing(quick, repeats)}
+def bench_metrics(quick: bool = False, repeats: int = 3, scene_name: str = "demo") -> dict:
+    """Seconds of the metrics stage in 2 processes against 1 on the same volume file (module docstring)."""
+    scene = load_scene(scene_name)
+    targets = resolve_targets(scene)
+    z = slice_positions(scene, None)
+    rc = scene.recon
+    pitches = (0.02,) if quick else (0.02, 0.1)
+    variants = ("noise-free",) if quick else ("noise-free", "noisy")
+    methods = ("barycentric", "local_linear") if quick else ("barycentric", "local_linear", "nearest")
+    shape = targets.shape + (len(z), rc.ny, rc.nx)
+    axes = {"cardiac_phase": targets.cardiac, "resp_amplitude": targets.resp, "z_mm": z,
+            "y_mm": voxel_coords(rc.ny, rc.voxel_mm), "x_mm": voxel_coords(rc.nx, rc.voxel_mm)}
+    names = ["groundtruth"] + [f"recon/p{p:.3f}/{v}/{m}" for p in pitches for v in variants for m in methods]
+    phantom = phantom_from_config(scene.phantom)
+    times: dict = {"1": [], "2": []}
+    results: dict = {}
+    load = [load1()]
+    saved = os.environ.get(evaluate_mod.PROCESSES_ENV)
+    with tempfile.TemporaryDirectory(prefix="clrecon-bench-metrics-") as tmp:
+        w = VolumeWriter(Path(tmp) / "volumes.h5", axes, True, True, run_key="bench", compression="none")
+        for k, name in enumerate(names):
+            w.create(name, shape, len(z))
+            w.write(name, _ct_pattern(shape, k), np.arange(len(z)))
+        f = w.assemble()
+        try:
+            for _ in range(max(1, repeats)):
+                for n in ("1", "2"):
+                    os.environ[evaluate_mod.PROCESSES_ENV] = n
+                    t0 = time.perf_counter()
+                    out = evaluate_mod.evaluate(scene, f, targets, z, pitches, variants, methods, phantom)
+                    times[n].append(time.perf_counter() - t0)
+                    results[n] = json.dumps(out, sort_keys=True)
+        finally:
+            if saved is None:
+                os.environ.pop(evaluate_mod.PROCESSES_ENV, None)
+            else:
+                os.environ[evaluate_mod.PROCESSES_ENV] = saved
+            w.close()
+        load.append(load1())
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return {"volumes": len(names) - 1, "targets": int(np.prod(targets.shape)),
+            "raw_bytes": int(len(names) * np.prod(shape) * 4), "median_s": med,
+            "speedup": med["1"] / med["2"] if med["2"] > 0 else float("nan"),
+            "identical": results["1"] == results["2"], "load": load, "repeats": max(1, repeats)}
+
+
+def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo") -> dict:
+    """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and targets)."""
+    return {"volumes": bench_volumes(quick, repeats), "metrics": bench_metrics(quick, repeats, metrics_scene),
+            "posing": bench_posing(quick, repeats)}
 
 
 def report_lines(res: dict | None) -> list[str]:
@@ -132,6 +194,11 @@ def report_lines(res: dict | None) -> list[str]:
         f"{mn['read_s']:.2f}), lzf {v['total_s']['lzf']:.2f} s ({ml['write_s']:.2f} + {ml['assemble_s']:.2f} + "
         f"{ml['read_s']:.2f}): speedup {v['speedup']:.2f}x; disk {mn['disk_bytes'] / 1e9:.2f} vs "
         f"{ml['disk_bytes'] / 1e9:.2f} GB (load {v['load'][0]:.1f} -> {v['load'][-1]:.1f})",
+        *([f"   metrics stage, {res['metrics']['volumes']} reconstructions x {res['metrics']['targets']} targets "
+           f"({res['metrics']['raw_bytes'] / 1e9:.2f} GB raw): 2 processes {res['metrics']['median_s']['2']:.2f} s, "
+           f"1 process {res['metrics']['median_s']['1']:.2f} s: speedup {res['metrics']['speedup']:.2f}x, "
+           f"results {'bit-identical' if res['metrics']['identical'] else 'DIFFERENT'} "
+           f"(load {res['metrics']['load'][0]:.1f} -> {res['metrics']['load'][-1]:.1f})"] if "metrics" in res else []),
         f"   phantom posing, {p['states']} demo states: blocks of {p['block']} {p['median_s']['block']:.2f} s, "
         f"chunks of {p['chunk']} {p['median_s']['chunk']:.2f} s: speedup {p['speedup']:.2f}x "
         f"(load {p['load'][0]:.1f} -> {p['load'][-1]:.1f})",

@@ -5,7 +5,7 @@ from __future__ import annotations
 from clrecon.config.scene import builtin_scene_names, load_scene
 from clrecon.core.errors import SceneError
 from clrecon.outputs.volumes import resolve_compression
-from clrecon.pipeline import truth_worker
+from clrecon.pipeline import evaluate, truth_worker
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.rebin import slice_window_mm
@@ -72,6 +72,15 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     peak = chunk + slab * per_slice + plans + slab_sinos + 2 * nz * rc.ny * rc.nx * 4
     if truth_worker.enabled():  # the truths beside the reconstruction: one target's working set on top
         peak += truth_worker.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx)
+    # the metrics stage, after the reconstruction: in each of its processes the LV region masks of
+    # every target (bool, when r4dct's respiratory-only study runs), one target's truth and volume in
+    # float32 and their difference; a second process's interpreter and imports about 0.4 GB
+    n_keys = len(pitches) * n_var * len(methods)
+    n_proc = evaluate.process_count(int(n_keys * vol_bytes))
+    target_vox = nz * rc.ny * rc.nx
+    regions = n_targets * target_vox if any(g == "resp" for g in grid.values()) else 0
+    metrics_peak = n_proc * (regions + 3 * target_vox * 4) + (n_proc - 1) * 0.4e9
+    peak = max(peak, metrics_peak)
     out = {"projections": n_proj, "projections_needed": needed, "store_bytes": sum(n_proj.values()) * proj_bytes,
            "needed_store_bytes": sum(needed.values()) * proj_bytes, "projection_bytes": proj_bytes,
            "volume_bytes": int(vol_bytes * n_vols), "n_volumes": round(n_vols, 3), "n_targets": n_targets,

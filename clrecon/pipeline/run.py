@@ -33,13 +33,14 @@ from clrecon.core.progress import progress as progress_counter
 from clrecon.core.resources import peak_rss_bytes
 from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
-from clrecon.evaluation import claims, groundtruth, metrics, motion, truth_free
+from clrecon.evaluation import claims, groundtruth, motion, truth_free
 from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs import report as report_mod
-from clrecon.outputs.volumes import VolumeWriter, pitch_key, read_volume
+from clrecon.outputs.volumes import VolumeWriter, pitch_key
 from clrecon.pipeline import costs as costs_mod
 from clrecon.pipeline import distributed, preflight, truth_worker
 from clrecon.pipeline import slabs as slabs_mod
+from clrecon.pipeline.evaluate import evaluate
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, reconstruct
 from clrecon.reconstruction.reconstruct import StageTimes, Targets
@@ -50,8 +51,6 @@ from clrecon.simulation.store import default_cache_dir
 RESULTS_FORMAT = 1
 #: From the interpolation-method registry: the 5DCT methods, and those compared in the
 #: respiratory-only study (5DCT + the cardiac-blind, respiratory-grid methods such as r4dct).
-FIVE_D_METHODS = interpolation.five_d_methods()
-RESP_ONLY_METHODS = FIVE_D_METHODS + interpolation.resp_grid_methods()
 #: The self-tuning method: planned after the truth-free cross-validation chose its kernel.
 TUNED = "cv_tuned"
 #: recon keys added after run directories existed: left out of the run key at these defaults.
@@ -194,6 +193,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                            "drop --workers/--cluster")
     truth_job = None  # the truths beside the reconstruction (clrecon.pipeline.truth_worker)
     beside = None  # its thread's seconds per truth dataset
+    metrics_info: dict = {}  # the metrics stage's processes (clrecon.pipeline.evaluate)
     try:
         if not scene.measured and client is None and truth_worker.enabled():
             gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
@@ -357,7 +357,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             t0 = time.perf_counter()
             phantom = phantom_from_config(scene.phantom)
             met, resp_only, motion_res = evaluate(scene, vol_file, targets, slices_z, pitches, variants, methods,
-                                                  phantom, progress=progress)
+                                                  phantom, progress=progress, info=metrics_info)
             times.add("metrics", time.perf_counter() - t0)
         # the previous run's results must not describe the new volumes, even for a moment
         (out / "results.json").unlink(missing_ok=True)
@@ -385,6 +385,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         stages["simulate"]["skipped_because"] = "every needed projection was already in the projection store"
     stages["simulate"].update(per_pitch=sim_info)
     stages["groundtruth"]["targets_from_cache"] = int(writer.units_written.get("adopted", 0))
+    if metrics_info:
+        stages["metrics"]["processes"] = metrics_info["processes"]
     if beside is not None:  # computed in a thread beside the reconstruction: its own seconds apart
         stages["phantom_truth"]["ran"] = True
         for name, key in (("groundtruth", "groundtruth"), ("phantom_truth", "phantom")):
@@ -450,101 +452,3 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
 
 def reconstruct_methods():
     return interpolation.method_names()
-
-
-def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, progress: bool = False):
-    """Table-2 metrics, the respiratory-only comparison and the motion metrics per pitch/variant/method.
-
-    Reads one target's volumes at a time from the (open) volume file ``f``. Returns
-    ``(metrics, respiratory_only, motion)``; ``motion[pitch][variant][method]`` is
-    :meth:`clrecon.evaluation.motion.MotionMetrics.result`, with a ``groundtruth`` reference entry.
-    ``phantom`` is the scene's phantom source, built once by the caller (the LV-based parts need
-    one that :func:`clrecon.evaluation.groundtruth.offers_lv_region`). ``progress``: a counter
-    with an ETA over the volumes read.
-    """
-    met: dict = {}
-    resp_only: dict = {}
-    metrics_cfg = metrics.MetricsConfig.from_scene(scene)
-    masks = metrics.fov_masks(metrics_cfg)
-    n_c, n_r = targets.shape
-    gt = lambda i, j: read_volume(f, "groundtruth", (i, j))  # noqa: E731
-    want_ro = (any(m in methods for m in interpolation.resp_grid_methods())
-               and scene.has_cardiac and scene.has_respiratory and groundtruth.offers_lv_region(phantom))
-    rc = scene.recon
-    if hasattr(phantom, "prefetch"):  # every target's pose in one vectorised call
-        phantom.prefetch(targets.pairs[:, 0], targets.pairs[:, 1])
-    x, y = reconstruct.voxel_coords(rc.nx, rc.voxel_mm), reconstruct.voxel_coords(rc.ny, rc.voxel_mm)
-    voxel_ml = rc.voxel_mm ** 2 * (abs(slices_z[1] - slices_z[0]) if len(slices_z) > 1 else rc.slice_mm) / 1000.0
-    regions = ([[groundtruth.lv_region_mask(phantom, c, a, x, y, slices_z) for a in targets.resp]
-                for c in targets.cardiac] if want_ro else None)
-
-    def lv(vol, i, j):
-        return metrics.blood_pool_volume_ml(vol, regions[i][j], voxel_ml)
-
-    # motion metrics (the analytic phantom knows its LV and lesion): the phantom's truth per target
-    # (small: the LV region cropped) and the ground truth's own reference row
-    want_mot = motion.offers_truth(phantom)
-    mcfg = motion.MotionConfig.from_scene(scene, slices_z)
-    geoms = ([[motion.target_geometry(phantom, c, a, mcfg) for a in targets.resp] for c in targets.cardiac]
-             if want_mot else None)
-    mot_gt = motion.MotionMetrics(mcfg, n_c, n_r)
-    lv_gt = np.zeros((n_c, n_r))
-    # one accumulator per (pitch, variant, method), fed target by target: each target's ground
-    # truth is read once for all of them (it was read once per method, variant and pitch: half of
-    # the metrics' reads). Every accumulator still sees the targets in the same order.
-    keys = [(pitch_key(p), v, m) for p in pitches for v in variants for m in methods]
-    acc = {k: metrics.Table2(metrics_cfg, n_c, n_r) for k in keys}
-    macc = {k: motion.MotionMetrics(mcfg, n_c, n_r) for k in keys} if want_mot else {}
-    ro_mae = {k: np.zeros((n_c, n_r)) for k in keys}
-    ro_lv = {k: np.zeros((n_c, n_r)) for k in keys}
-    bar = _progress(len(keys) * n_c * n_r, "metrics", progress, "volumes")
-    for i in range(n_c):
-        for j in range(n_r):
-            truth = gt(i, j)
-            if want_mot:
-                mot_gt.add(i, j, truth, None, geoms[i][j])
-            if want_ro:
-                lv_gt[i, j] = lv(truth, i, j)
-            for k in keys:
-                pk, v, m = k
-                vol = read_volume(f, f"recon/{pk}/{v}/{m}", (i, j))
-                acc[k].add(i, j, vol, truth)
-                if want_mot:
-                    macc[k].add(i, j, vol, truth, geoms[i][j], mot_gt.lv_ml[i, j])
-                if want_ro and m in RESP_ONLY_METHODS:
-                    ro_mae[k][i, j] = metrics.abs_error_stats(vol, truth, masks["small"])["mae_hu"]
-                    ro_lv[k][i, j] = lv(vol, i, j)
-                bar.update(1)
-            del truth
-    bar.close()
-    mot_ref = mot_gt.result()
-    mot: dict = {}
-    for pitch in pitches:
-        pk = pitch_key(pitch)
-        met[pk] = {}
-        resp_only[pk] = {}
-        if want_mot:
-            mot[pk] = {}
-        for v in variants:
-            met[pk][v] = {m: acc[(pk, v, m)].result() for m in methods}
-            if want_mot:
-                mot[pk][v] = {"groundtruth": mot_ref}
-                mot[pk][v].update({m: macc[(pk, v, m)].result() for m in methods})
-            if want_ro:
-                rows = []
-                for i, c in enumerate(targets.cardiac):
-                    row = {"cardiac_phase": c, "small_fov_mae_hu": {},
-                           "lv_volume_ml": {"groundtruth": lv_gt[i].tolist()},
-                           "lv_volume_spread_ml": {"groundtruth": _spread(lv_gt[i])}}
-                    for m in [x for x in methods if x in RESP_ONLY_METHODS]:
-                        row["small_fov_mae_hu"][m] = float(ro_mae[(pk, v, m)][i].mean())
-                        row["lv_volume_ml"][m] = ro_lv[(pk, v, m)][i].tolist()
-                        row["lv_volume_spread_ml"][m] = _spread(ro_lv[(pk, v, m)][i])
-                    rows.append(row)
-                resp_only[pk][v] = rows
-    return met, resp_only, mot
-
-
-def _spread(values) -> float:
-    v = np.asarray(values, float)
-    return float(v.max() - v.min()) if v.size else 0.0
