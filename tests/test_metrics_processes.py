@@ -49,6 +49,7 @@ def test_a_pool_that_cannot_start_runs_every_group_here(tmp_path, one_process, m
 def test_automatic_choice_and_bad_value(monkeypatch):
     monkeypatch.delenv("CLRECON_METRICS_PROCESSES", raising=False)
     monkeypatch.setattr(evaluate_mod.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(evaluate_mod, "spawn_is_safe", lambda: True)
     assert evaluate_mod.process_count(evaluate_mod.PROCESS_MIN_BYTES - 1) == 1
     assert evaluate_mod.process_count(evaluate_mod.PROCESS_MIN_BYTES) == 2
     monkeypatch.setattr(evaluate_mod.os, "cpu_count", lambda: 1)
@@ -63,3 +64,24 @@ def test_groups_keep_every_key_once_in_order():
     for n in (1, 2, 5, 40):
         g = evaluate_mod._groups(keys, n)
         assert [k for part in g for k in part] == keys and len(g) == min(n, len(keys))
+
+
+def test_spawn_is_safe_only_without_a_main_script_to_rerun(monkeypatch):
+    import sys
+    import types
+
+    script = types.ModuleType("__main__")
+    script.__file__ = "/home/user/my_study.py"        # an unguarded script would run again in the child
+    monkeypatch.setitem(sys.modules, "__main__", script)
+    assert evaluate_mod.spawn_is_safe() is False
+    monkeypatch.setenv("CLRECON_METRICS_PROCESSES", "")
+    monkeypatch.setattr(evaluate_mod.os, "cpu_count", lambda: 2)
+    assert evaluate_mod.process_count(10 * evaluate_mod.PROCESS_MIN_BYTES) == 1
+    cli = types.ModuleType("__main__")
+    cli.__file__ = "/site-packages/clrecon/__main__.py"
+    cli.__spec__ = types.SimpleNamespace(name="clrecon.__main__")
+    monkeypatch.setitem(sys.modules, "__main__", cli)
+    assert evaluate_mod.spawn_is_safe() is True
+    notebook = types.ModuleType("__main__")           # no file: nothing to re-run
+    monkeypatch.setitem(sys.modules, "__main__", notebook)
+    assert evaluate_mod.spawn_is_safe() is True

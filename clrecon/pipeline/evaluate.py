@@ -8,8 +8,9 @@ on one core: h5py holds the GIL while it reads and decompresses, so threads do n
 **Processes.** The accumulators are independent, so the keys are split into groups and each
 group beyond the first is accumulated in a spawned process that opens the same file read-only
 (:data:`PROCESSES_ENV`; automatic: 2 on a machine with >= 2 cores when the volumes read are at
-least :data:`PROCESS_MIN_BYTES` raw, else 1). Every accumulator still sees the same arrays in the
-same target order, so its float64 sums, and the results, are bit for bit those of one process
+least :data:`PROCESS_MIN_BYTES` raw and :func:`spawn_is_safe`, else 1). Every accumulator still
+sees the same arrays in the same target order, so its float64 sums, and the results, are bit
+for bit those of one process
 (tests/test_metrics_processes.py). A process that cannot start makes its group run here, with
 the same numbers; an error inside one is raised as that error.
 """
@@ -17,6 +18,7 @@ the same numbers; an error inside one is raised as that error.
 from __future__ import annotations
 
 import os
+import sys
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
@@ -49,7 +51,21 @@ def process_count(volume_bytes_read: int) -> int:
             return max(1, int(env))
         except ValueError:
             raise ValueError(f"{PROCESSES_ENV}={env!r}: expected a whole number of processes") from None
-    return 2 if (os.cpu_count() or 1) >= 2 and volume_bytes_read >= PROCESS_MIN_BYTES else 1
+    return 2 if ((os.cpu_count() or 1) >= 2 and volume_bytes_read >= PROCESS_MIN_BYTES
+                 and spawn_is_safe()) else 1
+
+
+def spawn_is_safe() -> bool:
+    """Whether a spawned child can start without running the caller's script again.
+
+    A spawned child imports the main module; a user's script that calls ``clrecon.run`` without
+    an ``if __name__ == "__main__":`` guard would then run its whole run again in the child. So
+    the automatic choice uses a process only under ``python -m clrecon`` or where there is no
+    main script (an interactive session, a notebook); ``CLRECON_METRICS_PROCESSES`` forces it.
+    """
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    return getattr(spec, "name", None) == "clrecon.__main__" or not getattr(main, "__file__", None)
 
 
 @dataclass
