@@ -44,10 +44,9 @@ CASES = {
     "rename-store:1": lambda P, R, T: (0, R, T),     # store assembled, not yet renamed
     "recon:5": lambda P, R, T: (0, R - 4, T),        # mid-write of the 5th reconstruction unit
     "truth:3": lambda P, R, T: (0, 0, T - 2),        # mid-write of the 3rd truth target
-    "assemble-volumes:3": lambda P, R, T: (0, 0, 0),  # the 3rd dataset's .partial torn mid-write
-    "rename-dataset:2": lambda P, R, T: (0, 0, 0),   # 2nd dataset file fsync'd, not yet renamed
-    "drop-units:4": lambda P, R, T: (0, 0, 0),       # 4th dataset file renamed, its units not yet removed
-    "drop-units:14": lambda P, R, T: (0, 0, 0),      # the last dataset (phantom): only volumes.h5 is left to write
+    "assemble-volumes:1": lambda P, R, T: (0, 0, 0),  # volumes.h5.partial open, the 1st dataset's mappings made
+    "assemble-volumes:3": lambda P, R, T: (0, 0, 0),  # ... the 3rd's
+    "assemble-volumes:14": lambda P, R, T: (0, 0, 0),  # ... the last dataset's (phantom), not yet fsync'd
     "rename-volumes:1": lambda P, R, T: (0, 0, 0),   # right before the final rename
 }
 
@@ -95,7 +94,7 @@ def _attr(out, key):
 def test_damaged_unit_file_is_detected_and_redone(tmp_path, reference):
     out, cache = tmp_path / "run", tmp_path / "cache"
     assert _cli(out, cache, "truth:3").returncode == -signal.SIGKILL
-    unit = sorted((out / "volumes.h5.units").glob("recon~*~noisy~local_linear.*.unit"))[0]
+    unit = sorted((out / "volumes.d").rglob("recon~*~noisy~local_linear.*.unit"))[0]
     raw = bytearray(unit.read_bytes())
     for k in range(len(raw) // 2, len(raw) // 2 + 8):   # flip 8 bytes in the middle of the volume
         raw[k] ^= 0x5A

@@ -90,7 +90,7 @@ def test_interrupt_during_ground_truth_resumes_only_the_rest(tmp_path, reference
         run(load_scene("tiny"), tmp_path, cache_dir=cache, **QUIET)
     assert (tmp_path / "volumes.h5.units").is_dir() and not (tmp_path / "results.json").exists()
     assert not (tmp_path / "volumes.h5").exists()
-    done = sorted(p.name.split(".")[1] for p in (tmp_path / "volumes.h5.units").glob("groundtruth.*.unit"))
+    done = sorted(p.name.split(".")[1] for p in (tmp_path / "volumes.d").rglob("groundtruth.*.unit"))
     assert done == ["t00000", "t00001"]
     calls["n"] = 100                                     # no more interruptions
     res = run(load_scene("tiny"), tmp_path, cache_dir=cache, **QUIET)

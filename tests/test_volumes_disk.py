@@ -1,16 +1,17 @@
-"""Disk at its peak (issue 20, item 3): the run folder's volumes, one compressed file per dataset.
+"""Disk at its peak (issue 20, item 3): the run folder's volumes, written once, in place.
 
-``volumes.h5`` holds the axes and virtual datasets over ``volumes.d/<gen>/<name>.h5``; each
-dataset file is assembled from its (compressed) units, fsync'd and renamed, and only then are
-its units deleted, so the disk never holds the result twice. These tests check that
-bookkeeping, that a moved or copied run folder still reads, that a folder without its
-``volumes.d`` says so in one line, that an earlier version's single-file ``volumes.h5`` and
-``.npz`` units still work, and that the projection store's units are compressed.
+Each block is a compressed unit file written straight into ``volumes.d/<gen>/``; ``volumes.h5``
+holds the axes and virtual datasets mapping those units, so assembling copies no data and the
+disk never holds a block twice. These tests check that, that a moved or copied run folder still
+reads, that a folder without its ``volumes.d`` says so in one line, that an earlier version's
+single-file ``volumes.h5``, ``.npz`` units and interrupted per-dataset assembly (format 2) still
+work, and that the projection store's units are compressed.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 
 import h5py
@@ -47,7 +48,7 @@ def _fill(path, run_key="k", slabs=((0, 3), (3, 6)), compression="lzf") -> Volum
         w.create(name, SHAPE, NZ)
         for a, b in slabs:
             w.write(name, _vol(k)[:, :, a:b], np.arange(a, b))
-    w.create("groundtruth", SHAPE, 6)
+    w.create("groundtruth", SHAPE, 6, blocks="targets")
     for t in range(6):
         i, j = divmod(t, 3)
         w.write_target("groundtruth", i, j, 3, _vol(9)[i, j])
@@ -63,40 +64,36 @@ def _files(d):
     return sorted(str(p.relative_to(d)) for p in d.rglob("*") if p.is_file())
 
 
-def test_each_dataset_is_assembled_then_its_units_go_and_the_peak_is_result_plus_one_dataset(tmp_path, monkeypatch):
+def test_the_units_are_the_result_assembly_copies_nothing_and_the_peak_is_the_result(tmp_path, monkeypatch):
     w = _fill(tmp_path)
-    unit_bytes = sum(p.stat().st_size for p in w.units_dir.glob("*.unit"))
+    assert [p.name for p in w.units_dir.iterdir()] == ["run.json"]        # the units are in the result's folder
+    unit_files = sorted(w.datasets_dir.glob("*.unit"))
+    assert len(unit_files) == 2 * len(NAMES) + 6
+    unit_bytes = sum(p.stat().st_size for p in unit_files)
     raw = (len(NAMES) + 1) * int(np.prod(SHAPE)) * 2
     assert unit_bytes < 0.8 * raw                      # units are written compressed
-    seen = []
+    before = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in unit_files}
+    mapped = []
     real = faults.point
-
-    def spy(name):
-        if name == "rename-dataset":  # the k-th dataset's partial is complete: earlier datasets' units are gone
-            left = {m["name"] for p, m in units.scan_units(w.units_dir)}
-            finished = {str(p.name) for p in w.datasets_dir.glob("*.h5")}
-            seen.append((left, finished))
-            for f in finished:
-                assert f[:-3].replace("~", "/") not in left, (f, left)
-        real(name)
-
-    monkeypatch.setattr(faults, "point", spy)
+    monkeypatch.setattr(faults, "point", lambda name: (mapped.append(name), real(name)))
     w.close()
-    assert len(seen) == len(NAMES) + 1
-    assert [len(f) for _, f in seen] == list(range(len(NAMES) + 1))
+    assert mapped.count("assemble-volumes") == len(NAMES) + 1 and mapped[-1] == "rename-volumes"
+    after = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in w.datasets_dir.iterdir()}
+    assert after == before                              # no file written, moved or removed by the assembly
     assert not w.units_dir.exists() and not w.partial.exists()
-    sizes = {p.name: p.stat().st_size for p in w.datasets_dir.glob("*.h5")}
-    result = sum(sizes.values()) + w.path.stat().st_size
+    result = unit_bytes + w.path.stat().st_size
     peak = max(b for _, b in w.disk_trace)
-    assert peak <= result + max(sizes.values()) + 64 * 1024, (peak, result, w.disk_trace)
+    assert peak <= result + 4096, (peak, result, w.disk_trace)
+    assert w.path.stat().st_size < 64 * 1024            # volumes.h5: axes and mappings only
     with open_volumes(tmp_path) as f:
         assert sorted(m for _, _, m in list_recons(f)) == [n.rsplit("/", 1)[1] for n in NAMES]
         for name in NAMES + ["groundtruth"]:
             assert f[name].is_virtual
+            assert len(f[name].virtual_sources()) == (6 if name == "groundtruth" else 2)
             np.testing.assert_array_equal(read_volume(f, name), _expected(name), err_msg=name)
 
 
-def test_direct_chunk_copy_is_bit_identical_to_a_plain_write(tmp_path):
+def test_slabs_of_any_size_read_back_bit_identical_to_one_slab(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     _fill(a, slabs=((0, 2), (2, 5), (5, 6))).close()
     _fill(b, slabs=((0, 6),)).close()
@@ -109,7 +106,7 @@ def test_direct_chunk_copy_is_bit_identical_to_a_plain_write(tmp_path):
 
 def test_uncompressed_volumes_hold_the_same_values_and_resume_over_compressed_units(tmp_path):
     """recon.volume_compression = "none" (auto on small runs): plain chunks, the same bytes read back;
-    a run resumed with the other setting copies the earlier units in (decoded), values unchanged."""
+    a run resumed with the other setting maps the earlier (compressed) units as they are, values unchanged."""
     a, b = tmp_path / "lzf", tmp_path / "none"
     _fill(a).close()
     _fill(b, compression="none").close()
@@ -117,11 +114,11 @@ def test_uncompressed_volumes_hold_the_same_values_and_resume_over_compressed_un
         for name in NAMES + ["groundtruth"]:
             assert fa[name][()].tobytes() == fb[name][()].tobytes()
     for d, want in ((a, "lzf"), (b, None)):
-        files = sorted((d / "volumes.d").rglob("*.h5"))
-        assert len(files) == len(NAMES) + 1
+        files = sorted((d / "volumes.d").rglob("*.unit"))
+        assert len(files) == 2 * len(NAMES) + 6
         for p in files:
             with h5py.File(p, "r") as f:
-                assert f["volume"].compression == want, p
+                assert f["data"].compression == want, p
     # units written compressed, assembled by an uncompressed writer (same run key): decoded, same values
     c = tmp_path / "mixed"
     _fill(c)
@@ -129,7 +126,7 @@ def test_uncompressed_volumes_hold_the_same_values_and_resume_over_compressed_un
     assert w2.resumed
     for name in NAMES:
         w2.create(name, SHAPE, NZ)
-    w2.create("groundtruth", SHAPE, 6)
+    w2.create("groundtruth", SHAPE, 6, blocks="targets")
     w2.close()
     with open_volumes(c) as fc, open_volumes(a) as fa:
         for name in NAMES + ["groundtruth"]:
@@ -154,7 +151,7 @@ def test_a_moved_or_copied_run_folder_still_reads(tmp_path):
         for k in got:
             np.testing.assert_array_equal(got[k], before[k], err_msg=f"{d}: {k}")
     shutil.rmtree(copy / "volumes.d")
-    with pytest.raises(StoreError, match="dataset files are missing") as e:
+    with pytest.raises(StoreError, match="read from files missing") as e:
         open_volume_store(copy)
     assert "\n" not in str(e.value) and "volumes.d/" in str(e.value)
 
@@ -181,7 +178,7 @@ def test_an_earlier_versions_single_file_volumes_still_reads(tmp_path):
             np.testing.assert_array_equal(a.read(s), b.read(s))
     with h5py.File(old / "volumes.h5", "a") as g:
         g.attrs["format_version"] = 7
-    with pytest.raises(StoreError, match="volume format 7 is not 2"):
+    with pytest.raises(StoreError, match="volume format 7 is not 3"):
         open_volume_store(old)
 
 
@@ -200,32 +197,53 @@ def test_an_earlier_versions_npz_units_resume(tmp_path):
     w.write(NAMES[0], _vol(0)[:, :, 3:], np.arange(3, 6))
     assert w.units_written["recon"] == 1
     w.close()
+    assert all(p.read_bytes()[:8] == units.H5_MAGIC for p in w.datasets_dir.glob("*.unit"))  # rewritten once
+    assert len(list(w.datasets_dir.glob("*.unit"))) == 2
     with open_volumes(tmp_path) as f:
         assert f[NAMES[0]][()].tobytes() == vol.tobytes()
 
 
-def test_a_resumed_run_keeps_its_assembled_datasets(tmp_path, monkeypatch):
+def _format2_dataset_file(path, name, vol16, done, run_key="k"):
+    """A dataset file as an earlier version's assembly (format 2) left it: ``/volume`` with its ``done`` mask."""
+    with h5py.File(path, "w") as f:
+        f.attrs.update({"format_version": 2, "run_key": run_key, "name": name})
+        ds = f.create_dataset("volume", data=np.where(np.isnan(vol16), 0, vol16).astype(np.float16),
+                              chunks=(1,) * (vol16.ndim - 2) + vol16.shape[-2:], **units.VOLUME_FILTERS)
+        ds.attrs["done"] = np.asarray(done, np.uint8)
+
+
+def test_an_earlier_versions_interrupted_per_dataset_assembly_resumes(tmp_path):
+    """Format 2 left two dataset files (one only partly done, the slices 0-2) and the other units
+    in volumes.h5.units/: the resumed run maps the files' finished blocks, moves the units into
+    place, computes only what is missing, and reads back exactly the uninterrupted values."""
     w = _fill(tmp_path)
-
-    def die(name):
-        if name == "rename-dataset" and len(list(w.datasets_dir.glob("*.h5"))) == 2:
-            raise KeyboardInterrupt  # (a SIGKILL here is tests/test_crash.py's rename-dataset case)
-
-    monkeypatch.setattr(faults, "point", die)
-    with pytest.raises(KeyboardInterrupt):
-        w.close()
     w.abort()
-    monkeypatch.setattr(faults, "point", lambda name: None)
+    gen_dir = w.datasets_dir
+    old_units = tmp_path / "volumes.h5.units"
+    for p in gen_dir.glob("*.unit"):                    # where format 2 kept them
+        os.replace(p, old_units / p.name)
+    full0, gt = _expected(NAMES[0]).astype(np.float16), _expected("groundtruth").astype(np.float16)
+    part0 = full0.copy()
+    part0[:, :, 3:] = 0                                  # the unfinished slices of a partly done file
+    _format2_dataset_file(w.dataset_path(NAMES[0]), NAMES[0], part0, [1, 1, 1, 0, 0, 0])
+    _format2_dataset_file(w.dataset_path("groundtruth"), "groundtruth", gt, [1, 0, 1, 1, 0, 1])
+    for p in list(old_units.glob("*.unit")):            # their units were dropped after the file was renamed
+        m = units.read_meta(p)
+        if (m["name"] == NAMES[0] and m["z"][0] == 0) or (m["name"] == "groundtruth" and m["target"] in (0, 2, 3, 5)):
+            p.unlink()
     w2 = VolumeWriter(tmp_path / "volumes.h5", AXES, True, True, run_key="k", dtype="float16")
-    assert w2.resumed and w2.datasets_dir == w.datasets_dir
+    assert w2.resumed and w2.datasets_dir == gen_dir
+    assert [p.name for p in old_units.iterdir()] == ["run.json"]  # the units moved into the result's folder
     for name in NAMES:
         w2.create(name, SHAPE, NZ)
         assert w2.done(name).all()
-    w2.create("groundtruth", SHAPE, 6)
+    w2.create("groundtruth", SHAPE, 6, blocks="targets")
     assert w2.done("groundtruth").all()
-    assert sum(len(v) for v in w2._units.values()) == 2 * 2 + 6  # the first two datasets' units are gone
+    assert sum(len(v) for v in w2._units.values()) == 2 * len(NAMES) - 1 + 2
     w2.close()
+    assert w2.units_written == {"recon": 0, "truth": 0}
     with open_volumes(tmp_path) as f:
+        assert len(f[NAMES[0]].virtual_sources()) == 2 and len(f["groundtruth"].virtual_sources()) == 4 + 2
         for name in NAMES + ["groundtruth"]:
             np.testing.assert_array_equal(read_volume(f, name), _expected(name), err_msg=name)
 

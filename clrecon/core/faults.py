@@ -10,19 +10,16 @@ The points (the only calls of :func:`point` in clrecon):
     In the middle of writing the ``n``-th unit file of projections, of a reconstruction
     (slab x variant x method), of a truth target (ground truth or phantom): half of the
     temporary file is written (:func:`clrecon.core.units.write_unit`).
-``assemble-store``, ``assemble-volumes``
-    While the unit files are copied into the final HDF5 file under its ``.partial`` name (the
-    projection store; for the volumes, the dataset file ``volumes.d/<gen>/<name>.h5.partial``),
-    after the ``n``-th unit (a torn HDF5 file).
-``rename-dataset``
-    Right before the ``n``-th volume dataset file (fsync'd) is renamed from ``.partial`` to
-    its final name.
-``drop-units``
-    Right after the ``n``-th volume dataset file is renamed, before its units are deleted
-    (both on disk).
+``assemble-store``
+    While the projection units are copied into the store under its ``.partial`` name, after
+    the ``n``-th unit (a torn HDF5 file).
+``assemble-volumes``
+    While ``volumes.h5.partial`` is written, after the ``n``-th dataset's virtual mappings
+    (a torn HDF5 file; the unit files it maps are untouched); also in the middle of rewriting
+    an earlier version's ``.npz`` volume unit as an HDF5 unit.
 ``rename-store``, ``rename-volumes``
     Right before the assembled ``.partial`` is renamed to its final name (for the volumes:
-    ``volumes.h5``, the axes and the virtual datasets over the dataset files).
+    ``volumes.h5``, the axes and the virtual datasets over the unit files).
 ``worker-unit``
     At the start of the ``n``-th unit a Dask worker computes (:mod:`clrecon.pipeline.work_units`):
     a worker that dies mid-unit.

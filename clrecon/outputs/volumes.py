@@ -42,11 +42,13 @@ from clrecon.core.errors import StoreError
 from clrecon.core.resources import folder_bytes
 
 DIMS = ("cardiac", "resp", "z", "y", "x")
-#: Layout of ``volumes.h5``: 2 = axes + virtual datasets over ``volumes.d/<gen>/<name>.h5``
-#: (one compressed file per dataset); 1 = every dataset inside ``volumes.h5`` (clrecon before
-#: the per-dataset files; still read: :data:`READABLE_VERSIONS`).
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+#: Layout of ``volumes.h5``: 3 = axes + virtual datasets over the unit files in
+#: ``volumes.d/<gen>/`` (each block written once, in place: :class:`VolumeWriter`); 2 = virtual
+#: datasets over ``volumes.d/<gen>/<name>.h5`` (one compressed file per dataset, copied from the
+#: units); 1 = every dataset inside ``volumes.h5`` (clrecon before the per-dataset files). All
+#: are read: :data:`READABLE_VERSIONS`.
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 #: Format of the units folder's ``run.json`` (unchanged by the per-dataset files: an earlier
 #: version's interrupted run resumes).
 UNITS_FORMAT = 1
@@ -76,35 +78,40 @@ def pitch_key(pitch: float) -> str:
 
 
 class VolumeWriter:
-    """Writes ``volumes.h5`` crash-safely, one dataset file at a time (peak disk: result + one dataset).
+    """Writes ``volumes.h5`` crash-safely, each block once, in place (peak disk: the result).
 
     Every finished block (a slab of one reconstruction, one target of a truth) is written as
-    its own atomic, checksummed unit file in ``volumes.h5.units/`` (:mod:`clrecon.core.units`),
-    compressed with the filters of the final files (one chunk per slice; ``compression = "lzf"``:
-    LZF + byte shuffle, :data:`clrecon.core.units.VOLUME_FILTERS`; ``"none"``: chunked, no filter,
-    as :func:`resolve_compression` picks for small runs); nothing is written into HDF5 while computing,
-    so a SIGKILL at any instant can only lose the block being written.
+    its own atomic, checksummed unit file (:mod:`clrecon.core.units`) straight into the result's
+    folder ``volumes.d/<gen>/``, compressed with the filters of the result (one chunk per slice;
+    ``compression = "lzf"``: LZF + byte shuffle, :data:`clrecon.core.units.VOLUME_FILTERS`;
+    ``"none"``: chunked, no filter, as :func:`resolve_compression` picks for small runs); nothing
+    is written into a shared HDF5 file while computing, so a SIGKILL at any instant can only lose
+    the block being written.
 
-    :meth:`assemble` then builds the datasets one by one: ``volumes.d/<gen>/<name>.h5.partial``
-    from that dataset's units (their compressed chunks copied as they are, no recompression),
-    fsync, rename to ``<name>.h5``, and only then that dataset's units are deleted; so at any
-    instant the disk holds the finished datasets, the units of the others and at most one
-    dataset twice, never the whole result twice. Last it writes ``volumes.h5.partial``: the
-    ``/axes`` and, for every dataset, an HDF5 virtual dataset mapping the whole of
-    ``volumes.d/<gen>/<name>.h5:/volume`` (a path relative to ``volumes.h5``'s folder, which
-    HDF5 resolves against the folder of the file holding the virtual dataset: the run folder can
-    be moved or copied whole), with the dataset's attributes; ``f`` is then open on it for
-    reading. :meth:`close` fsyncs it, renames it to ``volumes.h5``, removes the units folder
-    and any other ``volumes.d/*`` folder (an earlier result's).
+    :meth:`assemble` copies no data: it writes ``volumes.h5.partial``, the ``/axes`` and, for every
+    dataset, an HDF5 virtual dataset whose mappings place each unit's ``data`` (a slab's slices,
+    or one target) at its block of the full grid (paths relative to ``volumes.h5``'s folder,
+    which HDF5 resolves against the folder of the file holding the virtual dataset: the run
+    folder can be moved or copied whole), with the dataset's attributes; ``f`` is then open on
+    it for reading. :meth:`close` fsyncs it, renames it to ``volumes.h5``, removes the units
+    folder (which holds only ``run.json``) and any other ``volumes.d/*`` folder (an earlier
+    result's). The unit files *are* the result's data: the disk never holds a block twice (the
+    format before, 2, copied each dataset's units into one file per dataset and then dropped
+    them, so one dataset was on disk twice at a time and the copy took 7 % of demo's run).
+
+    An interrupted run of an earlier version resumes: its units in ``volumes.h5.units/`` are
+    moved into ``volumes.d/<gen>/`` (``.npz`` units and units of another dtype are rewritten
+    there as HDF5 units, the only data written twice), and a dataset file ``<name>.h5`` its
+    assembly had finished is mapped for the blocks its ``done`` mask holds.
 
     ``<gen>`` is a fresh name per started run (kept in ``volumes.h5.units/run.json``): a
     different request in the same run folder never touches the earlier result's files, which
     stay readable until the new ``volumes.h5`` replaces the old one.
 
     A later run with the same ``run_key`` (hash of scene and request, kept in
-    ``volumes.h5.units/run.json``) keeps the intact units and the finished dataset files and
-    skips what they hold; a damaged unit is dropped with a warning and redone; a leftover
-    ``.partial`` (an assembly cut short) is discarded and rebuilt; any other key starts afresh.
+    ``volumes.h5.units/run.json``) keeps the intact units and skips what they hold; a damaged
+    unit is dropped with a warning and redone; a leftover ``.partial`` (an assembly cut short)
+    is discarded and rebuilt; any other key starts afresh.
     """
 
     def __init__(self, path: Path, axes: dict, keep_cardiac: bool, keep_resp: bool, run_key: str = "",
@@ -130,6 +137,8 @@ class VolumeWriter:
         self._broadcast: dict[str, tuple[str, ...]] = {}  # name -> axes stored at length 1 (standing for all)
         self._done: dict[str, np.ndarray] = {}
         self._units: dict[str, list[tuple[Path, dict]]] = {}
+        self._blocks: dict[str, str] = {}  # name -> "slices" | "targets"
+        self._old_files: dict[str, tuple[Path, np.ndarray]] = {}  # name -> (format-2 dataset file, its done)
         #: bytes under the run's volume paths after each step of :meth:`assemble` (peak bookkeeping)
         self.disk_trace: list[tuple[str, int]] = []
         self.partial.unlink(missing_ok=True)  # only ever an assembly in progress: rebuilt from the units
@@ -140,8 +149,6 @@ class VolumeWriter:
             meta = None
         if (meta and meta.get("run_key") == run_key and meta.get("format_version") == UNITS_FORMAT):
             self.resumed = True
-            for p, m in units.scan_units(self.units_dir):
-                self._units.setdefault(m["name"], []).append((p, m))
             gen = meta.get("datasets")
             if not gen:  # units of an earlier version's interrupted run: a folder for its datasets
                 gen = self._new_gen()
@@ -155,8 +162,17 @@ class VolumeWriter:
                                                 "datasets": gen})
         self.datasets_dir = self.datasets_root / gen
         self.datasets_dir.mkdir(parents=True, exist_ok=True)
-        for p in self.datasets_dir.glob("*.partial"):  # a dataset's assembly cut short
+        for p in self.datasets_dir.glob("*.partial"):  # a format-2 dataset's assembly cut short
             p.unlink(missing_ok=True)
+        if self.resumed:
+            moved = False
+            for p in self.units_dir.glob(f"*{units.SUFFIX}"):  # an earlier version's units: into place
+                os.replace(p, self.datasets_dir / p.name)
+                moved = True
+            if moved:
+                units.fsync_dir(self.datasets_dir)
+            for p, m in units.scan_units(self.datasets_dir):
+                self._units.setdefault(m["name"], []).append((p, m))
 
     @staticmethod
     def _new_gen() -> str:
@@ -169,7 +185,7 @@ class VolumeWriter:
                     shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
     def dataset_path(self, name: str) -> Path:
-        """The file that holds dataset ``name`` once assembled: ``volumes.d/<gen>/<name with ~>.h5``."""
+        """Where an earlier version (format 2) put dataset ``name`` assembled: ``volumes.d/<gen>/<name with ~>.h5``."""
         return self.datasets_dir / f"{name.replace('/', '~')}.h5"
 
     def _dims(self):
@@ -182,17 +198,23 @@ class VolumeWriter:
     def _chunks(self, shape: tuple) -> tuple:
         return (1,) * (len(shape) - 2) + tuple(shape[-2:])
 
-    def create(self, name: str, full_shape: tuple, done_size: int, broadcast: tuple = ()) -> None:
+    def create(self, name: str, full_shape: tuple, done_size: int, broadcast: tuple = (),
+               blocks: str = "slices") -> None:
         """Declare dataset ``name`` with a ``done`` mask of ``done_size`` (slices or flattened targets).
 
         ``broadcast``: target axes (``"cardiac"``, ``"resp"``) along which the volume is the same
         for every target, stored at length 1 (blocks written to it have length 1 there).
+        ``blocks``: ``"slices"`` (written by :meth:`write`, slabs of slices) or ``"targets"``
+        (:meth:`write_target`, one target each: the truths).
         """
         if name in self._specs:
             return
         bad = set(broadcast) - {"cardiac", "resp"}
         if bad:
             raise ValueError(f"broadcast axes {sorted(bad)}: only 'cardiac' and 'resp' can be broadcast")
+        if blocks not in ("slices", "targets"):
+            raise ValueError(f"blocks {blocks!r}: allowed slices, targets")
+        self._blocks[name] = blocks
         full_shape = tuple(1 if d in broadcast else n for d, n in zip(DIMS, full_shape, strict=True))
         self._broadcast[name] = tuple(d for d, keep in zip(DIMS[:2], self.keep, strict=True)
                                       if keep and d in broadcast)
@@ -202,6 +224,7 @@ class VolumeWriter:
         assembled = self._assembled_done(name, shape, done_size)
         if assembled is not None:
             done |= assembled
+            self._old_files[name] = (self.dataset_path(name), assembled)
         kept = []
         for p, m in self._units.get(name, []):
             sel = np.asarray(m["z"] if "z" in m else [m["target"]], np.int64)
@@ -214,7 +237,7 @@ class VolumeWriter:
         self._done[name] = done
 
     def _assembled_done(self, name: str, shape: tuple, done_size: int) -> np.ndarray | None:
-        """The done mask of ``name``'s finished dataset file of this run (None: none, or unusable: removed)."""
+        """The done mask of ``name``'s format-2 dataset file of this run (None: none, or unusable: removed)."""
         p = self.dataset_path(name)
         if not p.exists():
             return None
@@ -227,7 +250,7 @@ class VolumeWriter:
                 return done
         except (OSError, KeyError, ValueError):
             pass
-        p.unlink(missing_ok=True)  # damaged or from another layout: rebuilt from units / recomputed
+        p.unlink(missing_ok=True)  # damaged or from another layout: recomputed
         return None
 
     def done(self, name: str) -> np.ndarray:
@@ -237,7 +260,7 @@ class VolumeWriter:
     def _unit(self, name: str, vol: np.ndarray, meta: dict, fault: str, stem: str) -> None:
         meta = dict(meta, name=name, shape=list(self._specs[name][0]))
         vol = np.ascontiguousarray(vol, self.dtype)
-        p = units.write_unit(self.units_dir, stem, {"data": vol}, meta, fault,
+        p = units.write_unit(self.datasets_dir, stem, {"data": vol}, meta, fault,
                              compress={"data": self._chunks(vol.shape)}, filters=self.filters)
         self._units[name].append((p, meta))
         self.units_written[fault] += 1
@@ -281,7 +304,7 @@ class VolumeWriter:
         """Take flattened target ``k`` of ``name`` from an existing unit file (e.g. the truth cache).
 
         The unit must pass its checksum and describe this target of this dataset's shape;
-        ``link(path, folder) -> new path`` puts it into the units folder. Returns whether it
+        ``link(path, folder) -> new path`` puts it into the result's folder. Returns whether it
         was taken (False: damaged or not this target; the caller computes it).
         """
         if self._done[name][k]:
@@ -293,14 +316,14 @@ class VolumeWriter:
         if (meta.get("name") != name or meta.get("target") != k
                 or tuple(meta.get("shape", ())) != self._specs[name][0]):
             return False
-        self._units[name].append((link(path, self.units_dir), meta))
+        self._units[name].append((link(path, self.datasets_dir), meta))
         self._done[name][k] = True
         self.units_written["adopted"] = self.units_written.get("adopted", 0) + 1
         return True
 
     # -- assembly ------------------------------------------------------------------------
     def _disk_bytes(self) -> int:
-        """Bytes now under the run's volume paths (units, dataset files, the link file)."""
+        """Bytes now under the run's volume paths (units folder, result folders, the link file)."""
         total = 0
         for root in (self.units_dir, self.datasets_root):
             total += folder_bytes(root)
@@ -309,93 +332,92 @@ class VolumeWriter:
                 total += p.stat().st_size
         return total
 
-    def _copy_unit(self, ds: h5py.Dataset, p: Path, m: dict) -> None:
-        """Write unit ``p`` into ``ds``: its compressed chunks as they are where they match, else decoded."""
-        nt = ds.ndim - 3
-        with units.open_unit(p) as (uf, arrays, _):  # checksum checked again
-            src = uf["data"] if uf is not None else None
-            if "z" in m:
-                z = np.asarray(m["z"], np.int64)
-                place = lambda off: off[:nt] + (int(z[off[nt]]),) + off[nt + 1:]  # noqa: E731
-            else:
-                place = lambda off: tuple(m["sel"]) + off  # noqa: E731
-            if (src is not None and src.chunks == ds.chunks and src.dtype == ds.dtype
-                    and (src.compression, src.shuffle, src.fletcher32) == (ds.compression, ds.shuffle, ds.fletcher32)
-                    and src.id.get_num_chunks() == int(np.prod(src.shape[:-2]))):
-                for c in range(src.id.get_num_chunks()):
-                    info = src.id.get_chunk_info(c)
-                    mask, raw = src.id.read_direct_chunk(info.chunk_offset)
-                    ds.id.write_direct_chunk(place(tuple(info.chunk_offset)), raw, mask)
-                return
-            data = arrays["data"] if src is None else src[()]
-            if "z" in m:
-                ds[(slice(None),) * nt + (z.tolist(),)] = data
-            else:
-                ds[tuple(m["sel"])] = data
+    def _as_source(self, p: Path) -> Path:
+        """Unit ``p`` as an HDF5 unit (an earlier version's ``.npz`` unit is rewritten once as one,
+        the old file removed; the dtype is part of the run key, so an HDF5 unit has the writer's)."""
+        with open(p, "rb") as fh:
+            if fh.read(8) == units.H5_MAGIC:
+                return p
+        arrays, meta = units.read_unit(p)
+        data = np.ascontiguousarray(arrays["data"], self.dtype)
+        stem = p.name[:-len(units.SUFFIX)].rsplit(".", 1)[0]
+        new = units.write_unit(self.datasets_dir, stem, {"data": data}, meta, "assemble-volumes",
+                               compress={"data": self._chunks(data.shape)}, filters=self.filters)
+        p.unlink(missing_ok=True)
+        return new
 
-    def _assemble_dataset(self, name: str) -> None:
-        """``volumes.d/<gen>/<name>.h5`` from its units (and its earlier file, if any); then drop the units."""
-        shape, _ = self._specs[name]
-        final = self.dataset_path(name)
-        pending = self._units[name]
-        if final.exists() and not pending:
-            return
-        part = final.with_name(final.name + ".partial")
-        if final.exists():  # an assembled dataset that a resumed run extends (rare): copied, then added to
-            shutil.copyfile(final, part)
-        with h5py.File(part, "r+" if final.exists() else "w") as f:
-            if "volume" not in f:
-                f.attrs.update({"format_version": FORMAT_VERSION, "run_key": self.run_key, "name": name})
-                ds = f.create_dataset("volume", shape=shape, dtype=self.dtype, chunks=self._chunks(shape),
-                                      **self.filters)
-                ds.attrs["dims"] = list(self._dims())
-                ds.attrs["broadcast"] = list(self._broadcast[name])
-                ds.attrs["units"] = "HU"
-            ds = f["volume"]
-            for p, m in pending:
-                self._copy_unit(ds, p, m)
-                faults.point("assemble-volumes")
-            ds.attrs["done"] = self._done[name].astype(np.uint8)
-        units.fsync_file(part)
-        faults.point("rename-dataset")
-        os.replace(part, final)
-        units.fsync_dir(final.parent)
-        self.disk_trace.append((f"renamed {name}", self._disk_bytes()))
-        faults.point("drop-units")
-        for p, _ in pending:  # in the fsync'd, renamed file now: the units go
-            p.unlink(missing_ok=True)
-        units.fsync_dir(self.units_dir)
-        self._units[name] = []
-        self.disk_trace.append((f"dropped units of {name}", self._disk_bytes()))
+    def _map_blocks(self, layout, rel: str, src_shape: tuple, m: dict) -> None:
+        """Map the source ``rel:/data`` (shape ``src_shape``) at its block of ``layout``: runs of
+        consecutive slices of a slab (``m["z"]``) or one target (``m["sel"]``)."""
+        nt = len(src_shape) - 3
+        if "z" in m:
+            vs = h5py.VirtualSource(rel, "data", shape=src_shape, dtype=self.dtype)
+            z = np.asarray(m["z"], np.int64)
+            cut = np.flatnonzero(np.diff(z) != 1) + 1
+            for a, b in zip(np.r_[0, cut], np.r_[cut, len(z)], strict=True):
+                lead = (slice(None),) * nt
+                layout[lead + (slice(int(z[a]), int(z[b - 1]) + 1),)] = vs[lead + (slice(int(a), int(b)),)]
+        else:
+            vs = h5py.VirtualSource(rel, "data", shape=src_shape, dtype=self.dtype)
+            layout[tuple(int(s) for s in m["sel"])] = vs
+
+    def _map_old_file(self, layout, name: str, rel: str, shape: tuple, done: np.ndarray) -> None:
+        """Map a format-2 dataset file's finished blocks (slices, or flattened targets)."""
+        vs = h5py.VirtualSource(rel, "volume", shape=shape, dtype=self.dtype)
+        nt = len(shape) - 3
+        lead = (slice(None),) * nt
+        if self._blocks[name] == "slices":
+            idx = np.flatnonzero(done)
+            cut = np.flatnonzero(np.diff(idx) != 1) + 1
+            for a, b in zip(np.r_[0, cut], np.r_[cut, len(idx)], strict=True):
+                if b > a:
+                    s = slice(int(idx[a]), int(idx[b - 1]) + 1)
+                    layout[lead + (s,)] = vs[lead + (s,)]
+        else:
+            n_resp = len(self.axes["resp_amplitude"])
+            for k in np.flatnonzero(done):
+                i, j = divmod(int(k), n_resp)
+                sel = tuple(x for x, keep in zip((i, j), self.keep, strict=True) if keep)
+                layout[sel] = vs[sel]
 
     def assemble(self) -> h5py.File:
-        """Assemble every dataset file, then ``volumes.h5.partial`` over them; returns it open for reading."""
+        """``volumes.h5.partial``: the axes and a virtual dataset per dataset over its units; returns it open."""
         self.disk_trace.append(("start", self._disk_bytes()))
-        for name in self._specs:
-            self._assemble_dataset(name)
-        rel = self.datasets_dir.relative_to(self.path.parent).as_posix()
+        root = self.path.parent
         with h5py.File(self.partial, "w") as f:
             f.attrs["format_version"] = FORMAT_VERSION
-            f.attrs["datasets_dir"] = rel
+            f.attrs["datasets_dir"] = self.datasets_dir.relative_to(root).as_posix()
             for k, v in self.axes.items():
                 f[f"axes/{k}"] = v
             for name, (shape, _) in self._specs.items():
                 layout = h5py.VirtualLayout(shape=shape, dtype=self.dtype)
-                layout[...] = h5py.VirtualSource(f"{rel}/{self.dataset_path(name).name}", "volume", shape=shape,
-                                                 dtype=self.dtype)
+                sources = []
+                if name in self._old_files:
+                    old, done = self._old_files[name]
+                    rel = old.relative_to(root).as_posix()
+                    self._map_old_file(layout, name, rel, shape, done)
+                    sources.append(rel)
+                for n, (p, m) in enumerate(self._units[name]):
+                    p = self._as_source(p)
+                    self._units[name][n] = (p, m)
+                    rel = p.relative_to(root).as_posix()
+                    src_shape = shape[:-3] + (len(m["z"]),) + shape[-2:] if "z" in m else shape[len(m["sel"]):]
+                    self._map_blocks(layout, rel, src_shape, m)
+                    sources.append(rel)
+                faults.point("assemble-volumes")
                 ds = f.create_virtual_dataset(name, layout, fillvalue=np.nan)
                 ds.attrs["dims"] = list(self._dims())
                 ds.attrs["broadcast"] = list(self._broadcast[name])
                 ds.attrs["units"] = "HU"
                 ds.attrs["done"] = self._done[name].astype(np.uint8)
-                ds.attrs["source"] = f"{rel}/{self.dataset_path(name).name}"
+                ds.attrs["sources"] = np.array(sources, dtype=h5py.string_dtype())
         units.fsync_file(self.partial)
         self.disk_trace.append(("assembled", self._disk_bytes()))
         self.f = h5py.File(self.partial, "r")
         return self.f
 
     def close(self) -> None:
-        """Assemble (if not yet), rename to ``volumes.h5``, remove the units and earlier results' files."""
+        """Assemble (if not yet), rename to ``volumes.h5``, remove the units folder and earlier results' files."""
         if self.f is None:
             self.assemble()
         self.f.close()
@@ -425,21 +447,35 @@ def _linked_gen(path: Path) -> str | None:
 
 
 def check_sources(f: h5py.File, p: Path) -> None:
-    """Raise a one-line :class:`StoreError` when a dataset file a ``volumes.h5`` reads from is missing."""
-    if f.attrs.get("format_version") != FORMAT_VERSION:
+    """Raise a one-line :class:`StoreError` when a file a ``volumes.h5`` reads from is missing.
+
+    Format 2 names one dataset file per dataset (attribute ``source``), format 3 the unit files
+    of each dataset (attribute ``sources``).
+    """
+    if f.attrs.get("format_version") not in (2, 3):
         return
     rel = f.attrs.get("datasets_dir")
     folder = p.parent / str(rel)
+    present = {q.name for q in folder.iterdir()} if folder.is_dir() else set()
     missing = []
 
     def visit(name, obj):
-        src = obj.attrs.get("source") if isinstance(obj, h5py.Dataset) else None
-        if src is not None and not (p.parent / str(src)).is_file():
-            missing.append(name)
+        if not isinstance(obj, h5py.Dataset):
+            return
+        srcs = obj.attrs.get("sources")
+        if srcs is None:
+            srcs = [obj.attrs["source"]] if "source" in obj.attrs else []
+        for src in srcs:
+            src = src.decode() if isinstance(src, bytes) else str(src)
+            q = p.parent / src
+            if not (q.name in present if q.parent == folder else q.is_file()):
+                missing.append(name)
+                return
     f.visititems(visit)
     if missing:
-        raise StoreError(f"{p}: {len(missing)} of its dataset files are missing from {folder} (first: {missing[0]}); "
-                         f"copy or move the run folder whole, volumes.h5 with its {p.stem}.d/ folder")
+        raise StoreError(f"{p}: {len(missing)} of its datasets read from files missing from {folder} "
+                         f"(first: {missing[0]}); copy or move the run folder whole, volumes.h5 with its "
+                         f"{p.stem}.d/ folder")
 
 
 def open_volumes(path) -> h5py.File:

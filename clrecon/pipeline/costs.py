@@ -97,16 +97,16 @@ def disk_model(c: dict, existing: dict | None = None, present_out: int = 0, trut
     Per pitch, in order: its projection units (compressed) and the store assembled from them
     coexist (``existing[pitch]`` = bytes of an unfinished store already there, copied to
     ``.partial``; a complete store: ``None`` = nothing to do), then the store keeps its new
-    projections and that pitch's reconstruction units are written; at the end the truth units,
-    and one dataset file is assembled at a time next to the units not yet assembled: + the
-    largest dataset. ``present_out``: bytes of units and dataset files an interrupted run
+    projections and that pitch's reconstruction units are written; at the end the truth units.
+    The units are the result (``volumes.h5`` maps them in place: :class:`clrecon.outputs.volumes.VolumeWriter`),
+    so the volumes have no assembly transient. ``present_out``: bytes of units and dataset files an interrupted run
     left (not written again). ``truth_copies``: the truth cache is on another file system
     (it copies the truths instead of linking them). Compressed sizes: the raw bytes over
     :data:`PROJECTION_RATIO` and (``c["volume_compression"] == "lzf"``, the default when absent)
     :data:`VOLUME_RATIO`; uncompressed volumes count raw.
 
     Returns bytes: ``cache_disk`` (the projection-store folder's peak growth), ``out_disk``
-    (the run directory's: volumes plus one dataset) and ``disk_peak`` (both on one file
+    (the run directory's: the volumes) and ``disk_peak`` (both on one file
     system: the largest growth at any instant, which is less than their sum since the store's
     assembly transient is over before the volumes are written).
     """
@@ -124,7 +124,7 @@ def disk_model(c: dict, existing: dict | None = None, present_out: int = 0, trut
         grown += new + c["recon_bytes_per_pitch"] / vol_ratio
         cache_grown += new
     truths = c["truth_bytes"] / vol_ratio
-    out = max(0.0, c["volume_bytes"] / vol_ratio + c["largest_dataset_bytes"] / vol_ratio - present_out)
+    out = max(0.0, c["volume_bytes"] / vol_ratio - present_out)
     peak = max(peak, cache_grown + out)
     if truth_copies:
         cache_peak = max(cache_peak, cache_grown + truths)

@@ -11,12 +11,12 @@ Disk need, from the crash-safe layout (:mod:`clrecon.core.units`), walked in the
 writes (:func:`clrecon.pipeline.costs.disk_model`): per pitch, the compressed projection units of
 the needed projections and the store assembled from them (an unfinished old ``.h5`` copied,
 plus the new projections), or nothing when the existing store is complete; then the compressed
-volume units, of which one dataset at a time is assembled into its own file before its units
-are deleted (the volumes + one dataset), less the units and dataset files an interrupted run
-already left. Compressed sizes are the raw ones over ``costs.PROJECTION_RATIO`` and
-``costs.VOLUME_RATIO`` (2.0 each, below what the paper scenes measure). On one file system the
-check is against the largest growth at any instant (``disk_peak``): the store's assembly
-transient is over before the volumes are written. The truth cache
+volume units, which are the result (``volumes.h5`` maps them in place: no assembly transient),
+less the units and dataset files an interrupted run already left. Compressed sizes are the raw
+ones over ``costs.PROJECTION_RATIO`` and ``costs.VOLUME_RATIO`` (2.0 each, below what the
+paper scenes measure). On one file system the check is against the largest growth at any
+instant (``disk_peak``): the store's assembly transient is over before the volumes are
+written. The truth cache
 (:mod:`clrecon.evaluation.truth_cache`) hard-links the truth units, so it costs nothing more
 at the peak; where the cache is on another file system the link is a copy, and the two truth
 volumes are counted at the cache too.

@@ -158,7 +158,7 @@ def declare_truths(writer: VolumeWriter, full_shape: tuple, n_targets: int, trut
                    names=("groundtruth", "phantom")) -> None:
     """Declare the truth datasets and take every one of their units the truth cache holds."""
     for name in names:
-        writer.create(name, full_shape, n_targets)
+        writer.create(name, full_shape, n_targets, blocks="targets")
     adopt_cached_truths(writer, truths, n_targets, names)
 
 
