@@ -91,3 +91,16 @@ def test_single_target_run(tmp_path):
     assert "single target" in text and "neither cardiac nor respiratory" in text
     assert "failed" not in text
     assert _img(tmp_path / "figures" / "coronal.png").std() > 0.05
+
+
+def test_the_figure_process_starts_by_itself_only_where_spawning_cannot_rerun_a_script(monkeypatch):
+    """Unset: a second process only under ``python -m clrecon`` or without a main script (a user's
+    unguarded script would run again in a spawned child); ``1`` forces it, ``0`` turns it off."""
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    for env, safe, want in (("", False, False), ("", True, True), ("1", False, True), ("0", True, False)):
+        monkeypatch.setenv(figures.FIGURE_PROCESS_ENV, env)
+        monkeypatch.setattr("clrecon.core.resources.spawn_is_safe", lambda s=safe: s)
+        pool = figures._figure_pool()
+        assert (pool is not None) == want, (env, safe)
+        if pool is not None:
+            pool.shutdown()

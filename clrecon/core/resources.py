@@ -19,3 +19,17 @@ def folder_bytes(path) -> int:
     if not p.is_dir():
         return 0
     return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
+
+
+def spawn_is_safe() -> bool:
+    """Whether a spawned child process can start without running the caller's script again.
+
+    A spawned child imports the main module; a user's script that calls ``clrecon.run`` without
+    an ``if __name__ == "__main__":`` guard would then run its whole run again in the child. So
+    the automatic choices (the metrics' second process, the figures' second process) use a
+    process only under ``python -m clrecon`` or where there is no main script (an interactive
+    session, a notebook); their environment variables force it.
+    """
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    return getattr(spec, "name", None) == "clrecon.__main__" or not getattr(main, "__file__", None)

@@ -548,7 +548,9 @@ _RESULTS_FIGURES = {"mae_per_target": fig_mae_per_target, "error_vs_time": fig_e
                     "motion_metrics": fig_motion_metrics}
 #: Draw the results-only figures in a second process while this one draws the volume figures
 #: (matplotlib is single-threaded; on demo the report took 7.6 s of an 80 s run, half of it the
-#: two MAE-grid figures). Off (``CLRECON_FIGURE_PROCESS=0``) or unavailable: all in this process.
+#: two MAE-grid figures). Unset: only where a spawned child cannot run the caller's script again
+#: (:func:`clrecon.core.resources.spawn_is_safe`); ``1`` forces it, ``0`` turns it off; off or
+#: unavailable: all in this process.
 FIGURE_PROCESS_ENV = "CLRECON_FIGURE_PROCESS"
 
 
@@ -564,7 +566,10 @@ def _figure_pool():
     """A one-worker spawned process pool for the results-only figures, or None (off / cannot start)."""
     import os
 
-    if os.environ.get(FIGURE_PROCESS_ENV, "1") == "0" or (os.cpu_count() or 1) < 2:
+    from clrecon.core.resources import spawn_is_safe
+
+    choice = os.environ.get(FIGURE_PROCESS_ENV, "")
+    if choice == "0" or (os.cpu_count() or 1) < 2 or (choice != "1" and not spawn_is_safe()):
         return None
     try:
         import multiprocessing

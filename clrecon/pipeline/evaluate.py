@@ -18,7 +18,6 @@ the same numbers; an error inside one is raised as that error.
 from __future__ import annotations
 
 import os
-import sys
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
@@ -26,6 +25,7 @@ import h5py
 import numpy as np
 
 from clrecon.core.progress import progress as progress_counter
+from clrecon.core.resources import spawn_is_safe
 from clrecon.evaluation import groundtruth, metrics, motion
 from clrecon.outputs.volumes import pitch_key, read_volume
 from clrecon.reconstruction import interpolation, reconstruct
@@ -53,19 +53,6 @@ def process_count(volume_bytes_read: int) -> int:
             raise ValueError(f"{PROCESSES_ENV}={env!r}: expected a whole number of processes") from None
     return 2 if ((os.cpu_count() or 1) >= 2 and volume_bytes_read >= PROCESS_MIN_BYTES
                  and spawn_is_safe()) else 1
-
-
-def spawn_is_safe() -> bool:
-    """Whether a spawned child can start without running the caller's script again.
-
-    A spawned child imports the main module; a user's script that calls ``clrecon.run`` without
-    an ``if __name__ == "__main__":`` guard would then run its whole run again in the child. So
-    the automatic choice uses a process only under ``python -m clrecon`` or where there is no
-    main script (an interactive session, a notebook); ``CLRECON_METRICS_PROCESSES`` forces it.
-    """
-    main = sys.modules.get("__main__")
-    spec = getattr(main, "__spec__", None)
-    return getattr(spec, "name", None) == "clrecon.__main__" or not getattr(main, "__file__", None)
 
 
 @dataclass
