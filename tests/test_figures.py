@@ -99,7 +99,7 @@ def test_the_figure_process_starts_by_itself_only_where_spawning_cannot_rerun_a_
     monkeypatch.setattr("os.cpu_count", lambda: 2)
     for env, safe, want in (("", False, False), ("", True, True), ("1", False, True), ("0", True, False)):
         monkeypatch.setenv(figures.FIGURE_PROCESS_ENV, env)
-        monkeypatch.setattr("clrecon.core.resources.spawn_is_safe", lambda s=safe: s)
+        monkeypatch.setattr(figures, "spawn_is_safe", lambda s=safe: s)
         pool = figures._figure_pool()
         assert (pool is not None) == want, (env, safe)
         if pool is not None:

@@ -8,6 +8,11 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   the reconstruction writes them: one unit per slab of 8 slices), assembling them and reading
   every dataset back, with ``compression = "none"`` (what ``recon.volume_compression = "auto"``
   picks below :data:`clrecon.outputs.volumes.AUTO_COMPRESS_BYTES`) against ``"lzf"``;
+- ``assembly``: the end of the run's volume writing on the same compressed (LZF) units of demo-sized
+  CT-like datasets: ``volumes.h5`` mapping the units in place (format 3, :meth:`VolumeWriter.assemble`)
+  against what format 2 did, each dataset's units checksum-checked and their compressed chunks
+  copied into one file per dataset, fsync'd; then every dataset read back whole from each (the
+  in-place layout's cost: a read opens the dataset's unit files);
 - ``metrics``: the run's metrics stage (:func:`clrecon.pipeline.evaluate.evaluate`) on demo-sized
   CT-like volumes of 12 reconstructions (2 pitches x 2 variants x 3 methods) and their ground
   truth, in 2 processes against 1 (``CLRECON_METRICS_PROCESSES``), the results compared for
@@ -19,6 +24,7 @@ repeats alternating (so that a change of the machine's load hits both), medians 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -26,10 +32,12 @@ import tempfile
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
+from clrecon.core import units
 from clrecon.core.resources import folder_bytes
 from clrecon.outputs.volumes import VolumeWriter, open_volumes
 from clrecon.pipeline import evaluate as evaluate_mod
@@ -98,6 +106,94 @@ def bench_volumes(quick: bool = False, repeats: int = 3) -> dict:
     return {"raw_bytes": raw, "datasets": n_sets, "median": med, "total_s": tot,
             "speedup": tot["lzf"] / tot["none"] if tot["none"] > 0 else float("nan"), "load": load,
             "repeats": max(1, repeats)}
+
+
+def _copy_per_dataset(w: VolumeWriter, folder: Path) -> dict:
+    """Format 2's assembly, as the reference of ``assembly``: each dataset's units (checksum
+    checked) copied chunk by chunk into ``folder/<name>.h5``, fsync'd; returns name -> file."""
+    folder.mkdir(parents=True, exist_ok=True)
+    files = {}
+    for name, (shape, _) in w._specs.items():
+        p = folder / f"{name.replace('/', '~')}.h5"
+        with h5py.File(p, "w") as f:
+            ds = f.create_dataset("volume", shape=shape, dtype=w.dtype, chunks=w._chunks(shape), **w.filters)
+            for up, m in w._units[name]:
+                with units.open_unit(up) as (uf, _, _):
+                    src = uf["data"]
+                    z = np.asarray(m["z"], np.int64)
+                    nt = ds.ndim - 3
+                    for c in range(src.id.get_num_chunks()):
+                        info = src.id.get_chunk_info(c)
+                        mask, raw = src.id.read_direct_chunk(info.chunk_offset)
+                        off = tuple(info.chunk_offset)
+                        ds.id.write_direct_chunk(off[:nt] + (int(z[off[nt]]),) + off[nt + 1:], raw, mask)
+        units.fsync_file(p)
+        files[name] = p
+    return files
+
+
+def _assembly_once(folder: Path, data: dict, axes: dict, copy_first: bool) -> dict:
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    w = VolumeWriter(folder / "volumes.h5", axes, True, True, run_key="bench", compression="lzf")
+    for name, v in data.items():
+        w.create(name, v.shape, v.shape[2])
+        for z0 in range(0, v.shape[2], 8):
+            w.write(name, v[:, :, z0:z0 + 8], np.arange(z0, min(z0 + 8, v.shape[2])))
+    out: dict = {}
+    digests: dict = {}
+
+    def copy():
+        t0 = time.perf_counter()
+        files = _copy_per_dataset(w, folder / "copied")
+        t1 = time.perf_counter()
+        got = {}
+        for name, p in files.items():
+            with h5py.File(p, "r") as f:
+                got[name] = f["volume"][()]
+        out["copy"] = {"assemble_s": t1 - t0, "read_s": time.perf_counter() - t1}
+        digests["copy"] = [hashlib.blake2b(got[n].tobytes()).hexdigest() for n in data]
+
+    def in_place():
+        t0 = time.perf_counter()
+        f = w.assemble()
+        t1 = time.perf_counter()
+        got = {name: f[name][()] for name in data}
+        out["in_place"] = {"assemble_s": t1 - t0, "read_s": time.perf_counter() - t1}
+        digests["in_place"] = [hashlib.blake2b(got[n].tobytes()).hexdigest() for n in data]
+        w.close()
+
+    for step in ((copy, in_place) if copy_first else (in_place, copy)):
+        step()
+    shutil.rmtree(folder, ignore_errors=True)
+    out["identical"] = digests["copy"] == digests["in_place"]
+    return out
+
+
+def bench_assembly(quick: bool = False, repeats: int = 3) -> dict:
+    """Seconds to assemble and read back LZF volumes in place against copied per dataset (module docstring)."""
+    n_sets = 2 if quick else 8
+    shape = (10, 5, 16, 128, 128)
+    data = {f"recon/p0.020/noise-free/m{k}": _ct_like(shape, k) for k in range(n_sets)}
+    axes = {"cardiac_phase": np.linspace(0, 0.9, 10), "resp_amplitude": np.linspace(0.1, 0.9, 5),
+            "z_mm": np.arange(16.0), "y_mm": np.arange(128.0), "x_mm": np.arange(128.0)}
+    runs: dict = {"copy": [], "in_place": []}
+    identical = True
+    load = [load1()]
+    with tempfile.TemporaryDirectory(prefix="clrecon-bench-assembly-") as tmp:
+        for r in range(max(1, repeats)):
+            got = _assembly_once(Path(tmp) / "a", data, axes, copy_first=r % 2 == 0)
+            identical &= got["identical"]
+            for k in runs:
+                runs[k].append(got[k])
+        load.append(load1())
+    med = {k: {q: float(np.median([r[q] for r in rs])) for q in rs[0]} for k, rs in runs.items()}
+    return {"raw_bytes": sum(v.nbytes for v in data.values()), "datasets": n_sets, "median": med,
+            "speedup": (med["copy"]["assemble_s"] / med["in_place"]["assemble_s"]
+                        if med["in_place"]["assemble_s"] > 0 else float("nan")),
+            "read_ratio": (med["in_place"]["read_s"] / med["copy"]["read_s"]
+                           if med["copy"]["read_s"] > 0 else float("nan")),
+            "identical": bool(identical), "load": load, "repeats": max(1, repeats)}
 
 
 def bench_posing(quick: bool = False, repeats: int = 3) -> dict:
@@ -177,7 +273,8 @@ def bench_metrics(quick: bool = False, repeats: int = 3, scene_name: str = "demo
 
 def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo") -> dict:
     """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and targets)."""
-    return {"volumes": bench_volumes(quick, repeats), "metrics": bench_metrics(quick, repeats, metrics_scene),
+    return {"volumes": bench_volumes(quick, repeats), "assembly": bench_assembly(quick, repeats),
+            "metrics": bench_metrics(quick, repeats, metrics_scene),
             "posing": bench_posing(quick, repeats)}
 
 
@@ -194,6 +291,7 @@ def report_lines(res: dict | None) -> list[str]:
         f"{mn['read_s']:.2f}), lzf {v['total_s']['lzf']:.2f} s ({ml['write_s']:.2f} + {ml['assemble_s']:.2f} + "
         f"{ml['read_s']:.2f}): speedup {v['speedup']:.2f}x; disk {mn['disk_bytes'] / 1e9:.2f} vs "
         f"{ml['disk_bytes'] / 1e9:.2f} GB (load {v['load'][0]:.1f} -> {v['load'][-1]:.1f})",
+        *_assembly_lines(res.get("assembly")),
         *([f"   metrics stage, {res['metrics']['volumes']} reconstructions x {res['metrics']['targets']} targets "
            f"({res['metrics']['raw_bytes'] / 1e9:.2f} GB raw): 2 processes {res['metrics']['median_s']['2']:.2f} s, "
            f"1 process {res['metrics']['median_s']['1']:.2f} s: speedup {res['metrics']['speedup']:.2f}x, "
@@ -203,3 +301,15 @@ def report_lines(res: dict | None) -> list[str]:
         f"chunks of {p['chunk']} {p['median_s']['chunk']:.2f} s: speedup {p['speedup']:.2f}x "
         f"(load {p['load'][0]:.1f} -> {p['load'][-1]:.1f})",
     ]
+
+
+def _assembly_lines(a: dict | None) -> list[str]:
+    if not a:
+        return []
+    m = a["median"]
+    return [f"   volume assembly, {a['datasets']} LZF datasets ({a['raw_bytes'] / 1e9:.2f} GB raw): "
+            f"in place (format 3) "
+            f"{m['in_place']['assemble_s']:.3f} s, copied per dataset (format 2) {m['copy']['assemble_s']:.2f} s: "
+            f"speedup {a['speedup']:.0f}x; read back {m['in_place']['read_s']:.2f} vs {m['copy']['read_s']:.2f} s "
+            f"({a['read_ratio']:.2f}x), {'bit-identical' if a['identical'] else 'DIFFERENT'} "
+            f"(load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]

@@ -35,6 +35,7 @@ import numpy as np
 
 from clrecon.core.conventions import circular_difference
 from clrecon.core.errors import ClreconError
+from clrecon.core.resources import spawn_is_safe
 from clrecon.evaluation.groundtruth import offers_lv_region
 from clrecon.outputs.rundir import RunDirectory
 from clrecon.reconstruction import interpolation as _methods
@@ -565,8 +566,6 @@ def _draw_results_figure(kind: str, results: dict, path: str, args: tuple) -> tu
 def _figure_pool():
     """A one-worker spawned process pool for the results-only figures, or None (off / cannot start)."""
     import os
-
-    from clrecon.core.resources import spawn_is_safe
 
     choice = os.environ.get(FIGURE_PROCESS_ENV, "")
     if choice == "0" or (os.cpu_count() or 1) < 2 or (choice != "1" and not spawn_is_safe()):
