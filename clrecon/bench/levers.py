@@ -17,6 +17,13 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   CT-like volumes of 12 reconstructions (2 pitches x 2 variants x 3 methods) and their ground
   truth, in 2 processes against 1 (``CLRECON_METRICS_PROCESSES``), the results compared for
   bit identity;
+- ``write_behind``: the reconstruction's alternation of backprojection and unit writing, on
+  paper-p010's sizes: per step a real backprojection of 64 thorax images (512^2 from 984 x 900,
+  the direct kernel, from the device) and then one unit of 5 x 10 targets x 2 slices of CT-like
+  HU in float16 + LZF (about a quarter of the step's backprojection time, as in paper-p010's
+  run: 3 s of writing per 12.7 s of FBP); the unit written by the writer thread while the next
+  step backprojects (:mod:`clrecon.pipeline.write_behind`) against written in the foreground
+  (``CLRECON_WRITE_BEHIND=0``), the units' values compared;
 - ``posing``: the analytic phantom posed at demo's first pitch-0.02 projection states in calls
   of one block (:data:`clrecon.simulation.simulate.BLOCK_CHUNKS` chunks, the simulation's
   calls since 2026-12-02) against calls of one 256-projection chunk (before).
@@ -35,13 +42,17 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from clrecon.bench.paper import _scene, _thorax_sinograms
 from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
 from clrecon.core import units
 from clrecon.core.resources import folder_bytes
+from clrecon.core.runtime import get_runtime
 from clrecon.outputs.volumes import VolumeWriter, open_volumes
 from clrecon.pipeline import evaluate as evaluate_mod
+from clrecon.pipeline import write_behind
 from clrecon.pipeline.run import resolve_targets
+from clrecon.reconstruction import fbp
 from clrecon.reconstruction.reconstruct import slice_positions, voxel_coords
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate as simulate_mod
@@ -196,6 +207,86 @@ def bench_assembly(quick: bool = False, repeats: int = 3) -> dict:
             "identical": bool(identical), "load": load, "repeats": max(1, repeats)}
 
 
+def bench_write_behind(quick: bool = False, repeats: int = 3, scene_name: str = "paper-p010") -> dict:
+    """Seconds of backprojection steps each followed by a unit write, the writes in a thread
+    against in the foreground (module docstring)."""
+    sc = _scene(scene_name)
+    rt = get_runtime()
+    geom = fbp.FanBeamGeometry.from_scene(sc)
+    n_img, steps, per_unit = (64, 3 if quick else 6, 2)
+    sino = _thorax_sinograms(sc, n_img, rt)
+    B, V, C = sino.shape
+    rows = sino.reshape(-1, C).copy()
+    fbp.filter_rows(rows, geom, sc.recon.filter, out=rows)
+    launch = fbp.groups_per_launch(geom) * fbp.BATCH_LANES
+    bufs = []
+    for b0 in range(0, B, launch):
+        g = fbp.interleave_batch(rows.reshape(B, V, C)[b0:b0 + launch])
+        bufs.append((rt.to_device(g), g.shape[0]))
+    vols = [_ct_like((5, 10, per_unit, sc.recon.ny, sc.recon.nx), k) for k in range(steps)]
+    per_unit = vols[0].shape[2]
+    shape = vols[0].shape[:2] + (steps * per_unit,) + vols[0].shape[3:]
+    axes = {name: np.arange(float(n)) for name, n in zip(("cardiac_phase", "resp_amplitude", "z_mm", "y_mm", "x_mm"),
+                                                          shape, strict=True)}
+
+    def backproject():
+        for b, g in bufs:
+            fbp.backproject_interleaved(b, g, geom, runtime=rt)
+
+    def once(folder: Path, background: bool) -> tuple[float, list]:
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        w = VolumeWriter(folder / "volumes.h5", axes, True, True, run_key="bench", dtype="float16", compression="lzf")
+        w.create("recon/p0.100/noisy/m", shape, shape[2])
+        wb = write_behind.WriteBehind(background)
+        t0 = time.perf_counter()
+        for k in range(steps):
+            backproject()
+            wb.submit(w.write, "recon/p0.100/noisy/m", vols[k], np.arange(k * per_unit, (k + 1) * per_unit))
+        wb.drain()
+        wall = time.perf_counter() - t0
+        wb.close()
+        # the units' values (by stem): LZF output is not byte-reproducible (h5py's liblzf leaves its
+        # hash table uninitialised), so neither are the unit files' BLAKE2b names; the values are
+        names = {p.name.rsplit(".", 2)[0]: hashlib.blake2b(units.read_unit(p)[0]["data"].tobytes()).hexdigest()
+                 for p in folder.glob("volumes.d/*/recon~*")}
+        w.abort()
+        shutil.rmtree(folder, ignore_errors=True)
+        return wall, names, wb.beside_seconds
+
+    backproject()  # warm-up: kernel build, PoCL specialisation
+    t_bp = []
+    times: dict = {"foreground": [], "behind": []}
+    writes: list = []
+    names: dict = {}
+    load = [load1()]
+    with tempfile.TemporaryDirectory(prefix="clrecon-bench-write-behind-") as tmp:
+        for r in range(max(1, repeats)):
+            for mode in (("foreground", "behind") if r % 2 == 0 else ("behind", "foreground")):
+                wall, nm, own = once(Path(tmp) / mode, mode == "behind")
+                times[mode].append(wall)
+                names[mode] = nm
+                if mode == "foreground":
+                    writes.append(own)
+            t_bp.append(_timed_s(backproject))
+        load.append(load1())
+    for b, _ in bufs:
+        b.release()
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return {"steps": steps, "images_per_step": n_img, "unit_shape": list(vols[0].shape),
+            "median_s": med, "backproject_step_s": float(np.median(t_bp)),
+            "write_step_s": float(np.median(writes)) / steps,
+            "speedup": med["foreground"] / med["behind"] if med["behind"] > 0 else float("nan"),
+            "identical": names["foreground"] == names["behind"] and len(names["behind"]) == steps,
+            "load": load, "repeats": max(1, repeats)}
+
+
+def _timed_s(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
 def bench_posing(quick: bool = False, repeats: int = 3) -> dict:
     """Seconds to pose the phantom at demo's projection states in block-sized against chunk-sized calls."""
     scene = load_scene("demo")
@@ -271,9 +362,12 @@ def bench_metrics(quick: bool = False, repeats: int = 3, scene_name: str = "demo
             "identical": results["1"] == results["2"], "load": load, "repeats": max(1, repeats)}
 
 
-def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo") -> dict:
-    """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and targets)."""
+def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo",
+                 write_scene: str = "paper-p010") -> dict:
+    """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and
+    targets); ``write_scene``: the write-behind row's (its scanner and grid)."""
     return {"volumes": bench_volumes(quick, repeats), "assembly": bench_assembly(quick, repeats),
+            "write_behind": bench_write_behind(quick, repeats, write_scene),
             "metrics": bench_metrics(quick, repeats, metrics_scene),
             "posing": bench_posing(quick, repeats)}
 
@@ -292,6 +386,7 @@ def report_lines(res: dict | None) -> list[str]:
         f"{ml['read_s']:.2f}): speedup {v['speedup']:.2f}x; disk {mn['disk_bytes'] / 1e9:.2f} vs "
         f"{ml['disk_bytes'] / 1e9:.2f} GB (load {v['load'][0]:.1f} -> {v['load'][-1]:.1f})",
         *_assembly_lines(res.get("assembly")),
+        *_write_behind_lines(res.get("write_behind")),
         *([f"   metrics stage, {res['metrics']['volumes']} reconstructions x {res['metrics']['targets']} targets "
            f"({res['metrics']['raw_bytes'] / 1e9:.2f} GB raw): 2 processes {res['metrics']['median_s']['2']:.2f} s, "
            f"1 process {res['metrics']['median_s']['1']:.2f} s: speedup {res['metrics']['speedup']:.2f}x, "
@@ -313,3 +408,14 @@ def _assembly_lines(a: dict | None) -> list[str]:
             f"speedup {a['speedup']:.0f}x; read back {m['in_place']['read_s']:.2f} vs {m['copy']['read_s']:.2f} s "
             f"({a['read_ratio']:.2f}x), {'bit-identical' if a['identical'] else 'DIFFERENT'} "
             f"(load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]
+
+
+def _write_behind_lines(a: dict | None) -> list[str]:
+    if not a:
+        return []
+    m = a["median_s"]
+    return [f"   write behind, {a['steps']} steps of {a['images_per_step']} backprojections (512^2) + one float16 LZF "
+            f"unit of {'x'.join(map(str, a['unit_shape']))} (backprojection {a['backproject_step_s']:.2f} s, write "
+            f"{a['write_step_s']:.2f} s per step): written behind {m['behind']:.2f} s, in the foreground "
+            f"{m['foreground']:.2f} s: speedup {a['speedup']:.2f}x, unit values "
+            f"{'identical' if a['identical'] else 'DIFFERENT'} (load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]

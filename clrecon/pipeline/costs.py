@@ -5,7 +5,7 @@ from __future__ import annotations
 from clrecon.config.scene import builtin_scene_names, load_scene
 from clrecon.core.errors import SceneError
 from clrecon.outputs.volumes import resolve_compression
-from clrecon.pipeline import evaluate, truth_worker
+from clrecon.pipeline import evaluate, truth_worker, write_behind
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.rebin import slice_window_mm
@@ -17,9 +17,9 @@ GiB = 1024 ** 3
 #: stored), 2.0-2.1x on thorax-like test data: the lower figure, so the model errs high).
 PROJECTION_RATIO = 2.0
 #: Modelled compression of the volumes and their units (LZF + shuffle on HU volumes, one chunk
-#: per slice; measured on a paper-p010 slab in float16, the zero outside the field of view
-#: included: 2.9x as units, 3.5x as dataset files; float32 and tiny grids compress less: 2.0
-#: errs high on the paper scenes).
+#: per slice; measured on paper-p010 whole in float16, the zero outside the field of view
+#: included: 3.34x, 30.1 GB of volumes and truths in 9.02 GB of units; float32 and tiny grids
+#: compress less: 2.0 errs high on the paper scenes).
 VOLUME_RATIO = 2.0
 
 
@@ -72,6 +72,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     peak = chunk + slab * per_slice + plans + slab_sinos + 2 * nz * rc.ny * rc.nx * 4
     if truth_worker.enabled():  # the truths beside the reconstruction: one target's working set on top
         peak += truth_worker.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx)
+    if write_behind.enabled():  # one finished (variant, method) slab held while the thread writes it
+        peak += write_behind.extra_bytes(slab, n_targets, rc.ny, rc.nx, item)
     # the metrics stage, after the reconstruction: in each of its processes the LV region masks of
     # every target (bool, when r4dct's respiratory-only study runs), one target's truth and volume in
     # float32 and their difference; a second process's interpreter and imports about 0.4 GB

@@ -38,7 +38,7 @@ from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key
 from clrecon.pipeline import costs as costs_mod
-from clrecon.pipeline import distributed, preflight, truth_worker
+from clrecon.pipeline import distributed, preflight, truth_worker, write_behind
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.evaluate import evaluate
 from clrecon.pipeline.variants import noise_variants
@@ -194,6 +194,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     truth_job = None  # the truths beside the reconstruction (clrecon.pipeline.truth_worker)
     beside = None  # its thread's seconds per truth dataset
     metrics_info: dict = {}  # the metrics stage's processes (clrecon.pipeline.evaluate)
+    wb = write_behind.WriteBehind()  # the volume units written behind the reconstruction
     try:
         if not scene.measured and client is None and truth_worker.enabled():
             gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
@@ -270,10 +271,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                 sel = todo[a:b]
 
                 def on_slab(zs, slab, pk=pk, sel=sel):
-                    t_w = time.perf_counter()
                     for (v, m), vol in slab.items():  # r4dct (1, n_r), helical (1, 1): stored as they are
-                        writer.write(f"recon/{pk}/{v}/{m}", vol, sel[zs])
-                    times.add("write_volumes", time.perf_counter() - t_w)
+                        wb.submit(writer.write, f"recon/{pk}/{v}/{m}", vol, sel[zs])
 
                 plan = plans[k]
                 if plan is None:  # not kept (the plans of the whole scan were over the budget): made again
@@ -300,6 +299,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                     reconstruct.reconstruct(cfg_v, store, plan_v, variants=(v,), rt=rt, times=ptimes,
                                             progress=bar, on_slab=on_slab, slab_size=len(sel))
                     del plan_v
+            wb.drain()  # this pitch's units on disk before its store closes and the next pitch begins
             stage_counts.update({k: stage_counts.get(k, 0) + n for k, n in ptimes.counts.items()})
             bar.close()
             method_seconds[pk] = {}
@@ -365,10 +365,14 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         writer.close()
         times.add("assemble_volumes", time.perf_counter() - t0)
     except BaseException:
+        wb.close()  # the unit in flight finished (it is atomic either way) before the writer lets go
         if truth_job is not None:
             truth_job.stop()
         writer.abort()
         raise
+    wb.close()
+    if wb.wait_seconds or wb.beside_seconds:
+        times.add("write_volumes", wb.wait_seconds)
 
     if dist is not None:  # what the workers computed, in place of this process's (empty) records
         distributed.merge_records(dist, times, sim_info, method_seconds, method_plan_seconds, diagnostics, sampling,
@@ -393,6 +397,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             stages[name]["beside_seconds"] = round(beside[key], 3)
         stages["groundtruth"]["waited_for"] = ("the seconds are the run's wait for the truths after the "
                                                "reconstruction; beside_seconds their thread's own time")
+    if wb.background and "write_volumes" in times.seconds:  # the units written in a thread
+        stages["write_volumes"]["beside_seconds"] = round(wb.beside_seconds, 3)
+        stages["write_volumes"]["waited_for"] = ("the seconds are the run's wait for the writer thread; "
+                                                 "beside_seconds its own time writing the units")
     stages["read"]["cells"] = int(stage_counts.get("read_cells", 0))
     stages["noise"]["cells"] = int(stage_counts.get("noise_cells", 0))
     if scene.measured:

@@ -1,0 +1,107 @@
+"""The volume units of a run written behind its reconstruction, in one writer thread.
+
+Writing a finished (variant, method) slab is a single-core job: its float32 HU images are
+converted to ``recon.volume_dtype``, compressed (LZF + shuffle, one chunk per slice), hashed
+(BLAKE2b) and written and fsync'd as one unit file (:mod:`clrecon.core.units`). On paper-p010's
+slabs (5 x 10 targets x 13 slices of 512^2, 341 MB in float16) that is about 3 s per unit and
+290 s of the run (11.6 %, docs/reproduction.md), during which the backprojector, which keeps
+both cores busy, had nothing to do. h5py releases the GIL while it compresses (measured: a
+Python thread beside a 3.1 s compression kept running, its longest stall 0.2 s), so the unit
+can be written while the next method's slab is interpolated and backprojected.
+
+One write is in flight at a time: :meth:`WriteBehind.submit` first waits for the previous
+one, so at most one finished slab (its float32 images and their converted, compressed copies)
+is held beside the one being reconstructed; the memory model counts it
+(:func:`extra_bytes`). The writes run in submission order, each unit is atomic as before, and
+the writer's done mask is set only after a unit is on disk: a SIGKILL at any instant loses at
+most the slabs not yet written, which a resumed run reconstructs again. The units hold the same
+values as written in the foreground (same arrays, same filters; not always the same bytes:
+h5py's LZF leaves liblzf's hash table uninitialised, so its output, though always decoded to the
+same values, can differ between two writes of the same array). An error in the thread is
+raised again in the run's thread at the next :meth:`submit` or at :meth:`drain`.
+
+``CLRECON_WRITE_BEHIND=0`` writes in the foreground as before (same files; for comparison).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+
+
+def enabled() -> bool:
+    """Whether volume units are written behind the reconstruction (``CLRECON_WRITE_BEHIND``, default on)."""
+    return os.environ.get("CLRECON_WRITE_BEHIND", "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+def extra_bytes(slab_slices: int, n_targets: int, ny: int, nx: int, volume_itemsize: int) -> int:
+    """Memory the write behind adds at its peak (bytes): one finished slab of one (variant,
+    method), ``slab_slices x n_targets`` images of ``ny x nx`` in float32, with its copy in the
+    volume dtype and the compressed unit image (counted at the raw volume-dtype size: the
+    upper bound)."""
+    return int(slab_slices * n_targets * ny * nx * (4 + 2 * volume_itemsize))
+
+
+class WriteBehind:
+    """Runs ``fn(*args)`` calls in order in one thread, one in flight; see the module docstring.
+
+    ``wait_seconds``: the run's time spent waiting for the thread (stage ``write_volumes``);
+    ``beside_seconds``: the thread's own time in the calls. With ``background=False`` each call
+    runs at once in the caller's thread (both times then the call's).
+    """
+
+    def __init__(self, background: bool | None = None):
+        self.background = enabled() if background is None else bool(background)
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="clrecon-write") if self.background else None
+        self._pending: Future | None = None
+        self._lock = threading.Lock()
+        self.wait_seconds = 0.0
+        self.beside_seconds = 0.0
+
+    def _timed(self, fn, args) -> None:
+        t0 = time.perf_counter()
+        try:
+            fn(*args)
+        finally:
+            with self._lock:
+                self.beside_seconds += time.perf_counter() - t0
+
+    def submit(self, fn, *args) -> None:
+        """Run ``fn(*args)`` after the previous call (waiting for that one first); errors of the
+        previous call are raised here."""
+        if self._pool is None:
+            t0 = time.perf_counter()
+            self._timed(fn, args)
+            self.wait_seconds += time.perf_counter() - t0
+            return
+        self._wait()
+        self._pending = self._pool.submit(self._timed, fn, args)
+
+    def _wait(self) -> None:
+        if self._pending is None:
+            return
+        t0 = time.perf_counter()
+        try:
+            self._pending.result()
+        finally:
+            self._pending = None
+            self.wait_seconds += time.perf_counter() - t0
+
+    def drain(self) -> None:
+        """Wait until every submitted call has finished; raise the error of the last one, if any."""
+        self._wait()
+
+    def close(self) -> None:
+        """Finish the call in flight (its unit is then complete on disk) and stop the thread.
+
+        Errors are not raised here (:meth:`drain` raises them): ``close`` is also the clean-up
+        of a run that is already failing."""
+        try:
+            self._wait()
+        except Exception:  # noqa: BLE001 - the run's own error is the one to report
+            pass
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
