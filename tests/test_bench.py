@@ -145,7 +145,7 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
 
     small = levers._ct_like
     monkeypatch.setattr(levers, "_ct_like", lambda shape, k: small((2, 1, 8, 32, 32), k))
-    res = levers.bench_levers(quick=True, repeats=1, metrics_scene="tiny", write_scene="tiny")
+    res = levers.bench_levers(quick=True, repeats=1, metrics_scene="tiny", write_scene="tiny", simulate_scene="tiny")
     v, p = res["volumes"], res["posing"]
     assert v["datasets"] == 2 and v["raw_bytes"] == 2 * 2 * 8 * 32 * 32 * 4
     assert v["median"]["none"]["disk_bytes"] > v["median"]["lzf"]["disk_bytes"] > 0
@@ -166,3 +166,7 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
     assert wb["unit_shape"] == [2, 1, 8, 32, 32] and wb["write_step_s"] > 0 and wb["backproject_step_s"] > 0
     assert wb["speedup"] == pytest.approx(wb["median_s"]["foreground"] / wb["median_s"]["behind"])
     assert "write behind" in text
+    sb = res["simulate_behind"]  # the same projections stored either way
+    assert sb["identical"] is True and sb["scene"] == "tiny" and set(sb["median_s"]) == {"behind", "foreground"}
+    assert sb["speedup"] == pytest.approx(sb["median_s"]["foreground"] / sb["median_s"]["behind"])
+    assert "simulation written behind" in text

@@ -1,4 +1,4 @@
-"""The volume units written behind the reconstruction (clrecon.pipeline.write_behind): in order,
+"""The volume units written behind the reconstruction (clrecon.core.write_behind): in order,
 one in flight, errors raised in the run's thread, the same units as the foreground path."""
 
 import threading
@@ -8,10 +8,12 @@ import pytest
 from run_compare import assert_identical
 
 from clrecon.config.scene import load_scene
-from clrecon.core import units
+from clrecon.core import units, write_behind
 from clrecon.outputs.volumes import VolumeWriter
-from clrecon.pipeline import costs, write_behind
+from clrecon.pipeline import costs
 from clrecon.pipeline.run import run
+from clrecon.simulation import store as store_mod
+from clrecon.simulation.simulate import simulate
 
 QUIET = dict(progress=False, log=lambda *a: None)
 
@@ -133,3 +135,40 @@ def test_a_failing_write_fails_the_run_with_its_error(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="no space left"):
         run(load_scene("tiny"), tmp_path, cache_dir=tmp_path / "cache", **QUIET)
     assert not (tmp_path / "results.json").exists() and not (tmp_path / "volumes.h5").exists()
+
+
+def test_projection_units_written_behind_hold_the_same_projections(tmp_path, monkeypatch):
+    """simulate(): each block's units written by the thread while the next block is projected."""
+    sc = load_scene("tiny")
+    pitch = sc.scan.pitches[0]
+    threads = []
+    real = store_mod.ProjectionStore.write
+
+    def spy(self, *a, **k):
+        threads.append(threading.current_thread().name)
+        return real(self, *a, **k)
+
+    got = {}
+    for mode in ("0", "1"):
+        monkeypatch.setenv("CLRECON_WRITE_BEHIND", mode)
+        monkeypatch.setattr(store_mod.ProjectionStore, "write", spy)
+        threads.clear()
+        st = simulate(sc, pitch, cache_dir=tmp_path / mode, chunk=8, progress=False)
+        assert st.n_simulated == len(st) and st.complete
+        got[mode] = (st.read(0, len(st)), list(threads))
+        st.close()
+    assert len(got["1"][1]) > 2 and all(t.startswith("clrecon-write") for t in got["1"][1])
+    assert all(t == "MainThread" for t in got["0"][1])
+    assert got["0"][0].tobytes() == got["1"][0].tobytes()
+
+
+def test_a_failing_projection_write_fails_the_simulation(tmp_path, monkeypatch):
+    monkeypatch.setenv("CLRECON_WRITE_BEHIND", "1")
+
+    def broken(self, *a, **k):
+        raise OSError("store disk full (test)")
+
+    monkeypatch.setattr(store_mod.ProjectionStore, "write", broken)
+    sc = load_scene("tiny")
+    with pytest.raises(OSError, match="store disk full"):
+        simulate(sc, sc.scan.pitches[0], cache_dir=tmp_path, chunk=8, progress=False)

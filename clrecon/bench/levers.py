@@ -22,8 +22,12 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   the direct kernel, from the device) and then one unit of 5 x 10 targets x 2 slices of CT-like
   HU in float16 + LZF (about a quarter of the step's backprojection time, as in paper-p010's
   run: 3 s of writing per 12.7 s of FBP); the unit written by the writer thread while the next
-  step backprojects (:mod:`clrecon.pipeline.write_behind`) against written in the foreground
+  step backprojects (:mod:`clrecon.core.write_behind`) against written in the foreground
   (``CLRECON_WRITE_BEHIND=0``), the units' values compared;
+- ``simulate_behind``: demo's whole simulation (both pitches, into fresh stores) with each
+  block's projection units written by the writer thread while the next block is projected,
+  against written in the foreground (``CLRECON_WRITE_BEHIND=0``), the stores' projections
+  compared;
 - ``posing``: the analytic phantom posed at demo's first pitch-0.02 projection states in calls
   of one block (:data:`clrecon.simulation.simulate.BLOCK_CHUNKS` chunks, the simulation's
   calls since 2026-12-02) against calls of one 256-projection chunk (before).
@@ -45,12 +49,11 @@ import numpy as np
 from clrecon.bench.paper import _scene, _thorax_sinograms
 from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
-from clrecon.core import units
+from clrecon.core import units, write_behind
 from clrecon.core.resources import folder_bytes
 from clrecon.core.runtime import get_runtime
 from clrecon.outputs.volumes import VolumeWriter, open_volumes
 from clrecon.pipeline import evaluate as evaluate_mod
-from clrecon.pipeline import write_behind
 from clrecon.pipeline.run import resolve_targets
 from clrecon.reconstruction import fbp
 from clrecon.reconstruction.reconstruct import slice_positions, voxel_coords
@@ -287,6 +290,40 @@ def _timed_s(fn) -> float:
     return time.perf_counter() - t0
 
 
+def bench_simulate_behind(quick: bool = False, repeats: int = 3, scene_name: str = "demo") -> dict:
+    """Seconds of a scene's whole simulation into fresh stores, the projection units written
+    behind against in the foreground (module docstring)."""
+    sc = load_scene(scene_name)
+    pitches = sc.scan.pitches[:1] if quick else sc.scan.pitches
+    times: dict = {"foreground": [], "behind": []}
+    digests: dict = {}
+    load = [load1()]
+    saved = os.environ.get("CLRECON_WRITE_BEHIND")
+    try:
+        with tempfile.TemporaryDirectory(prefix="clrecon-bench-simulate-") as tmp:
+            for r in range(max(1, repeats)):
+                for mode in (("foreground", "behind") if r % 2 == 0 else ("behind", "foreground")):
+                    os.environ["CLRECON_WRITE_BEHIND"] = "1" if mode == "behind" else "0"
+                    d = Path(tmp) / f"{mode}{r}"
+                    t0 = time.perf_counter()
+                    stores = [simulate_mod.simulate(sc, p, cache_dir=d, progress=False) for p in pitches]
+                    times[mode].append(time.perf_counter() - t0)
+                    digests[mode] = [hashlib.blake2b(s_.read(0, len(s_)).tobytes()).hexdigest() for s_ in stores]
+                    for s_ in stores:
+                        s_.close()
+                    shutil.rmtree(d, ignore_errors=True)
+            load.append(load1())
+    finally:
+        if saved is None:
+            os.environ.pop("CLRECON_WRITE_BEHIND", None)
+        else:
+            os.environ["CLRECON_WRITE_BEHIND"] = saved
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return {"scene": scene_name, "pitches": list(pitches), "median_s": med,
+            "speedup": med["foreground"] / med["behind"] if med["behind"] > 0 else float("nan"),
+            "identical": digests["foreground"] == digests["behind"], "load": load, "repeats": max(1, repeats)}
+
+
 def bench_posing(quick: bool = False, repeats: int = 3) -> dict:
     """Seconds to pose the phantom at demo's projection states in block-sized against chunk-sized calls."""
     scene = load_scene("demo")
@@ -363,11 +400,13 @@ def bench_metrics(quick: bool = False, repeats: int = 3, scene_name: str = "demo
 
 
 def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo",
-                 write_scene: str = "paper-p010") -> dict:
+                 write_scene: str = "paper-p010", simulate_scene: str = "demo") -> dict:
     """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and
-    targets); ``write_scene``: the write-behind row's (its scanner and grid)."""
+    targets); ``write_scene``: the write-behind row's (its scanner and grid); ``simulate_scene``:
+    the simulation row's."""
     return {"volumes": bench_volumes(quick, repeats), "assembly": bench_assembly(quick, repeats),
             "write_behind": bench_write_behind(quick, repeats, write_scene),
+            "simulate_behind": bench_simulate_behind(quick, repeats, simulate_scene),
             "metrics": bench_metrics(quick, repeats, metrics_scene),
             "posing": bench_posing(quick, repeats)}
 
@@ -387,6 +426,7 @@ def report_lines(res: dict | None) -> list[str]:
         f"{ml['disk_bytes'] / 1e9:.2f} GB (load {v['load'][0]:.1f} -> {v['load'][-1]:.1f})",
         *_assembly_lines(res.get("assembly")),
         *_write_behind_lines(res.get("write_behind")),
+        *_simulate_behind_lines(res.get("simulate_behind")),
         *([f"   metrics stage, {res['metrics']['volumes']} reconstructions x {res['metrics']['targets']} targets "
            f"({res['metrics']['raw_bytes'] / 1e9:.2f} GB raw): 2 processes {res['metrics']['median_s']['2']:.2f} s, "
            f"1 process {res['metrics']['median_s']['1']:.2f} s: speedup {res['metrics']['speedup']:.2f}x, "
@@ -419,3 +459,13 @@ def _write_behind_lines(a: dict | None) -> list[str]:
             f"{a['write_step_s']:.2f} s per step): written behind {m['behind']:.2f} s, in the foreground "
             f"{m['foreground']:.2f} s: speedup {a['speedup']:.2f}x, unit values "
             f"{'identical' if a['identical'] else 'DIFFERENT'} (load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]
+
+
+def _simulate_behind_lines(a: dict | None) -> list[str]:
+    if not a:
+        return []
+    m, pitches = a["median_s"], ", ".join(f"{p:g}" for p in a["pitches"])
+    return [f"   simulation written behind, {a['scene']} pitches {pitches} into fresh "
+            f"stores: {m['behind']:.2f} s, in the foreground {m['foreground']:.2f} s: speedup {a['speedup']:.2f}x, "
+            f"projections {'identical' if a['identical'] else 'DIFFERENT'} "
+            f"(load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]

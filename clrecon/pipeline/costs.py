@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from clrecon.config.scene import builtin_scene_names, load_scene
+from clrecon.core import write_behind
 from clrecon.core.errors import SceneError
 from clrecon.outputs.volumes import resolve_compression
-from clrecon.pipeline import evaluate, truth_worker, write_behind
+from clrecon.pipeline import evaluate, truth_worker
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.rebin import slice_window_mm

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from clrecon.config.scene import Scene
+from clrecon.core import write_behind
 from clrecon.core.errors import ClreconError
 from clrecon.core.progress import progress as progress_counter
 from clrecon.core.resources import peak_rss_bytes
@@ -38,7 +39,7 @@ from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key
 from clrecon.pipeline import costs as costs_mod
-from clrecon.pipeline import distributed, preflight, truth_worker, write_behind
+from clrecon.pipeline import distributed, preflight, truth_worker
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.evaluate import evaluate
 from clrecon.pipeline.variants import noise_variants

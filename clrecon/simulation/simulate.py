@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from clrecon.core import write_behind
 from clrecon.core.progress import progress as progress_counter
 from clrecon.scan.table import projection_table
 from clrecon.simulation import measured
@@ -26,7 +27,7 @@ CHUNK = 256
 #: 28 ms fixed cost, which was 6 s of demo's 14.7 s simulation in calls of 256 projections of
 #: 240 x 16; in blocks of 2 048 it is paid 8x less often. Paper scenes' 900 x 64 projections
 #: (230 KB) make blocks of 2 chunks (their projector calls are cut at 2^24 cells anyway).
-BLOCK_BYTES = 128 * 1024 ** 2
+BLOCK_BYTES = 128 * 1024 ** 2  # two are held while a block's units are written behind the next
 #: At most this many chunks per projector call.
 BLOCK_CHUNKS = 8
 
@@ -96,13 +97,25 @@ def simulate(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, pr
         with store.writing():
             proj_bytes = 4 * scene.scanner.n_rows * scene.scanner.n_cols
             per_block = chunk * (max(1, min(BLOCK_CHUNKS, BLOCK_BYTES // max(chunk * proj_bytes, 1))) if blocks else 1)
-            for b0 in range(0, missing.size, per_block):
-                block = missing[b0:b0 + per_block]
-                data = projector(scene, table.take(block))
-                for lo in range(0, block.size, chunk):  # one unit per chunk, as before
-                    idx = block[lo:lo + chunk]
-                    store.write(idx, data[lo:lo + chunk])
-                    store.n_simulated += int(idx.size)
-                    bar.update(int(idx.size))
+            # each block's units are written by a thread while the next block is projected
+            # (clrecon.core.write_behind; CLRECON_WRITE_BEHIND=0: in this thread, as before)
+            wb = write_behind.WriteBehind()
+            try:
+                for b0 in range(0, missing.size, per_block):
+                    block = missing[b0:b0 + per_block]
+                    data = projector(scene, table.take(block))
+                    wb.submit(_write_block, store, block, data, chunk, bar)
+                wb.drain()
+            finally:
+                wb.close()
     store.simulate_s = time.perf_counter() - t0
     return store
+
+
+def _write_block(store: ProjectionStore, block: np.ndarray, data: np.ndarray, chunk: int, bar) -> None:
+    """Write one projected block into ``store``: one unit per ``chunk`` projections, as before."""
+    for lo in range(0, block.size, chunk):
+        idx = block[lo:lo + chunk]
+        store.write(idx, data[lo:lo + chunk])
+        store.n_simulated += int(idx.size)
+        bar.update(int(idx.size))

@@ -1,4 +1,8 @@
-"""The volume units of a run written behind its reconstruction, in one writer thread.
+"""Unit files written behind the work that makes them, in one writer thread.
+
+Used for the volume units of the reconstruction (below) and for the projection units of the
+simulation (:func:`clrecon.simulation.simulate.simulate`: a block's units are written while the
+next block is projected; two blocks of at most ``BLOCK_BYTES`` are then held).
 
 Writing a finished (variant, method) slab is a single-core job: its float32 HU images are
 converted to ``recon.volume_dtype``, compressed (LZF + shuffle, one chunk per slice), hashed
