@@ -1,11 +1,17 @@
 """Bit-identity of two run directories (the crash, fault and distributed tests compare against
-an uninterrupted single-process run)."""
+an uninterrupted single-process run), and the reference run of a setting's comparison."""
 
 from __future__ import annotations
 
 import json
 
 import h5py
+import pytest
+
+from clrecon.config.scene import load_scene
+from clrecon.pipeline.run import run
+
+QUIET = dict(progress=False, log=lambda *a: None)
 
 #: results.json entries that must be equal, besides every dataset of volumes.h5
 KEYS = ("metrics", "respiratory_only", "motion", "diagnostics", "sampling")
@@ -32,3 +38,17 @@ def assert_identical(out, ref, keys=KEYS) -> dict:
         assert res[key] == want[key], key
     assert not [p for p in out.iterdir() if p.suffix in (".partial", ".units")]
     return res
+
+
+def reference_run(tmp_path_factory, env: dict, scene: str = "tiny"):
+    """``(out_dir, results, cache_dir)`` of ``scene`` run with the environment ``env`` set (the
+    module-scoped reference of a test comparing a setting against it); the environment is put
+    back afterwards."""
+    mp = pytest.MonkeyPatch()
+    try:
+        for k, v in env.items():
+            mp.setenv(k, v)
+        out, cache = tmp_path_factory.mktemp("ref"), tmp_path_factory.mktemp("cache")
+        return out, run(load_scene(scene), out, cache_dir=cache, **QUIET), cache
+    finally:
+        mp.undo()

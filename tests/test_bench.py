@@ -161,7 +161,7 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
     assert a["identical"] is True and a["datasets"] == 2 and set(a["median"]) == {"copy", "in_place"}
     assert a["speedup"] == pytest.approx(a["median"]["copy"]["assemble_s"] / a["median"]["in_place"]["assemble_s"])
     assert "volume assembly" in text
-    wb = res["write_behind"]  # the same units (by their BLAKE2b names) written behind and in the foreground
+    wb = res["write_behind"]  # the same unit values written behind and in the foreground
     assert wb["identical"] is True and wb["steps"] == 3 and set(wb["median_s"]) == {"behind", "foreground"}
     assert wb["unit_shape"] == [2, 1, 8, 32, 32] and wb["write_step_s"] > 0 and wb["backproject_step_s"] > 0
     assert wb["speedup"] == pytest.approx(wb["median_s"]["foreground"] / wb["median_s"]["behind"])

@@ -3,23 +3,18 @@
 import json
 
 import pytest
+from run_compare import QUIET, reference_run
 
 from clrecon.config.scene import load_scene
 from clrecon.pipeline import evaluate as evaluate_mod
 from clrecon.pipeline.run import run
 
-QUIET = dict(progress=False, log=lambda *a: None)
 KEYS = ("metrics", "respiratory_only", "motion")
 
 
 @pytest.fixture(scope="module")
 def one_process(tmp_path_factory):
-    mp = pytest.MonkeyPatch()
-    mp.setenv("CLRECON_METRICS_PROCESSES", "1")
-    cache = tmp_path_factory.mktemp("cache")
-    res = run(load_scene("tiny"), tmp_path_factory.mktemp("one"), cache_dir=cache, **QUIET)
-    mp.undo()
-    return res, cache
+    return reference_run(tmp_path_factory, {"CLRECON_METRICS_PROCESSES": "1"})[1:]
 
 
 def _same(a, b):

@@ -4,25 +4,18 @@ foreground path, their own OpenCL runtime, errors raised in the run's thread."""
 import threading
 
 import pytest
-from run_compare import assert_identical
+from run_compare import QUIET, assert_identical, reference_run
 
 from clrecon.config.scene import load_scene
 from clrecon.core import runtime as runtime_mod
 from clrecon.evaluation import groundtruth
 from clrecon.pipeline.run import run
 
-QUIET = dict(progress=False, log=lambda *a: None)
-
 
 @pytest.fixture(scope="module")
 def foreground(tmp_path_factory):
     """tiny with the truths after the reconstruction, in the run's thread (CLRECON_TRUTH_THREAD=0)."""
-    mp = pytest.MonkeyPatch()
-    mp.setenv("CLRECON_TRUTH_THREAD", "0")
-    out = tmp_path_factory.mktemp("fg")
-    res = run(load_scene("tiny"), out, cache_dir=tmp_path_factory.mktemp("cache"), **QUIET)
-    mp.undo()
-    return out, res
+    return reference_run(tmp_path_factory, {"CLRECON_TRUTH_THREAD": "0"})[:2]
 
 
 def test_truths_beside_the_reconstruction_are_bit_identical(tmp_path, foreground, monkeypatch):

@@ -5,7 +5,7 @@ import threading
 import time
 
 import pytest
-from run_compare import assert_identical
+from run_compare import QUIET, assert_identical, reference_run
 
 from clrecon.config.scene import load_scene
 from clrecon.core import units, write_behind
@@ -14,8 +14,6 @@ from clrecon.pipeline import costs
 from clrecon.pipeline.run import run
 from clrecon.simulation import store as store_mod
 from clrecon.simulation.simulate import simulate
-
-QUIET = dict(progress=False, log=lambda *a: None)
 
 
 def test_calls_run_in_order_one_in_flight():
@@ -92,15 +90,10 @@ def test_memory_model_counts_the_held_slab(monkeypatch):
 @pytest.fixture(scope="module")
 def foreground(tmp_path_factory):
     """tiny with every unit written in the run's thread (CLRECON_WRITE_BEHIND=0)."""
-    mp = pytest.MonkeyPatch()
-    mp.setenv("CLRECON_WRITE_BEHIND", "0")
-    out = tmp_path_factory.mktemp("fg")
-    res = run(load_scene("tiny"), out, cache_dir=tmp_path_factory.mktemp("cache"), **QUIET)
-    mp.undo()
-    return out, res
+    return reference_run(tmp_path_factory, {"CLRECON_WRITE_BEHIND": "0"})[:2]
 
 
-def test_units_written_behind_are_the_same_files(tmp_path, foreground, monkeypatch):
+def test_units_written_behind_hold_the_same_values(tmp_path, foreground, monkeypatch):
     monkeypatch.setenv("CLRECON_WRITE_BEHIND", "1")
     threads = []
     real = VolumeWriter.write

@@ -21,16 +21,10 @@ import time
 import numpy as np
 
 from clrecon.bench.paper import _scene, _thorax_sinograms
-from clrecon.bench.timing import load1
+from clrecon.bench.timing import load1, timed
 from clrecon.core.conventions import mu_to_hu
 from clrecon.core.runtime import get_runtime
 from clrecon.reconstruction import fbp, parallel_fbp
-
-
-def _timed(fn) -> float:
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
 
 
 def bench_backprojector(scene="paper-p010", *, n_images: int = 32, repeats: int = 3, rt=None) -> dict:
@@ -46,7 +40,7 @@ def bench_backprojector(scene="paper-p010", *, n_images: int = 32, repeats: int 
     step = fbp.groups_per_launch(geom) * fbp.BATCH_LANES
 
     rows = sino.reshape(-1, C).copy()
-    t_filter = _timed(lambda: fbp.filter_rows(rows, geom, window, out=rows))
+    t_filter = timed(lambda: fbp.filter_rows(rows, geom, window, out=rows))
     filtered = rows.reshape(B, V, C)
     direct_bufs, raw_bufs = [], []
     for b0 in range(0, B, step):
@@ -70,8 +64,8 @@ def bench_backprojector(scene="paper-p010", *, n_images: int = 32, repeats: int 
     loads = []
     for _ in range(max(1, repeats)):
         loads.append(load1())
-        times["direct"].append(_timed(run_direct))
-        times["parallel-rebin"].append(_timed(run_parallel))
+        times["direct"].append(timed(run_direct))
+        times["parallel-rebin"].append(timed(run_parallel))
     # the parallel path's parts, once each on the first launch
     b, g, n = raw_bufs[0]
     parts = {}

@@ -35,6 +35,7 @@ repeats alternating (so that a change of the machine's load hits both), medians 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -47,7 +48,7 @@ import h5py
 import numpy as np
 
 from clrecon.bench.paper import _scene, _thorax_sinograms
-from clrecon.bench.timing import load1
+from clrecon.bench.timing import load1, timed
 from clrecon.config.scene import load_scene
 from clrecon.core import units, write_behind
 from clrecon.core.resources import folder_bytes
@@ -77,6 +78,19 @@ def _ct_pattern(shape, k: int) -> np.ndarray:
     v = base + rng.normal(0.0, 3.0, shape)
     v[..., (y - ny / 2) ** 2 + (x - nx / 2) ** 2 > (nx / 2) ** 2] = 0.0
     return v.astype(np.float32)
+
+
+@contextlib.contextmanager
+def _environ(name: str):
+    """Lets the block set ``os.environ[name]`` and puts its value back afterwards (or removes it)."""
+    saved = os.environ.get(name)
+    try:
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = saved
 
 
 def _volumes_once(folder: Path, compression: str, data: dict, axes: dict) -> dict:
@@ -216,7 +230,7 @@ def bench_write_behind(quick: bool = False, repeats: int = 3, scene_name: str = 
     sc = _scene(scene_name)
     rt = get_runtime()
     geom = fbp.FanBeamGeometry.from_scene(sc)
-    n_img, steps, per_unit = (64, 3 if quick else 6, 2)
+    n_img, steps = 64, 3 if quick else 6
     sino = _thorax_sinograms(sc, n_img, rt)
     B, V, C = sino.shape
     rows = sino.reshape(-1, C).copy()
@@ -226,8 +240,8 @@ def bench_write_behind(quick: bool = False, repeats: int = 3, scene_name: str = 
     for b0 in range(0, B, launch):
         g = fbp.interleave_batch(rows.reshape(B, V, C)[b0:b0 + launch])
         bufs.append((rt.to_device(g), g.shape[0]))
-    vols = [_ct_like((5, 10, per_unit, sc.recon.ny, sc.recon.nx), k) for k in range(steps)]
-    per_unit = vols[0].shape[2]
+    vols = [_ct_like((5, 10, 2, sc.recon.ny, sc.recon.nx), k) for k in range(steps)]
+    per_unit = vols[0].shape[2]  # slices per unit
     shape = vols[0].shape[:2] + (steps * per_unit,) + vols[0].shape[3:]
     axes = {name: np.arange(float(n)) for name, n in zip(("cardiac_phase", "resp_amplitude", "z_mm", "y_mm", "x_mm"),
                                                           shape, strict=True)}
@@ -236,7 +250,7 @@ def bench_write_behind(quick: bool = False, repeats: int = 3, scene_name: str = 
         for b, g in bufs:
             fbp.backproject_interleaved(b, g, geom, runtime=rt)
 
-    def once(folder: Path, background: bool) -> tuple[float, list]:
+    def once(folder: Path, background: bool) -> tuple[float, dict, float]:
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir(parents=True)
         w = VolumeWriter(folder / "volumes.h5", axes, True, True, run_key="bench", dtype="float16", compression="lzf")
@@ -251,27 +265,26 @@ def bench_write_behind(quick: bool = False, repeats: int = 3, scene_name: str = 
         wb.close()
         # the units' values (by stem): LZF output is not byte-reproducible (h5py's liblzf leaves its
         # hash table uninitialised), so neither are the unit files' BLAKE2b names; the values are
-        names = {p.name.rsplit(".", 2)[0]: hashlib.blake2b(units.read_unit(p)[0]["data"].tobytes()).hexdigest()
-                 for p in folder.glob("volumes.d/*/recon~*")}
+        values = {p.name.rsplit(".", 2)[0]: hashlib.blake2b(units.read_unit(p)[0]["data"].tobytes()).hexdigest()
+                  for p in folder.glob("volumes.d/*/recon~*")}
         w.abort()
         shutil.rmtree(folder, ignore_errors=True)
-        return wall, names, wb.beside_seconds
+        return wall, values, wb.beside_seconds
 
     backproject()  # warm-up: kernel build, PoCL specialisation
     t_bp = []
     times: dict = {"foreground": [], "behind": []}
     writes: list = []
-    names: dict = {}
+    values: dict = {}
     load = [load1()]
     with tempfile.TemporaryDirectory(prefix="clrecon-bench-write-behind-") as tmp:
         for r in range(max(1, repeats)):
             for mode in (("foreground", "behind") if r % 2 == 0 else ("behind", "foreground")):
-                wall, nm, own = once(Path(tmp) / mode, mode == "behind")
+                wall, values[mode], own = once(Path(tmp) / mode, mode == "behind")
                 times[mode].append(wall)
-                names[mode] = nm
                 if mode == "foreground":
                     writes.append(own)
-            t_bp.append(_timed_s(backproject))
+            t_bp.append(timed(backproject))
         load.append(load1())
     for b, _ in bufs:
         b.release()
@@ -280,14 +293,8 @@ def bench_write_behind(quick: bool = False, repeats: int = 3, scene_name: str = 
             "median_s": med, "backproject_step_s": float(np.median(t_bp)),
             "write_step_s": float(np.median(writes)) / steps,
             "speedup": med["foreground"] / med["behind"] if med["behind"] > 0 else float("nan"),
-            "identical": names["foreground"] == names["behind"] and len(names["behind"]) == steps,
+            "identical": values["foreground"] == values["behind"] and len(values["behind"]) == steps,
             "load": load, "repeats": max(1, repeats)}
-
-
-def _timed_s(fn) -> float:
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
 
 
 def bench_simulate_behind(quick: bool = False, repeats: int = 3, scene_name: str = "demo") -> dict:
@@ -298,26 +305,19 @@ def bench_simulate_behind(quick: bool = False, repeats: int = 3, scene_name: str
     times: dict = {"foreground": [], "behind": []}
     digests: dict = {}
     load = [load1()]
-    saved = os.environ.get("CLRECON_WRITE_BEHIND")
-    try:
-        with tempfile.TemporaryDirectory(prefix="clrecon-bench-simulate-") as tmp:
-            for r in range(max(1, repeats)):
-                for mode in (("foreground", "behind") if r % 2 == 0 else ("behind", "foreground")):
-                    os.environ["CLRECON_WRITE_BEHIND"] = "1" if mode == "behind" else "0"
-                    d = Path(tmp) / f"{mode}{r}"
-                    t0 = time.perf_counter()
-                    stores = [simulate_mod.simulate(sc, p, cache_dir=d, progress=False) for p in pitches]
-                    times[mode].append(time.perf_counter() - t0)
-                    digests[mode] = [hashlib.blake2b(s_.read(0, len(s_)).tobytes()).hexdigest() for s_ in stores]
-                    for s_ in stores:
-                        s_.close()
-                    shutil.rmtree(d, ignore_errors=True)
-            load.append(load1())
-    finally:
-        if saved is None:
-            os.environ.pop("CLRECON_WRITE_BEHIND", None)
-        else:
-            os.environ["CLRECON_WRITE_BEHIND"] = saved
+    with _environ(write_behind.ENV), tempfile.TemporaryDirectory(prefix="clrecon-bench-simulate-") as tmp:
+        for r in range(max(1, repeats)):
+            for mode in (("foreground", "behind") if r % 2 == 0 else ("behind", "foreground")):
+                os.environ[write_behind.ENV] = "1" if mode == "behind" else "0"
+                d = Path(tmp) / f"{mode}{r}"
+                t0 = time.perf_counter()
+                stores = [simulate_mod.simulate(sc, p, cache_dir=d, progress=False) for p in pitches]
+                times[mode].append(time.perf_counter() - t0)
+                digests[mode] = [hashlib.blake2b(s_.read(0, len(s_)).tobytes()).hexdigest() for s_ in stores]
+                for s_ in stores:
+                    s_.close()
+                shutil.rmtree(d, ignore_errors=True)
+        load.append(load1())
     med = {k: float(np.median(v)) for k, v in times.items()}
     return {"scene": scene_name, "pitches": list(pitches), "median_s": med,
             "speedup": med["foreground"] / med["behind"] if med["behind"] > 0 else float("nan"),
@@ -370,7 +370,6 @@ def bench_metrics(quick: bool = False, repeats: int = 3, scene_name: str = "demo
     times: dict = {"1": [], "2": []}
     results: dict = {}
     load = [load1()]
-    saved = os.environ.get(evaluate_mod.PROCESSES_ENV)
     with tempfile.TemporaryDirectory(prefix="clrecon-bench-metrics-") as tmp:
         w = VolumeWriter(Path(tmp) / "volumes.h5", axes, True, True, run_key="bench", compression="none")
         for k, name in enumerate(names):
@@ -378,18 +377,15 @@ def bench_metrics(quick: bool = False, repeats: int = 3, scene_name: str = "demo
             w.write(name, _ct_pattern(shape, k), np.arange(len(z)))
         f = w.assemble()
         try:
-            for _ in range(max(1, repeats)):
-                for n in ("1", "2"):
-                    os.environ[evaluate_mod.PROCESSES_ENV] = n
-                    t0 = time.perf_counter()
-                    out = evaluate_mod.evaluate(scene, f, targets, z, pitches, variants, methods, phantom)
-                    times[n].append(time.perf_counter() - t0)
-                    results[n] = json.dumps(out, sort_keys=True)
+            with _environ(evaluate_mod.PROCESSES_ENV):
+                for _ in range(max(1, repeats)):
+                    for n in ("1", "2"):
+                        os.environ[evaluate_mod.PROCESSES_ENV] = n
+                        t0 = time.perf_counter()
+                        out = evaluate_mod.evaluate(scene, f, targets, z, pitches, variants, methods, phantom)
+                        times[n].append(time.perf_counter() - t0)
+                        results[n] = json.dumps(out, sort_keys=True)
         finally:
-            if saved is None:
-                os.environ.pop(evaluate_mod.PROCESSES_ENV, None)
-            else:
-                os.environ[evaluate_mod.PROCESSES_ENV] = saved
             w.close()
         load.append(load1())
     med = {k: float(np.median(v)) for k, v in times.items()}

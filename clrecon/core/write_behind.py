@@ -30,14 +30,16 @@ raised again in the run's thread at the next :meth:`submit` or at :meth:`drain`.
 from __future__ import annotations
 
 import os
-import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+
+#: The switch: ``0`` / ``false`` / ``no`` / ``off`` writes in the caller's thread.
+ENV = "CLRECON_WRITE_BEHIND"
 
 
 def enabled() -> bool:
     """Whether volume units are written behind the reconstruction (``CLRECON_WRITE_BEHIND``, default on)."""
-    return os.environ.get("CLRECON_WRITE_BEHIND", "1").strip().lower() not in ("0", "false", "no", "off")
+    return os.environ.get(ENV, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
 def extra_bytes(slab_slices: int, n_targets: int, ny: int, nx: int, volume_itemsize: int) -> int:
@@ -60,7 +62,6 @@ class WriteBehind:
         self.background = enabled() if background is None else bool(background)
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="clrecon-write") if self.background else None
         self._pending: Future | None = None
-        self._lock = threading.Lock()
         self.wait_seconds = 0.0
         self.beside_seconds = 0.0
 
@@ -69,8 +70,8 @@ class WriteBehind:
         try:
             fn(*args)
         finally:
-            with self._lock:
-                self.beside_seconds += time.perf_counter() - t0
+            # one writer at a time (the thread, or the caller in foreground mode); read after a wait
+            self.beside_seconds += time.perf_counter() - t0
 
     def submit(self, fn, *args) -> None:
         """Run ``fn(*args)`` after the previous call (waiting for that one first); errors of the
