@@ -167,18 +167,28 @@ __kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinn
 }
 
 // apply_weights straight into the batched backprojector's layout (clrecon.reconstruction.fbp.interleave_batch):
-// out16[g][v][cp][lane] = sum_k weight[b, v, k] * rows[index[b, v, k], clamp(cp - 1, 0, C - 1)]
-// with b = 16 g + lane, cp = 0 .. n_cols + 1 (one replica of each edge column on either side).
+// out16[g][v][cp][lane] = sum_k weight16[g, v, k, lane] * rows[index16[g, v, k, lane], clamp(cp - 1, 0, C - 1)]
+// for sinogram b = 16 g + lane, cp = 0 .. n_cols + 1 (one replica of each edge column on either side).
 // The sinograms never go back to the host: (filtered) rows in, backprojector input out.
-// Work-item (cp, v, g) owns its 16 output floats; neighbouring work-items read neighbouring
-// columns of the same rows. Zero weights are skipped (never read their row).
+//
+// Work-item (cp, v, g) owns the 16 lanes of one column. The slot count is the build option
+// APPLY_K (one build per K, the loop unrolled) and a zero weight is a select, not a branch: with
+// no loop left inside the work-item, PoCL vectorises across work-items (neighbouring columns of the
+// same rows); the index and weight are lane-inner (G, V, K, 16), one vload16 each per slot, and the
+// 16 lanes go out in one vstore16. The host puts index 0 wherever the weight is 0, so the row read
+// there is in range, and the select keeps whatever it holds (a NaN too) out of the sum. Per lane the
+// slots are summed in k order exactly as the loop with a branch did (until 2026-12-03: a dynamic K,
+// `if (w != 0)`, lane-major index/weight; bit-identical sums, 1.6-2.2x slower: docs/algorithms.md).
+#ifndef APPLY_K
+#define APPLY_K 1
+#endif
+#define APPLY_ROW(s) r.s = rows[(size_t)ik.s * (size_t)n_cols + (size_t)col];
 __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, n_cols)
-                                          __global const int *index,     // (16 G, n_views, k_slots) into P
-                                          __global const float *weight,  // (16 G, n_views, k_slots)
+                                          __global const int *index,     // (G, n_views, APPLY_K, 16) into P
+                                          __global const float *weight,  // (G, n_views, APPLY_K, 16)
                                           __global float *out,           // (G, n_views, n_cols + 2, 16)
                                           const int n_views,
-                                          const int n_cols,
-                                          const int k_slots)
+                                          const int n_cols)
 {
     const int cp = get_global_id(0);
     const int v = get_global_id(1);
@@ -186,15 +196,18 @@ __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, 
     if (cp >= n_cols + 2 || v >= n_views)
         return;
     const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
-    __global float *o = out + (((size_t)g * n_views + v) * (size_t)(n_cols + 2) + (size_t)cp) * 16;
-    for (int lane = 0; lane < 16; ++lane) {
-        const size_t slot = ((size_t)(g * 16 + lane) * (size_t)n_views + (size_t)v) * (size_t)k_slots;
-        float acc = 0.0f;
-        for (int k = 0; k < k_slots; ++k) {
-            const float wk = weight[slot + k];
-            if (wk != 0.0f)
-                acc += wk * rows[(size_t)index[slot + k] * (size_t)n_cols + (size_t)col];
-        }
-        o[lane] = acc;
+    const size_t gv = (size_t)g * n_views + v;
+    const size_t slot = gv * (size_t)APPLY_K * 16;
+    float16 acc = (float16)(0.0f);
+#pragma unroll
+    for (int k = 0; k < APPLY_K; ++k) {
+        const float16 wk = vload16(0, weight + slot + k * 16);
+        const int16 ik = vload16(0, index + slot + k * 16);
+        float16 r;
+        APPLY_ROW(s0) APPLY_ROW(s1) APPLY_ROW(s2) APPLY_ROW(s3) APPLY_ROW(s4) APPLY_ROW(s5) APPLY_ROW(s6) APPLY_ROW(s7)
+        APPLY_ROW(s8) APPLY_ROW(s9) APPLY_ROW(sa) APPLY_ROW(sb) APPLY_ROW(sc) APPLY_ROW(sd) APPLY_ROW(se) APPLY_ROW(sf)
+        acc = wk != 0.0f ? acc + wk * r : acc;
     }
+    vstore16(acc, 0, out + (gv * (size_t)(n_cols + 2) + (size_t)cp) * 16);
 }
+#undef APPLY_ROW

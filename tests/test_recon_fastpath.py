@@ -30,10 +30,12 @@ def _read_interleaved(buf, G, V, C, rt):
     return out
 
 
-@pytest.mark.parametrize("B", [1, 16, 21, 40])
-def test_apply_weights_interleaved_matches_reference(B):
+@pytest.mark.parametrize("B,K", [(1, 3), (16, 3), (21, 3), (40, 3), (21, 1), (17, 2), (33, 5), (21, 8)])
+def test_apply_weights_interleaved_matches_reference(B, K):
+    """Every slot count the methods use (one kernel build per K: nearest 1, r4dct 2, barycentric 3,
+    bin 5, local linear 8), batches that fill no, one or several whole 16-lane groups."""
     rng = np.random.default_rng(B)
-    P, V, K, C = 30, 7, 3, 25
+    P, V, C = 30, 7, 25
     rows = rng.standard_normal((P, C)).astype(np.float32)
     rows[5] = np.nan  # only ever pointed to by zero weights: must not leak
     idx = rng.integers(0, P, (B, V, K))
@@ -48,6 +50,44 @@ def test_apply_weights_interleaved_matches_reference(B):
     ref = ip.apply_weights_reference(np.nan_to_num(rows), idx.reshape(-1, K), w.reshape(-1, K)).reshape(B, V, C)
     assert G == -(-B // 16)
     assert _rel(got, fbp.interleave_batch(ref.astype(np.float32))) < TOL["interleaved_apply"]
+
+
+def test_launch_scratch_buffers_reused():
+    """The reconstruction's scratch: the interleaved sinograms written into a kept buffer and the
+    images into a kept device buffer and host array give what fresh buffers give, launch after
+    launch (a smaller launch into the same buffers too), and a buffer too small is refused."""
+    rng = np.random.default_rng(4)
+    P, V, K, C = 40, GEOM.n_views, 3, GEOM.n_cols
+    rows = rng.standard_normal((P, C)).astype(np.float32)
+    dr = ip.DeviceRows(rows)
+    rt = dr.rt
+    d_sino = rt.empty((2, V, C + 2, 16))
+    d_img = rt.empty((32, GEOM.ny, GEOM.nx))
+    host = np.empty((32, GEOM.ny, GEOM.nx), np.float32)
+    try:
+        for B in (32, 7, 32):
+            idx = rng.integers(0, P, (B, V, K))
+            w = rng.standard_normal((B, V, K)).astype(np.float32)
+            pi, pw = ip.pad_interleaved(idx, w)
+            fresh, G = ip.apply_padded_interleaved(dr, pi, pw, B)
+            kept, G2 = ip.apply_padded_interleaved(dr, pi, pw, B, out=d_sino)
+            assert kept is d_sino and G2 == G
+            np.testing.assert_array_equal(_read_interleaved(kept, G, V, C, rt), _read_interleaved(fresh, G, V, C, rt))
+            a = fbp.backproject_interleaved(fresh, G, GEOM)
+            b = fbp.backproject_interleaved(kept, G, GEOM, out_buf=d_img, out=host)
+            assert b.base is host or b is host
+            np.testing.assert_array_equal(a, b)
+            fresh.release()
+        with pytest.raises(ValueError, match="out: a buffer of"):
+            ip.apply_padded_interleaved(dr, pi, pw, 48, out=d_sino)
+        with pytest.raises(ValueError, match="out_buf: a buffer of"):
+            fbp.backproject_interleaved(d_sino, 3, GEOM, out_buf=d_img)
+        with pytest.raises(ValueError, match="out: expected"):
+            fbp.backproject_interleaved(d_sino, 2, GEOM, out=np.empty((32, GEOM.ny, GEOM.nx + 1), np.float32))
+    finally:
+        dr.release()
+        d_sino.release()
+        d_img.release()
 
 
 def test_apply_weights_interleaved_checks():

@@ -509,20 +509,29 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
         d_rows = interpolate.DeviceRows(rows.pop(v), rt=rt)  # the host copy is not needed any more
         t_upload = time.perf_counter() - t1
         times.add("interpolate", t_upload)
+        # one launch's interleaved sinograms and images, allocated once per variant and reused by
+        # every launch: fresh buffers of these sizes (paper-p010: 114 MB of sinograms, 2 x 34 MB of
+        # images per launch) are new pages each time, and their first touch cost as much as the
+        # interpolation kernel itself (docs/algorithms.md, "Scratch buffers")
+        n_launch = -(-step // fbp_mod.BATCH_LANES)
+        d_sino = rt.empty((n_launch, geom.n_views, geom.n_cols + 2, fbp_mod.BATCH_LANES))
+        d_img = rt.empty((step, geom.ny, geom.nx)) if par is None else None
+        mu_host = np.empty((step, geom.ny, geom.nx), np.float32) if par is None else None
         try:
             for m, (pos_b, w_b, tshape, B) in per_method.items():
                 img = np.empty((B, geom.ny, geom.nx), np.float32)
                 t_interp = t_fbp = 0.0
                 for b0 in range(0, B, step):
                     t1 = time.perf_counter()
-                    buf, G = interpolate.apply_padded_interleaved(d_rows, pos_b[b0:b0 + step], w_b[b0:b0 + step],
-                                                                  min(step, B - b0), rt=rt)
+                    g0 = b0 // fbp_mod.BATCH_LANES  # the padded weights are (G, V, K, 16): whole groups
+                    g1 = -(-(b0 + step) // fbp_mod.BATCH_LANES)
+                    buf, G = interpolate.apply_padded_interleaved(d_rows, pos_b[g0:g1], w_b[g0:g1],
+                                                                  min(step, B - b0), rt=rt, out=d_sino)
                     t2 = time.perf_counter()
                     if par is None:
-                        mu = fbp_mod.backproject_interleaved(buf, G, geom, runtime=rt)
+                        mu = fbp_mod.backproject_interleaved(buf, G, geom, runtime=rt, out_buf=d_img, out=mu_host)
                     else:
                         mu = par.images(buf, G)
-                    buf.release()
                     n = min(step, B - b0)
                     # HU = 1000 (mu - mu_w) / mu_w (conventions.mu_to_hu), in float32 in place
                     np.multiply(mu[:n], np.float32(1000.0 / mu_water), out=img[b0:b0 + n])
@@ -541,6 +550,9 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
                     progress.update(s1 - s0)
         finally:
             d_rows.release()
+            d_sino.release()
+            if d_img is not None:
+                d_img.release()
     if par is not None:
         par.release()
 

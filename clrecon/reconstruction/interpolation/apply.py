@@ -141,38 +141,52 @@ def apply_weights_interleaved(rows: DeviceRows, index, weight, rt=None):
 
 
 def pad_interleaved(index: np.ndarray, weight: np.ndarray):
-    """``(index, weight)`` (B, V, K) as the padded int32/float32 pair that
-    :func:`apply_padded_interleaved` takes: B rounded up to a multiple of 16 with zero-weight
-    sinograms, index 0 wherever the weight is 0. The caller guarantees that every index with
-    non-zero weight lies in ``[0, P)`` (the reconstruction makes them so); done once per method
-    instead of once per launch."""
+    """``(index, weight)`` (B, V, K) as the lane-inner int32/float32 pair that
+    :func:`apply_padded_interleaved` takes, each (G, V, K, 16) with G = ceil(B / 16): sinogram
+    ``16 g + lane`` in lane ``lane`` of group ``g``, the lanes beyond B zero-weight sinograms,
+    index 0 wherever the weight is 0. The caller guarantees that every index with non-zero weight
+    lies in ``[0, P)`` (the reconstruction makes them so); done once per method instead of once
+    per launch."""
     B, V, K = index.shape
     G = max(1, -(-B // 16))
-    idx = np.zeros((G * 16, V, K), np.int32)
-    wgt = np.zeros((G * 16, V, K), np.float32)
-    idx[:B] = np.where(weight != 0, index, 0)
-    wgt[:B] = weight
+    idx = np.zeros((G, V, K, 16), np.int32)
+    wgt = np.zeros((G, V, K, 16), np.float32)
+    full = B // 16  # whole groups, then the part-filled last one
+    if full:
+        idx[:full] = np.where(weight[:16 * full] != 0, index[:16 * full], 0).reshape(full, 16, V, K).transpose(0, 2, 3, 1)
+        wgt[:full] = weight[:16 * full].reshape(full, 16, V, K).transpose(0, 2, 3, 1)
+    rest = B - 16 * full
+    if rest:
+        idx[full, ..., :rest] = np.where(weight[16 * full:] != 0, index[16 * full:], 0).transpose(1, 2, 0)
+        wgt[full, ..., :rest] = weight[16 * full:].transpose(1, 2, 0)
     return idx, wgt
 
 
-def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray, B: int, rt=None):
+def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray, B: int, rt=None, out=None):
     """:func:`apply_weights_interleaved` of already padded, checked arrays (:func:`pad_interleaved`):
-    ``idx`` int32 and ``wgt`` float32 of shape (16 G, V, K), of which the first ``B`` sinograms are
-    real. No validation here (the public function does it)."""
+    ``idx`` int32 and ``wgt`` float32 of shape (G, V, K, 16) (a slice of whole groups), of which
+    the first ``B`` sinograms are real. No validation here (the public function does it).
+
+    ``out``: a device buffer of at least G V (C + 2) 16 floats to write into (and return) instead
+    of a new one; the caller keeps it from launch to launch (a new buffer of this size is fresh
+    memory: on the 2-core machine its first touch costs about 0.7 ms per MB, as much as the kernel)."""
     P, C = rows.shape
     rt = rt or rows.rt
-    V, K = idx.shape[1:]
+    V, K = idx.shape[1:3]
     G = max(1, -(-B // 16))
-    d_out = rt.empty((G, V, C + 2, 16), np.float32)
+    nbytes = G * V * (C + 2) * 16 * 4
+    if out is not None and out.size < nbytes:
+        raise ValueError(f"out: a buffer of {out.size} bytes, the launch writes {nbytes}")
+    d_out = rt.empty((G, V, C + 2, 16), np.float32) if out is None else out
     if B == 0 or P == 0 or C == 0 or V == 0 or K == 0:
         rt.cl.enqueue_fill_buffer(rt.queue, d_out, np.float32(0), 0, G * V * (C + 2) * 16 * 4).wait()
         return d_out, G
-    idx, wgt = idx[:G * 16], wgt[:G * 16]
-    knl = rt.kernel("interp.cl", "apply_weights_interleaved16")
+    idx, wgt = idx[:G], wgt[:G]
+    knl = rt.kernel("interp.cl", "apply_weights_interleaved16", APPLY_K=int(K))  # one build per slot count
     d_idx = rt.to_device(idx, np.int32, "index")
     d_w = rt.to_device(wgt, np.float32, "weight")
     ev = knl(rt.queue, (-(-(C + 2) // _LOCAL) * _LOCAL, V, G), (_LOCAL, 1, 1), rows.buf, d_idx, d_w, d_out,
-             np.int32(V), np.int32(C), np.int32(K))
+             np.int32(V), np.int32(C))
     ev.wait()
     d_idx.release()
     d_w.release()
