@@ -211,3 +211,35 @@ __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, 
     vstore16(acc, 0, out + (gv * (size_t)(n_cols + 2) + (size_t)cp) * 16);
 }
 #undef APPLY_ROW
+
+// The reconstruction's kernel until 2026-12-03, kept as the same-run reference of
+// `bench --only levers` ("interpolation launch"): apply_weights_interleaved16's sums with a run-time
+// slot count, a branch per zero weight and lane-major index/weight (16 G, n_views, k_slots); the
+// loops inside the work-item keep PoCL from vectorising it (docs/algorithms.md, "Making kernels
+// fast on PoCL"). Same output, bit for bit.
+__kernel void apply_weights_interleaved16_loop(__global const float *rows,    // (P, n_cols)
+                                               __global const int *index,     // (16 G, n_views, k_slots) into P
+                                               __global const float *weight,  // (16 G, n_views, k_slots)
+                                               __global float *out,           // (G, n_views, n_cols + 2, 16)
+                                               const int n_views,
+                                               const int n_cols,
+                                               const int k_slots)
+{
+    const int cp = get_global_id(0);
+    const int v = get_global_id(1);
+    const int g = get_global_id(2);
+    if (cp >= n_cols + 2 || v >= n_views)
+        return;
+    const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
+    __global float *o = out + (((size_t)g * n_views + v) * (size_t)(n_cols + 2) + (size_t)cp) * 16;
+    for (int lane = 0; lane < 16; ++lane) {
+        const size_t slot = ((size_t)(g * 16 + lane) * (size_t)n_views + (size_t)v) * (size_t)k_slots;
+        float acc = 0.0f;
+        for (int k = 0; k < k_slots; ++k) {
+            const float wk = weight[slot + k];
+            if (wk != 0.0f)
+                acc += wk * rows[(size_t)index[slot + k] * (size_t)n_cols + (size_t)col];
+        }
+        o[lane] = acc;
+    }
+}

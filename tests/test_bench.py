@@ -170,3 +170,10 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
     assert sb["identical"] is True and sb["scene"] == "tiny" and set(sb["median_s"]) == {"behind", "foreground"}
     assert sb["speedup"] == pytest.approx(sb["median_s"]["foreground"] / sb["median_s"]["behind"])
     assert "simulation written behind" in text
+    il = res["interp_launch"]  # now against before on the same launches: the same images
+    assert il["scene"] == "tiny" and set(il["by_k"]) == {"3", "8"}
+    for r in il["by_k"].values():
+        assert r["identical"] is True and set(r["median_s"]) == {"before", "fresh", "now"}
+        assert r["speedup"] == pytest.approx(r["median_s"]["before"] / r["median_s"]["now"])
+        assert r["speedup"] == pytest.approx(r["kernel_speedup"] * r["scratch_speedup"])
+    assert "interpolation + backprojection launches" in text

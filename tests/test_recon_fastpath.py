@@ -52,6 +52,33 @@ def test_apply_weights_interleaved_matches_reference(B, K):
     assert _rel(got, fbp.interleave_batch(ref.astype(np.float32))) < TOL["interleaved_apply"]
 
 
+@pytest.mark.parametrize("B,K", [(21, 3), (16, 1), (33, 8)])
+def test_loop_kernel_reference_matches(B, K):
+    """The bench's reference kernel (the reconstruction's until 2026-12-03) against the float64
+    reference, and bit for bit against the vectorised kernel (same sums in the same order)."""
+    from clrecon.reconstruction.interpolation.apply import apply_interleaved_loop
+
+    rng = np.random.default_rng(100 + B)
+    P, V, C = 30, 7, 25
+    rows = rng.standard_normal((P, C)).astype(np.float32)
+    rows[5] = np.nan
+    idx = rng.integers(0, P, (B, V, K))
+    w = rng.standard_normal((B, V, K)).astype(np.float32)
+    w[idx == 5] = 0.0
+    w[rng.random(w.shape) < 0.2] = 0.0
+    dr = ip.DeviceRows(rows)
+    try:
+        old, G = apply_interleaved_loop(dr, idx, w)
+        new, G2 = ip.apply_weights_interleaved(dr, idx, w)
+        got_old, got_new = _read_interleaved(old, G, V, C, dr.rt), _read_interleaved(new, G2, V, C, dr.rt)
+    finally:
+        dr.release()
+    ref = ip.apply_weights_reference(np.nan_to_num(rows), idx.reshape(-1, K), w.reshape(-1, K)).reshape(B, V, C)
+    assert G == G2 == -(-B // 16)
+    assert _rel(got_old, fbp.interleave_batch(ref.astype(np.float32))) < TOL["interleaved_apply"]
+    assert np.array_equal(got_old.view(np.uint32), got_new.view(np.uint32))
+
+
 def test_launch_scratch_buffers_reused():
     """The reconstruction's scratch: the interleaved sinograms written into a kept buffer and the
     images into a kept device buffer and host array give what fresh buffers give, launch after
@@ -241,6 +268,9 @@ def test_oclgrind_interleaved_apply_and_noise(capfd):
     ref = fbp.interleave_batch(ip.apply_weights_reference(rows, idx.reshape(-1, 2), w.reshape(-1, 2))
                                .reshape(19, 3, 11).astype(np.float32))
     assert _rel(got, ref) < TOL["interleaved_apply"]
+    from clrecon.reconstruction.interpolation.apply import apply_interleaved_loop  # the bench's reference kernel
+    buf, G = apply_interleaved_loop(dr, idx, w, rt=rt)
+    assert _rel(rt.from_device(buf, (G, 3, 13, 16)), ref) < TOL["interleaved_apply"]
     p = rng.uniform(0, 12, (2, 3, 25)).astype(np.float32)  # 75 cells: padded to 128
     cfg = NoiseConfig(i0_photons=50.0, seed=2)              # both passes run
     np.testing.assert_array_equal(noise.add_noise(p, np.array([3, 9]), cfg, rt=rt),

@@ -30,7 +30,13 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   compared;
 - ``posing``: the analytic phantom posed at demo's first pitch-0.02 projection states in calls
   of one block (:data:`clrecon.simulation.simulate.BLOCK_CHUNKS` chunks, the simulation's
-  calls since 2026-12-02) against calls of one 256-projection chunk (before).
+  calls since 2026-12-02) against calls of one 256-projection chunk (before);
+- ``interp_launch``: the reconstruction's launches at paper-p010's shape (32 sinograms of 984
+  views x 900 columns interpolated from 40 candidate rows per view, 142 MB of rows, then
+  backprojected to 512^2), for K = 3 (barycentric) and 8 (local linear) slots: the vectorised
+  interpolation kernel into kept scratch buffers (the reconstruction since 2026-12-03) against
+  the loop kernel into fresh buffers (before), and the vectorised kernel into fresh buffers
+  between them (which of the two changes gives what); the images compared for bit identity.
 """
 
 from __future__ import annotations
@@ -395,6 +401,75 @@ def bench_metrics(quick: bool = False, repeats: int = 3, scene_name: str = "demo
             "identical": results["1"] == results["2"], "load": load, "repeats": max(1, repeats)}
 
 
+def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str = "paper-p010") -> dict:
+    """Seconds of the reconstruction's interpolation + backprojection launches, now against before
+    (module docstring)."""
+    from clrecon.reconstruction.interpolation import apply as apply_mod
+
+    sc = _scene(scene_name)
+    rt = get_runtime()
+    geom = fbp.FanBeamGeometry.from_scene(sc)
+    V, C = geom.n_views, geom.n_cols
+    n_cand, launches = (10, 1) if quick else (40, 3)
+    step = fbp.groups_per_launch(geom) * fbp.BATCH_LANES
+    G = step // fbp.BATCH_LANES
+    rng = np.random.default_rng(7)
+    d_rows = apply_mod.DeviceRows(rng.standard_normal((V * n_cand, C)).astype(np.float32), rt=rt)
+    d_sino = rt.empty((G, V, C + 2, fbp.BATCH_LANES))
+    d_img = rt.empty((step, geom.ny, geom.nx))
+    host = np.empty((step, geom.ny, geom.nx), np.float32)
+    out: dict = {}
+    load = [load1()]
+    try:
+        for K in (3, 8):
+            idx = (np.arange(V)[None, :, None] * n_cand + rng.integers(0, n_cand, (step, V, K))).astype(np.int32)
+            w = rng.random((step, V, K)).astype(np.float32)
+            w[rng.random(w.shape) < 0.1] = 0.0
+            pi, pw = apply_mod.pad_interleaved(idx, w)
+            images: dict = {}
+
+            def before(K=K, idx=idx, w=w, images=images):
+                for _ in range(launches):
+                    buf, g = apply_mod.apply_interleaved_loop(d_rows, idx, w, rt=rt)
+                    images["before"] = fbp.backproject_interleaved(buf, g, geom, runtime=rt)
+                    buf.release()
+
+            def fresh(pi=pi, pw=pw, images=images):
+                for _ in range(launches):
+                    buf, g = apply_mod.apply_padded_interleaved(d_rows, pi, pw, step, rt=rt)
+                    images["fresh"] = fbp.backproject_interleaved(buf, g, geom, runtime=rt)
+                    buf.release()
+
+            def now(pi=pi, pw=pw, images=images):
+                for _ in range(launches):
+                    buf, g = apply_mod.apply_padded_interleaved(d_rows, pi, pw, step, rt=rt, out=d_sino)
+                    images["now"] = fbp.backproject_interleaved(buf, g, geom, runtime=rt, out_buf=d_img,
+                                                                out=host).copy()
+
+            modes = {"before": before, "fresh": fresh, "now": now}
+            for fn in modes.values():
+                fn()  # warm-up: the kernel builds (one per K)
+            times: dict = {k: [] for k in modes}
+            for r in range(max(1, repeats)):
+                for name in (list(modes) if r % 2 == 0 else list(modes)[::-1]):
+                    times[name].append(timed(modes[name]))
+            med = {k: float(np.median(v)) for k, v in times.items()}
+            same = all(np.array_equal(images["before"].view(np.uint32), images[k].view(np.uint32))
+                       for k in ("fresh", "now"))
+            out[str(K)] = {"median_s": med, "speedup": med["before"] / med["now"] if med["now"] > 0 else float("nan"),
+                           "kernel_speedup": med["before"] / med["fresh"] if med["fresh"] > 0 else float("nan"),
+                           "scratch_speedup": med["fresh"] / med["now"] if med["now"] > 0 else float("nan"),
+                           "identical": bool(same)}
+    finally:
+        d_rows.release()
+        d_sino.release()
+        d_img.release()
+    load.append(load1())
+    return {"scene": sc.name, "sinograms_per_launch": step, "launches": launches, "views": V, "columns": C,
+            "candidates_per_view": n_cand, "rows_bytes": int(V * n_cand * C * 4), "image": [geom.ny, geom.nx],
+            "by_k": out, "load": load, "repeats": max(1, repeats)}
+
+
 def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo",
                  write_scene: str = "paper-p010", simulate_scene: str = "demo") -> dict:
     """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and
@@ -404,7 +479,8 @@ def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "de
             "write_behind": bench_write_behind(quick, repeats, write_scene),
             "simulate_behind": bench_simulate_behind(quick, repeats, simulate_scene),
             "metrics": bench_metrics(quick, repeats, metrics_scene),
-            "posing": bench_posing(quick, repeats)}
+            "posing": bench_posing(quick, repeats),
+            "interp_launch": bench_interp_launch(quick, repeats, write_scene)}
 
 
 def report_lines(res: dict | None) -> list[str]:
@@ -431,7 +507,24 @@ def report_lines(res: dict | None) -> list[str]:
         f"   phantom posing, {p['states']} demo states: blocks of {p['block']} {p['median_s']['block']:.2f} s, "
         f"chunks of {p['chunk']} {p['median_s']['chunk']:.2f} s: speedup {p['speedup']:.2f}x "
         f"(load {p['load'][0]:.1f} -> {p['load'][-1]:.1f})",
+        *_interp_launch_lines(res.get("interp_launch")),
     ]
+
+
+def _interp_launch_lines(a: dict | None) -> list[str]:
+    if not a:
+        return []
+    head = (f"   interpolation + backprojection launches, {a['scene']}: {a['launches']} x {a['sinograms_per_launch']} "
+            f"sinograms of {a['views']} x {a['columns']} from {a['candidates_per_view']} rows per view "
+            f"({a['rows_bytes'] / 1e6:.0f} MB), {a['image'][0]}x{a['image'][1]}:")
+    lines = [head]
+    for k, r in a["by_k"].items():
+        m = r["median_s"]
+        lines.append(f"     K = {k}: now {m['now']:.2f} s, before {m['before']:.2f} s: speedup {r['speedup']:.2f}x "
+                     f"(vectorised kernel {r['kernel_speedup']:.2f}x, scratch buffers {r['scratch_speedup']:.2f}x), "
+                     f"images {'bit-identical' if r['identical'] else 'DIFFERENT'}")
+    lines[-1] += f" (load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"
+    return lines
 
 
 def _assembly_lines(a: dict | None) -> list[str]:

@@ -481,7 +481,8 @@ def backproject_interleaved(sino16, n_groups: int, geom: FanBeamGeometry, *, run
     if out is None:
         res = rt.from_device(d_out, shape, wait_for=[ev])
     else:
-        if out.dtype != np.float32 or out.shape[1:] != shape[1:] or out.shape[0] < shape[0] or not out.flags.c_contiguous:
+        fits = out.dtype == np.float32 and out.shape[1:] == shape[1:] and out.shape[0] >= shape[0]
+        if not (fits and out.flags.c_contiguous):
             raise ValueError(f"out: expected a C-contiguous float32 array of >= {shape[0]} images of "
                              f"{shape[1:]}, got {out.dtype} {out.shape}")
         res = out[:shape[0]]

@@ -153,7 +153,8 @@ def pad_interleaved(index: np.ndarray, weight: np.ndarray):
     wgt = np.zeros((G, V, K, 16), np.float32)
     full = B // 16  # whole groups, then the part-filled last one
     if full:
-        idx[:full] = np.where(weight[:16 * full] != 0, index[:16 * full], 0).reshape(full, 16, V, K).transpose(0, 2, 3, 1)
+        live = np.where(weight[:16 * full] != 0, index[:16 * full], 0)
+        idx[:full] = live.reshape(full, 16, V, K).transpose(0, 2, 3, 1)
         wgt[:full] = weight[:16 * full].reshape(full, 16, V, K).transpose(0, 2, 3, 1)
     rest = B - 16 * full
     if rest:
@@ -188,6 +189,31 @@ def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray,
     ev = knl(rt.queue, (-(-(C + 2) // _LOCAL) * _LOCAL, V, G), (_LOCAL, 1, 1), rows.buf, d_idx, d_w, d_out,
              np.int32(V), np.int32(C))
     ev.wait()
+    d_idx.release()
+    d_w.release()
+    return d_out, G
+
+
+def apply_interleaved_loop(rows: DeviceRows, index: np.ndarray, weight: np.ndarray, rt=None, out=None):
+    """The reconstruction's interpolation kernel until 2026-12-03 (``apply_weights_interleaved16_loop``):
+    :func:`apply_weights_interleaved`'s output, bit for bit, from lane-major (B, V, K) ``index`` /
+    ``weight`` with a run-time slot count. Kept as ``bench --only levers``' same-run reference;
+    the reconstruction does not use it. No validation (indices with non-zero weight in [0, P)).
+    Returns ``(buffer, n_groups)``; ``out`` as in :func:`apply_padded_interleaved`."""
+    P, C = rows.shape
+    rt = rt or rows.rt
+    B, V, K = index.shape
+    G = max(1, -(-B // 16))
+    idx = np.zeros((G * 16, V, K), np.int32)
+    wgt = np.zeros((G * 16, V, K), np.float32)
+    idx[:B] = np.where(weight != 0, index, 0)
+    wgt[:B] = weight
+    d_out = rt.empty((G, V, C + 2, 16), np.float32) if out is None else out
+    knl = rt.kernel("interp.cl", "apply_weights_interleaved16_loop")
+    d_idx = rt.to_device(idx, np.int32, "index")
+    d_w = rt.to_device(wgt, np.float32, "weight")
+    knl(rt.queue, (-(-(C + 2) // _LOCAL) * _LOCAL, V, G), (_LOCAL, 1, 1), rows.buf, d_idx, d_w, d_out,
+        np.int32(V), np.int32(C), np.int32(K)).wait()
     d_idx.release()
     d_w.release()
     return d_out, G
