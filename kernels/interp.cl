@@ -182,6 +182,15 @@ __kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinn
 #ifndef APPLY_K
 #define APPLY_K 1
 #endif
+// work-item (cp, v, g) of the interleaved kernels: its padded column cp, view v, group g and the
+// row column it reads (edge replicas: cp 0 and n_cols + 1 read columns 0 and n_cols - 1)
+#define APPLY16_COLUMN                                                    \
+    const int cp = get_global_id(0);                                      \
+    const int v = get_global_id(1);                                       \
+    const int g = get_global_id(2);                                       \
+    if (cp >= n_cols + 2 || v >= n_views)                                 \
+        return;                                                           \
+    const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
 #define APPLY_ROW(s) r.s = rows[(size_t)ik.s * (size_t)n_cols + (size_t)col];
 __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, n_cols)
                                           __global const int *index,     // (G, n_views, APPLY_K, 16) into P
@@ -190,12 +199,7 @@ __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, 
                                           const int n_views,
                                           const int n_cols)
 {
-    const int cp = get_global_id(0);
-    const int v = get_global_id(1);
-    const int g = get_global_id(2);
-    if (cp >= n_cols + 2 || v >= n_views)
-        return;
-    const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
+    APPLY16_COLUMN
     const size_t gv = (size_t)g * n_views + v;
     const size_t slot = gv * (size_t)APPLY_K * 16;
     float16 acc = (float16)(0.0f);
@@ -225,12 +229,7 @@ __kernel void apply_weights_interleaved16_loop(__global const float *rows,    //
                                                const int n_cols,
                                                const int k_slots)
 {
-    const int cp = get_global_id(0);
-    const int v = get_global_id(1);
-    const int g = get_global_id(2);
-    if (cp >= n_cols + 2 || v >= n_views)
-        return;
-    const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
+    APPLY16_COLUMN
     __global float *o = out + (((size_t)g * n_views + v) * (size_t)(n_cols + 2) + (size_t)cp) * 16;
     for (int lane = 0; lane < 16; ++lane) {
         const size_t slot = ((size_t)(g * 16 + lane) * (size_t)n_views + (size_t)v) * (size_t)k_slots;
