@@ -39,7 +39,7 @@ from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key
 from clrecon.pipeline import costs as costs_mod
-from clrecon.pipeline import distributed, preflight, truth_worker
+from clrecon.pipeline import distributed, plan_ahead, preflight, truth_worker
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.evaluate import evaluate
 from clrecon.pipeline.variants import noise_variants
@@ -196,7 +196,11 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     beside = None  # its thread's seconds per truth dataset
     metrics_info: dict = {}  # the metrics stage's processes (clrecon.pipeline.evaluate)
     wb = write_behind.WriteBehind()  # the volume units written behind the reconstruction
+    ahead = None  # the later pitches' plans, made in a second process (clrecon.pipeline.plan_ahead)
     try:
+        if client is None and not scene.measured and not want_tf and plan_ahead.enabled(len(pitches)):
+            ahead = plan_ahead.PlanAhead(scene, recon_cfg, pitches[1:], slices_z, targets,
+                                         tuple(m for m in methods if m != TUNED), len(variants))
         if not scene.measured and client is None and truth_worker.enabled():
             gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
             truths = TruthCache(cache_path, truth_key(scene, slices_z, targets))
@@ -228,8 +232,11 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             log(f"[{pk}] planning {todo.size} slices x {n_t} targets x {len(run_methods)} methods")
             fixed_methods = tuple(m for m in run_methods if m != TUNED)
             run_tuned = TUNED in run_methods
-            pp = slabs_mod.plan_pitch(scene, recon_cfg, pitch, slices_z, todo, targets, fixed_methods, len(variants),
-                                      progress)
+            pp = ahead.take(pitch, todo, fixed_methods) if ahead is not None else None
+            planned_here = pp is None
+            if planned_here:
+                pp = slabs_mod.plan_pitch(scene, recon_cfg, pitch, slices_z, todo, targets, fixed_methods,
+                                          len(variants), progress)
             table, slabs, plans, needed, plan_s = pp.table, pp.slabs, pp.plans, pp.needed, pp.method_plan_seconds
             if want_tf:  # the folds read every candidate of the sampled slices; cv_tuned may choose any kernel
                 t0 = time.perf_counter()
@@ -239,8 +246,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                     needed[np.unique(reconstruct.candidate_groups_of(recon_cfg, pp.plan_table,
                                                                      slices_z[todo]).projection)] = True
                 times.add("plan", time.perf_counter() - t0)
-            times.add("signals", pp.signals_seconds)
-            times.add("plan", pp.plan_seconds)
+            if planned_here:
+                times.add("signals", pp.signals_seconds)
+                times.add("plan", pp.plan_seconds)
             diagnostics[pk] = pp.diagnostics
             sampling[pk] = pp.sampling
             if pp.excluded:
@@ -366,6 +374,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         writer.close()
         times.add("assemble_volumes", time.perf_counter() - t0)
     except BaseException:
+        if ahead is not None:
+            ahead.close()
         wb.close()  # the unit in flight finished (it is atomic either way) before the writer lets go
         if truth_job is not None:
             truth_job.stop()
@@ -374,6 +384,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     wb.close()
     if wb.wait_seconds or wb.beside_seconds:
         times.add("write_volumes", wb.wait_seconds)
+    if ahead is not None:
+        ahead.close()
+        if ahead.beside_seconds:
+            times.add("plan", ahead.wait_seconds)
 
     if dist is not None:  # what the workers computed, in place of this process's (empty) records
         distributed.merge_records(dist, times, sim_info, method_seconds, method_plan_seconds, diagnostics, sampling,
@@ -398,6 +412,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             stages[name]["beside_seconds"] = round(beside[key], 3)
         stages["groundtruth"]["waited_for"] = ("the seconds are the run's wait for the truths after the "
                                                "reconstruction; beside_seconds their thread's own time")
+    if ahead is not None and ahead.beside_seconds:  # later pitches planned in a second process
+        stages["plan"]["beside_seconds"] = round(ahead.beside_seconds, 3)
+        stages["plan"]["waited_for"] = ("the seconds are the run's own planning plus its wait for the later "
+                                        "pitches' plans; beside_seconds the second process's time on them")
     if wb.background and "write_volumes" in times.seconds:  # the units written in a thread
         stages["write_volumes"]["beside_seconds"] = round(wb.beside_seconds, 3)
         stages["write_volumes"]["waited_for"] = ("the seconds are the run's wait for the writer thread; "
