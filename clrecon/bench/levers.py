@@ -63,6 +63,7 @@ from clrecon.outputs.volumes import VolumeWriter, open_volumes
 from clrecon.pipeline import evaluate as evaluate_mod
 from clrecon.pipeline.run import resolve_targets
 from clrecon.reconstruction import fbp
+from clrecon.reconstruction.interpolation import apply as apply_mod
 from clrecon.reconstruction.reconstruct import slice_positions, voxel_coords
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate as simulate_mod
@@ -404,8 +405,6 @@ def bench_metrics(quick: bool = False, repeats: int = 3, scene_name: str = "demo
 def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str = "paper-p010") -> dict:
     """Seconds of the reconstruction's interpolation + backprojection launches, now against before
     (module docstring)."""
-    from clrecon.reconstruction.interpolation import apply as apply_mod
-
     sc = _scene(scene_name)
     rt = get_runtime()
     geom = fbp.FanBeamGeometry.from_scene(sc)

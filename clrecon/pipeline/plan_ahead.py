@@ -30,6 +30,7 @@ import time
 import numpy as np
 
 from clrecon.core.resources import spawn_is_safe
+from clrecon.pipeline import slabs as slabs_mod
 
 ENV = "CLRECON_PLAN_AHEAD"
 
@@ -44,8 +45,6 @@ def enabled(n_pitches: int) -> bool:
 
 def _plan(scene, cfg, pitch, slices_z, targets, methods, n_variants):
     """:func:`clrecon.pipeline.slabs.plan_pitch` of every slice, in the child; (plan, its own seconds)."""
-    from clrecon.pipeline import slabs as slabs_mod
-
     t0 = time.perf_counter()
     pp = slabs_mod.plan_pitch(scene, cfg, pitch, slices_z, np.arange(len(slices_z)), targets, methods,
                               n_variants, False)
