@@ -35,7 +35,7 @@ def test_split_over_processes_is_bit_identical(tmp_path, one_process, monkeypatc
 def test_a_pool_that_cannot_start_runs_every_group_here(tmp_path, one_process, monkeypatch):
     ref, cache = one_process
     monkeypatch.setenv("CLRECON_METRICS_PROCESSES", "2")
-    monkeypatch.setattr(evaluate_mod, "_pool", lambda n: None)
+    monkeypatch.setattr(evaluate_mod, "spawned_pool", lambda n: None)
     res = run(load_scene("tiny"), tmp_path, cache_dir=cache, **QUIET)
     assert res["stages"]["metrics"]["processes"] == 1
     _same(res, ref)

@@ -427,7 +427,7 @@ def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str =
             pi, pw = apply_mod.pad_interleaved(idx, w)
             images: dict = {}
 
-            def before(K=K, idx=idx, w=w, images=images):
+            def before(idx=idx, w=w, images=images):
                 for _ in range(launches):
                     buf, g = apply_mod.apply_interleaved_loop(d_rows, idx, w, rt=rt)
                     images["before"] = fbp.backproject_interleaved(buf, g, geom, runtime=rt)

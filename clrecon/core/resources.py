@@ -1,4 +1,4 @@
-"""What a run uses of the machine, measured: this process's peak memory and a folder's bytes."""
+"""What a run uses of the machine: this process's peak memory, a folder's bytes, spawned worker processes."""
 
 from __future__ import annotations
 
@@ -33,3 +33,19 @@ def spawn_is_safe() -> bool:
     main = sys.modules.get("__main__")
     spec = getattr(main, "__spec__", None)
     return getattr(spec, "name", None) == "clrecon.__main__" or not getattr(main, "__file__", None)
+
+
+def spawned_pool(n: int):
+    """A process pool of ``n`` spawned workers, or None where one cannot start.
+
+    Spawn, not fork: the caller holds OpenCL and HDF5 state and PoCL's threads. Used by the
+    metrics' second process, the figure process and the plans made ahead; whether a child is
+    safe to start at all is :func:`spawn_is_safe`'s question, asked by each caller.
+    """
+    try:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
+    except (OSError, ValueError, ImportError):
+        return None

@@ -35,7 +35,7 @@ import numpy as np
 
 from clrecon.core.conventions import circular_difference
 from clrecon.core.errors import ClreconError
-from clrecon.core.resources import spawn_is_safe
+from clrecon.core.resources import spawn_is_safe, spawned_pool
 from clrecon.evaluation.groundtruth import offers_lv_region
 from clrecon.outputs.rundir import RunDirectory
 from clrecon.reconstruction import interpolation as _methods
@@ -606,14 +606,7 @@ def _figure_pool():
     choice = os.environ.get(FIGURE_PROCESS_ENV, "")
     if choice == "0" or (os.cpu_count() or 1) < 2 or (choice != "1" and not spawn_is_safe()):
         return None
-    try:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        # spawn, not fork: this process holds OpenCL and HDF5 state and PoCL's threads
-        return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-    except (OSError, ValueError, ImportError):
-        return None
+    return spawned_pool(1)
 
 
 def write_figures(out_dir, results: dict) -> list[str]:

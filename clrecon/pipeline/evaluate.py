@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 
 from clrecon.core.progress import progress as progress_counter
-from clrecon.core.resources import spawn_is_safe
+from clrecon.core.resources import spawn_is_safe, spawned_pool
 from clrecon.evaluation import groundtruth, metrics, motion
 from clrecon.outputs.volumes import pitch_key, read_volume
 from clrecon.reconstruction import interpolation, reconstruct
@@ -147,18 +147,6 @@ def _groups(keys: list, n: int) -> list[list]:
     return [[keys[i] for i in idx] for idx in np.array_split(np.arange(len(keys)), n) if len(idx)]
 
 
-def _pool(n: int):
-    """A spawned process pool of ``n`` workers, or None where one cannot start."""
-    try:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        # spawn, not fork: this process holds OpenCL and HDF5 state and PoCL's threads
-        return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
-    except (OSError, ValueError, ImportError):
-        return None
-
-
 def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, progress: bool = False,
              info: dict | None = None):
     """Table-2 metrics, the respiratory-only comparison and the motion metrics per pitch/variant/method.
@@ -178,7 +166,7 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, p
     item = 2 if rc.volume_dtype == "float16" else 4
     n_proc = process_count(len(keys) * n_c * n_r * len(slices_z) * rc.ny * rc.nx * item)
     groups = _groups(keys, n_proc)
-    pool = _pool(len(groups) - 1) if len(groups) > 1 else None
+    pool = spawned_pool(len(groups) - 1) if len(groups) > 1 else None
     futures = []
     if pool is not None:
         try:

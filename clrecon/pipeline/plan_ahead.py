@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from clrecon.core.resources import spawn_is_safe
+from clrecon.core.resources import spawn_is_safe, spawned_pool
 from clrecon.pipeline import slabs as slabs_mod
 
 ENV = "CLRECON_PLAN_AHEAD"
@@ -65,17 +65,12 @@ class PlanAhead:
         self._futures: dict = {}
         self.wait_seconds = 0.0
         self.beside_seconds = 0.0
-        self._pool = None
+        self._pool = spawned_pool(1)
         try:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            # spawn, not fork: this process holds OpenCL and HDF5 state and PoCL's threads
-            self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-            for p in pitches:
+            for p in pitches if self._pool is not None else ():
                 self._futures[float(p)] = self._pool.submit(_plan, scene, cfg, p, np.asarray(slices_z), targets,
                                                             self._methods, n_variants)
-        except (OSError, ValueError, ImportError, RuntimeError):
+        except RuntimeError:  # the pool broke while starting: the loop plans every pitch itself
             self.close()
 
     def take(self, pitch: float, todo: np.ndarray, methods):

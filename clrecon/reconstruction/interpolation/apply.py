@@ -140,6 +140,18 @@ def apply_weights_interleaved(rows: DeviceRows, index, weight, rt=None):
     return apply_padded_interleaved(rows, idx, wgt, B, rt=rt)
 
 
+def _pad_lane_major(index: np.ndarray, weight: np.ndarray):
+    """``(index, weight)`` (B, V, K) padded to (16 G, V, K) int32/float32, G = ceil(B / 16): the
+    sinograms beyond B zero-weight, index 0 wherever the weight is 0."""
+    B, V, K = index.shape
+    G = max(1, -(-B // 16))
+    idx = np.zeros((G * 16, V, K), np.int32)
+    wgt = np.zeros((G * 16, V, K), np.float32)
+    idx[:B] = np.where(weight != 0, index, 0)
+    wgt[:B] = weight
+    return idx, wgt
+
+
 def pad_interleaved(index: np.ndarray, weight: np.ndarray):
     """``(index, weight)`` (B, V, K) as the lane-inner int32/float32 pair that
     :func:`apply_padded_interleaved` takes, each (G, V, K, 16) with G = ceil(B / 16): sinogram
@@ -147,20 +159,11 @@ def pad_interleaved(index: np.ndarray, weight: np.ndarray):
     index 0 wherever the weight is 0. The caller guarantees that every index with non-zero weight
     lies in ``[0, P)`` (the reconstruction makes them so); done once per method instead of once
     per launch."""
-    B, V, K = index.shape
-    G = max(1, -(-B // 16))
-    idx = np.zeros((G, V, K, 16), np.int32)
-    wgt = np.zeros((G, V, K, 16), np.float32)
-    full = B // 16  # whole groups, then the part-filled last one
-    if full:
-        live = np.where(weight[:16 * full] != 0, index[:16 * full], 0)
-        idx[:full] = live.reshape(full, 16, V, K).transpose(0, 2, 3, 1)
-        wgt[:full] = weight[:16 * full].reshape(full, 16, V, K).transpose(0, 2, 3, 1)
-    rest = B - 16 * full
-    if rest:
-        idx[full, ..., :rest] = np.where(weight[16 * full:] != 0, index[16 * full:], 0).transpose(1, 2, 0)
-        wgt[full, ..., :rest] = weight[16 * full:].transpose(1, 2, 0)
-    return idx, wgt
+    _, V, K = index.shape
+    idx, wgt = _pad_lane_major(index, weight)
+    G = idx.shape[0] // 16
+    return (np.ascontiguousarray(idx.reshape(G, 16, V, K).transpose(0, 2, 3, 1)),
+            np.ascontiguousarray(wgt.reshape(G, 16, V, K).transpose(0, 2, 3, 1)))
 
 
 def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray, B: int, rt=None, out=None):
@@ -202,12 +205,9 @@ def apply_interleaved_loop(rows: DeviceRows, index: np.ndarray, weight: np.ndarr
     Returns ``(buffer, n_groups)``; ``out`` as in :func:`apply_padded_interleaved`."""
     P, C = rows.shape
     rt = rt or rows.rt
-    B, V, K = index.shape
-    G = max(1, -(-B // 16))
-    idx = np.zeros((G * 16, V, K), np.int32)
-    wgt = np.zeros((G * 16, V, K), np.float32)
-    idx[:B] = np.where(weight != 0, index, 0)
-    wgt[:B] = weight
+    _, V, K = index.shape
+    idx, wgt = _pad_lane_major(index, weight)
+    G = idx.shape[0] // 16
     d_out = rt.empty((G, V, C + 2, 16), np.float32) if out is None else out
     knl = rt.kernel("interp.cl", "apply_weights_interleaved16_loop")
     d_idx = rt.to_device(idx, np.int32, "index")
