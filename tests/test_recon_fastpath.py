@@ -117,6 +117,48 @@ def test_launch_scratch_buffers_reused():
         d_img.release()
 
 
+def test_shared_rows_read_in_place():
+    """DeviceRows(share=True) over a page-aligned float32 array: on the CPU device the buffer is
+    the array's own memory (CL_MEM_USE_HOST_PTR, same address), the interpolation reads the same
+    floats as from a copy (bit for bit), and arrays the device cannot read in place (unaligned,
+    strided, float64) are copied instead, with the same result."""
+    rng = np.random.default_rng(5)
+    P, V, K, C, B = 40, 9, 3, 33, 21
+    idx = rng.integers(0, P, (B, V, K))
+    w = rng.standard_normal((B, V, K)).astype(np.float32)
+    src = rng.standard_normal((P, C)).astype(np.float32)
+    copied = ip.DeviceRows(src)
+    rt = copied.rt
+    mf = rt.cl.mem_flags
+    rows = rt.host_empty((P, C), np.float32)
+    assert rows.ctypes.data % 4096 == 0 and rows.flags.c_contiguous and rows.shape == (P, C)
+    rows[...] = src
+    unaligned = np.empty(P * C + 1, np.float32)[1:].reshape(P, C)
+    unaligned[...] = src
+    cases = {"aligned": rows, "unaligned": unaligned, "strided": np.repeat(src, 2, axis=1)[:, ::2],
+             "float64": src.astype(np.float64)}
+    try:
+        ref, G = ip.apply_weights_interleaved(copied, idx, w)
+        want = _read_interleaved(ref, G, V, C, rt)
+        for name, arr in cases.items():
+            dr = ip.DeviceRows(arr, share=True)
+            try:
+                in_place = bool(dr.buf.flags & mf.USE_HOST_PTR)
+                assert in_place == (name == "aligned" and rt.is_cpu), name
+                if in_place:
+                    host = dr.buf.get_host_array((P, C), np.float32)
+                    assert host.ctypes.data == arr.ctypes.data
+                got, G2 = ip.apply_weights_interleaved(dr, idx, w)
+                assert G2 == G
+                np.testing.assert_array_equal(_read_interleaved(got, G, V, C, rt).view(np.uint32),
+                                              want.view(np.uint32), err_msg=name)
+            finally:
+                dr.release()
+                assert dr.buf is None and dr._host is None
+    finally:
+        copied.release()
+
+
 def test_apply_weights_interleaved_checks():
     dr = ip.DeviceRows(np.zeros((4, 5), np.float32))
     with pytest.raises(ValueError):

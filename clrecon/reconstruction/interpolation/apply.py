@@ -83,9 +83,14 @@ class DeviceRows:
 
     ``rows`` (P, C) is converted to float32; :meth:`release` frees the device copy (on a
     CPU device it is host memory too, so release it as soon as the slab is done).
+
+    ``share=True`` hands the caller's array to the device instead of copying it where the
+    device can read it in place (:meth:`Runtime.share_with_device`: a CPU device, float32,
+    C-contiguous, allocated by :meth:`Runtime.host_empty`); the caller then gives the array up
+    (no writes) until :meth:`release`. Same values either way: the kernels read the same floats.
     """
 
-    def __init__(self, rows, rt=None):
+    def __init__(self, rows, rt=None, share: bool = False):
         rows = np.asarray(rows)
         if rows.dtype.kind not in "fiu":
             raise TypeError(f"rows: expected a real numeric array, got dtype {rows.dtype}")
@@ -93,12 +98,14 @@ class DeviceRows:
             raise ValueError(f"rows: expected shape (P, C), got {rows.shape}")
         self.rt = rt or get_runtime()
         self.shape = rows.shape
-        self.buf = self.rt.to_device(rows, np.float32, "rows")
+        self.buf = self.rt.share_with_device(rows, "rows") if share else self.rt.to_device(rows, np.float32, "rows")
+        self._host = rows if share else None  # a shared buffer reads this memory: keep it alive
 
     def release(self) -> None:
         if self.buf is not None:
             self.buf.release()
             self.buf = None
+        self._host = None
 
 
 def apply_weights_interleaved(rows: DeviceRows, index, weight, rt=None):
