@@ -177,3 +177,8 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
         assert r["speedup"] == pytest.approx(r["median_s"]["before"] / r["median_s"]["now"])
         assert r["speedup"] == pytest.approx(r["kernel_speedup"] * r["scratch_speedup"])
     assert "interpolation + backprojection launches" in text
+    rs = res["rows_shared"]  # rows read in place against copied: the same sinograms
+    assert rs["identical"] is True and rs["in_place"] is True and rs["scene"] == "tiny"
+    assert rs["rows_bytes"] >= 64 << 20 and set(rs["median_s"]) == {"shared", "copied"}
+    assert rs["speedup"] == pytest.approx(rs["median_s"]["copied"] / rs["median_s"]["shared"])
+    assert "a slab's rows to the device" in text

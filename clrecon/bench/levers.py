@@ -36,7 +36,12 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   backprojected to 512^2), for K = 3 (barycentric) and 8 (local linear) slots: the vectorised
   interpolation kernel into kept scratch buffers (the reconstruction since 2026-12-03) against
   the loop kernel into fresh buffers (before), and the vectorised kernel into fresh buffers
-  between them (which of the two changes gives what); the images compared for bit identity.
+  between them (which of the two changes gives what); the images compared for bit identity;
+- ``rows_shared``: a paper-scale slab's rebinned rows (1 GiB, paper-p010's 900 columns) handed
+  to the device and one K = 8 interpolation launch of 32 sinograms from rows all over them:
+  read in place by the CPU device (``DeviceRows(share=True)``, a ``CL_MEM_USE_HOST_PTR`` buffer
+  over the page-aligned array; the reconstruction since 2026-12-03) against copied into a new
+  buffer (before), the sinograms compared for bit identity.
 """
 
 from __future__ import annotations
@@ -469,6 +474,56 @@ def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str =
             "by_k": out, "load": load, "repeats": max(1, repeats)}
 
 
+def bench_rows_shared(quick: bool = False, repeats: int = 3, scene_name: str = "paper-p010") -> dict:
+    """Seconds to hand a slab's rebinned rows to the device and run one interpolation launch from
+    them, the rows read in place (``DeviceRows(share=True)``, the reconstruction since 2026-12-03)
+    against copied into a new buffer (before); the launches' sinograms compared bit for bit."""
+    sc = _scene(scene_name)
+    rt = get_runtime()
+    geom = fbp.FanBeamGeometry.from_scene(sc)
+    V, C = geom.n_views, geom.n_cols
+    # a paper-scale slab's rows: about 1 GB (a slab is <= 2.5 GB of rows, plan and images)
+    rows_bytes = (64 << 20) if quick else (1 << 30)
+    P = max(V, -(-rows_bytes // (4 * C)))
+    rows = rt.host_empty((P, C), np.float32)
+    rng = np.random.default_rng(11)
+    for r0 in range(0, P, 4096):
+        rows[r0:r0 + 4096] = rng.standard_normal((min(4096, P - r0), C), dtype=np.float32)
+    B, K = fbp.BATCH_LANES * 2, 8
+    idx = rng.integers(0, P, (B, V, K)).astype(np.int32)  # rows from all over the slab
+    w = rng.random((B, V, K)).astype(np.float32)
+    pi, pw = apply_mod.pad_interleaved(idx, w)
+    d_sino = rt.empty((B // fbp.BATCH_LANES, V, C + 2, fbp.BATCH_LANES))
+    sinos: dict = {}
+
+    def once(share: bool, name: str):
+        d_rows = apply_mod.DeviceRows(rows, rt=rt, share=share)
+        try:
+            buf, G = apply_mod.apply_padded_interleaved(d_rows, pi, pw, B, rt=rt, out=d_sino)
+            sinos[name] = rt.from_device(buf, (G, V, C + 2, fbp.BATCH_LANES))
+        finally:
+            d_rows.release()
+
+    modes = {"shared": lambda: once(True, "shared"), "copied": lambda: once(False, "copied")}
+    load = [load1()]
+    try:
+        for fn in modes.values():
+            fn()  # warm-up: the kernel build
+        times: dict = {k: [] for k in modes}
+        for r in range(max(1, repeats)):
+            for name in (list(modes) if r % 2 == 0 else list(modes)[::-1]):
+                times[name].append(timed(modes[name]))
+    finally:
+        d_sino.release()
+    load.append(load1())
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    in_place = rt.is_cpu and rows.ctypes.data % max(1, int(rt.device.mem_base_addr_align) // 8) == 0
+    return {"scene": sc.name, "rows_bytes": int(rows.nbytes), "sinograms": B, "slots": K, "in_place": bool(in_place),
+            "median_s": med, "speedup": med["copied"] / med["shared"] if med["shared"] > 0 else float("nan"),
+            "identical": bool(np.array_equal(sinos["shared"].view(np.uint32), sinos["copied"].view(np.uint32))),
+            "load": load, "repeats": max(1, repeats)}
+
+
 def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo",
                  write_scene: str = "paper-p010", simulate_scene: str = "demo") -> dict:
     """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and
@@ -479,7 +534,8 @@ def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "de
             "simulate_behind": bench_simulate_behind(quick, repeats, simulate_scene),
             "metrics": bench_metrics(quick, repeats, metrics_scene),
             "posing": bench_posing(quick, repeats),
-            "interp_launch": bench_interp_launch(quick, repeats, write_scene)}
+            "interp_launch": bench_interp_launch(quick, repeats, write_scene),
+            "rows_shared": bench_rows_shared(quick, repeats, write_scene)}
 
 
 def report_lines(res: dict | None) -> list[str]:
@@ -507,7 +563,19 @@ def report_lines(res: dict | None) -> list[str]:
         f"chunks of {p['chunk']} {p['median_s']['chunk']:.2f} s: speedup {p['speedup']:.2f}x "
         f"(load {p['load'][0]:.1f} -> {p['load'][-1]:.1f})",
         *_interp_launch_lines(res.get("interp_launch")),
+        *_rows_shared_lines(res.get("rows_shared")),
     ]
+
+
+def _rows_shared_lines(a: dict | None) -> list[str]:
+    if not a:
+        return []
+    m = a["median_s"]
+    how = "read in place" if a["in_place"] else "copied anyway (not a CPU device)"
+    return [f"   a slab's rows to the device + one launch ({a['scene']}, {a['rows_bytes'] / 1e9:.2f} GB of rows, "
+            f"{a['sinograms']} sinograms, K = {a['slots']}): shared ({how}) {m['shared']:.2f} s, copied "
+            f"{m['copied']:.2f} s: speedup {a['speedup']:.2f}x, sinograms "
+            f"{'bit-identical' if a['identical'] else 'DIFFERENT'} (load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]
 
 
 def _interp_launch_lines(a: dict | None) -> list[str]:
