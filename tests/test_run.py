@@ -39,6 +39,11 @@ def test_run_directory_is_complete_and_valid(tiny_run):
     assert "distinct cardiac phases among" in (out / "report.md").read_text()
     # measured memory and disk beside the pre-flight's model; small runs' volumes are not compressed
     assert "## Memory and disk (measured against the pre-flight model)" in (out / "report.md").read_text()
+    # the machine's speed beside the stage seconds: the probe before and after, its CPUs over the run
+    ms = on_disk["machine_speed"]
+    assert 0 < ms["probe_seconds"]["start"] < 10 and 0 < ms["probe_seconds"]["end"] < 10
+    assert 0 < ms["wall_s"] <= on_disk["total_seconds"] and ms["own_core_s"] > 0
+    assert "Machine during the run: probe" in (out / "report.md").read_text()
     assert on_disk["outputs"]["volume_compression"] == "none"
     assert not list(out.glob("*.partial"))
     s = load_scene("tiny")

@@ -116,6 +116,7 @@ from clrecon.bench.tradeoff import format_table as tradeoff_table
 from clrecon.bench.tradeoff import run_tradeoff
 from clrecon.bench.voxel_projector import bench_voxel_projector
 from clrecon.config.scene import load_scene
+from clrecon.core import machine_speed
 from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
@@ -611,6 +612,8 @@ def format_report(res: dict) -> str:
     m = res["machine"]
     out.append(f"machine: {m['cpu_model']}, {m['logical_cores']} logical cores, {m['memory_gib']} GiB; "
                f"load average {m['load_average']}; device {m['device']}")
+    if m.get("speed"):
+        out.append(f"machine over the bench: {machine_speed.describe(m['speed'])}")
     bp = res.get("backprojection")
     if bp:
         out.append("")
@@ -760,6 +763,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         raise ClreconError(f"--only {bad[0]!r}: sections are {', '.join(SECTIONS + EXTRA_SECTIONS)}")
     repeats = repeats or (1 if quick else 3)
     res = {"quick": quick, "repeats": repeats, "machine": machine()}
+    machine0 = machine_speed.start()
     t_all = time.perf_counter()
     fns = {
         "backprojection": lambda: bench_backprojection_section(quick, repeats),
@@ -788,6 +792,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
             res[name]["section_s"] = time.perf_counter() - t0
     res["bench_s"] = time.perf_counter() - t_all
     res["machine"]["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
+    res["machine"]["speed"] = machine0.finish()
     return res
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from clrecon.core import machine_speed
 from clrecon.core.resources import folder_bytes, peak_rss_bytes
 from clrecon.evaluation import claims as claims_mod
 from clrecon.outputs import figures
@@ -272,6 +273,10 @@ def write_report(out_dir: Path, results: dict) -> Path:
             ran += f", beside the reconstruction ({st['beside_seconds']:.2f} s there; the run waited the seconds)"
         lines.append(f"| {name} | {ran} | {st['seconds']:.2f} |")
     lines.append("")
+    if results.get("machine_speed"):
+        lines += [f"Machine during the run: {machine_speed.describe(results['machine_speed'])} "
+                  "(the probe: a fixed single-threaded workload before and after the run; a longer probe "
+                  "means a slower machine, so compare stage seconds across runs only beside it).", ""]
     lines += resources_markdown(results, out_dir)
     lines += figures.write_figures(out_dir, results)
     path = out_dir / "report.md"

@@ -15,6 +15,7 @@ import json
 import sys
 from pathlib import Path
 
+from clrecon.core import machine_speed
 from clrecon.core.resources import folder_bytes
 from clrecon.evaluation import claims as claims_mod
 from clrecon.outputs import report
@@ -101,20 +102,21 @@ def _size(p: Path) -> int:
 
 def resources_table(runs) -> list[str]:
     lines = ["| run | peak RSS | volumes (volumes.h5 + volumes.d/) | projection store | noise cells | read cells "
-             "| load (1 min) start → end |",
-             "|---|---|---|---|---|---|---|"]
+             "| load (1 min) start → end | machine probe start → end, other jobs |",
+             "|---|---|---|---|---|---|---|---|"]
     for d, r in runs:
         stores = [Path(s["store"]) for s in r["stages"]["simulate"].get("per_pitch", {}).values() if s.get("store")]
         rss = r.get("peak_rss_bytes")
         load = r.get("load_average") or {}
         if not rss:
-            lines.append(f"| {r['scene']['name']} | not recorded (run before this was) | | | | | |")
+            lines.append(f"| {r['scene']['name']} | not recorded (run before this was) | | | | | | |")
             continue
         st = r["stages"]
         vols = _size(d / "volumes.h5") + _size(d / "volumes.d")
         lines.append(f"| {r['scene']['name']} | {rss / GiB:.2f} GiB | {vols / GiB:.2f} GiB | "
                      f"{sum(_size(s) for s in stores) / GiB:.2f} GiB | {st['noise'].get('cells', 0) / 1e9:.2f} G | "
-                     f"{st['read'].get('cells', 0) / 1e9:.2f} G | {load.get('start', '?')} → {load.get('end', '?')} |")
+                     f"{st['read'].get('cells', 0) / 1e9:.2f} G | {load.get('start', '?')} → {load.get('end', '?')} | "
+                     f"{machine_speed.describe(r['machine_speed']) if r.get('machine_speed') else 'not recorded'} |")
     return lines
 
 
