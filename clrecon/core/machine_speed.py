@@ -7,8 +7,11 @@ Cross-run figures are only comparable with a measure of the machine beside them,
 records two:
 
 - **probe seconds**: a fixed single-threaded NumPy workload (sort, FFT, exp/log of seeded
-  float64 data; about 50 ms on that machine), the median of three tries, once before the
-  run and once after it. Single-threaded on purpose: it measures the speed of one core as
+  float64 data; 14–23 ms on that machine when idle), the fastest of five tries after one
+  untimed one, once before the run and once after it. The fastest, because a try that a
+  context switch hit says nothing about the machine; what slows all five (a busier host,
+  a lower clock) is what the probe is for. Idle, batches of tries 1 s apart moved by ±25 %
+  (2026-12-03), so only differences well beyond that mean a different machine. Single-threaded on purpose: it measures the speed of one core as
   the run would get it, not how many cores are free. A run whose probe took 1.3 × another's
   ran on a machine about that much slower.
 - **CPU time of the machine during the run** from ``/proc/stat`` (Linux): the whole machine's
@@ -29,25 +32,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Size of the probe's data (float64 values) and how often it is timed (median).
+#: Size of the probe's data (float64 values) and how often it is timed (the fastest counts).
 PROBE_VALUES = 1 << 18
-PROBE_REPEATS = 3
+PROBE_REPEATS = 5
 
 _STAT_FIELDS = ("user", "nice", "system", "idle", "iowait", "irq", "softirq", "steal")
 
 
 def probe_seconds(repeats: int = PROBE_REPEATS) -> float:
-    """Median wall seconds of one fixed single-threaded workload (same data every call)."""
+    """Fastest wall seconds of ``repeats`` tries of one fixed single-threaded workload (same
+    data every call), after one untimed try."""
     x = np.random.default_rng(20261203).standard_normal(PROBE_VALUES)
     times = []
-    for _ in range(repeats):
+    for _ in range(repeats + 1):
         t0 = time.perf_counter()
         s = np.sort(x)
         f = np.fft.rfft(s)
         y = np.log1p(np.exp(-np.abs(x[: PROBE_VALUES // 2]))) + np.abs(f[: PROBE_VALUES // 2])
         float(y.sum())
         times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+    return float(min(times[1:]))
 
 
 def machine_cpu_seconds() -> dict | None:
