@@ -182,3 +182,7 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
     assert rs["rows_bytes"] >= 64 << 20 and set(rs["median_s"]) == {"shared", "copied"}
     assert rs["speedup"] == pytest.approx(rs["median_s"]["copied"] / rs["median_s"]["shared"])
     assert "a slab's rows to the device" in text
+    ob = res["objects_shared"]  # posed objects read in place against copied: the same projections
+    assert ob["identical"] is True and ob["scene"] == "tiny" and ob["projections"] > 0
+    assert ob["speedup"] == pytest.approx(ob["median_s"]["copied"] / ob["median_s"]["shared"])
+    assert "posed objects to the projector" in text

@@ -392,6 +392,35 @@ def test_project_scene_table_matches_project_views_and_chunking():
     assert empty.shape == (0, sc.n_rows, sc.n_cols)
 
 
+def test_posed_objects_are_read_in_place_with_the_same_projections():
+    """A posed batch starts on a page boundary, so the record kernel reads it in place on a CPU
+    device (a CL_MEM_USE_HOST_PTR buffer over the phantom's own array); a copy of it that does
+    not start there is copied to the device instead, and both project to the same bits."""
+    scene = load_scene("tiny")
+    table = projection_table(scene, scene.scan.pitches[0])
+    sub = table.take(np.arange(0, len(table), max(1, len(table) // 5)))
+    sc = scene.scanner
+    objs = ph.Phantom(scene.phantom).objects_batch(sub.state_cardiac, sub.state_resp)
+    assert objs.ctypes.data % 4096 == 0 and objs.flags.c_contiguous and objs.dtype == np.float64
+    moved = np.empty(objs.size + 1)[1:].reshape(objs.shape)  # 8 bytes past NumPy's 16-byte alignment
+    moved[...] = objs
+    src, det, eu, ev = detector_frames(sub.angle_rad, sub.source_z_mm, sc.sid_mm, sc.sdd_mm)
+    u, v = detector_coords(sc.n_cols, sc.col_pitch_mm), detector_coords(sc.n_rows, sc.row_pitch_mm)
+    rt = projector.get_runtime()
+    lay = projector._Layout(u, v, rt, None)
+    view_rec = np.zeros((len(sub), projector.VIEW_REC))
+    view_rec[:, 0:3], view_rec[:, 3:6], view_rec[:, 6:9] = det - src, eu, ev
+    use = rt.cl.mem_flags.USE_HOST_PTR
+    for arr, in_place in ((objs, rt.is_cpu), (moved, False)):
+        *_, events, keep = projector._prepare_on_device(rt, arr, False, src, view_rec, lay, True)
+        rt.cl.wait_for_events(events)
+        assert bool(keep[0].flags & use) == in_place
+    a = projector.project_views(objs, src, det, eu, ev, u, v)
+    b = projector.project_views(moved, src, det, eu, ev, u, v)
+    np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))
+    assert a.max() > 1.0
+
+
 def test_input_validation():
     src, det, eu, ev = single_view()
     objs = random_objects(np.random.default_rng(0), 2)[None]

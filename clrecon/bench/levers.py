@@ -41,7 +41,11 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   to the device and one K = 8 interpolation launch of 32 sinograms from rows all over them:
   read in place by the CPU device (``DeviceRows(share=True)``, a ``CL_MEM_USE_HOST_PTR`` buffer
   over the page-aligned array; the reconstruction since 2026-12-03) against copied into a new
-  buffer (before), the sinograms compared for bit identity.
+  buffer (before), the sinograms compared for bit identity;
+- ``objects_shared``: one simulation block of demo (2 048 projections posed in one call, 133 MB
+  of float64 object records) projected with the records read in place by the CPU device
+  (page-aligned by the phantom, the simulation since 2026-12-03) against a copy of them that the
+  device must copy (before), the projections compared for bit identity.
 """
 
 from __future__ import annotations
@@ -62,6 +66,7 @@ from clrecon.bench.paper import _scene, _thorax_sinograms
 from clrecon.bench.timing import load1, timed
 from clrecon.config.scene import load_scene
 from clrecon.core import units, write_behind
+from clrecon.core.conventions import detector_coords, detector_frames
 from clrecon.core.resources import folder_bytes
 from clrecon.core.runtime import get_runtime
 from clrecon.outputs.volumes import VolumeWriter, open_volumes
@@ -73,7 +78,7 @@ from clrecon.reconstruction.reconstruct import slice_positions, voxel_coords
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate as simulate_mod
 from clrecon.simulation.phantom_sources import phantom_from_config
-from clrecon.simulation.projector import phantom_for_scene
+from clrecon.simulation.projector import phantom_for_scene, project_views
 
 
 def _ct_like(shape, k: int) -> np.ndarray:
@@ -474,6 +479,42 @@ def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str =
             "by_k": out, "load": load, "repeats": max(1, repeats)}
 
 
+def bench_objects_shared(quick: bool = False, repeats: int = 3, scene_name: str = "demo") -> dict:
+    """Seconds to project one simulation block of a scene (its first projections, posed in one
+    call) with the posed objects read in place by the CPU device (page-aligned, the simulation
+    since 2026-12-03) against the same objects copied to the device (an unaligned copy of them,
+    made outside the timing); the projections compared bit for bit."""
+    scene = load_scene(scene_name)
+    sc = scene.scanner
+    table = projection_table(scene, scene.scan.pitches[0])
+    n = min(len(table), simulate_mod.CHUNK * (2 if quick else simulate_mod.BLOCK_CHUNKS))
+    sub = table.take(np.arange(n))
+    objs = phantom_for_scene(scene).objects_batch(sub.state_cardiac, sub.state_resp)
+    moved = np.empty(objs.size + 1)[1:].reshape(objs.shape)  # not on a page boundary: copied
+    moved[...] = objs
+    src, det, eu, ev = detector_frames(sub.angle_rad, sub.source_z_mm, sc.sid_mm, sc.sdd_mm)
+    u, v = detector_coords(sc.n_cols, sc.col_pitch_mm), detector_coords(sc.n_rows, sc.row_pitch_mm)
+    outs: dict = {}
+
+    def proj(name, arr):
+        outs[name] = project_views(arr, src, det, eu, ev, u, v)
+
+    modes = {"shared": lambda: proj("shared", objs), "copied": lambda: proj("copied", moved)}
+    for fn in modes.values():
+        fn()  # warm-up
+    times: dict = {k: [] for k in modes}
+    load = [load1()]
+    for r in range(max(2, repeats)):
+        for name in (list(modes) if r % 2 == 0 else list(modes)[::-1]):
+            times[name].append(timed(modes[name]))
+    load.append(load1())
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return {"scene": scene_name, "projections": n, "objects_bytes": int(objs.nbytes), "median_s": med,
+            "speedup": med["copied"] / med["shared"] if med["shared"] > 0 else float("nan"),
+            "identical": bool(np.array_equal(outs["shared"].view(np.uint32), outs["copied"].view(np.uint32))),
+            "load": load, "repeats": max(2, repeats)}
+
+
 def bench_rows_shared(quick: bool = False, repeats: int = 3, scene_name: str = "paper-p010") -> dict:
     """Seconds to hand a slab's rebinned rows to the device and run one interpolation launch from
     them, the rows read in place (``DeviceRows(share=True)``, the reconstruction since 2026-12-03)
@@ -535,7 +576,8 @@ def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "de
             "metrics": bench_metrics(quick, repeats, metrics_scene),
             "posing": bench_posing(quick, repeats),
             "interp_launch": bench_interp_launch(quick, repeats, write_scene),
-            "rows_shared": bench_rows_shared(quick, repeats, write_scene)}
+            "rows_shared": bench_rows_shared(quick, repeats, write_scene),
+            "objects_shared": bench_objects_shared(quick, repeats, simulate_scene)}
 
 
 def report_lines(res: dict | None) -> list[str]:
@@ -564,7 +606,18 @@ def report_lines(res: dict | None) -> list[str]:
         f"(load {p['load'][0]:.1f} -> {p['load'][-1]:.1f})",
         *_interp_launch_lines(res.get("interp_launch")),
         *_rows_shared_lines(res.get("rows_shared")),
+        *_objects_shared_lines(res.get("objects_shared")),
     ]
+
+
+def _objects_shared_lines(a: dict | None) -> list[str]:
+    if not a:
+        return []
+    m = a["median_s"]
+    return [f"   posed objects to the projector ({a['scene']}, {a['projections']} projections, "
+            f"{a['objects_bytes'] / 1e6:.0f} MB of objects): read in place {m['shared']:.2f} s, copied "
+            f"{m['copied']:.2f} s: speedup {a['speedup']:.2f}x, projections "
+            f"{'bit-identical' if a['identical'] else 'DIFFERENT'} (load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]
 
 
 def _rows_shared_lines(a: dict | None) -> list[str]:

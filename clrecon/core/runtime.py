@@ -69,8 +69,21 @@ def _format_define(key: str, value) -> str:
     return f"-D{key}={value}"
 
 
-#: Alignment of :meth:`Runtime.host_empty` arrays (bytes): one page.
+#: Alignment of :func:`aligned_empty` arrays (bytes): one page.
 HOST_ALIGN_BYTES = 4096
+
+
+def aligned_empty(shape, dtype=np.float32) -> np.ndarray:
+    """Uninitialised C-contiguous host array whose data start on a page boundary.
+
+    A page boundary satisfies any device's ``CL_DEVICE_MEM_BASE_ADDR_ALIGN`` (PoCL: 1024
+    bits), so :meth:`Runtime.share_with_device` can hand the array to a CPU device without a
+    copy (NumPy's own allocations start 16 bytes past one)."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    raw = np.empty(nbytes + HOST_ALIGN_BYTES, np.uint8)
+    off = (-raw.ctypes.data) % HOST_ALIGN_BYTES
+    return raw[off:off + nbytes].view(dtype).reshape(shape)
 
 
 class Runtime:
@@ -168,34 +181,26 @@ class Runtime:
         return self.cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
 
     def host_empty(self, shape, dtype=np.float32) -> np.ndarray:
-        """Uninitialised C-contiguous host array whose data start on a page boundary.
+        """:func:`aligned_empty`: a page-aligned host array that :meth:`share_with_device` can hand over."""
+        return aligned_empty(shape, dtype)
 
-        A page boundary satisfies any device's ``CL_DEVICE_MEM_BASE_ADDR_ALIGN`` (PoCL: 1024
-        bits), so :meth:`share_with_device` can hand the array to a CPU device without a copy
-        (NumPy's own allocations start 16 bytes past one)."""
-        dtype = np.dtype(dtype)
-        nbytes = int(np.prod(shape)) * dtype.itemsize
-        raw = np.empty(nbytes + HOST_ALIGN_BYTES, np.uint8)
-        off = (-raw.ctypes.data) % HOST_ALIGN_BYTES
-        return raw[off:off + nbytes].view(dtype).reshape(shape)
-
-    def share_with_device(self, array: np.ndarray, name: str = "array"):
+    def share_with_device(self, array: np.ndarray, name: str = "array", dtype=np.float32):
         """Read-only device buffer over ``array``'s own memory where the device can read it there.
 
-        On a CPU device (PoCL: device memory *is* host memory) a C-contiguous float32 array
-        aligned to the device's base address alignment becomes a ``CL_MEM_USE_HOST_PTR``
-        buffer: no copy, and no fresh pages to touch (a ``COPY_HOST_PTR`` buffer of paper-p010's
-        1 GB of rows costs about 0.8 s to fill here, docs/algorithms.md "Scratch buffers").
-        Anything else -- a GPU, another dtype, an unaligned or strided array -- gets the copy of
-        :meth:`to_device`. The caller must neither write ``array`` nor let it go while the
-        buffer lives (the returned buffer keeps a reference to it)."""
+        On a CPU device (PoCL: device memory *is* host memory) a C-contiguous array of
+        ``dtype`` aligned to the device's base address alignment becomes a
+        ``CL_MEM_USE_HOST_PTR`` buffer: no copy, and no fresh pages to touch (a
+        ``COPY_HOST_PTR`` buffer of 1 GB costs 0.8-2.5 s to fill here, docs/algorithms.md
+        "Rows read in place"). Anything else -- a GPU, another dtype, an unaligned or strided
+        array -- gets the copy of :meth:`to_device`. The caller must neither write ``array``
+        nor let it go while the buffer lives (the returned buffer keeps a reference to it)."""
         a = np.asarray(array)
         align = max(1, int(self.device.mem_base_addr_align) // 8)
-        if not (self.is_cpu and a.dtype == np.float32 and a.flags.c_contiguous and a.nbytes > 0
+        if not (self.is_cpu and a.dtype == np.dtype(dtype) and a.flags.c_contiguous and a.nbytes > 0
                 and a.ctypes.data % align == 0):
-            return self.to_device(a, np.float32, name)
+            return self.to_device(a, dtype, name)
         if a.nbytes > self.max_alloc_bytes:
-            return self.to_device(a, np.float32, name)  # raises the MemoryError with its message
+            return self.to_device(a, dtype, name)  # raises the MemoryError with its message
         mf = self.cl.mem_flags
         return self.cl.Buffer(self.context, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=a)
 

@@ -430,7 +430,9 @@ def has_fp64(rt) -> bool:
 def _prepare_on_device(rt, objs, broadcast, src, view_rec, lay, cull):
     """Records of one chunk by kernels/prepare.cl: (record buffer, count buffer, n_obj, events)."""
     m, n_obj = objs.shape[0], objs.shape[1]
-    obj_buf = rt.to_device(objs[0] if broadcast else objs, np.float64)
+    # a posed batch (page-aligned by the phantom) is read in place by a CPU device: no copy of
+    # its 64 KB per view into fresh pages (docs/algorithms.md "Rows read in place")
+    obj_buf = rt.to_device(objs[0], np.float64) if broadcast else rt.share_with_device(objs, "objects", np.float64)
     views = np.concatenate([src, view_rec[:, 0:9]], axis=1)
     rec_buf = rt.empty((m, n_obj, REC))
     cnt_buf = rt.empty((m,), np.int32)
@@ -441,7 +443,7 @@ def _prepare_on_device(rt, objs, broadcast, src, view_rec, lay, cull):
               views_buf, np.float64(ul), np.float64(uh), np.float64(vl), np.float64(vh),
               np.int32(m), rec_buf, cnt_buf)
     # every buffer a queued kernel uses stays referenced until its results are read
-    return rec_buf, cnt_buf, n_obj, [ev], [obj_buf, views_buf]
+    return rec_buf, cnt_buf, n_obj, [ev], [obj_buf, views_buf, objs]
 
 
 def prepare_records_device(objects, src, det_centre, e_u, e_v, u_range, v_range, cull=True, rt=None):

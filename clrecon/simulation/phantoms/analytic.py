@@ -43,6 +43,7 @@ import numpy as np
 
 from clrecon.core.config import BOOL, FRAC, POS, F, Section, number_in
 from clrecon.core.conventions import MU_WATER_PER_MM
+from clrecon.core.runtime import aligned_empty
 from clrecon.simulation.phantoms.layout import (  # noqa: F401
     AXES,
     CENTRE,
@@ -537,12 +538,20 @@ class Phantom:
 
     # -- construction ------------------------------------------------------------------------
     def _pack(self, objs, m) -> np.ndarray:
-        out = np.zeros((m, len(objs), STRIDE))
+        """(m, n_obj, STRIDE) float64 records of the posed objects.
+
+        Each object's fields are written into one (m, STRIDE) block that stays in cache, and
+        the block goes to the output in one copy of whole rows: writing each field straight
+        into the output (its rows n_obj * STRIDE * 8 bytes apart) touched a new cache line
+        per field and state, a quarter of demo's simulation (1.0 of 3.9 s at pitch 0.10)."""
+        out = aligned_empty((m, len(objs), STRIDE), np.float64)  # page-aligned: the projector reads it in place
+        block = np.empty((m, STRIDE))
         mw = self.cfg.mu_water_per_mm
         hu = {o.name: o.hu for o in objs}
         hu["air"] = np.asarray(P["hu_air"])
         for j, o in enumerate(objs):
-            row = out[:, j]
+            row = block
+            row[...] = 0.0
             row[:, KIND] = o.kind
             row[:, MU] = np.broadcast_to(hu_mu(o.hu, mw) - hu_mu(hu[o.parent], mw), (m,))
             row[:, CENTRE] = np.broadcast_to(o.centre, (m, 3))
@@ -563,6 +572,7 @@ class Phantom:
                 else:
                     row[:, ca] = _EYE.reshape(9)
                     row[:, cm] = 1.0
+            out[:, j] = block
         return out
 
     def _build(self, c, a):
