@@ -599,17 +599,22 @@ def _draw_results_figure(kind: str, results: dict, path: str, args: tuple) -> tu
         return False, f"{type(e).__name__}: {e}"
 
 
-def _figure_pool():
-    """A one-worker spawned process pool for the results-only figures, or None (off / cannot start)."""
+def _figure_pool(shared=None):
+    """A one-worker process pool for the results-only figures, or None (off / cannot start):
+    ``shared`` (the run's helper process) where given, else a new spawned one."""
     import os
 
     choice = os.environ.get(FIGURE_PROCESS_ENV, "")
-    if choice == "0" or (os.cpu_count() or 1) < 2 or (choice != "1" and not spawn_is_safe()):
+    if choice == "0":
+        return None
+    if shared is not None:
+        return shared
+    if (os.cpu_count() or 1) < 2 or (choice != "1" and not spawn_is_safe()):
         return None
     return spawned_pool(1)
 
 
-def write_figures(out_dir, results: dict) -> list[str]:
+def write_figures(out_dir, results: dict, pool=None) -> list[str]:
     """Write every figure the run has inputs for into ``out_dir/figures``; markdown lines back.
 
     A figure whose inputs the run lacks is skipped with a line saying why; one that fails is
@@ -617,7 +622,10 @@ def write_figures(out_dir, results: dict) -> list[str]:
     The figures drawn from ``results`` alone go to a second process (:data:`FIGURE_PROCESS_ENV`)
     while this one draws those that read the volumes; the lines keep the same order either way,
     and each figure is the same (each is drawn by the same code from the same inputs).
+    ``pool``: the run's warm helper process (:mod:`clrecon.pipeline.helper_process`) to draw
+    them in instead of a new one; it is left running.
     """
+    shared = pool
     out_dir = Path(out_dir)
     fig_dir = out_dir / FIGURE_DIR
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -662,7 +670,7 @@ def write_figures(out_dir, results: dict) -> list[str]:
 
     has_metrics = any(results.get("metrics", {}).get(pk) for pk in results.get("metrics", {}))
     n_targets = len(run.c) * len(run.a)
-    pool = _figure_pool() if has_metrics and n_targets >= 2 else None
+    pool = _figure_pool(shared) if has_metrics and n_targets >= 2 else None
     try:
         # queued first, so that the second process draws while this one draws the volume figures
         for fov in ("small", "large"):
@@ -696,7 +704,7 @@ def write_figures(out_dir, results: dict) -> list[str]:
             lines.extend(e)
     finally:
         run.close()
-        if pool is not None:
+        if pool is not None and pool is not shared:
             pool.shutdown(wait=True, cancel_futures=True)
     return lines
 

@@ -225,7 +225,9 @@ def resources_markdown(results: dict, out_dir: Path) -> list[str]:
     return lines
 
 
-def write_report(out_dir: Path, results: dict) -> Path:
+def write_report(out_dir: Path, results: dict, pool=None) -> Path:
+    """``report.md`` and ``report.html`` of a run folder; ``pool``: a process pool for the
+    results-only figures (:func:`clrecon.outputs.figures.write_figures`)."""
     out_dir = Path(out_dir)
     s = results["scene"]
     lines = [f"# clrecon run: scene `{s['name']}`", "", s.get("description", ""), "",
@@ -278,7 +280,7 @@ def write_report(out_dir: Path, results: dict) -> Path:
                   "(the probe: a fixed single-threaded workload before and after the run; a longer probe "
                   "means a slower machine, so compare stage seconds across runs only beside it).", ""]
     lines += resources_markdown(results, out_dir)
-    lines += figures.write_figures(out_dir, results)
+    lines += figures.write_figures(out_dir, results, pool=pool)
     path = out_dir / "report.md"
     tmp = path.with_name("report.md.partial")
     tmp.write_text("\n".join(lines) + "\n")

@@ -43,14 +43,19 @@ PROCESSES_ENV = "CLRECON_METRICS_PROCESSES"
 PROCESS_MIN_BYTES = 4 * 1024 ** 3
 
 
-def process_count(volume_bytes_read: int) -> int:
-    """Processes for a metrics stage that reads ``volume_bytes_read`` raw bytes (see module docstring)."""
+def process_count(volume_bytes_read: int, warm: bool = False) -> int:
+    """Processes for a metrics stage that reads ``volume_bytes_read`` raw bytes (see module docstring).
+
+    ``warm``: the run's helper process is there, already started (:mod:`clrecon.pipeline.helper_process`):
+    a second group then costs no start-up, so it is used whatever the size."""
     env = os.environ.get(PROCESSES_ENV, "").strip()
     if env:
         try:
             return max(1, int(env))
         except ValueError:
             raise ValueError(f"{PROCESSES_ENV}={env!r}: expected a whole number of processes") from None
+    if warm:
+        return 2
     return 2 if ((os.cpu_count() or 1) >= 2 and volume_bytes_read >= PROCESS_MIN_BYTES
                  and spawn_is_safe()) else 1
 
@@ -148,7 +153,7 @@ def _groups(keys: list, n: int) -> list[list]:
 
 
 def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, progress: bool = False,
-             info: dict | None = None):
+             info: dict | None = None, pool=None):
     """Table-2 metrics, the respiratory-only comparison and the motion metrics per pitch/variant/method.
 
     Reads one target's volumes at a time from the (open) volume file ``f``. Returns
@@ -157,16 +162,24 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, p
     ``phantom`` is the scene's phantom source, built once by the caller (the LV-based parts need
     one that :func:`clrecon.evaluation.groundtruth.offers_lv_region`). ``progress``: a counter
     with an ETA over the volumes read. ``info``: a dictionary that receives ``processes``, the
-    number of processes the accumulation ran in (module docstring).
+    number of processes the accumulation ran in (module docstring). ``pool``: the run's warm
+    one-worker helper process (:mod:`clrecon.pipeline.helper_process`) for the second group,
+    instead of spawning one; it is left running.
     """
     ctx = _context(scene, targets, slices_z, methods, phantom)
     n_c, n_r = targets.shape
     keys = [(pitch_key(p), v, m) for p in pitches for v in variants for m in methods]
     rc = scene.recon
     item = 2 if rc.volume_dtype == "float16" else 4
-    n_proc = process_count(len(keys) * n_c * n_r * len(slices_z) * rc.ny * rc.nx * item)
+    n_proc = process_count(len(keys) * n_c * n_r * len(slices_z) * rc.ny * rc.nx * item, warm=pool is not None)
+    if pool is not None:
+        n_proc = min(n_proc, 2)  # the helper is one worker
     groups = _groups(keys, n_proc)
-    pool = spawned_pool(len(groups) - 1) if len(groups) > 1 else None
+    own_pool = pool is None
+    if own_pool:
+        pool = spawned_pool(len(groups) - 1) if len(groups) > 1 else None
+    elif len(groups) < 2:
+        pool = None
     futures = []
     if pool is not None:
         try:
@@ -187,7 +200,7 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, p
         for name in ("acc", "macc", "ro_mae", "ro_lv"):
             res[name].update(part[name])
         bar.update(len(g) * n_c * n_r)
-    if pool is not None:
+    if pool is not None and own_pool:
         pool.shutdown(wait=True, cancel_futures=True)
     bar.close()
     if info is not None:

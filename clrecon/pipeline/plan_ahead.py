@@ -35,12 +35,14 @@ from clrecon.pipeline import slabs as slabs_mod
 ENV = "CLRECON_PLAN_AHEAD"
 
 
-def enabled(n_pitches: int) -> bool:
-    """Whether to plan the later pitches ahead (module docstring)."""
+def enabled(n_pitches: int, helper: bool = False) -> bool:
+    """Whether to plan the later pitches ahead (module docstring); ``helper``: the run has its
+    helper process (:mod:`clrecon.pipeline.helper_process`), which decided already that a child
+    can run here."""
     choice = os.environ.get(ENV, "").strip()
     if choice == "0" or n_pitches < 2:
         return False
-    return choice == "1" or ((os.cpu_count() or 1) >= 2 and spawn_is_safe())
+    return choice == "1" or helper or ((os.cpu_count() or 1) >= 2 and spawn_is_safe())
 
 
 def _plan(scene, cfg, pitch, slices_z, targets, methods, n_variants):
@@ -59,13 +61,15 @@ class PlanAhead:
     the plans taken, :attr:`beside_seconds` the child's own time on them.
     """
 
-    def __init__(self, scene, cfg, pitches, slices_z, targets, methods, n_variants):
+    def __init__(self, scene, cfg, pitches, slices_z, targets, methods, n_variants, pool=None):
         self._methods = tuple(methods)
         self._n = len(slices_z)
         self._futures: dict = {}
         self.wait_seconds = 0.0
         self.beside_seconds = 0.0
-        self._pool = spawned_pool(1)
+        # ``pool``: the run's helper process (clrecon.pipeline.helper_process), not shut down here
+        self._own_pool = pool is None
+        self._pool = spawned_pool(1) if pool is None else pool
         try:
             for p in pitches if self._pool is not None else ():
                 self._futures[float(p)] = self._pool.submit(_plan, scene, cfg, p, np.asarray(slices_z), targets,
@@ -96,6 +100,6 @@ class PlanAhead:
         for fut in self._futures.values():
             fut.cancel()
         self._futures.clear()
-        if self._pool is not None:
+        if self._pool is not None and self._own_pool:
             self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = None
+        self._pool = None

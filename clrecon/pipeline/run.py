@@ -39,7 +39,7 @@ from clrecon.evaluation.truth_cache import TruthCache, truth_key
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key
 from clrecon.pipeline import costs as costs_mod
-from clrecon.pipeline import distributed, plan_ahead, preflight, truth_worker
+from clrecon.pipeline import distributed, helper_process, plan_ahead, preflight, truth_worker
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.evaluate import evaluate
 from clrecon.pipeline.variants import noise_variants
@@ -198,10 +198,17 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     metrics_info: dict = {}  # the metrics stage's processes (clrecon.pipeline.evaluate)
     wb = write_behind.WriteBehind()  # the volume units written behind the reconstruction
     ahead = None  # the later pitches' plans, made in a second process (clrecon.pipeline.plan_ahead)
+    # one spawned helper for the plans ahead, the metrics' second group and the report's figures,
+    # warm by the time the last two need it (clrecon.pipeline.helper_process)
+    helper = helper_process.start()
+    helper_pool = helper.pool if helper is not None else None
     try:
-        if client is None and not scene.measured and not want_tf and plan_ahead.enabled(len(pitches)):
+        if (client is None and not scene.measured and not want_tf
+                and plan_ahead.enabled(len(pitches), helper is not None)):
             ahead = plan_ahead.PlanAhead(scene, recon_cfg, pitches[1:], slices_z, targets,
-                                         tuple(m for m in methods if m != TUNED), len(variants))
+                                         tuple(m for m in methods if m != TUNED), len(variants), pool=helper_pool)
+        if helper is not None:
+            helper.warm()  # queued behind the plans ahead
         if not scene.measured and client is None and truth_worker.enabled():
             gt_cfg = groundtruth.GroundTruthConfig.from_scene(scene)
             truths = TruthCache(cache_path, truth_key(scene, slices_z, targets))
@@ -367,7 +374,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             t0 = time.perf_counter()
             phantom = phantom_from_config(scene.phantom)
             met, resp_only, motion_res = evaluate(scene, vol_file, targets, slices_z, pitches, variants, methods,
-                                                  phantom, progress=progress, info=metrics_info)
+                                                  phantom, progress=progress, info=metrics_info,
+                                                  pool=helper.pool if helper is not None else None)
             times.add("metrics", time.perf_counter() - t0)
         # the previous run's results must not describe the new volumes, even for a moment
         (out / "results.json").unlink(missing_ok=True)
@@ -377,6 +385,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     except BaseException:
         if ahead is not None:
             ahead.close()
+        if helper is not None:
+            helper.close()
         wb.close()  # the unit in flight finished (it is atomic either way) before the writer lets go
         if truth_job is not None:
             truth_job.stop()
@@ -468,8 +478,14 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     results["machine_speed"] = machine0.finish()
     if report:
         t0 = time.perf_counter()
-        report_mod.write_report(out, results)
+        try:
+            report_mod.write_report(out, results, pool=helper.pool if helper is not None else None)
+        finally:
+            if helper is not None:
+                helper.close()
         stages["report"] = {"ran": True, "seconds": round(time.perf_counter() - t0, 3)}
+    elif helper is not None:
+        helper.close()
     results["total_seconds"] = round(time.perf_counter() - t_start, 3)
     # what no stage accounts for (pre-flight, scene checks, the report's claims, closing files):
     # named so that a run's stage table sums to its wall time
