@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 
@@ -55,3 +58,20 @@ def test_finish_without_proc_stat_keeps_the_probe(monkeypatch):
     out = ms.start(probe=False).finish(probe=False)
     assert "others_fraction" not in out and out["probe_seconds"] == {"start": None, "end": None}
     assert ms.describe(out) == "no probe"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="reads /proc")
+def test_live_children_count_as_this_run():
+    """A child still running (the run's helper process) counts as this run's CPU, not as another
+    job's: 0.5 s of its CPU show while it lives and, once waited for, through RUSAGE_CHILDREN."""
+    before = ms.own_cpu_seconds()
+    child = subprocess.Popen([sys.executable, "-c", "import sys, time\nwhile time.process_time() < 0.5: pass\n"
+                              "print('done', flush=True)\ntime.sleep(30)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "done"
+        assert ms._live_children_cpu_seconds() >= 0.45
+        assert ms.own_cpu_seconds() - before >= 0.45
+    finally:
+        child.kill()
+        child.wait()
+    assert ms.own_cpu_seconds() - before >= 0.45  # now a waited-for child

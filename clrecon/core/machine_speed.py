@@ -69,10 +69,34 @@ def machine_cpu_seconds() -> dict | None:
     return dict(zip(_STAT_FIELDS, vals, strict=True))
 
 
+def _live_children_cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process's children still running (``/proc``; 0 elsewhere).
+
+    ``RUSAGE_CHILDREN`` counts a child only once it has been waited for; the run's helper and
+    metrics processes are still alive when the machine's record is taken."""
+    me, total = str(os.getpid()), 0.0
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return 0.0
+    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    for pid in entries:
+        if not pid.isdigit():
+            continue
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[1] == me:  # fields after the name: state, ppid, ..., utime (12), stime (13)
+            total += (int(fields[11]) + int(fields[12])) / tick
+    return total
+
+
 def own_cpu_seconds() -> float:
-    """CPU seconds (user + system) of this process and its waited-for children so far."""
+    """CPU seconds (user + system) of this process and its children so far (waited-for and live)."""
     s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime + _live_children_cpu_seconds()
 
 
 @dataclass
