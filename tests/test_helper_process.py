@@ -2,6 +2,9 @@
 second group and the results-only figures in one warm child, and the run the same bit for bit."""
 
 import os
+import signal
+import subprocess
+import sys
 
 import pytest
 from run_compare import QUIET, assert_identical
@@ -91,3 +94,21 @@ def test_parts_leave_the_shared_pool_running(monkeypatch):
 def test_figure_switch_wins_over_the_helper(monkeypatch, choice):
     monkeypatch.setenv(figures.FIGURE_PROCESS_ENV, choice)
     assert figures._figure_pool(object()) is None
+
+
+def test_a_killed_run_leaves_no_helper_behind(tmp_path):
+    """kill -9 of a run while its helper lives: the helper notices that its parent is gone and
+    ends (core.resources._watch_parent), so the run's stdout and stderr close at once. An
+    orphaned helper kept them open, and whatever read the run's output waited for ever."""
+    env = dict(os.environ, CLRECON_NO_PROGRESS="1", CLRECON_FAULT="recon:5", CLRECON_TRUTH_THREAD="0")
+    env[helper_process.ENV] = "1"
+    cmd = [sys.executable, "-m", "clrecon", "run", "--scene", "tiny", "--out", str(tmp_path / "out"),
+           "--cache", str(tmp_path / "cache"), "--no-progress", "--pitch", "0.1,0.2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        proc.wait(timeout=600)
+        assert proc.returncode == -signal.SIGKILL
+        proc.communicate(timeout=30)  # EOF on both pipes: no process holds them any more
+    finally:
+        if proc.poll() is None:
+            proc.kill()

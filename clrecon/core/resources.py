@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import resource
 import sys
+import threading
+import time
 from pathlib import Path
 
 
@@ -35,17 +38,39 @@ def spawn_is_safe() -> bool:
     return getattr(spec, "name", None) == "clrecon.__main__" or not getattr(main, "__file__", None)
 
 
+#: Seconds between a pool worker's checks that the process that spawned it is still there.
+PARENT_CHECK_S = 0.5
+
+
+def _watch_parent(parent_pid: int) -> None:
+    """Pool worker initializer: a daemon thread that ends this worker once its parent is gone.
+
+    A worker blocks on its task queue and does not notice that the run which spawned it was
+    killed (SIGKILL, or the OOM killer): it would live on, an orphan holding the run's stdout
+    and stderr open, so that whatever waits for the run's output (a shell pipe, a batch
+    system, a test) waited for ever. So each worker checks its parent's pid every
+    :data:`PARENT_CHECK_S` and exits when it has changed."""
+    def watch():
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_CHECK_S)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="clrecon-parent-watch", daemon=True).start()
+
+
 def spawned_pool(n: int):
     """A process pool of ``n`` spawned workers, or None where one cannot start.
 
     Spawn, not fork: the caller holds OpenCL and HDF5 state and PoCL's threads. Used by the
-    metrics' second process, the figure process and the plans made ahead; whether a child is
-    safe to start at all is :func:`spawn_is_safe`'s question, asked by each caller.
+    run's helper process (the plans made ahead, the metrics' second group, the figures);
+    whether a child is safe to start at all is :func:`spawn_is_safe`'s question, asked by each
+    caller. Each worker ends itself when this process dies (:func:`_watch_parent`).
     """
     try:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
+        return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_watch_parent, initargs=(os.getpid(),))
     except (OSError, ValueError, ImportError):
         return None
