@@ -610,25 +610,28 @@ def report_lines(res: dict | None) -> list[str]:
     ]
 
 
+def _shared_vs_copied(a: dict, what: str, outputs: str) -> str:
+    """One line of a read-in-place row: ``what`` (the data), both medians, the speedup, the outputs' identity."""
+    m = a["median_s"]
+    return (f"   {what}: read in place {m['shared']:.2f} s, copied {m['copied']:.2f} s: speedup {a['speedup']:.2f}x, "
+            f"{outputs} {'bit-identical' if a['identical'] else 'DIFFERENT'} "
+            f"(load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})")
+
+
 def _objects_shared_lines(a: dict | None) -> list[str]:
     if not a:
         return []
-    m = a["median_s"]
-    return [f"   posed objects to the projector ({a['scene']}, {a['projections']} projections, "
-            f"{a['objects_bytes'] / 1e6:.0f} MB of objects): read in place {m['shared']:.2f} s, copied "
-            f"{m['copied']:.2f} s: speedup {a['speedup']:.2f}x, projections "
-            f"{'bit-identical' if a['identical'] else 'DIFFERENT'} (load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]
+    return [_shared_vs_copied(a, f"posed objects to the projector ({a['scene']}, {a['projections']} projections, "
+                                 f"{a['objects_bytes'] / 1e6:.0f} MB of objects)", "projections")]
 
 
 def _rows_shared_lines(a: dict | None) -> list[str]:
     if not a:
         return []
-    m = a["median_s"]
-    how = "read in place" if a["in_place"] else "copied anyway (not a CPU device)"
-    return [f"   a slab's rows to the device + one launch ({a['scene']}, {a['rows_bytes'] / 1e9:.2f} GB of rows, "
-            f"{a['sinograms']} sinograms, K = {a['slots']}): shared ({how}) {m['shared']:.2f} s, copied "
-            f"{m['copied']:.2f} s: speedup {a['speedup']:.2f}x, sinograms "
-            f"{'bit-identical' if a['identical'] else 'DIFFERENT'} (load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]
+    how = "" if a["in_place"] else "; not a CPU device, so copied either way"
+    return [_shared_vs_copied(a, f"a slab's rows to the device + one launch ({a['scene']}, "
+                                 f"{a['rows_bytes'] / 1e9:.2f} GB of rows, {a['sinograms']} sinograms, "
+                                 f"K = {a['slots']}{how})", "sinograms")]
 
 
 def _interp_launch_lines(a: dict | None) -> list[str]:
