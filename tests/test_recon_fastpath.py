@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from clrecon.config.scene import load_scene
+from clrecon.core.runtime import aligned_empty
 from clrecon.reconstruction import fbp, reconstruct
 from clrecon.reconstruction.interpolation import weights as ip
 from clrecon.scan.table import projection_table
@@ -130,7 +131,7 @@ def test_shared_rows_read_in_place():
     copied = ip.DeviceRows(src)
     rt = copied.rt
     mf = rt.cl.mem_flags
-    rows = rt.host_empty((P, C), np.float32)
+    rows = aligned_empty((P, C), np.float32)
     assert rows.ctypes.data % 4096 == 0 and rows.flags.c_contiguous and rows.shape == (P, C)
     rows[...] = src
     unaligned = np.empty(P * C + 1, np.float32)[1:].reshape(P, C)

@@ -68,7 +68,7 @@ from clrecon.config.scene import load_scene
 from clrecon.core import units, write_behind
 from clrecon.core.conventions import detector_coords, detector_frames
 from clrecon.core.resources import folder_bytes
-from clrecon.core.runtime import get_runtime
+from clrecon.core.runtime import aligned_empty, get_runtime
 from clrecon.outputs.volumes import VolumeWriter, open_volumes
 from clrecon.pipeline import evaluate as evaluate_mod
 from clrecon.pipeline.run import resolve_targets
@@ -526,7 +526,7 @@ def bench_rows_shared(quick: bool = False, repeats: int = 3, scene_name: str = "
     # a paper-scale slab's rows: about 1 GB (a slab is <= 2.5 GB of rows, plan and images)
     rows_bytes = (64 << 20) if quick else (1 << 30)
     P = max(V, -(-rows_bytes // (4 * C)))
-    rows = rt.host_empty((P, C), np.float32)
+    rows = aligned_empty((P, C), np.float32)
     rng = np.random.default_rng(11)
     for r0 in range(0, P, 4096):
         rows[r0:r0 + 4096] = rng.standard_normal((min(4096, P - r0), C), dtype=np.float32)

@@ -37,6 +37,8 @@ PROBE_VALUES = 1 << 18
 PROBE_REPEATS = 5
 
 _STAT_FIELDS = ("user", "nice", "system", "idle", "iowait", "irq", "softirq", "steal")
+#: Clock ticks per second of /proc's CPU times.
+_TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
 def probe_seconds(repeats: int = PROBE_REPEATS) -> float:
@@ -63,8 +65,7 @@ def machine_cpu_seconds() -> dict | None:
         return None
     if not parts or parts[0] != "cpu":
         return None
-    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-    vals = [int(v) / tick for v in parts[1:1 + len(_STAT_FIELDS)]]
+    vals = [int(v) / _TICK for v in parts[1:1 + len(_STAT_FIELDS)]]
     vals += [0.0] * (len(_STAT_FIELDS) - len(vals))
     return dict(zip(_STAT_FIELDS, vals, strict=True))
 
@@ -79,7 +80,6 @@ def _live_children_cpu_seconds() -> float:
         entries = os.listdir("/proc")
     except OSError:
         return 0.0
-    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
     for pid in entries:
         if not pid.isdigit():
             continue
@@ -89,7 +89,7 @@ def _live_children_cpu_seconds() -> float:
         except OSError:
             continue
         if fields[1] == me:  # fields after the name: state, ppid, ..., utime (12), stime (13)
-            total += (int(fields[11]) + int(fields[12])) / tick
+            total += (int(fields[11]) + int(fields[12])) / _TICK
     return total
 
 

@@ -180,10 +180,6 @@ class Runtime:
             a = np.zeros(1, dtype)
         return self.cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
 
-    def host_empty(self, shape, dtype=np.float32) -> np.ndarray:
-        """:func:`aligned_empty`: a page-aligned host array that :meth:`share_with_device` can hand over."""
-        return aligned_empty(shape, dtype)
-
     def share_with_device(self, array: np.ndarray, name: str = "array", dtype=np.float32):
         """Read-only device buffer over ``array``'s own memory where the device can read it there.
 
@@ -196,11 +192,10 @@ class Runtime:
         nor let it go while the buffer lives (the returned buffer keeps a reference to it)."""
         a = np.asarray(array)
         align = max(1, int(self.device.mem_base_addr_align) // 8)
+        # too large for one buffer: to_device raises the MemoryError with its message
         if not (self.is_cpu and a.dtype == np.dtype(dtype) and a.flags.c_contiguous and a.nbytes > 0
-                and a.ctypes.data % align == 0):
+                and a.ctypes.data % align == 0 and a.nbytes <= self.max_alloc_bytes):
             return self.to_device(a, dtype, name)
-        if a.nbytes > self.max_alloc_bytes:
-            return self.to_device(a, dtype, name)  # raises the MemoryError with its message
         mf = self.cl.mem_flags
         return self.cl.Buffer(self.context, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=a)
 

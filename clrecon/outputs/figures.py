@@ -625,7 +625,6 @@ def write_figures(out_dir, results: dict, pool=None) -> list[str]:
     ``pool``: the run's warm helper process (:mod:`clrecon.pipeline.helper_process`) to draw
     them in instead of a new one; it is left running.
     """
-    shared = pool
     out_dir = Path(out_dir)
     fig_dir = out_dir / FIGURE_DIR
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -659,9 +658,9 @@ def write_figures(out_dir, results: dict, pool=None) -> list[str]:
             entries.append([f"- *{title}: skipped, {skip}.*", ""])
             return
         path = str(fig_dir / name)
-        if pool is not None:
+        if fig_pool is not None:
             try:
-                fut = pool.submit(_draw_results_figure, kind, results, path, args)
+                fut = fig_pool.submit(_draw_results_figure, kind, results, path, args)
                 entries.append((title, name, fut, (kind, results, path, args)))
                 return
             except RuntimeError:  # the pool broke: draw here
@@ -670,7 +669,7 @@ def write_figures(out_dir, results: dict, pool=None) -> list[str]:
 
     has_metrics = any(results.get("metrics", {}).get(pk) for pk in results.get("metrics", {}))
     n_targets = len(run.c) * len(run.a)
-    pool = _figure_pool(shared) if has_metrics and n_targets >= 2 else None
+    fig_pool = _figure_pool(pool) if has_metrics and n_targets >= 2 else None
     try:
         # queued first, so that the second process draws while this one draws the volume figures
         for fov in ("small", "large"):
@@ -704,8 +703,8 @@ def write_figures(out_dir, results: dict, pool=None) -> list[str]:
             lines.extend(e)
     finally:
         run.close()
-        if pool is not None and pool is not shared:
-            pool.shutdown(wait=True, cancel_futures=True)
+        if fig_pool is not None and fig_pool is not pool:
+            fig_pool.shutdown(wait=True, cancel_futures=True)
     return lines
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from clrecon.core.conventions import voxel_coords
 from clrecon.core.detector import spot_shift_in_frame
 from clrecon.core.errors import ClreconError
-from clrecon.core.runtime import get_runtime
+from clrecon.core.runtime import aligned_empty, get_runtime
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction import interpolation, parallel_fbp, rebin
 from clrecon.reconstruction.interpolation import weights as interpolate
@@ -443,7 +443,7 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
 
     # stream the store in index order, rebinning only the pairs each chunk owns
     # page-aligned, so that a CPU device reads them in place (DeviceRows(share=True) below)
-    rows = {v: rt.host_empty((len(ukeys), sc.n_cols), np.float32) for v in variants}
+    rows = {v: aligned_empty((len(ukeys), sc.n_cols), np.float32) for v in variants}
     bounds = np.unique(np.concatenate([np.arange(pair_proj.min(), pair_proj.max() + 1, chunk),
                                        [pair_proj.max() + 1]])) if len(pair_proj) else np.zeros(1, int)
     for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True):

@@ -86,7 +86,7 @@ class DeviceRows:
 
     ``share=True`` hands the caller's array to the device instead of copying it where the
     device can read it in place (:meth:`Runtime.share_with_device`: a CPU device, float32,
-    C-contiguous, allocated by :meth:`Runtime.host_empty`); the caller then gives the array up
+    C-contiguous, allocated by :func:`clrecon.core.runtime.aligned_empty`); the caller then gives the array up
     (no writes) until :meth:`release`. Same values either way: the kernels read the same floats.
     """
 
