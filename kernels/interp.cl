@@ -174,8 +174,8 @@ __kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinn
 // Work-item (cp, v, g) owns the 16 lanes of one column. The slot count is the build option
 // APPLY_K (one build per K, the loop unrolled) and a zero weight is a select, not a branch: with
 // no loop left inside the work-item, PoCL vectorises across work-items (neighbouring columns of the
-// same rows); the index and weight are lane-inner (G, V, K, 16), one vload16 each per slot, and the
-// 16 lanes go out in one vstore16. The host puts index 0 wherever the weight is 0, so the row read
+// same rows); the index and weight are lane-inner (G, V, K, 16), one 16-lane load each per slot, and the
+// 16 lanes go out in one 16-lane store. The host puts index 0 wherever the weight is 0, so the row read
 // there is in range, and the select keeps whatever it holds (a NaN too) out of the sum. Per lane the
 // slots are summed in k order exactly as the loop with a branch did (until 2026-12-03: a dynamic K,
 // `if (w != 0)`, lane-major index/weight; bit-identical sums, 1.6-2.2x slower: docs/algorithms.md).
@@ -192,6 +192,15 @@ __kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinn
         return;                                                           \
     const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
 #define APPLY_ROW(s) r.s = rows[(size_t)ik.s * (size_t)n_cols + (size_t)col];
+// 16 lanes read and written through a 16-vector pointer, not vload16/vstore16: PoCL 3.0 (LLVM 14)
+// aborts compiling its own vload16/vstore16 on CPUs with AVX-512 ("LLVM ERROR: Do not know how to
+// scalarize this operator's operand", seen 2026-12-04 on an AMD EPYC that PoCL names znver3 with
+// 16-float native vectors), and two vload8 halves make Oclgrind report the joined vector as
+// uninitialised. The pointer needs 64-byte alignment: every address here is a multiple of 16
+// floats past the start of a buffer (OpenCL aligns buffers to CL_DEVICE_MEM_BASE_ADDR_ALIGN, at
+// least 128 bytes in the full profile: the size of a long16).
+#define LOAD16(T, p) (*(__global const T##16 *)(p))
+#define STORE16(x, p) (*(__global float16 *)(p) = (x))
 __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, n_cols)
                                           __global const int *index,     // (G, n_views, APPLY_K, 16) into P
                                           __global const float *weight,  // (G, n_views, APPLY_K, 16)
@@ -205,14 +214,14 @@ __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, 
     float16 acc = (float16)(0.0f);
 #pragma unroll
     for (int k = 0; k < APPLY_K; ++k) {
-        const float16 wk = vload16(0, weight + slot + k * 16);
-        const int16 ik = vload16(0, index + slot + k * 16);
+        const float16 wk = LOAD16(float, weight + slot + k * 16);
+        const int16 ik = LOAD16(int, index + slot + k * 16);
         float16 r;
         APPLY_ROW(s0) APPLY_ROW(s1) APPLY_ROW(s2) APPLY_ROW(s3) APPLY_ROW(s4) APPLY_ROW(s5) APPLY_ROW(s6) APPLY_ROW(s7)
         APPLY_ROW(s8) APPLY_ROW(s9) APPLY_ROW(sa) APPLY_ROW(sb) APPLY_ROW(sc) APPLY_ROW(sd) APPLY_ROW(se) APPLY_ROW(sf)
         acc = wk != 0.0f ? acc + wk * r : acc;
     }
-    vstore16(acc, 0, out + (gv * (size_t)(n_cols + 2) + (size_t)cp) * 16);
+    STORE16(acc, out + (gv * (size_t)(n_cols + 2) + (size_t)cp) * 16);
 }
 #undef APPLY_ROW
 
