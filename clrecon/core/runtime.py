@@ -148,12 +148,33 @@ class Runtime:
             if prog is None:
                 opts = ["-cl-fast-relaxed-math", "-cl-mad-enable"] if defines.pop("_fast", False) else []
                 opts += [_format_define(k, v) for k, v in sorted(defines.items())]
-                src = load_source(name)
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")  # PyOpenCL's "build succeeded with warnings" chatter
-                    prog = self.cl.Program(self.context, src).build(options=opts)
+                prog = self._build(name, load_source(name), opts)
                 self._programs[key] = prog
             return prog
+
+    def _build(self, name: str, src: str, opts: list[str]):
+        """``src`` built with exactly ``opts``, as a ``pyopencl.Program``.
+
+        Not ``pyopencl.Program.build``: that adds ``-I <site-packages>/pyopencl/cl`` (its own
+        headers, which the kernels here do not include) to the options, and PoCL keys its kernel
+        cache on the options, so every new virtual environment compiled every kernel again (a
+        fresh clone's first run; measured in docs/algorithms.md, "Kernel builds"). With the
+        options the sources' own, a build made once on a machine serves every checkout of the
+        same sources."""
+        cl = self.cl
+        raw = cl._Program(self.context, src)  # the unwrapped program (pyopencl's public 1-argument form below)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # PyOpenCL's "build succeeded with warnings" chatter
+            try:
+                raw.build(" ".join(opts).encode())
+            except cl.Error as err:
+                try:
+                    log = raw.get_build_info(self.device, cl.program_build_info.LOG)
+                except cl.Error:
+                    log = ""
+                raise RuntimeError(f"kernels/{name}: the OpenCL build failed on {self.device.name!r} with "
+                                   f"options {' '.join(opts) or '(none)'}: {err}\n{log}") from err
+        return cl.Program(raw)
 
     def kernel(self, name: str, kernel_name: str, **defines):
         """Kernel object ``kernel_name`` from ``kernels/name``, fetched once and kept."""
