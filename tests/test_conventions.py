@@ -51,3 +51,20 @@ def test_circular_difference():
     assert circular_difference(0.95, 0.05) == pytest.approx(-0.1)
     assert circular_difference(0.05, 0.95) == pytest.approx(0.1)
     assert -0.5 <= circular_difference(0.5, 0.0) < 0.5
+
+
+def test_circular_difference_bit_for_bit_the_remainder_formula():
+    """The floor form gives the float64 values of ``(c - c_ref + 0.5) % 1.0 - 0.5`` (what the
+    planning used until 2026-12-04): random phases, whole and half-whole differences, signed
+    zeros, subnormals, values next to 0.5 and large magnitudes; NaN stays NaN."""
+    rng = np.random.default_rng(7)
+    c = np.concatenate([rng.uniform(-5, 5, 200_000), rng.integers(-5, 6, 1000).astype(float),
+                        rng.uniform(-1e6, 1e6, 20_000), rng.uniform(-1e-9, 1e-9, 20_000),
+                        np.array([0.5, -0.5, 0.0, -0.0, 1.5, -1.5, 0.49999999999999994, -0.49999999999999994,
+                                  np.nextafter(0.5, 1), np.nextafter(-0.5, -1), 5e-324, -5e-324, 2.0 ** 51 + 0.5])])
+    for c_ref in (rng.uniform(0, 1, c.size), 0.0, -0.0, 0.37, 0.5):
+        d = np.asarray(c, np.float64) - np.asarray(c_ref, np.float64)
+        want = (d + 0.5) % 1.0 - 0.5
+        got = circular_difference(c, c_ref)
+        assert np.array_equal(got.view(np.int64), want.view(np.int64))
+    assert np.isnan(circular_difference(np.array([np.nan, np.inf, -np.inf]), 0.0)).all()

@@ -82,6 +82,13 @@ def detector_frames(angle_rad, source_z_mm, sid_mm: float, sdd_mm: float):
 
 
 def circular_difference(c, c_ref):
-    """Signed circular difference of cardiac phases, in [-0.5, 0.5)."""
-    d = np.asarray(c, dtype=np.float64) - np.asarray(c_ref, dtype=np.float64)
-    return (d + 0.5) % 1.0 - 0.5
+    """Signed circular difference of cardiac phases, in [-0.5, 0.5).
+
+    ``x - floor(x)`` with x = c - c_ref + 0.5, the same float64 values as ``x % 1.0`` (NumPy's
+    remainder: an exact fmod, plus 1.0 for a negative one, one rounding either way; an exact
+    +0.0 for whole x; NaN for NaN and inf) for every finite x below 2**52 in magnitude
+    (tests/test_conventions.py), and 7x faster: the planning calls it on every candidate of
+    every slice (1.3 s of demo's 8.5 s planning of pitch 0.02 with ``%``).
+    """
+    d = np.asarray(c, dtype=np.float64) - np.asarray(c_ref, dtype=np.float64) + 0.5
+    return d - np.floor(d) - 0.5
