@@ -4,7 +4,14 @@ import numpy as np
 import pytest
 
 from clrecon.config.scene import load_scene
-from clrecon.evaluation.metrics import MetricsConfig, abs_error_stats, blood_pool_volume_ml, fov_masks, table2
+from clrecon.evaluation.metrics import (
+    MetricsConfig,
+    Table2,
+    abs_error_stats,
+    blood_pool_volume_ml,
+    fov_masks,
+    table2,
+)
 
 
 @pytest.fixture(scope="module")
@@ -28,6 +35,31 @@ def test_table2_matches_a_direct_computation(scene):
         assert per.shape == (2, 3)
         assert np.allclose(per, d.mean(axis=(2, 3)))
         assert abs_error_stats(recon, truth, m)["mae_hu"] == pytest.approx(d.mean(), rel=1e-9)
+
+
+def test_table2_kept_arrays_give_the_same_sums_bit_for_bit(scene):
+    """Table2.add with a kept scratch dictionary, shared by two accumulators and reused across
+    targets, float16 and float32 inputs and two shapes, gives the float64 sums of the fresh-array
+    formula it replaced (``x = |recon - truth|[:, idx].astype(float64)``; ``x.sum()``, ``(x * x).sum()``)."""
+    rng = np.random.default_rng(11)
+    cfg = MetricsConfig.from_scene(scene)
+    rc = scene.recon
+    sc: dict = {}
+    accs = [Table2(cfg, 2, 2), Table2(cfg, 2, 2)]
+    for nz, dtype in ((rc.nz, np.float32), (rc.nz + 3, np.float16), (rc.nz, np.float32)):
+        for i in range(2):
+            for j in range(2):
+                truth = rng.normal(0, 300, (nz, rc.ny, rc.nx)).astype(dtype)
+                for acc in accs:
+                    recon = (truth + rng.normal(0, 40, truth.shape)).astype(dtype)
+                    acc.add(i, j, recon, truth, sc)
+                    d = np.abs(recon - truth).reshape(nz, -1)
+                    for fov, idx in acc.flat.items():
+                        x = d[:, idx].astype(np.float64)
+                        want = np.array([x.sum(), (x * x).sum()])
+                        assert np.array_equal(acc.sums[fov][i, j].view(np.int64), want.view(np.int64)), (fov, nz, dtype)
+                        assert acc.count[fov][i, j] == x.size
+    assert len(sc) == 5  # one difference array and two per FOV, reused (resized when the shape changed)
 
 
 def test_masks(scene):

@@ -88,13 +88,38 @@ class Table2:
         self.sums = {fov: np.zeros((n_cardiac, n_resp, 2)) for fov in self.flat}
         self.count = {fov: np.zeros((n_cardiac, n_resp), np.int64) for fov in self.flat}
 
-    def add(self, i: int, j: int, recon: np.ndarray, truth: np.ndarray) -> None:
+    def add(self, i: int, j: int, recon: np.ndarray, truth: np.ndarray, scratch: dict | None = None) -> None:
+        """Target (i, j)'s sums. ``scratch``: a dictionary the caller keeps from call to call (and
+        may share between accumulators); the differences are formed in arrays kept there instead
+        of fresh ones. Fresh arrays of paper size are fresh pages (about 0.8 GB per volume here),
+        whose first touch costs more than the arithmetic on a machine with dear page faults.
+        Same values in arrays of the same shapes and layouts either way, so the same float64 sums,
+        bit for bit (tests/test_metrics.py)."""
         if recon.shape != truth.shape:
             raise ValueError(f"recon shape {recon.shape} != truth shape {truth.shape}")
-        d = np.abs(recon - truth).reshape(recon.shape[0], -1)
+        sc = {} if scratch is None else scratch
+
+        def kept(name, shape, dtype, order="C"):
+            a = sc.get(name)
+            if a is None or a.shape != shape or a.dtype != dtype:
+                a = sc[name] = np.empty(shape, dtype, order=order)
+            return a
+
+        nz = recon.shape[0]
+        d = kept("diff", recon.shape, np.result_type(recon, truth))
+        np.subtract(recon, truth, out=d)
+        np.abs(d, out=d)
+        d = d.reshape(nz, -1)
         for fov, idx in self.flat.items():
-            x = d[:, idx].astype(np.float64)
-            self.sums[fov][i, j] = (x.sum(), (x * x).sum())
+            # column-major, as NumPy lays out d[:, idx] (slices fastest): a float64 sum adds in
+            # memory order, so the layout is part of the result's last bits
+            g = kept(("fov", fov), (nz, idx.size), d.dtype, "F")
+            np.take(d, idx, axis=1, out=g)
+            x = kept(("fov64", fov), (nz, idx.size), np.float64, "F")
+            np.copyto(x, g)
+            s1 = x.sum()
+            np.multiply(x, x, out=x)
+            self.sums[fov][i, j] = (s1, x.sum())
             self.count[fov][i, j] = x.size
 
     def result(self) -> dict:

@@ -114,6 +114,7 @@ def _accumulate(ctx: _Context, f, keys, bar=None) -> dict:
     macc = {k: motion.MotionMetrics(ctx.mcfg, n_c, n_r) for k in keys} if ctx.want_mot else {}
     ro_mae = {k: np.zeros((n_c, n_r)) for k in keys}
     ro_lv = {k: np.zeros((n_c, n_r)) for k in keys}
+    scratch: dict = {}  # the Table-2 differences' arrays, kept for every key and target
     for i in range(n_c):
         for j in range(n_r):
             truth = read_volume(f, "groundtruth", (i, j))
@@ -124,7 +125,7 @@ def _accumulate(ctx: _Context, f, keys, bar=None) -> dict:
             for k in keys:
                 pk, v, m = k
                 vol = read_volume(f, f"recon/{pk}/{v}/{m}", (i, j))
-                acc[k].add(i, j, vol, truth)
+                acc[k].add(i, j, vol, truth, scratch)
                 if ctx.want_mot:
                     macc[k].add(i, j, vol, truth, ctx.geoms[i][j], mot_gt.lv_ml[i, j])
                 if ctx.want_ro and m in RESP_ONLY_METHODS:
