@@ -54,3 +54,23 @@ def test_to_device_rejects_non_numeric():
     rt = cl_runtime.get_runtime()
     with pytest.raises(TypeError, match="numeric"):
         rt.to_device(np.array(["a"]))
+
+
+def test_programs_are_built_with_their_own_options_only():
+    """PoCL keys its on-disk kernel cache on the build options: they must not carry a path of the
+    virtual environment (pyopencl.Program.build adds -I <site-packages>/pyopencl/cl), or every new
+    venv compiles every kernel again (docs/algorithms.md, "Kernel builds")."""
+    rt = cl_runtime.get_runtime()
+    prog = rt.program("ssrb.cl")
+    opts = prog.get_build_info(rt.device, rt.cl.program_build_info.OPTIONS)
+    assert "pyopencl" not in opts and "site-packages" not in opts, opts
+    knl = rt.kernel("interp.cl", "apply_weights_interleaved16", APPLY_K=2)
+    assert knl.function_name == "apply_weights_interleaved16"
+    opts = knl.program.get_build_info(rt.device, rt.cl.program_build_info.OPTIONS)
+    assert opts.split() == ["-DAPPLY_K=2"], opts
+
+
+def test_a_failed_build_names_the_file_the_device_and_the_options():
+    rt = cl_runtime.get_runtime()
+    with pytest.raises(RuntimeError, match=r"kernels/broken\.cl: the OpenCL build failed on .* with options -DX=1"):
+        rt._build("broken.cl", "__kernel void k(__global float *a) { a[0] = undeclared_name; }", ["-DX=1"])
