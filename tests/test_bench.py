@@ -157,6 +157,8 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
     m = res["metrics"]
     assert m["identical"] is True and m["volumes"] == 2 and set(m["median_s"]) == {"1", "2"}
     assert "metrics stage" in text and "bit-identical" in text
+    t2 = res["table2_kept"]  # kept arrays against the fresh-array formula: the same float64 sums
+    assert t2["identical"] is True and t2["shape"][0] == 8 and "Table-2 sums per volume" in text
     a = res["assembly"]   # in place against format 2's copy, on the same units: the same values read back
     assert a["identical"] is True and a["datasets"] == 2 and set(a["median"]) == {"copy", "in_place"}
     assert a["speedup"] == pytest.approx(a["median"]["copy"]["assemble_s"] / a["median"]["in_place"]["assemble_s"])

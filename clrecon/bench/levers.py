@@ -45,7 +45,10 @@ repeats alternating (so that a change of the machine's load hits both), medians 
 - ``objects_shared``: one simulation block of demo (2 048 projections posed in one call, 133 MB
   of float64 object records) projected with the records read in place by the CPU device
   (page-aligned by the phantom, the simulation since 2026-12-03) against a copy of them that the
-  device must copy (before), the projections compared for bit identity.
+  device must copy (before), the projections compared for bit identity;
+- ``table2_kept``: the metrics' Table-2 sums of paper-p010-sized volume pairs (110 x 512 x 512
+  float32 HU, CT-like) formed in kept arrays (``Table2.add(..., scratch)``, the metrics since
+  2026-12-04) against the fresh-array formula it replaced, the float64 sums compared bit for bit.
 """
 
 from __future__ import annotations
@@ -565,6 +568,46 @@ def bench_rows_shared(quick: bool = False, repeats: int = 3, scene_name: str = "
             "load": load, "repeats": max(1, repeats)}
 
 
+def _table2_fresh(acc, i: int, j: int, recon: np.ndarray, truth: np.ndarray) -> None:
+    """What ``Table2.add`` did until 2026-12-04: fresh arrays for every difference (the same-run reference)."""
+    d = np.abs(recon - truth).reshape(recon.shape[0], -1)
+    for fov, idx in acc.flat.items():
+        x = d[:, idx].astype(np.float64)
+        acc.sums[fov][i, j] = (x.sum(), (x * x).sum())
+        acc.count[fov][i, j] = x.size
+
+
+def bench_table2_kept(quick: bool = False, repeats: int = 3, scene_name: str = "paper-p010") -> dict:
+    """Seconds per volume of the metrics' Table-2 sums, kept arrays (``Table2.add(..., scratch)``)
+    against fresh ones (:func:`_table2_fresh`), on CT-like volume pairs of the scene's grid
+    (paper-p010: 110 x 512 x 512; ``quick``: 8 slices); the sums compared bit for bit."""
+    from clrecon.evaluation.metrics import MetricsConfig, Table2
+    scene = load_scene(scene_name)
+    rc = scene.recon
+    nz = 8 if quick else rc.nz
+    shape = (1, 1, nz, rc.ny, rc.nx)
+    truth = _ct_pattern(shape, 0)[0, 0]
+    vols = [_ct_pattern(shape, k)[0, 0] for k in (1, 2)]
+    cfg = MetricsConfig.from_scene(scene)
+    accs = {"kept": Table2(cfg, 1, len(vols)), "fresh": Table2(cfg, 1, len(vols))}
+    scratch: dict = {}
+    modes = {"kept": lambda j: accs["kept"].add(0, j, vols[j], truth, scratch),
+             "fresh": lambda j: _table2_fresh(accs["fresh"], 0, j, vols[j], truth)}
+    times: dict = {k: [] for k in modes}
+    load = [load1()]
+    for r in range(max(2, repeats)):
+        for name in (list(modes) if r % 2 == 0 else list(modes)[::-1]):
+            for j in range(len(vols)):
+                times[name].append(timed(lambda name=name, j=j: modes[name](j)))
+    load.append(load1())
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    same = all(np.array_equal(accs["kept"].sums[f].view(np.int64), accs["fresh"].sums[f].view(np.int64))
+               for f in accs["kept"].sums)
+    return {"scene": scene_name, "shape": [nz, rc.ny, rc.nx], "median_s": med,
+            "speedup": med["fresh"] / med["kept"] if med["kept"] > 0 else float("nan"), "identical": bool(same),
+            "load": load, "repeats": max(2, repeats)}
+
+
 def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo",
                  write_scene: str = "paper-p010", simulate_scene: str = "demo") -> dict:
     """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and
@@ -577,7 +620,8 @@ def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "de
             "posing": bench_posing(quick, repeats),
             "interp_launch": bench_interp_launch(quick, repeats, write_scene),
             "rows_shared": bench_rows_shared(quick, repeats, write_scene),
-            "objects_shared": bench_objects_shared(quick, repeats, simulate_scene)}
+            "objects_shared": bench_objects_shared(quick, repeats, simulate_scene),
+            "table2_kept": bench_table2_kept(quick, repeats, write_scene)}
 
 
 def report_lines(res: dict | None) -> list[str]:
@@ -607,7 +651,17 @@ def report_lines(res: dict | None) -> list[str]:
         *_interp_launch_lines(res.get("interp_launch")),
         *_rows_shared_lines(res.get("rows_shared")),
         *_objects_shared_lines(res.get("objects_shared")),
+        *_table2_kept_lines(res.get("table2_kept")),
     ]
+
+
+def _table2_kept_lines(a: dict | None) -> list[str]:
+    if not a:
+        return []
+    m = a["median_s"]
+    return [f"   Table-2 sums per volume ({a['scene']}, {'x'.join(map(str, a['shape']))}): "
+            f"kept arrays {m['kept']:.3f} s, fresh arrays {m['fresh']:.3f} s: speedup {a['speedup']:.2f}x, sums "
+            f"{'bit-identical' if a['identical'] else 'DIFFERENT'} (load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]
 
 
 def _shared_vs_copied(a: dict, what: str, outputs: str) -> str:
