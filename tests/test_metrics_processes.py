@@ -80,3 +80,32 @@ def test_spawn_is_safe_only_without_a_main_script_to_rerun(monkeypatch):
     notebook = types.ModuleType("__main__")           # no file: nothing to re-run
     monkeypatch.setitem(sys.modules, "__main__", notebook)
     assert evaluate_mod.spawn_is_safe() is True
+
+
+def test_cropped_lv_regions_count_what_the_full_masks_count():
+    """The metrics keep each target's LV region as its bounding box and the mask inside it: the
+    blood-pool volumes are those of the full-size masks (every target of the demo grid, volumes
+    with contrast around the LV and noise everywhere)."""
+    import numpy as np
+
+    from clrecon.evaluation import groundtruth, metrics
+    from clrecon.pipeline.run import resolve_targets
+    from clrecon.reconstruction import reconstruct
+    from clrecon.simulation.phantom_sources import phantom_from_config
+
+    scene = load_scene("demo")
+    targets = resolve_targets(scene, None, None)
+    slices_z = reconstruct.slice_positions(scene, None)
+    phantom = phantom_from_config(scene.phantom)
+    ctx = evaluate_mod._context(scene, targets, slices_z, tuple(scene.recon.methods), phantom)
+    assert ctx.want_ro
+    rc = scene.recon
+    x, y = reconstruct.voxel_coords(rc.nx, rc.voxel_mm), reconstruct.voxel_coords(rc.ny, rc.voxel_mm)
+    rng = np.random.default_rng(5)
+    for i, c in enumerate(targets.cardiac[:3]):
+        for j, a in enumerate(targets.resp):
+            full = groundtruth.lv_region_mask(phantom, c, a, x, y, slices_z)
+            sl, sub = ctx.regions[i][j]
+            assert sub.sum() == full.sum() > 0 and sub.size < full.size
+            vol = rng.normal(200.0, 60.0, full.shape).astype(np.float32)
+            assert ctx.lv(vol, i, j) == metrics.blood_pool_volume_ml(vol, full, ctx.voxel_ml)

@@ -76,7 +76,8 @@ class _Context:
     geoms: list | None
 
     def lv(self, vol, i, j):
-        return metrics.blood_pool_volume_ml(vol, self.regions[i][j], self.voxel_ml)
+        sl, sub = self.regions[i][j]  # the region's bounding box and the mask inside it
+        return metrics.blood_pool_volume_ml(vol[sl], sub, self.voxel_ml)
 
 
 def _context(scene, targets, slices_z, methods, phantom) -> _Context:
@@ -88,8 +89,10 @@ def _context(scene, targets, slices_z, methods, phantom) -> _Context:
         phantom.prefetch(targets.pairs[:, 0], targets.pairs[:, 1])
     x, y = reconstruct.voxel_coords(rc.nx, rc.voxel_mm), reconstruct.voxel_coords(rc.ny, rc.voxel_mm)
     voxel_ml = rc.voxel_mm ** 2 * (abs(slices_z[1] - slices_z[0]) if len(slices_z) > 1 else rc.slice_mm) / 1000.0
-    regions = ([[groundtruth.lv_region_mask(phantom, c, a, x, y, slices_z) for a in targets.resp]
-                for c in targets.cardiac] if want_ro else None)
+    # each target's LV region cropped to its bounding box: the same voxels counted (none lies outside
+    # it), without a full-size mask per target (paper-p010: 50 x 29 MB in each metrics process)
+    regions = ([[motion.crop_to_mask(groundtruth.lv_region_mask(phantom, c, a, x, y, slices_z))
+                 for a in targets.resp] for c in targets.cardiac] if want_ro else None)
     # motion metrics (the analytic phantom knows its LV and lesion): the phantom's truth per target
     # (small: the LV region cropped) and the ground truth's own reference row
     want_mot = motion.offers_truth(phantom)
