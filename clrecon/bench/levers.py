@@ -72,6 +72,7 @@ from clrecon.core import units, write_behind
 from clrecon.core.conventions import detector_coords, detector_frames
 from clrecon.core.resources import folder_bytes
 from clrecon.core.runtime import aligned_empty, get_runtime
+from clrecon.evaluation.metrics import MetricsConfig, Table2
 from clrecon.outputs.volumes import VolumeWriter, open_volumes
 from clrecon.pipeline import evaluate as evaluate_mod
 from clrecon.pipeline.run import resolve_targets
@@ -581,7 +582,6 @@ def bench_table2_kept(quick: bool = False, repeats: int = 3, scene_name: str = "
     """Seconds per volume of the metrics' Table-2 sums, kept arrays (``Table2.add(..., scratch)``)
     against fresh ones (:func:`_table2_fresh`), on CT-like volume pairs of the scene's grid
     (paper-p010: 110 x 512 x 512; ``quick``: 8 slices); the sums compared bit for bit."""
-    from clrecon.evaluation.metrics import MetricsConfig, Table2
     scene = load_scene(scene_name)
     rc = scene.recon
     nz = 8 if quick else rc.nz
