@@ -225,6 +225,90 @@ __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, 
 }
 #undef APPLY_ROW
 
+// apply_weights_interleaved16's sums, 8 padded columns per work-item (the reconstruction's kernel
+// since 2026-12-05). Work-item (cb, v, g) owns padded columns cp = 8 cb .. 8 cb + 7 of view v,
+// group g. Each slot's 16 rows are read as 8 consecutive columns each (one unaligned 8-float load
+// per lane and slot instead of 16 scalar gathers per column), accumulated per lane over those 8
+// columns (acc[lane], 8 columns), and written out transposed, one 16-lane store per column. Per
+// element the same operation as apply_weights_interleaved16 in the same slot order,
+// `acc = w != 0 ? acc + w * r : acc` (one fused multiply-add where the compiler contracts one
+// there, as it does there), so the output is the same bit for bit (tests/test_recon_fastpath.py).
+// Blocks whose columns need the edge replicas (cp = 0, cp = n_cols + 1) or run past the row take
+// the element-wise path of apply_weights_interleaved16 instead, one column at a time.
+// Measured 2.9x the per-lane kernel at paper-p010's shape (docs/algorithms.md, "Phase-space
+// interpolation": the per-lane kernel's 16 scalar gathers per slot were its cost, not memory).
+typedef float float8_unaligned __attribute__((ext_vector_type(8), aligned(4)));
+#define COLS8_LANE(L)                                                                                         \
+    {                                                                                                         \
+        const float8 wl = (float8)(weight[sk + L]);                                                           \
+        const float8 r = *(__global const float8_unaligned *)(rows + (size_t)index[sk + L] * (size_t)n_cols + col0); \
+        acc[L] = wl != 0.0f ? acc[L] + wl * r : acc[L];                                                       \
+    }
+// column c of the block: lane l's value to out lane l (scalar stores: a 16-vector gathered from the 16
+// accumulators crashes Oclgrind 21.10's uninitialised-value plugin)
+#define COLS8_STORE(c, s)                                                                                     \
+    o[(c) * 16 + 0] = acc[0].s; o[(c) * 16 + 1] = acc[1].s; o[(c) * 16 + 2] = acc[2].s;                       \
+    o[(c) * 16 + 3] = acc[3].s; o[(c) * 16 + 4] = acc[4].s; o[(c) * 16 + 5] = acc[5].s;                       \
+    o[(c) * 16 + 6] = acc[6].s; o[(c) * 16 + 7] = acc[7].s; o[(c) * 16 + 8] = acc[8].s;                       \
+    o[(c) * 16 + 9] = acc[9].s; o[(c) * 16 + 10] = acc[10].s; o[(c) * 16 + 11] = acc[11].s;                   \
+    o[(c) * 16 + 12] = acc[12].s; o[(c) * 16 + 13] = acc[13].s; o[(c) * 16 + 14] = acc[14].s;                 \
+    o[(c) * 16 + 15] = acc[15].s;
+#define APPLY_ROW(s) r.s = rows[(size_t)ik.s * (size_t)n_cols + (size_t)col];
+__kernel void apply_weights_interleaved16_cols8(__global const float *rows,    // (P, n_cols)
+                                                __global const int *index,     // (G, n_views, APPLY_K, 16) into P
+                                                __global const float *weight,  // (G, n_views, APPLY_K, 16)
+                                                __global float *out,           // (G, n_views, n_cols + 2, 16)
+                                                const int n_views,
+                                                const int n_cols)
+{
+    const int cp0 = 8 * get_global_id(0);
+    const int v = get_global_id(1);
+    const int g = get_global_id(2);
+    if (cp0 >= n_cols + 2 || v >= n_views)
+        return;
+    const size_t gv = (size_t)g * n_views + v;
+    const size_t slot = gv * (size_t)APPLY_K * 16;
+    __global float *o = out + (gv * (size_t)(n_cols + 2) + (size_t)cp0) * 16;
+    if (cp0 >= 1 && cp0 + 7 <= n_cols) {  // columns col = cp - 1 = cp0 - 1 .. cp0 + 6, all in the row
+        const int col0 = cp0 - 1;
+        float8 acc[16];
+#pragma unroll
+        for (int l = 0; l < 16; ++l)
+            acc[l] = (float8)(0.0f);
+#pragma unroll
+        for (int k = 0; k < APPLY_K; ++k) {
+            const size_t sk = slot + k * 16;  // the slot's 16 lanes (weights and indices read as scalars:
+                                              // splatting a lane of a 16-vector crashes Oclgrind 21.10's
+                                              // uninitialised-value plugin)
+            COLS8_LANE(0) COLS8_LANE(1) COLS8_LANE(2) COLS8_LANE(3) COLS8_LANE(4) COLS8_LANE(5) COLS8_LANE(6)
+            COLS8_LANE(7) COLS8_LANE(8) COLS8_LANE(9) COLS8_LANE(10) COLS8_LANE(11) COLS8_LANE(12)
+            COLS8_LANE(13) COLS8_LANE(14) COLS8_LANE(15)
+        }
+        COLS8_STORE(0, s0) COLS8_STORE(1, s1) COLS8_STORE(2, s2) COLS8_STORE(3, s3)
+        COLS8_STORE(4, s4) COLS8_STORE(5, s5) COLS8_STORE(6, s6) COLS8_STORE(7, s7)
+        return;
+    }
+    for (int c = 0; c < 8 && cp0 + c < n_cols + 2; ++c) {  // an edge block: apply_weights_interleaved16's path
+        const int cp = cp0 + c;
+        const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
+        float16 acc = (float16)(0.0f);
+#pragma unroll
+        for (int k = 0; k < APPLY_K; ++k) {
+            const float16 wk = LOAD16(float, weight + slot + k * 16);
+            const int16 ik = LOAD16(int, index + slot + k * 16);
+            float16 r;
+            APPLY_ROW(s0) APPLY_ROW(s1) APPLY_ROW(s2) APPLY_ROW(s3) APPLY_ROW(s4) APPLY_ROW(s5) APPLY_ROW(s6)
+            APPLY_ROW(s7) APPLY_ROW(s8) APPLY_ROW(s9) APPLY_ROW(sa) APPLY_ROW(sb) APPLY_ROW(sc) APPLY_ROW(sd)
+            APPLY_ROW(se) APPLY_ROW(sf)
+            acc = wk != 0.0f ? acc + wk * r : acc;
+        }
+        STORE16(acc, o + c * 16);
+    }
+}
+#undef APPLY_ROW
+#undef COLS8_LANE
+#undef COLS8_STORE
+
 // The reconstruction's kernel until 2026-12-03, kept as the same-run reference of
 // `bench --only levers` ("interpolation launch"): apply_weights_interleaved16's sums with a run-time
 // slot count, a branch per zero weight and lane-major index/weight (16 G, n_views, k_slots); the

@@ -175,9 +175,11 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
     il = res["interp_launch"]  # now against before on the same launches: the same images
     assert il["scene"] == "tiny" and set(il["by_k"]) == {"3", "8"}
     for r in il["by_k"].values():
-        assert r["identical"] is True and set(r["median_s"]) == {"before", "fresh", "now"}
+        assert r["identical"] is True
+        assert set(r["median_s"]) == {"before", "fresh", "lanes", "now", "interp_lanes", "interp_now"}
         assert r["speedup"] == pytest.approx(r["median_s"]["before"] / r["median_s"]["now"])
-        assert r["speedup"] == pytest.approx(r["kernel_speedup"] * r["scratch_speedup"])
+        assert r["speedup"] == pytest.approx(r["kernel_speedup"] * r["scratch_speedup"] * r["cols8_speedup"])
+        assert r["cols8_interp_speedup"] == pytest.approx(r["median_s"]["interp_lanes"] / r["median_s"]["interp_now"])
     assert "interpolation + backprojection launches" in text
     rs = res["rows_shared"]  # rows read in place against copied: the same sinograms
     assert rs["identical"] is True and rs["in_place"] is True and rs["scene"] == "tiny"

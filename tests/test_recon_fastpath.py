@@ -80,6 +80,38 @@ def test_loop_kernel_reference_matches(B, K):
     assert np.array_equal(got_old.view(np.uint32), got_new.view(np.uint32))
 
 
+@pytest.mark.parametrize("C", [1, 2, 5, 6, 7, 8, 13, 25, 94])
+@pytest.mark.parametrize("K", [1, 3, 8])
+def test_cols8_kernel_bit_identical_to_per_lane(C, K):
+    """The 8-columns-per-work-item kernel (the reconstruction's since 2026-12-05) against the per-lane
+    kernel it replaced, bit for bit, and against the float64 reference: row widths whose padded
+    columns (C + 2) fall into interior blocks and edge blocks in every way (no interior block at
+    all below C = 7; a block ending exactly at the last column; a partial last block), NaN rows
+    reached only through zero weights, and the -0 / subnormal products of tiny weights."""
+    rng = np.random.default_rng(1000 * C + K)
+    P, V, B = 23, 5, 35
+    rows = rng.standard_normal((P, C)).astype(np.float32)
+    rows[4] = np.nan
+    rows[7] *= np.float32(1e-38)  # subnormal products
+    idx = rng.integers(0, P, (B, V, K))
+    w = rng.standard_normal((B, V, K)).astype(np.float32)
+    w[idx == 4] = 0.0
+    w[rng.random(w.shape) < 0.2] = 0.0
+    w[rng.random(w.shape) < 0.05] = -0.0
+    pi, pw = ip.pad_interleaved(idx, w)
+    dr = ip.DeviceRows(rows)
+    try:
+        now, G = ip.apply_padded_interleaved(dr, pi, pw, B)
+        lanes, G2 = ip.apply_padded_interleaved_lanes(dr, pi, pw, B)
+        got_now, got_lanes = _read_interleaved(now, G, V, C, dr.rt), _read_interleaved(lanes, G2, V, C, dr.rt)
+    finally:
+        dr.release()
+    assert G == G2 == -(-B // 16)
+    assert np.array_equal(got_now.view(np.uint32), got_lanes.view(np.uint32))
+    ref = ip.apply_weights_reference(np.nan_to_num(rows), idx.reshape(-1, K), w.reshape(-1, K)).reshape(B, V, C)
+    assert _rel(got_now, fbp.interleave_batch(ref.astype(np.float32))) < TOL["interleaved_apply"]
+
+
 def test_launch_scratch_buffers_reused():
     """The reconstruction's scratch: the interleaved sinograms written into a kept buffer and the
     images into a kept device buffer and host array give what fresh buffers give, launch after
@@ -302,18 +334,21 @@ def test_oclgrind_interleaved_apply_and_noise(capfd):
 
     rt, clean = _grind(capfd)
     rng = np.random.default_rng(1)
-    rows = rng.standard_normal((9, 11)).astype(np.float32)
+    # 20 columns: padded columns 0..21 in blocks of 8 -- an edge block, an interior one, a partial edge one
+    rows = rng.standard_normal((9, 20)).astype(np.float32)
     idx = rng.integers(0, 9, (19, 3, 2))
     w = rng.standard_normal((19, 3, 2)).astype(np.float32)
     dr = ip.DeviceRows(rows, rt=rt)
-    buf, G = ip.apply_weights_interleaved(dr, idx, w, rt=rt)
-    got = rt.from_device(buf, (G, 3, 13, 16))
+    buf, G = ip.apply_weights_interleaved(dr, idx, w, rt=rt)  # the 8-columns kernel
+    got = rt.from_device(buf, (G, 3, 22, 16))
     ref = fbp.interleave_batch(ip.apply_weights_reference(rows, idx.reshape(-1, 2), w.reshape(-1, 2))
-                               .reshape(19, 3, 11).astype(np.float32))
+                               .reshape(19, 3, 20).astype(np.float32))
     assert _rel(got, ref) < TOL["interleaved_apply"]
+    buf, G = ip.apply_padded_interleaved_lanes(dr, *ip.pad_interleaved(idx, w), 19, rt=rt)  # the per-lane kernel
+    assert _rel(rt.from_device(buf, (G, 3, 22, 16)), ref) < TOL["interleaved_apply"]
     from clrecon.reconstruction.interpolation.apply import apply_interleaved_loop  # the bench's reference kernel
     buf, G = apply_interleaved_loop(dr, idx, w, rt=rt)
-    assert _rel(rt.from_device(buf, (G, 3, 13, 16)), ref) < TOL["interleaved_apply"]
+    assert _rel(rt.from_device(buf, (G, 3, 22, 16)), ref) < TOL["interleaved_apply"]
     p = rng.uniform(0, 12, (2, 3, 25)).astype(np.float32)  # 75 cells: padded to 128
     cfg = NoiseConfig(i0_photons=50.0, seed=2)              # both passes run
     np.testing.assert_array_equal(noise.add_noise(p, np.array([3, 9]), cfg, rt=rt),

@@ -33,10 +33,12 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   calls since 2026-12-02) against calls of one 256-projection chunk (before);
 - ``interp_launch``: the reconstruction's launches at paper-p010's shape (32 sinograms of 984
   views x 900 columns interpolated from 40 candidate rows per view, 142 MB of rows, then
-  backprojected to 512^2), for K = 3 (barycentric) and 8 (local linear) slots: the vectorised
-  interpolation kernel into kept scratch buffers (the reconstruction since 2026-12-03) against
-  the loop kernel into fresh buffers (before), and the vectorised kernel into fresh buffers
-  between them (which of the two changes gives what); the images compared for bit identity;
+  backprojected to 512^2), for K = 3 (barycentric) and 8 (local linear) slots: the 8-columns
+  interpolation kernel into kept scratch buffers (the reconstruction since 2026-12-05) against
+  the loop kernel into fresh buffers (before), with the steps between them (the per-lane
+  vectorised kernel into fresh buffers, then into kept ones: the reconstruction from 2026-12-03
+  to 2026-12-05), which of the changes gives what; the interpolation launches alone, per-lane
+  against 8 columns per work-item; the images compared for bit identity;
 - ``rows_shared``: a paper-scale slab's rebinned rows (1 GiB, paper-p010's 900 columns) handed
   to the device and one K = 8 interpolation launch of 32 sinograms from rows all over them:
   read in place by the CPU device (``DeviceRows(share=True)``, a ``CL_MEM_USE_HOST_PTR`` buffer
@@ -453,13 +455,28 @@ def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str =
                     images["fresh"] = fbp.backproject_interleaved(buf, g, geom, runtime=rt)
                     buf.release()
 
+            def lanes(pi=pi, pw=pw, images=images):
+                for _ in range(launches):
+                    buf, g = apply_mod.apply_padded_interleaved_lanes(d_rows, pi, pw, step, rt=rt, out=d_sino)
+                    images["lanes"] = fbp.backproject_interleaved(buf, g, geom, runtime=rt, out_buf=d_img,
+                                                                  out=host).copy()
+
             def now(pi=pi, pw=pw, images=images):
                 for _ in range(launches):
                     buf, g = apply_mod.apply_padded_interleaved(d_rows, pi, pw, step, rt=rt, out=d_sino)
                     images["now"] = fbp.backproject_interleaved(buf, g, geom, runtime=rt, out_buf=d_img,
                                                                 out=host).copy()
 
-            modes = {"before": before, "fresh": fresh, "now": now}
+            def interp_lanes(pi=pi, pw=pw):
+                for _ in range(launches):
+                    apply_mod.apply_padded_interleaved_lanes(d_rows, pi, pw, step, rt=rt, out=d_sino)
+
+            def interp_now(pi=pi, pw=pw):
+                for _ in range(launches):
+                    apply_mod.apply_padded_interleaved(d_rows, pi, pw, step, rt=rt, out=d_sino)
+
+            modes = {"before": before, "fresh": fresh, "lanes": lanes, "now": now,
+                     "interp_lanes": interp_lanes, "interp_now": interp_now}
             for fn in modes.values():
                 fn()  # warm-up: the kernel builds (one per K)
             times: dict = {k: [] for k in modes}
@@ -468,10 +485,15 @@ def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str =
                     times[name].append(timed(modes[name]))
             med = {k: float(np.median(v)) for k, v in times.items()}
             same = all(np.array_equal(images["before"].view(np.uint32), images[k].view(np.uint32))
-                       for k in ("fresh", "now"))
-            out[str(K)] = {"median_s": med, "speedup": med["before"] / med["now"] if med["now"] > 0 else float("nan"),
-                           "kernel_speedup": med["before"] / med["fresh"] if med["fresh"] > 0 else float("nan"),
-                           "scratch_speedup": med["fresh"] / med["now"] if med["now"] > 0 else float("nan"),
+                       for k in ("fresh", "lanes", "now"))
+
+            def ratio(a, b, med=med):
+                return med[a] / med[b] if med[b] > 0 else float("nan")
+
+            out[str(K)] = {"median_s": med, "speedup": ratio("before", "now"),
+                           "kernel_speedup": ratio("before", "fresh"), "scratch_speedup": ratio("fresh", "lanes"),
+                           "cols8_speedup": ratio("lanes", "now"),
+                           "cols8_interp_speedup": ratio("interp_lanes", "interp_now"),
                            "identical": bool(same)}
     finally:
         d_rows.release()
@@ -698,8 +720,11 @@ def _interp_launch_lines(a: dict | None) -> list[str]:
     for k, r in a["by_k"].items():
         m = r["median_s"]
         lines.append(f"     K = {k}: now {m['now']:.2f} s, before {m['before']:.2f} s: speedup {r['speedup']:.2f}x "
-                     f"(vectorised kernel {r['kernel_speedup']:.2f}x, scratch buffers {r['scratch_speedup']:.2f}x), "
+                     f"(vectorised kernel {r['kernel_speedup']:.2f}x, scratch buffers {r['scratch_speedup']:.2f}x, "
+                     f"8 columns per work-item {r['cols8_speedup']:.2f}x), "
                      f"images {'bit-identical' if r['identical'] else 'DIFFERENT'}")
+        lines.append(f"       interpolation alone: {m['interp_now']:.3f} s with 8 columns per work-item, "
+                     f"{m['interp_lanes']:.3f} s per lane: {r['cols8_interp_speedup']:.2f}x")
     lines[-1] += f" (load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"
     return lines
 

@@ -337,7 +337,7 @@ def bench_interpolation_section(quick: bool = False, repeats: int = 3, scene="de
     res = {"scene": sc.name, "pitch": pitch, "slices": S, "views": V,
            "candidates": int(len(groups.row)), "n_cols": sc.scanner.n_cols, "repeats": repeats,
            "load_average_1min_before": load, "candidate_groups_s": t_groups, "upload_rows_s": t_up,
-           "kernel": "apply_weights_interleaved16 (rows uploaded once; output in the backprojector's layout)",
+           "kernel": "apply_weights_interleaved16_cols8 (rows uploaded once; output in the backprojector's layout)",
            "methods": {}}
     for m in methods or sc.recon.methods:
         tg, _ = reconstruct.method_targets(m, targets)

@@ -173,6 +173,13 @@ def pad_interleaved(index: np.ndarray, weight: np.ndarray):
             np.ascontiguousarray(wgt.reshape(G, 16, V, K).transpose(0, 2, 3, 1)))
 
 
+#: Padded columns per work-item of ``apply_weights_interleaved16_cols8`` and its work-group width
+#: (work-items): 8 x 8 measured best at paper-p010's shape (2.9x the per-lane kernel; 4 and 16
+#: work-items 2.6x and 2.9x).
+COLS_PER_ITEM = 8
+COLS8_LOCAL = 8
+
+
 def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray, B: int, rt=None, out=None):
     """:func:`apply_weights_interleaved` of already padded, checked arrays (:func:`pad_interleaved`):
     ``idx`` int32 and ``wgt`` float32 of shape (G, V, K, 16) (a slice of whole groups), of which
@@ -180,7 +187,22 @@ def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray,
 
     ``out``: a device buffer of at least G V (C + 2) 16 floats to write into (and return) instead
     of a new one; the caller keeps it from launch to launch (a new buffer of this size is fresh
-    memory: on the 2-core machine its first touch costs about 0.7 ms per MB, as much as the kernel)."""
+    memory: on the 2-core machine its first touch costs about 0.7 ms per MB, as much as the kernel).
+
+    Kernel ``apply_weights_interleaved16_cols8`` (8 columns per work-item); the same bits as the
+    per-lane kernel :func:`apply_padded_interleaved_lanes`, the reconstruction's until 2026-12-05."""
+    return _launch_padded(rows, idx, wgt, B, rt, out, "apply_weights_interleaved16_cols8", COLS_PER_ITEM, COLS8_LOCAL)
+
+
+def apply_padded_interleaved_lanes(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray, B: int, rt=None, out=None):
+    """:func:`apply_padded_interleaved` with the per-lane kernel ``apply_weights_interleaved16`` (one
+    padded column per work-item, 16 scalar gathers per slot): the reconstruction's kernel from
+    2026-12-03 to 2026-12-05, kept as ``bench --only levers``' same-run reference. Same output, bit
+    for bit."""
+    return _launch_padded(rows, idx, wgt, B, rt, out, "apply_weights_interleaved16", 1, _LOCAL)
+
+
+def _launch_padded(rows, idx, wgt, B, rt, out, kernel_name, cols_per_item, local):
     P, C = rows.shape
     rt = rt or rows.rt
     V, K = idx.shape[1:3]
@@ -193,10 +215,11 @@ def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray,
         rt.cl.enqueue_fill_buffer(rt.queue, d_out, np.float32(0), 0, G * V * (C + 2) * 16 * 4).wait()
         return d_out, G
     idx, wgt = idx[:G], wgt[:G]
-    knl = rt.kernel("interp.cl", "apply_weights_interleaved16", APPLY_K=int(K))  # one build per slot count
+    knl = rt.kernel("interp.cl", kernel_name, APPLY_K=int(K))  # one build per slot count
     d_idx = rt.to_device(idx, np.int32, "index")
     d_w = rt.to_device(wgt, np.float32, "weight")
-    ev = knl(rt.queue, (-(-(C + 2) // _LOCAL) * _LOCAL, V, G), (_LOCAL, 1, 1), rows.buf, d_idx, d_w, d_out,
+    items = -(-(C + 2) // cols_per_item)
+    ev = knl(rt.queue, (-(-items // local) * local, V, G), (local, 1, 1), rows.buf, d_idx, d_w, d_out,
              np.int32(V), np.int32(C))
     ev.wait()
     d_idx.release()

@@ -42,6 +42,7 @@ from clrecon.reconstruction.interpolation._common import deltas as _deltas
 from clrecon.reconstruction.interpolation.apply import (  # noqa: F401
     DeviceRows,
     apply_padded_interleaved,
+    apply_padded_interleaved_lanes,
     apply_weights,
     apply_weights_interleaved,
     apply_weights_reference,
