@@ -45,8 +45,9 @@ import scipy.fft
 
 from clrecon.core.conventions import MU_WATER_PER_MM, detector_coords, mu_to_hu, voxel_coords
 from clrecon.core.detector import atan_defines, flat_fov_radius_mm
-from clrecon.core.runtime import get_runtime
+from clrecon.core.runtime import aligned_empty, get_runtime
 from clrecon.reconstruction.filters import FILTERS as _WINDOW_FUNCTIONS
+from clrecon.reconstruction.interpolation.apply import DeviceRows, apply_padded_interleaved, pad_interleaved
 
 #: Ramp-filter windows, as in ``ReconConfig.filter`` (registry: :mod:`clrecon.reconstruction.filters`).
 WINDOWS = _WINDOW_FUNCTIONS.names
@@ -568,18 +569,49 @@ def fbp(sino, geom: FanBeamGeometry, window: str = "ram-lak", *, runtime=None) -
 
     Notes
     -----
-    Works through the batch one backprojection launch at a time (filter, then backproject
-    :func:`groups_per_launch` groups of 16), so the host memory beyond input and output
-    stays at a few times V*C*128 bytes.
+    Works through the batch one backprojection launch at a time (:func:`groups_per_launch`
+    groups of 16): the launch's rows are filtered into one page-aligned host array that a CPU
+    device reads in place, put into the backprojector's interleaved layout on the device (the
+    interpolation kernel with one slot of weight 1 per view:
+    :func:`clrecon.reconstruction.interpolation.apply.apply_padded_interleaved`), and
+    backprojected into kept device and host buffers; the host memory beyond input and output
+    stays at a few times V*C*128 bytes. The images are those of :func:`backproject` of
+    :func:`filter_sinograms`, bit for bit (``0 + 1 * q`` is ``q``; a -0 becomes +0, which adds
+    nothing different to a sum that starts at +0), without the host's interleaving copy and
+    upload (the ground truth's FBP, 5 500 images at paper-p010: docs/algorithms.md, "Fan-beam FBP").
     """
     if window not in WINDOWS:
         raise ValueError(f"window = {window!r}: must be one of {', '.join(WINDOWS)}")
     a = _check_sinograms(sino, geom, "sino")
-    out = np.empty((a.shape[0], geom.ny, geom.nx), np.float32)
+    rt = runtime or get_runtime()
+    B, V, C = a.shape
+    out = np.empty((B, geom.ny, geom.nx), np.float32)
     step = groups_per_launch(geom) * BATCH_LANES
-    for g0 in range(0, a.shape[0], step):
-        part = a[g0:g0 + step]
-        out[g0:g0 + part.shape[0]] = backproject(filter_sinograms(part, geom, window), geom, runtime=runtime)
+    n = min(step, B)
+    if n == 0:
+        return out
+    G = -(-n // BATCH_LANES)
+    rows = aligned_empty((n * V, C))
+    # one slot per (sinogram, view): its own filtered row, weight 1
+    ident = np.arange(n * V, dtype=np.int32).reshape(n, V, 1)
+    d_sino = rt.empty((G, V, C + 2, BATCH_LANES))
+    d_img = rt.empty((G * BATCH_LANES, geom.ny, geom.nx))
+    host = np.empty((G * BATCH_LANES, geom.ny, geom.nx), np.float32)
+    try:
+        for b0 in range(0, B, step):
+            m = min(step, B - b0)
+            filter_rows(a[b0:b0 + m].reshape(m * V, C), geom, window, out=rows[:m * V])
+            idx, wgt = pad_interleaved(ident[:m], np.ones((m, V, 1), np.float32))
+            d_rows = DeviceRows(rows[:m * V], rt=rt, share=True)
+            try:
+                buf, g = apply_padded_interleaved(d_rows, idx, wgt, m, rt=rt, out=d_sino)
+                res = backproject_interleaved(buf, g, geom, runtime=rt, out_buf=d_img, out=host)
+            finally:
+                d_rows.release()
+            out[b0:b0 + m] = res[:m]
+    finally:
+        d_sino.release()
+        d_img.release()
     return out
 
 
