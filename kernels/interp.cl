@@ -191,7 +191,6 @@ __kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinn
     if (cp >= n_cols + 2 || v >= n_views)                                 \
         return;                                                           \
     const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
-#define APPLY_ROW(s) r.s = rows[(size_t)ik.s * (size_t)n_cols + (size_t)col];
 // 16 lanes read and written through a 16-vector pointer, not vload16/vstore16: PoCL 3.0 (LLVM 14)
 // aborts compiling its own vload16/vstore16 on CPUs with AVX-512 ("LLVM ERROR: Do not know how to
 // scalarize this operator's operand", seen 2026-12-04 on an AMD EPYC that PoCL names znver3 with
@@ -201,16 +200,16 @@ __kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinn
 // least 128 bytes in the full profile: the size of a long16).
 #define LOAD16(T, p) (*(__global const T##16 *)(p))
 #define STORE16(x, p) (*(__global float16 *)(p) = (x))
-__kernel void apply_weights_interleaved16(__global const float *rows,    // (P, n_cols)
-                                          __global const int *index,     // (G, n_views, APPLY_K, 16) into P
-                                          __global const float *weight,  // (G, n_views, APPLY_K, 16)
-                                          __global float *out,           // (G, n_views, n_cols + 2, 16)
-                                          const int n_views,
-                                          const int n_cols)
+#define APPLY_ROW(s) r.s = rows[(size_t)ik.s * (size_t)n_cols + (size_t)col];
+// The 16 lanes of one padded column: sum over the APPLY_K slots (index and weight lane-inner at
+// `slot`) of weight * rows[index, col], zero weights selected out. Inlined (a call would stop
+// PoCL's vectoriser), shared by the per-lane kernel and the 8-columns kernel's edge blocks.
+inline __attribute__((always_inline)) float16 lanes_of_column(__global const float *rows,
+                                                               __global const int *index,
+                                                               __global const float *weight,
+                                                               const size_t slot, const int col,
+                                                               const int n_cols)
 {
-    APPLY16_COLUMN
-    const size_t gv = (size_t)g * n_views + v;
-    const size_t slot = gv * (size_t)APPLY_K * 16;
     float16 acc = (float16)(0.0f);
 #pragma unroll
     for (int k = 0; k < APPLY_K; ++k) {
@@ -221,9 +220,21 @@ __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, 
         APPLY_ROW(s8) APPLY_ROW(s9) APPLY_ROW(sa) APPLY_ROW(sb) APPLY_ROW(sc) APPLY_ROW(sd) APPLY_ROW(se) APPLY_ROW(sf)
         acc = wk != 0.0f ? acc + wk * r : acc;
     }
-    STORE16(acc, out + (gv * (size_t)(n_cols + 2) + (size_t)cp) * 16);
+    return acc;
 }
 #undef APPLY_ROW
+__kernel void apply_weights_interleaved16(__global const float *rows,    // (P, n_cols)
+                                          __global const int *index,     // (G, n_views, APPLY_K, 16) into P
+                                          __global const float *weight,  // (G, n_views, APPLY_K, 16)
+                                          __global float *out,           // (G, n_views, n_cols + 2, 16)
+                                          const int n_views,
+                                          const int n_cols)
+{
+    APPLY16_COLUMN
+    const size_t gv = (size_t)g * n_views + v;
+    STORE16(lanes_of_column(rows, index, weight, gv * (size_t)APPLY_K * 16, col, n_cols),
+            out + (gv * (size_t)(n_cols + 2) + (size_t)cp) * 16);
+}
 
 // apply_weights_interleaved16's sums, 8 padded columns per work-item (the reconstruction's kernel
 // since 2026-12-05). Work-item (cb, v, g) owns padded columns cp = 8 cb .. 8 cb + 7 of view v,
@@ -253,7 +264,6 @@ typedef float float8_unaligned __attribute__((ext_vector_type(8), aligned(4)));
     o[(c) * 16 + 9] = acc[9].s; o[(c) * 16 + 10] = acc[10].s; o[(c) * 16 + 11] = acc[11].s;                   \
     o[(c) * 16 + 12] = acc[12].s; o[(c) * 16 + 13] = acc[13].s; o[(c) * 16 + 14] = acc[14].s;                 \
     o[(c) * 16 + 15] = acc[15].s;
-#define APPLY_ROW(s) r.s = rows[(size_t)ik.s * (size_t)n_cols + (size_t)col];
 __kernel void apply_weights_interleaved16_cols8(__global const float *rows,    // (P, n_cols)
                                                 __global const int *index,     // (G, n_views, APPLY_K, 16) into P
                                                 __global const float *weight,  // (G, n_views, APPLY_K, 16)
@@ -290,22 +300,10 @@ __kernel void apply_weights_interleaved16_cols8(__global const float *rows,    /
     }
     for (int c = 0; c < 8 && cp0 + c < n_cols + 2; ++c) {  // an edge block: apply_weights_interleaved16's path
         const int cp = cp0 + c;
-        const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
-        float16 acc = (float16)(0.0f);
-#pragma unroll
-        for (int k = 0; k < APPLY_K; ++k) {
-            const float16 wk = LOAD16(float, weight + slot + k * 16);
-            const int16 ik = LOAD16(int, index + slot + k * 16);
-            float16 r;
-            APPLY_ROW(s0) APPLY_ROW(s1) APPLY_ROW(s2) APPLY_ROW(s3) APPLY_ROW(s4) APPLY_ROW(s5) APPLY_ROW(s6)
-            APPLY_ROW(s7) APPLY_ROW(s8) APPLY_ROW(s9) APPLY_ROW(sa) APPLY_ROW(sb) APPLY_ROW(sc) APPLY_ROW(sd)
-            APPLY_ROW(se) APPLY_ROW(sf)
-            acc = wk != 0.0f ? acc + wk * r : acc;
-        }
-        STORE16(acc, o + c * 16);
+        STORE16(lanes_of_column(rows, index, weight, slot, cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1), n_cols),
+                o + c * 16);
     }
 }
-#undef APPLY_ROW
 #undef COLS8_LANE
 #undef COLS8_STORE
 
