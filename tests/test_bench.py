@@ -145,7 +145,8 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
 
     small = levers._ct_like
     monkeypatch.setattr(levers, "_ct_like", lambda shape, k: small((2, 1, 8, 32, 32), k))
-    res = levers.bench_levers(quick=True, repeats=1, metrics_scene="tiny", write_scene="tiny", simulate_scene="tiny")
+    res = levers.bench_levers(quick=True, repeats=1, metrics_scene="tiny", write_scene="tiny", simulate_scene="tiny",
+                              store_scene="tiny")
     v, p = res["volumes"], res["posing"]
     assert v["datasets"] == 2 and v["raw_bytes"] == 2 * 2 * 8 * 32 * 32 * 4
     assert v["median"]["none"]["disk_bytes"] > v["median"]["lzf"]["disk_bytes"] > 0
@@ -186,6 +187,11 @@ def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
     assert rs["rows_bytes"] >= 64 << 20 and set(rs["median_s"]) == {"shared", "copied"}
     assert rs["speedup"] == pytest.approx(rs["median_s"]["copied"] / rs["median_s"]["shared"])
     assert "a slab's rows to the device" in text
+    sr = res["store_rows"]  # rows chunked in blocks of 8 against whole projections: the same floats read
+    assert sr["identical"] is True and sr["scene"] == "tiny" and set(sr["speedup"]) == {"slab", "whole"}
+    assert sr["chunks"]["rows"][1] == min(8, sr["detector"][0]) and sr["chunks"]["projections"][1] == sr["detector"][0]
+    assert sr["speedup"]["slab"] == pytest.approx(sr["median_s"]["projections/slab"] / sr["median_s"]["rows/slab"])
+    assert "projection store read" in text
     ob = res["objects_shared"]  # posed objects read in place against copied: the same projections
     assert ob["identical"] is True and ob["scene"] == "tiny" and ob["projections"] > 0
     assert ob["speedup"] == pytest.approx(ob["median_s"]["copied"] / ob["median_s"]["shared"])

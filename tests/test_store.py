@@ -245,7 +245,9 @@ def test_units_are_compressed_and_their_chunks_go_into_the_store_as_they_are(sce
     from clrecon.simulation import store as store_mod
 
     r, c = scene.scanner.n_rows, scene.scanner.n_cols
-    monkeypatch.setattr(store_mod, "CHUNK_BYTES", 5 * r * c * 4)   # 5 projections per chunk: units straddle chunks
+    rc = min(store_mod.ROW_CHUNK, r)
+    monkeypatch.setattr(store_mod, "CHUNK_BYTES", 8 * rc * c * 4)   # 8 projections per chunk: units straddle chunks
+    row_blocks = -(-r // rc)                                         # chunks per 8 projections (rows in blocks)
     h = scene.scan_hash(pitch)
     with pytest.raises(RuntimeError, match="projector died"):
         simulate(scene, pitch, cache_dir=tmp_path / "a", projector=FakeProjector(fail_after=3), chunk=42,
@@ -254,9 +256,12 @@ def test_units_are_compressed_and_their_chunks_go_into_the_store_as_they_are(sce
     assert len(unit_files) == 3
     assert sum(p.stat().st_size for p in unit_files) < 0.8 * 3 * 42 * r * c * 4   # compressed
     arrays, meta = units.read_unit(unit_files[1])                                  # indices 42..83
-    assert (len(arrays["head"]), len(arrays["data"]), len(arrays["tail"])) == (3, 35, 4)
+    assert (len(arrays["head"]), len(arrays["data"]), len(arrays["tail"])) == (6, 32, 4)
     a = simulate(scene, pitch, cache_dir=tmp_path / "a", projector=FakeProjector(), chunk=42, progress=False)
-    assert a.complete and a.chunks_copied >= 7 * (len(a) // 42 - 1)   # 7 of a 42-projection unit's 8-9 chunks
+    # 4 or 5 whole blocks of 8 projections in a 42-projection unit, each of row_blocks chunks
+    assert a.complete and a.chunks_copied >= 4 * row_blocks * (len(a) // 42 - 1)
+    with h5py.File(a.path, "r") as f:
+        assert f["projections"].chunks == (8, rc, c)
 
     def decoded(ds, uf, first):  # the same store with every unit decoded and compressed by the store itself
         rows = np.concatenate([uf["head"][()], uf["data"][()], uf["tail"][()]])

@@ -48,6 +48,10 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   of float64 object records) projected with the records read in place by the CPU device
   (page-aligned by the phantom, the simulation since 2026-12-03) against a copy of them that the
   device must copy (before), the projections compared for bit identity;
+- ``store_rows``: a slab's 16 of paper-p002's 64 detector rows (and all 64) read from a
+  projection store chunked by blocks of 8 rows (the store since 2026-12-05) against one chunked
+  by whole projections (before), real line integrals repeated to 4 096 projections, the arrays
+  compared bit for bit;
 - ``table2_kept``: the metrics' Table-2 sums of paper-p010-sized volume pairs (110 x 512 x 512
   float32 HU, CT-like) formed in kept arrays (``Table2.add(..., scratch)``, the metrics since
   2026-12-04) against the fresh-array formula it replaced, the float64 sums compared bit for bit.
@@ -67,7 +71,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from clrecon.bench.paper import _scene, _thorax_sinograms
+from clrecon.bench.paper import _scene, _thorax_sinograms, spread_indices
 from clrecon.bench.timing import load1, timed
 from clrecon.config.scene import load_scene
 from clrecon.core import units, write_behind
@@ -83,8 +87,9 @@ from clrecon.reconstruction.interpolation import apply as apply_mod
 from clrecon.reconstruction.reconstruct import slice_positions, voxel_coords
 from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate as simulate_mod
+from clrecon.simulation import store as store_mod
 from clrecon.simulation.phantom_sources import phantom_from_config
-from clrecon.simulation.projector import phantom_for_scene, project_views
+from clrecon.simulation.projector import phantom_for_scene, project, project_views
 
 
 def _ct_like(shape, k: int) -> np.ndarray:
@@ -591,6 +596,59 @@ def bench_rows_shared(quick: bool = False, repeats: int = 3, scene_name: str = "
             "load": load, "repeats": max(1, repeats)}
 
 
+def bench_store_rows(quick: bool = False, repeats: int = 3, scene_name: str = "paper-p002") -> dict:
+    """Seconds to read a slab's detector rows from a projection store chunked by blocks of
+    :data:`clrecon.simulation.store.ROW_CHUNK` rows (the store since 2026-12-05,
+    :func:`clrecon.simulation.store.chunk_shape`) against one chunked by whole projections (before),
+    both with the store's filters (LZF, shuffle, Fletcher-32), on the same real line integrals: the
+    scene's projections spread over its scan, repeated to the read's size. Rows: paper-p002's
+    slabs of 5 slices read about 16 of the 64 (here rows 24-39), and all 64 for reference; the
+    arrays read compared bit for bit."""
+    sc = _scene(scene_name)
+    table = projection_table(sc, sc.scan.pitches[0])
+    n_real, n = (16, 512) if quick else (64, 4096)
+    real = project(sc, table.take(spread_indices(len(table), n_real)))
+    data = np.concatenate([real] * (n // n_real))
+    _, R, C = data.shape
+    layouts = {"rows": store_mod.chunk_shape(data.shape),
+               "projections": (max(1, min(n, store_mod.CHUNK_BYTES // (R * C * 4))), R, C)}
+    lo = max(0, R // 2 - 8)
+    spans = {"slab": (lo, min(R, lo + 16)), "whole": (0, R)}
+    folder = Path(tempfile.mkdtemp(prefix="clrecon-bench-store-"))
+    load = [load1()]
+    reads: dict = {}
+    try:
+        for name, chunks in layouts.items():
+            with h5py.File(folder / f"{name}.h5", "w") as f:
+                f.create_dataset("projections", data=data, chunks=chunks, compression="lzf", shuffle=True,
+                                 fletcher32=True)
+
+        def read(name, span):
+            with h5py.File(folder / f"{name}.h5", "r", rdcc_nbytes=store_mod.CACHE_BYTES) as f:
+                reads[(name, span)] = f["projections"][:, spans[span][0]:spans[span][1]]
+
+        modes = {(name, span): (lambda name=name, span=span: read(name, span)) for name in layouts for span in spans}
+        for fn in modes.values():
+            fn()  # warm-up: the files in the page cache, as a run's store mostly is
+        times: dict = {k: [] for k in modes}
+        for r in range(max(1, repeats)):
+            for k in (list(modes) if r % 2 == 0 else list(modes)[::-1]):
+                times[k].append(timed(modes[k]))
+        disk = {name: (folder / f"{name}.h5").stat().st_size for name in layouts}
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    load.append(load1())
+    med = {f"{name}/{span}": float(np.median(v)) for (name, span), v in times.items()}
+    same = all(np.array_equal(reads[("rows", sp)].view(np.uint32), reads[("projections", sp)].view(np.uint32))
+               for sp in spans)
+    return {"scene": sc.name, "projections": n, "real_projections": n_real, "detector": [R, C],
+            "chunks": {k: list(v) for k, v in layouts.items()}, "spans": {k: list(v) for k, v in spans.items()},
+            "raw_bytes": int(data.nbytes), "disk_bytes": disk, "median_s": med,
+            "speedup": {sp: med[f"projections/{sp}"] / med[f"rows/{sp}"] if med[f"rows/{sp}"] > 0 else float("nan")
+                        for sp in spans},
+            "identical": bool(same), "load": load, "repeats": max(1, repeats)}
+
+
 def _table2_fresh(acc, i: int, j: int, recon: np.ndarray, truth: np.ndarray) -> None:
     """What ``Table2.add`` did until 2026-12-04: fresh arrays for every difference (the same-run reference)."""
     d = np.abs(recon - truth).reshape(recon.shape[0], -1)
@@ -631,10 +689,11 @@ def bench_table2_kept(quick: bool = False, repeats: int = 3, scene_name: str = "
 
 
 def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo",
-                 write_scene: str = "paper-p010", simulate_scene: str = "demo") -> dict:
+                 write_scene: str = "paper-p010", simulate_scene: str = "demo",
+                 store_scene: str = "paper-p002") -> dict:
     """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and
     targets); ``write_scene``: the write-behind row's (its scanner and grid); ``simulate_scene``:
-    the simulation row's."""
+    the simulation row's; ``store_scene``: the store row's (its detector and scan)."""
     return {"volumes": bench_volumes(quick, repeats), "assembly": bench_assembly(quick, repeats),
             "write_behind": bench_write_behind(quick, repeats, write_scene),
             "simulate_behind": bench_simulate_behind(quick, repeats, simulate_scene),
@@ -643,7 +702,8 @@ def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "de
             "interp_launch": bench_interp_launch(quick, repeats, write_scene),
             "rows_shared": bench_rows_shared(quick, repeats, write_scene),
             "objects_shared": bench_objects_shared(quick, repeats, simulate_scene),
-            "table2_kept": bench_table2_kept(quick, repeats, write_scene)}
+            "table2_kept": bench_table2_kept(quick, repeats, write_scene),
+            "store_rows": bench_store_rows(quick, repeats, store_scene)}
 
 
 def report_lines(res: dict | None) -> list[str]:
@@ -674,7 +734,22 @@ def report_lines(res: dict | None) -> list[str]:
         *_rows_shared_lines(res.get("rows_shared")),
         *_objects_shared_lines(res.get("objects_shared")),
         *_table2_kept_lines(res.get("table2_kept")),
+        *_store_rows_lines(res.get("store_rows")),
     ]
+
+
+def _store_rows_lines(a: dict | None) -> list[str]:
+    if not a:
+        return []
+    m, (lo, hi) = a["median_s"], a["spans"]["slab"]
+    return [f"   projection store read, {a['projections']} projections of {a['detector'][0]}x{a['detector'][1]} "
+            f"({a['scene']}, {a['raw_bytes'] / 1e9:.2f} GB raw): rows {lo}-{hi - 1} from chunks of "
+            f"{a['chunks']['rows'][1]} rows {m['rows/slab']:.2f} s, of whole projections "
+            f"{m['projections/slab']:.2f} s: "
+            f"speedup {a['speedup']['slab']:.2f}x; all rows {m['rows/whole']:.2f} vs {m['projections/whole']:.2f} s "
+            f"({a['speedup']['whole']:.2f}x); disk {a['disk_bytes']['rows'] / 1e9:.2f} vs "
+            f"{a['disk_bytes']['projections'] / 1e9:.2f} GB; {'bit-identical' if a['identical'] else 'DIFFERENT'} "
+            f"(load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]
 
 
 def _table2_kept_lines(a: dict | None) -> list[str]:

@@ -9,7 +9,12 @@ compressed, and read by every tool in the CT field (MATLAB, TIGRE, ASTRA users, 
 Layout
 ------
 - ``projections`` (n, R, C) float32: line integrals, ``proj[k, row, col]``; chunked by blocks
-  of whole projections (about 2 MiB per chunk) and compressed with LZF + byte shuffle. LZF was
+  of projections and :data:`ROW_CHUNK` detector rows (about 2 MiB per chunk, a power of two
+  projections) and compressed with LZF + byte shuffle. A slab reads only the rows its slices
+  use (:meth:`ProjectionStore.read_indices` ``rows=``), and HDF5 decompresses whole chunks: with
+  chunks of whole projections (until 2026-12-05) a slab of paper-p002 (5 slices, about 16 of 64
+  rows) decompressed 4x what it kept, and reading was 16 % of that run's wall (457 s). Row blocks
+  of 8 read the same floats about 3x faster there (docs/data-flow.md, stage 6). LZF was
   measured against none and gzip-1 on thorax-like line integrals: 2.0-2.1x smaller at about
   210 MB/s write and 450 MB/s read (gzip-1: 2.2-2.4x at 100 MB/s write), far faster than the
   projector fills it, so the cheap compressor halves the disk use for free.
@@ -77,6 +82,8 @@ from clrecon.simulation.noise import add_noise
 FORMAT = "clrecon-projections"
 #: Target size of one HDF5 chunk of the projections dataset (bytes).
 CHUNK_BYTES = 2 << 20
+#: Detector rows per HDF5 chunk of the projections dataset (all rows when the detector has fewer).
+ROW_CHUNK = 8
 #: HDF5 raw-chunk cache per open file (bytes): holds the chunks a read or a write straddles.
 CACHE_BYTES = 64 << 20
 _FLOAT_ATOL = 1e-9
@@ -91,6 +98,18 @@ def default_cache_dir() -> Path:
 def _one_line(e: BaseException) -> str:
     text = str(e).strip().splitlines()
     return f"{type(e).__name__}: {text[0] if text else ''}"
+
+
+def chunk_shape(shape: tuple) -> tuple:
+    """HDF5 chunk of a projections dataset of ``shape`` (n, R, C): (projections, rows, columns).
+
+    :data:`ROW_CHUNK` rows (all of them on a smaller detector) by the largest power of two of
+    projections whose chunk stays within :data:`CHUNK_BYTES`: the simulation's units of 256
+    projections, which start on multiples of 256, are then whole chunks."""
+    n, r, c = (int(x) for x in shape)
+    rows = min(ROW_CHUNK, r)
+    per = max(1, CHUNK_BYTES // (rows * c * 4))
+    return (max(1, min(1 << (per.bit_length() - 1), n)), rows, c)
 
 
 class ProjectionStore:
@@ -230,18 +249,20 @@ class ProjectionStore:
         return bool(np.array_equal(stored, want))
 
     def _block(self) -> int:
-        """Projections per HDF5 chunk (about :data:`CHUNK_BYTES`), in the store and in its units."""
-        n, r, c = self.shape
-        return int(np.clip(CHUNK_BYTES // (r * c * 4), 1, n))
+        """Projections per HDF5 chunk, in the store and in its units (:func:`chunk_shape`)."""
+        return chunk_shape(self.shape)[0]
+
+    def _chunks(self) -> tuple:
+        """Chunk shape of the projections dataset (:func:`chunk_shape`)."""
+        return chunk_shape(self.shape)
 
     def _create(self, path: Path) -> None:
-        n, r, c = self.shape
-        block = self._block()
+        n = self.shape[0]
         self.cache_dir.mkdir(parents=True, exist_ok=True)
         with h5py.File(path, "w") as f:
             # fletcher32: every chunk carries a checksum, so a corrupted file fails on read
             # (StoreError) instead of returning wrong numbers
-            f.create_dataset("projections", shape=self.shape, dtype=np.float32, chunks=(block, r, c),
+            f.create_dataset("projections", shape=self.shape, dtype=np.float32, chunks=self._chunks(),
                              compression="lzf", shuffle=True, fletcher32=True)
             f.create_dataset("present", data=np.zeros(n, dtype=bool), fletcher32=True)
             g = f.create_group("table")
@@ -356,7 +377,7 @@ class ProjectionStore:
 
         Returns the number of chunks copied compressed.
 
-        The body starts on a multiple of the store's chunk rows and is chunked like the store with
+        The body starts on a multiple of the store's chunk length (in projections) and is chunked like the store with
         the same filters, so each of its compressed chunks is a whole chunk of the store
         (``write_direct_chunk``): no second compression, bit-identical.
         """
@@ -369,7 +390,8 @@ class ProjectionStore:
             same = (body.chunks == ds.chunks and body.compression == ds.compression == "lzf" and body.shuffle
                     and ds.shuffle and body.fletcher32 and ds.fletcher32)
             n_chunks = body.id.get_num_chunks()
-            if same and n_chunks * ds.chunks[0] == len(body):
+            per_block = int(np.prod([-(-n // k) for n, k in zip(ds.shape[1:], ds.chunks[1:], strict=True)]))
+            if same and len(body) % ds.chunks[0] == 0 and n_chunks == len(body) // ds.chunks[0] * per_block:
                 for c in range(n_chunks):
                     off = body.id.get_chunk_info(c).chunk_offset
                     mask, raw = body.id.read_direct_chunk(off)
@@ -406,7 +428,8 @@ class ProjectionStore:
             h = min(int(-idx[0] % block), idx.size)
             nb = (idx.size - h) // block
             arrays = {"indices": idx, "head": arr[:h], "data": arr[h:h + nb * block], "tail": arr[h + nb * block:]}
-            compress = {k: (block if k == "data" else max(len(arrays[k]), 1),) + det for k in ("head", "data", "tail")}
+            compress = {k: self._chunks() if k == "data" else (max(len(arrays[k]), 1),) + det
+                        for k in ("head", "data", "tail")}
         else:
             arrays, compress = {"indices": idx, "data": arr}, {"data": (min(block, idx.size),) + det}
         p = units.write_unit(self.units_path, f"p{idx[0]:09d}-{idx[-1]:09d}", arrays, meta, fault="simulate",
