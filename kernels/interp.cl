@@ -246,8 +246,9 @@ __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, 
 // there, as it does there), so the output is the same bit for bit (tests/test_recon_fastpath.py).
 // Blocks whose columns need the edge replicas (cp = 0, cp = n_cols + 1) or run past the row take
 // the element-wise path of apply_weights_interleaved16 instead, one column at a time.
-// Measured 2.9x the per-lane kernel at paper-p010's shape (docs/algorithms.md, "Phase-space
-// interpolation": the per-lane kernel's 16 scalar gathers per slot were its cost, not memory).
+// Measured at paper-p010's shape: 2.5-2.6x the per-lane kernel at load 3, 1.6-1.8x (K = 8) and
+// 1.2-1.3x (K = 3) idle (docs/algorithms.md, "Phase-space interpolation": the per-lane kernel's
+// 16 scalar gathers per slot were its cost, not memory).
 typedef float float8_unaligned __attribute__((ext_vector_type(8), aligned(4)));
 #define COLS8_LANE(L)                                                                                         \
     {                                                                                                         \
