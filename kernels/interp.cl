@@ -182,15 +182,21 @@ __kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinn
 #ifndef APPLY_K
 #define APPLY_K 1
 #endif
+// the row column a padded column cp reads (edge replicas: cp 0 and n_cols + 1 read columns 0 and
+// n_cols - 1)
+inline int row_column(const int cp, const int n_cols)
+{
+    return cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
+}
 // work-item (cp, v, g) of the interleaved kernels: its padded column cp, view v, group g and the
-// row column it reads (edge replicas: cp 0 and n_cols + 1 read columns 0 and n_cols - 1)
+// row column it reads
 #define APPLY16_COLUMN                                                    \
     const int cp = get_global_id(0);                                      \
     const int v = get_global_id(1);                                       \
     const int g = get_global_id(2);                                       \
     if (cp >= n_cols + 2 || v >= n_views)                                 \
         return;                                                           \
-    const int col = cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
+    const int col = row_column(cp, n_cols);
 // 16 lanes read and written through a 16-vector pointer, not vload16/vstore16: PoCL 3.0 (LLVM 14)
 // aborts compiling its own vload16/vstore16 on CPUs with AVX-512 ("LLVM ERROR: Do not know how to
 // scalarize this operator's operand", seen 2026-12-04 on an AMD EPYC that PoCL names znver3 with
@@ -300,9 +306,7 @@ __kernel void apply_weights_interleaved16_cols8(__global const float *rows,    /
         return;
     }
     for (int c = 0; c < 8 && cp0 + c < n_cols + 2; ++c) {  // an edge block: apply_weights_interleaved16's path
-        const int cp = cp0 + c;
-        STORE16(lanes_of_column(rows, index, weight, slot, cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1), n_cols),
-                o + c * 16);
+        STORE16(lanes_of_column(rows, index, weight, slot, row_column(cp0 + c, n_cols), n_cols), o + c * 16);
     }
 }
 #undef COLS8_LANE
