@@ -27,6 +27,7 @@ TOL = {
     "f64": 1e-9,     # double kernels vs float64 references: rounding
     "f32": 1e-5,     # float32 kernels vs float64 references, relative to the data scale
     "ll_f32": 1e-3,  # single-precision local-linear solve (see tests/test_stiff.py)
+    "mc_f32": 2e-5,  # motion-compensated kernels: float32 fixed-point steps and moved coordinates
 }
 
 # What Oclgrind prints when a plugin finds something in a kernel (memcheck, races, uninitialised).
@@ -320,4 +321,41 @@ def test_cylindrical_ssrb_and_backprojection(grind, clean):
     scale = np.abs(pocl).max()
     assert np.abs(batched - pocl).max() < TOL["f32"] * scale
     assert np.abs(single - pocl[:2]).max() < TOL["f32"] * scale
+    clean()
+
+
+# ---------------------------------------------------------------------------------------
+# kernels/mc_backproject.cl and kernels/mc_warp.cl (the motion model, docs/motion-model.md)
+@pytest.mark.parametrize("detector", ["flat", "cylindrical"])
+def test_motion_compensation_kernels(grind, clean, detector):
+    from clrecon.reconstruction.fbp import FanBeamGeometry
+    from clrecon.reconstruction.motion import backproject as mcb
+    from clrecon.reconstruction.motion import warp
+    from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel
+
+    rng = np.random.default_rng(34)
+    geom = FanBeamGeometry(sid_mm=100.0, sdd_mm=200.0, n_cols=13, col_pitch_mm=6.0, n_views=5, nx=11, ny=9,
+                           voxel_mm=4.0, beta0_rad=0.3, detector=detector)
+    basis = MotionBasis(resp_degree=1, cardiac_harmonics=1)
+    grid = FieldGrid(nx=11, ny=9, nz=3, voxel_mm=4.0, z0_mm=-4.0, dz_mm=4.0)
+    model = MotionModel(basis=basis, grid=grid, fields=rng.normal(size=(basis.size, 3) + grid.shape)
+                        .astype(np.float32), reference=(0.5, 0.5))
+    P = 7
+    rows = mcb.PlaneRows(rows=rng.normal(size=(P, 4, geom.n_cols)).astype(np.float32),
+                         plane_first=rng.integers(-6, -1, P).astype(np.int32),
+                         plane_count=np.array([1, 2, 3, 4, 4, 2, 1], np.int32), projection=np.arange(P),
+                         proj_z_mm=rng.uniform(-4, 4, P), plane_dz_mm=2.0, window_mm=5.0)
+    sp = rng.integers(0, P, (2, geom.n_views, 3)).astype(np.int32)
+    sp[:, :, 2] = -1                                        # empty slots
+    sw = rng.uniform(0, 1, sp.shape).astype(np.float32)
+    sw[0, 1, 0] = 0.0                                       # a zero weight
+    pb = basis.values(rng.uniform(0, 1, P), rng.uniform(0, 1, P))
+    zs = np.array([-5.0, 3.0])                              # one beyond the model's planes: clamped
+    got = mcb.mc_backproject(rows, pb, sp, sw, model, (0.2, 0.7), zs, geom, runtime=grind)
+    ref = mcb.mc_backproject_reference(rows, pb, sp, sw, model, (0.2, 0.7), zs, geom)
+    assert np.abs(got - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
+    vol = rng.normal(size=grid.shape).astype(np.float32)
+    got = warp.warp(vol, model, [(0.1, 0.2), (0.9, 0.6)], [-6.0, 1.0, 9.0], runtime=grind)
+    ref = warp.warp_reference(vol, model, [(0.1, 0.2), (0.9, 0.6)], [-6.0, 1.0, 9.0])
+    assert np.abs(got - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
     clean()

@@ -389,6 +389,12 @@ def _trig_table(geom: FanBeamGeometry) -> np.ndarray:
     return (np.stack([np.cos(b), np.sin(b)], axis=1) / geom.sid_mm).astype(np.float32)
 
 
+def view_table(geom: FanBeamGeometry) -> np.ndarray:
+    """The backprojection kernels' per-view table (V, 2) float32: (cos b / R, sin b / R) of each
+    view's source angle b and radius R (``kernels/fan_column.h``)."""
+    return _trig_table(geom)
+
+
 def _geometry_args(geom: FanBeamGeometry) -> tuple:
     """Scalar kernel arguments in the order of GEOMETRY_ARGS in backproject.cl."""
     if geom.curved:

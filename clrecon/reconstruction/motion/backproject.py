@@ -1,0 +1,376 @@
+"""Motion-compensated FBP of SSRB rows: every row serves every target through the motion model.
+
+Rit, Sarrut & Desbat, "Comparison of analytic and algebraic methods for motion-compensated
+cone-beam CT reconstruction of the thorax", IEEE TMI 28:1513 (2009): each projection is
+backprojected along the deformation from the target state to its own state. Here the projections
+are the helical scan's single-slice rebinned rows (docs/algorithms.md "SSRB"), so following a
+voxel means following it across slices: every projection a slab uses is rebinned onto a grid of
+z planes (:func:`plane_rows`, the pipeline's own SSRB on every detector and focal-spot mode, then
+its ramp filter), and the kernel (``kernels/mc_backproject.cl``) reads, for each voxel and row,
+the plane through the voxel's moved position. docs/motion-model.md "Motion-compensated
+backprojection".
+
+Shapes: volumes (S, ny, nx); rows (P, NPMAX, C) float32; slots (S, V, K) per target; the model's
+fields (NB, 3, MZ, ny, nx) on the reconstruction's in-plane grid
+(:class:`clrecon.reconstruction.motion.model.FieldGrid`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from clrecon.core.detector import atan_defines, spot_shift_in_frame
+from clrecon.core.runtime import get_runtime
+from clrecon.reconstruction import rebin
+from clrecon.reconstruction.fbp import FanBeamGeometry, filter_rows, view_table
+from clrecon.reconstruction.motion.model import MotionModel
+from clrecon.scan.table import ProjectionTable
+
+#: Fixed local size (x, y) of the kernel (PoCL specialises per local size).
+LOCAL_SIZE = (8, 8)
+#: Views per barrier-separated chunk (keeps a tile's rows in cache, as backproject.cl).
+VIEW_CHUNK = 8
+#: Fixed-point steps of the model's inversion x_r = x - u_t(x_r) (docs/motion-model.md).
+INVERSION_STEPS = 8
+_KERNEL_FILE = "mc_backproject.cl"
+
+
+@dataclass
+class PlaneRows:
+    """Filtered SSRB rows of projections on a grid of z planes ``g * plane_dz_mm``.
+
+    rows : (P, NPMAX, C) float32, plane i of projection q at global plane ``plane_first[q] + i``
+    plane_first, plane_count : (P,) int32 (``plane_count >= 1``; planes past the count are 0)
+    projection : (P,) int64 global projection numbers, increasing
+    proj_z_mm : (P,) float64 focal-centre z of each projection
+    plane_dz_mm : float
+    window_mm : float  the SSRB window the planes were cut to (|z_plane - z_k| <= window + dz)
+    """
+
+    rows: np.ndarray
+    plane_first: np.ndarray
+    plane_count: np.ndarray
+    projection: np.ndarray
+    proj_z_mm: np.ndarray
+    plane_dz_mm: float
+    window_mm: float
+
+    def local_index(self, projections) -> np.ndarray:
+        """Position in ``projection`` of each global projection number (-1 stays -1); KeyError-free:
+        a number that is not held raises ValueError."""
+        p = np.asarray(projections, np.int64)
+        pos = np.searchsorted(self.projection, np.where(p < 0, 0, p))
+        pos = np.clip(pos, 0, max(len(self.projection) - 1, 0))
+        ok = (p < 0) | ((len(self.projection) > 0) & (self.projection[pos] == p))
+        if not np.all(ok):
+            raise ValueError(f"projection {int(p[~ok].ravel()[0])} has no plane rows")
+        return np.where(p < 0, -1, pos).astype(np.int32)
+
+
+def plane_range(proj_z_mm, window_mm: float, plane_dz_mm: float, z_lo_mm: float, z_hi_mm: float):
+    """Global plane indices ``[first, first + count)`` of each projection (numpy arrays, int64):
+    the planes within ``window + dz`` of its source z and inside ``[z_lo, z_hi]`` (mm)."""
+    zk = np.asarray(proj_z_mm, np.float64)
+    g_lo = np.ceil((np.maximum(zk - window_mm - plane_dz_mm, z_lo_mm)) / plane_dz_mm - 1e-9)
+    g_hi = np.floor((np.minimum(zk + window_mm + plane_dz_mm, z_hi_mm)) / plane_dz_mm + 1e-9)
+    first = g_lo.astype(np.int64)
+    count = np.maximum(g_hi - g_lo + 1, 0).astype(np.int64)
+    return first, count
+
+
+def plane_rows(projections, table: ProjectionTable, projection_ids, scanner, geom: FanBeamGeometry, window: str,
+               *, plane_dz_mm: float, z_lo_mm: float, z_hi_mm: float, object_radius_mm: float, rt=None,
+               first_row: int = 0) -> PlaneRows:
+    """SSRB rows of ``projection_ids`` on the planes of :func:`plane_range`, ramp-filtered.
+
+    Parameters
+    ----------
+    projections : (m, n_rows_block, C) array
+        Line integrals of the projections ``projection_ids`` (same order), detector rows
+        ``first_row ..``: as read from the store (noise already added for a noisy variant).
+    table : ProjectionTable of the scan (``source_z_mm``, ``focal_shift`` by projection number)
+    projection_ids : (m,) int, increasing
+    scanner : ScannerConfig
+    geom : FanBeamGeometry (the filter's geometry), window: ramp window name
+    plane_dz_mm : plane spacing (mm); z_lo_mm, z_hi_mm: the planes kept (mm)
+    object_radius_mm : the reconstruction circle (sets the SSRB window, :func:`rebin.slice_window_mm`)
+
+    Returns
+    -------
+    PlaneRows
+    """
+    ids = np.asarray(projection_ids, np.int64)
+    if ids.ndim != 1 or (ids.size > 1 and np.any(np.diff(ids) <= 0)):
+        raise ValueError("projection_ids: must be 1-D and strictly increasing")
+    if not (math.isfinite(plane_dz_mm) and plane_dz_mm > 0):
+        raise ValueError(f"plane_dz_mm = {plane_dz_mm!r}: must be a finite number > 0")
+    proj = np.asarray(projections)
+    if proj.ndim != 3 or proj.shape[0] != ids.size:
+        raise ValueError(f"projections: expected ({ids.size}, rows, {scanner.n_cols}), got {proj.shape}")
+    w = rebin.slice_window_mm(scanner, object_radius_mm)
+    zk = table.source_z_mm[ids]
+    first, count = plane_range(zk, w, plane_dz_mm, z_lo_mm, z_hi_mm)
+    if np.any(count < 1):
+        bad = int(ids[np.argmin(count)])
+        raise ValueError(f"projection {bad}: no plane of [{z_lo_mm}, {z_hi_mm}] mm lies within its SSRB window")
+    np_max = int(count.max()) if ids.size else 1
+    C = scanner.n_cols
+    out = np.zeros((ids.size, np_max, C), np.float32)
+    slot = np.repeat(np.arange(ids.size), count)
+    plane = np.concatenate([f + np.arange(n) for f, n in zip(first, count, strict=True)]) if ids.size else first
+    dz = plane * plane_dz_mm - zk[slot]
+    shift = None
+    if table.focal_shift is not None:
+        shift = spot_shift_in_frame(table.focal_shift[ids][slot], scanner.sid_mm)
+    flat = rebin.ssrb_rows(proj, slot.astype(np.int32), dz.astype(np.float32), scanner, rt=rt,
+                           first_row=first_row if proj.shape[1] != scanner.n_rows else None,
+                           pair_shift=shift) if slot.size else np.zeros((0, C), np.float32)
+    filter_rows(flat, geom, window, out=flat)
+    within = np.concatenate([np.arange(n) for n in count]) if ids.size else np.zeros(0, np.int64)
+    out[slot, within] = flat
+    return PlaneRows(rows=out, plane_first=first.astype(np.int32), plane_count=count.astype(np.int32),
+                     projection=ids, proj_z_mm=zk, plane_dz_mm=float(plane_dz_mm), window_mm=float(w))
+
+
+@dataclass(frozen=True, kw_only=True)
+class MCConfig:
+    """Knobs of the kernel: ``taper_mm`` (width of the weight's fall to 0 at the SSRB window, mm,
+    > 0), ``inversion_steps`` (fixed-point steps of the model's inversion)."""
+
+    taper_mm: float = 2.0
+    inversion_steps: int = INVERSION_STEPS
+
+    def __post_init__(self):
+        if not (isinstance(self.taper_mm, (int, float)) and math.isfinite(self.taper_mm) and self.taper_mm > 0):
+            raise ValueError(f"taper_mm = {self.taper_mm!r}: must be a finite number > 0")
+        if not (isinstance(self.inversion_steps, int) and 0 <= self.inversion_steps <= 64):
+            raise ValueError(f"inversion_steps = {self.inversion_steps!r}: must be an integer in [0, 64]")
+
+
+def _check(rows: PlaneRows, slot_proj, slot_w, model: MotionModel, target, slices_z, geom: FanBeamGeometry):
+    sp = np.asarray(slot_proj)
+    sw = np.asarray(slot_w)
+    S = len(np.atleast_1d(slices_z))
+    if sp.ndim != 3 or sp.shape[:2] != (S, geom.n_views) or sw.shape != sp.shape:
+        raise ValueError(f"slot_proj {sp.shape} and slot_w {sw.shape}: expected (S, V, K) = ({S}, {geom.n_views}, K)")
+    if sp.dtype.kind not in "iu":
+        raise TypeError(f"slot_proj: expected integers (local projection indices), got {sp.dtype}")
+    P = rows.rows.shape[0]
+    if sp.size and (sp.max() >= P or sp.min() < -1):
+        raise ValueError(f"slot_proj: values must lie in [-1, {P})")
+    if not np.all(np.isfinite(sw)) or np.any(sw < 0):
+        raise ValueError("slot_w: weights must be finite and >= 0")
+    g = model.grid
+    if (g.nx, g.ny) != (geom.nx, geom.ny) or not math.isclose(g.voxel_mm, geom.voxel_mm):
+        raise ValueError(f"the model's grid ({g.nx} x {g.ny} at {g.voxel_mm} mm) must be the reconstruction's "
+                         f"in-plane grid ({geom.nx} x {geom.ny} at {geom.voxel_mm} mm)")
+    if rows.rows.shape[2] != geom.n_cols:
+        raise ValueError(f"rows: {rows.rows.shape[2]} columns, the geometry has {geom.n_cols}")
+    c, a = target
+    if not (math.isfinite(c) and math.isfinite(a)):
+        raise ValueError(f"target = {target!r}: must be a finite (c, a)")
+
+
+def mc_backproject_reference(rows: PlaneRows, proj_basis, slot_proj, slot_w, model: MotionModel, target,
+                             slices_z, geom: FanBeamGeometry, cfg: MCConfig | None = None) -> np.ndarray:
+    """Float64 NumPy reference of :func:`mc_backproject`, step for step as the kernel; (S, ny, nx) mu."""
+    cfg = cfg or MCConfig()
+    _check(rows, slot_proj, slot_w, model, target, slices_z, geom)
+    g = model.grid
+    F = model.fields.astype(np.float64)
+    tb = model.basis.values(*target)[0].astype(np.float32).astype(np.float64)
+    u_t = np.tensordot(tb.astype(np.float32), model.fields, axes=(0, 0)).astype(np.float64)
+    pb = np.asarray(proj_basis, np.float32).astype(np.float64)
+    trig = view_table(geom).astype(np.float64)  # the kernel's own (float32) table
+    S = len(slices_z)
+    x = (np.arange(geom.nx) - 0.5 * (geom.nx - 1)) * geom.voxel_mm
+    y = (np.arange(geom.ny) - 0.5 * (geom.ny - 1)) * geom.voxel_mm
+    out = np.zeros((S, geom.ny, geom.nx))
+    R = rows.rows.astype(np.float64)
+    C = geom.n_cols
+    fov = x[None, :] ** 2 + y[:, None] ** 2 <= geom.fov_radius_mm ** 2
+    for s in range(S):
+        X, Y = np.meshgrid(x, y)
+        X, Y = X[fov], Y[fov]
+        Z = np.full_like(X, float(slices_z[s]))
+        rx, ry, rz = X.copy(), Y.copy(), Z.copy()
+        for _ in range(cfg.inversion_steps):
+            u = _trilinear(u_t, g, rx, ry, rz)
+            rx, ry, rz = X - u[0], Y - u[1], Z - u[2]
+        Wb = _trilinear(F.reshape((-1,) + g.shape), g, rx, ry, rz).reshape(F.shape[0], 3, -1)
+        acc = np.zeros_like(X)
+        for j in range(geom.n_views):
+            num = np.zeros_like(X)
+            den = np.zeros_like(X)
+            best_tz = np.full_like(X, np.inf)
+            best_val = np.zeros_like(X)
+            for k in range(slot_proj.shape[2]):
+                p = int(slot_proj[s, j, k])
+                if p < 0:
+                    break
+                w0 = float(np.float32(slot_w[s, j, k]))
+                if w0 == 0.0:
+                    continue
+                beta = pb[p, 1:] - tb[1:]
+                d = np.tensordot(beta, Wb[1:], axes=(0, 0))
+                zm = Z + d[2]
+                col, wd = _fan_column(X + d[0], Y + d[1], trig[j], geom)
+                col = np.clip(col, 0.0, C - 1)
+                i0 = np.minimum(np.floor(col).astype(np.int64), C - 2)
+                tc = col - i0
+                cnt = int(rows.plane_count[p])
+                gz = np.clip(zm / rows.plane_dz_mm - rows.plane_first[p], 0.0, cnt - 1)
+                g0 = np.maximum(np.minimum(np.floor(gz).astype(np.int64), cnt - 2), 0)
+                g1 = np.minimum(g0 + 1, cnt - 1)
+                tg = gz - g0
+                r0, r1 = R[p, g0], R[p, g1]
+                val = ((1 - tg) * ((1 - tc) * r0[np.arange(len(X)), i0] + tc * r0[np.arange(len(X)), i0 + 1])
+                       + tg * ((1 - tc) * r1[np.arange(len(X)), i0] + tc * r1[np.arange(len(X)), i0 + 1]))
+                dzp = np.abs(zm - float(np.float32(rows.proj_z_mm[p])))
+                taper = np.clip((rows.window_mm - dzp) / cfg.taper_mm, 0.0, 1.0)
+                w = w0 * taper
+                num += w * wd * val
+                den += w
+                closer = dzp < best_tz
+                best_tz = np.where(closer, dzp, best_tz)
+                best_val = np.where(closer, wd * val, best_val)
+            acc += np.where(den > 0, num / np.where(den > 0, den, 1.0), best_val)
+        out[s][fov] = acc * geom.delta_beta_rad
+    return out
+
+
+def _trilinear(f, g, px, py, pz):
+    """Kernel-style trilinear samples of fields (n, nz, ny, nx) at points: (n, m) float64."""
+    fx = np.clip(px / g.voxel_mm + 0.5 * (g.nx - 1), 0, g.nx - 1)
+    fy = np.clip(py / g.voxel_mm + 0.5 * (g.ny - 1), 0, g.ny - 1)
+    fz = np.clip((pz - g.z0_mm) / g.dz_mm, 0, g.nz - 1)
+    ix = np.minimum(np.floor(fx).astype(np.int64), g.nx - 2)
+    iy = np.minimum(np.floor(fy).astype(np.int64), g.ny - 2)
+    iz = np.minimum(np.floor(fz).astype(np.int64), g.nz - 2)
+    tx, ty, tz = fx - ix, fy - iy, fz - iz
+    f = np.asarray(f, np.float64)
+    if f.ndim == 3:
+        f = f[None]
+
+    def at(a, b, c):
+        return f[:, iz + a, iy + b, ix + c]
+
+    return ((1 - tz) * ((1 - ty) * ((1 - tx) * at(0, 0, 0) + tx * at(0, 0, 1))
+                        + ty * ((1 - tx) * at(0, 1, 0) + tx * at(0, 1, 1)))
+            + tz * ((1 - ty) * ((1 - tx) * at(1, 0, 0) + tx * at(1, 0, 1))
+                    + ty * ((1 - tx) * at(1, 1, 0) + tx * at(1, 1, 1))))
+
+
+def _fan_column(x, y, cs, geom: FanBeamGeometry):
+    """Float64 form of fan_column.h: (fractional column, weight) of points in one view."""
+    ur = 1.0 - (x * cs[0] + y * cs[1])
+    if geom.curved:
+        vr = y * cs[0] - x * cs[1]
+        return np.arctan2(vr, ur) / geom.delta_gamma_rad + geom.centre_col, 1.0 / (ur * ur + vr * vr)
+    r = 1.0 / ur
+    return geom.sdd_mm / geom.col_pitch_mm * (y * cs[0] - x * cs[1]) * r + 0.5 * (geom.n_cols - 1), r * r
+
+
+def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float) -> dict:
+    d = {"LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK, "NB": int(nb),
+         "NINV": int(cfg.inversion_steps), "_fast": True}
+    if geom.curved:
+        # moved points may leave the FOV circle by the largest displacement: fit atan that far
+        r = geom.fov_radius_mm + margin_mm
+        rmin = geom.sid_mm - max((abs(s[1]) for s in geom.source_shifts), default=0.0)
+        t_max = min(1.0, round(1.02 * math.tan(math.asin(min(1.0, r / rmin))), 6))
+        d["CURVED"] = 1
+        d.update(atan_defines(t_max, 1.0 / geom.delta_gamma_rad))
+    return d
+
+
+class MCBackprojector:
+    """The kernel with one set of rows, model and geometry on the device; one call per target.
+
+    ``rows`` (:class:`PlaneRows`), ``proj_basis`` (P, NB) the basis at each row's (c, a),
+    ``model``, ``slices_z`` (S,), ``geom``. Device buffers are released by :meth:`release`
+    (or ``with``).
+    """
+
+    def __init__(self, rows: PlaneRows, proj_basis, model: MotionModel, slices_z, geom: FanBeamGeometry,
+                 cfg: MCConfig | None = None, runtime=None):
+        self.cfg = cfg or MCConfig()
+        self.rt = runtime or get_runtime()
+        self.rows, self.model, self.geom = rows, model, geom
+        self.slices_z = np.asarray(slices_z, np.float64)
+        pb = np.asarray(proj_basis)
+        if pb.shape != (rows.rows.shape[0], model.basis.size):
+            raise ValueError(f"proj_basis: expected ({rows.rows.shape[0]}, {model.basis.size}), got {pb.shape}")
+        rt = self.rt
+        margin = float(np.abs(model.fields[1:]).sum(axis=0).max()) * 2.0 if model.basis.size > 1 else 0.0
+        self._kernel = rt.kernel(_KERNEL_FILE, "mc_backproject", **_defines(geom, model.basis.size, self.cfg, margin))
+        self._bufs = [rt.to_device(rows.rows, np.float32, "plane rows"),
+                      rt.to_device(rows.plane_first, np.int32), rt.to_device(rows.plane_count, np.int32),
+                      rt.to_device(rows.proj_z_mm, np.float32), rt.to_device(pb, np.float32, "proj_basis")]
+        self._fields = rt.to_device(model.fields, np.float32, "model fields")
+        self._trig = rt.to_device(view_table(geom), np.float32)
+        self._slices = rt.to_device(self.slices_z, np.float32)
+        S = len(self.slices_z)
+        self._out = rt.empty((S, geom.ny, geom.nx))
+
+    def __call__(self, slot_proj, slot_w, target) -> np.ndarray:
+        """mu images (S, ny, nx) float32 of target (c, a) from its slots (S, V, K) (local indices, weights)."""
+        geom, rt, g = self.geom, self.rt, self.model.grid
+        _check(self.rows, slot_proj, slot_w, self.model, target, self.slices_z, geom)
+        tb = self.model.basis.values(*target)[0].astype(np.float32)
+        u_t = np.tensordot(tb, self.model.fields, axes=(0, 0)).astype(np.float32)
+        sp = rt.to_device(slot_proj, np.int32, "slot_proj")
+        sw = rt.to_device(slot_w, np.float32, "slot_w")
+        ut = rt.to_device(u_t, np.float32, "target field")
+        tbd = rt.to_device(tb, np.float32)
+        S, V, K = np.asarray(slot_proj).shape
+        lx, ly = LOCAL_SIZE
+        gsize = (-(-geom.nx // lx) * lx, -(-geom.ny // ly) * ly, S)
+        col_centre = geom.centre_col if geom.curved else 0.5 * (geom.n_cols - 1)
+        scale = 1.0 / geom.delta_gamma_rad if geom.curved else geom.sdd_mm / geom.col_pitch_mm
+        ev = self._kernel(rt.queue, gsize, LOCAL_SIZE + (1,), *self._bufs, sp, sw, self._fields, ut, tbd,
+                          self._trig, self._slices, self._out,
+                          np.int32(geom.nx), np.int32(geom.ny), np.int32(geom.n_views), np.int32(geom.n_cols),
+                          np.float32(geom.voxel_mm), np.float32(scale), np.float32(geom.fov_radius_mm ** 2),
+                          np.float32(geom.delta_beta_rad), np.float32(col_centre),
+                          np.int32(S), np.int32(K), np.int32(self.rows.rows.shape[1]),
+                          np.float32(1.0 / self.rows.plane_dz_mm), np.int32(g.nz), np.float32(g.z0_mm),
+                          np.float32(1.0 / g.dz_mm), np.float32(self.rows.window_mm),
+                          np.float32(1.0 / self.cfg.taper_mm))
+        res = rt.from_device(self._out, (S, geom.ny, geom.nx), wait_for=[ev])
+        for b in (sp, sw, ut, tbd):
+            b.release()
+        return res
+
+    def release(self) -> None:
+        for b in self._bufs + [self._fields, self._trig, self._slices, self._out]:
+            b.release()
+        self._bufs = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
+
+
+def mc_backproject(rows: PlaneRows, proj_basis, slot_proj, slot_w, model: MotionModel, target, slices_z,
+                   geom: FanBeamGeometry, cfg: MCConfig | None = None, runtime=None) -> np.ndarray:
+    """Motion-compensated backprojection of one target: mu (S, ny, nx) float32 (1/mm).
+
+    Parameters
+    ----------
+    rows : PlaneRows (filtered)
+    proj_basis : (P, NB) basis values at each projection's recorded (c, a)
+    slot_proj : (S, V, K) int local projection indices (``rows.local_index``), -1 = empty, at the ends
+    slot_w : (S, V, K) float weights >= 0 (normalised per view by the kernel)
+    model : MotionModel on the reconstruction's in-plane grid
+    target : (c, a) of the target state
+    slices_z : (S,) slice z (mm)
+    geom : FanBeamGeometry
+    """
+    with MCBackprojector(rows, proj_basis, model, slices_z, geom, cfg, runtime) as bp:
+        return bp(slot_proj, slot_w, target)

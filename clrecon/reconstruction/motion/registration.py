@@ -1,0 +1,231 @@
+"""Deformable registration of reconstructed volumes, for the motion model (SimpleITK, scikit-image).
+
+A thin wrapper: NumPy volumes in, displacement fields out, in the package's conventions
+(volumes ``(nz, ny, nx)`` in HU on the reconstruction grid, fields ``(3, nz, ny, nx)`` float32
+mm with components (dx, dy, dz)). Two registrations, chosen by the config's type:
+
+- :class:`DemonsConfig`: ITK's fast symmetric-forces demons (Vercauteren et al.;
+  ``SimpleITK.FastSymmetricForcesDemonsRegistrationFilter``) in a coarse-to-fine pyramid, with
+  Gaussian regularisation of the displacement field (elastic-like);
+- :class:`FlowConfig`: scikit-image's iterative Lucas-Kanade optical flow
+  (``skimage.registration.optical_flow_ilk``; Le Besnerais & Champagnat, ICIP 2005): a
+  least-squares flow in a window around each voxel, coarse to fine with warps. Its window
+  averages out what demons' voxel-wise forces follow (streaks), and it converges on large
+  shifts in a few warps where demons creeps (measured: docs/motion-model.md "Registration").
+
+Both see images clipped to a HU window and pre-smoothed (the streaks of a first-pass 5D image
+and the lung's density change then pull less). docs/motion-model.md "Registration".
+
+Convention: ``register(fixed, moving)`` returns u on the fixed grid with
+``moving(x + u(x)) ~ fixed(x)``: u maps each fixed-image point to where it is in the moving
+image. With the reference state's volume as ``fixed`` and a target's as ``moving``, u is the
+motion-model field u(x_ref; target) of :mod:`clrecon.reconstruction.motion.model`.
+
+Determinism: ITK's demons filter updates every voxel from the previous iterate (no random
+sampling), so the result does not depend on the thread count; :func:`register` still pins the
+thread count (``threads``) so that runs are reproducible to the bit on any machine.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.ndimage
+import SimpleITK as sitk
+from skimage.registration import optical_flow_ilk
+
+
+@dataclass(frozen=True, kw_only=True)
+class DemonsConfig:
+    """Knobs of :func:`register` (docs/motion-model.md "Knobs" for the values chosen on ``demo``).
+
+    iterations : demons iterations per pyramid level, coarse to fine (one entry per level).
+    shrink : in-plane shrink factor per level (z is never shrunk: slices are few and thick).
+    field_sigma_mm : Gaussian smoothing (std, mm) of the displacement field after each iteration.
+    image_sigma_mm : Gaussian pre-smoothing (std, mm) of both images (0: none).
+    hu_window : (lo, hi) HU the images are clipped to before registration.
+    max_step_mm : largest update per iteration (mm; 0: ITK's default, unbounded).
+    threads : ITK threads (0: ITK's default).
+    """
+
+    iterations: tuple = (60, 40)
+    shrink: tuple = (2, 1)
+    field_sigma_mm: float = 4.0
+    image_sigma_mm: float = 2.0
+    hu_window: tuple = (-900.0, 600.0)
+    max_step_mm: float = 1.0
+    threads: int = 2
+
+    def __post_init__(self):
+        if len(self.iterations) != len(self.shrink) or not self.iterations:
+            raise ValueError(f"iterations {self.iterations!r} and shrink {self.shrink!r}: one entry per level each")
+        if any(int(i) < 0 for i in self.iterations) or any(int(s) < 1 for s in self.shrink):
+            raise ValueError("iterations must be >= 0 and shrink factors >= 1")
+        for name in ("field_sigma_mm", "image_sigma_mm", "max_step_mm"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} = {v!r}: must be a finite number >= 0")
+        lo, hi = self.hu_window
+        if not lo < hi:
+            raise ValueError(f"hu_window = {self.hu_window!r}: must be (lo, hi) with lo < hi")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FlowConfig:
+    """Knobs of the Lucas-Kanade registration (:func:`register` with this config).
+
+    radius : window radius in voxels (the window is (2 radius + 1) voxels along every axis).
+    num_warp : warps per pyramid level.
+    gaussian : a Gaussian window instead of a flat one.
+    image_sigma_mm : Gaussian pre-smoothing (std, mm) of both images (0: none).
+    hu_window : (lo, hi) HU the images are clipped to.
+    """
+
+    radius: int = 7
+    num_warp: int = 10
+    gaussian: bool = False
+    image_sigma_mm: float = 0.0
+    hu_window: tuple = (-900.0, 600.0)
+
+    def __post_init__(self):
+        if not (isinstance(self.radius, int) and self.radius >= 1):
+            raise ValueError(f"radius = {self.radius!r}: must be an integer >= 1")
+        if not (isinstance(self.num_warp, int) and self.num_warp >= 1):
+            raise ValueError(f"num_warp = {self.num_warp!r}: must be an integer >= 1")
+        if not (math.isfinite(self.image_sigma_mm) and self.image_sigma_mm >= 0):
+            raise ValueError(f"image_sigma_mm = {self.image_sigma_mm!r}: must be a finite number >= 0")
+        lo, hi = self.hu_window
+        if not lo < hi:
+            raise ValueError(f"hu_window = {self.hu_window!r}: must be (lo, hi) with lo < hi")
+
+
+def _flow(f: np.ndarray, m: np.ndarray, spacing_mm: tuple, cfg: FlowConfig) -> np.ndarray:
+    lo, hi = cfg.hu_window
+    ims = []
+    for v in (f, m):
+        a = np.clip(np.asarray(v, np.float64), lo, hi) / (hi - lo)
+        if cfg.image_sigma_mm > 0:
+            a = scipy.ndimage.gaussian_filter(a, [cfg.image_sigma_mm / s for s in spacing_mm[::-1]], mode="nearest")
+        ims.append(a.astype(np.float32))
+    # optical_flow_ilk(reference, moving) returns v (per axis z, y, x, voxels) with
+    # moving(x + v(x)) ~ reference(x): the convention of register()
+    v = optical_flow_ilk(ims[0], ims[1], radius=cfg.radius, num_warp=cfg.num_warp, gaussian=cfg.gaussian,
+                         prefilter=False)
+    return np.stack([v[2] * spacing_mm[0], v[1] * spacing_mm[1], v[0] * spacing_mm[2]]).astype(np.float32)
+
+
+def _image(vol: np.ndarray, spacing: tuple, origin: tuple) -> sitk.Image:
+    img = sitk.GetImageFromArray(np.ascontiguousarray(vol, np.float32))
+    img.SetSpacing(tuple(float(s) for s in spacing))
+    img.SetOrigin(tuple(float(o) for o in origin))
+    return img
+
+
+def _prepare(img: sitk.Image, cfg: DemonsConfig) -> sitk.Image:
+    lo, hi = cfg.hu_window
+    out = sitk.Clamp(img, sitk.sitkFloat32, float(lo), float(hi))
+    if cfg.image_sigma_mm > 0:
+        out = sitk.SmoothingRecursiveGaussian(out, float(cfg.image_sigma_mm))
+    return out
+
+
+def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0),
+             cfg: DemonsConfig | None = None, initial=None) -> np.ndarray:
+    """Displacement field u with ``moving(x + u(x)) ~ fixed(x)``, on the fixed grid.
+
+    Parameters
+    ----------
+    fixed, moving : (nz, ny, nx) arrays
+        Volumes on one grid (HU), finite.
+    spacing_mm : (dx, dy, dz)
+        Voxel spacing (mm) along x, y, z.
+    origin_mm : (x0, y0, z0)
+        Centre of voxel (0, 0, 0) (mm); only shifts the ITK frame (fields are relative).
+    cfg : DemonsConfig or FlowConfig
+    initial : (3, nz, ny, nx) array, optional
+        Starting field (mm), e.g. a neighbouring state's (demons only).
+
+    Returns
+    -------
+    (3, nz, ny, nx) float32: (dx, dy, dz) mm.
+    """
+    cfg = cfg or DemonsConfig()
+    f = np.asarray(fixed)
+    m = np.asarray(moving)
+    if f.ndim != 3 or m.shape != f.shape:
+        raise ValueError(f"fixed {f.shape} and moving {m.shape}: expected two (nz, ny, nx) volumes of one shape")
+    if not (np.all(np.isfinite(f)) and np.all(np.isfinite(m))):
+        raise ValueError("fixed and moving must be finite")
+    if len(spacing_mm) != 3 or min(spacing_mm) <= 0:
+        raise ValueError(f"spacing_mm = {spacing_mm!r}: three spacings > 0 (x, y, z)")
+    if isinstance(cfg, FlowConfig):
+        if initial is not None:
+            raise ValueError("initial: the Lucas-Kanade registration starts from zero")
+        return _flow(f, m, tuple(float(s) for s in spacing_mm), cfg)
+    if not isinstance(cfg, DemonsConfig):
+        raise TypeError(f"cfg: expected a DemonsConfig or FlowConfig, got {type(cfg).__name__}")
+    if cfg.threads > 0:
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(cfg.threads))
+    fi = _prepare(_image(f, spacing_mm, origin_mm), cfg)
+    mi = _prepare(_image(m, spacing_mm, origin_mm), cfg)
+    field = None
+    if initial is not None:
+        u0 = np.asarray(initial, np.float64)
+        if u0.shape != (3,) + f.shape:
+            raise ValueError(f"initial: expected shape {(3,) + f.shape}, got {u0.shape}")
+        field = sitk.GetImageFromArray(np.moveaxis(u0, 0, -1), isVector=True)
+        field.CopyInformation(fi)
+    for iters, shrink in zip(cfg.iterations, cfg.shrink, strict=True):
+        factors = [int(shrink), int(shrink), 1]
+        fl = sitk.Shrink(fi, factors) if shrink > 1 else fi
+        ml = sitk.Shrink(mi, factors) if shrink > 1 else mi
+        if field is not None:  # carry the field to this level's grid
+            field = sitk.Resample(field, fl, sitk.Transform(), sitk.sitkLinear, 0.0, sitk.sitkVectorFloat64)
+        else:
+            field = sitk.Image(fl.GetSize(), sitk.sitkVectorFloat64, 3)
+            field.CopyInformation(fl)
+        if iters == 0:
+            continue
+        demons = sitk.FastSymmetricForcesDemonsRegistrationFilter()
+        demons.SetNumberOfIterations(int(iters))
+        demons.SetSmoothDisplacementField(True)
+        demons.SetStandardDeviations(float(cfg.field_sigma_mm))
+        demons.SetUseImageSpacing(True)
+        if cfg.max_step_mm > 0:
+            demons.SetMaximumUpdateStepLength(float(cfg.max_step_mm))
+        field = demons.Execute(fl, ml, field)
+    if field.GetSize() != fi.GetSize():
+        field = sitk.Resample(field, fi, sitk.Transform(), sitk.sitkLinear, 0.0, sitk.sitkVectorFloat64)
+    u = sitk.GetArrayFromImage(field)  # (nz, ny, nx, 3)
+    return np.ascontiguousarray(np.moveaxis(u, -1, 0), np.float32)
+
+
+def register_to_reference(volumes, reference: int, spacing_mm: tuple, cfg: DemonsConfig | None = None,
+                          order=None, progress=None) -> np.ndarray:
+    """u(x_ref; s_i) of every volume (n, nz, ny, nx) against ``volumes[reference]``: (n, 3, nz, ny, nx).
+
+    ``order``: a sequence of (i, j) pairs, each volume i started from volume j's field (j done
+    before, or -1 for a zero start); default every i from zero. The reference's own field is 0.
+    ``progress``: optional ``update(n)`` counter.
+    """
+    v = np.asarray(volumes)
+    if v.ndim != 4:
+        raise ValueError(f"volumes: expected (n, nz, ny, nx), got {v.shape}")
+    n = v.shape[0]
+    if not 0 <= reference < n:
+        raise ValueError(f"reference = {reference}: must index one of the {n} volumes")
+    out = np.zeros((n, 3) + v.shape[1:], np.float32)
+    pairs = [(i, -1) for i in range(n)] if order is None else list(order)
+    done = {reference}
+    for i, j in pairs:
+        if i == reference:
+            continue
+        if j >= 0 and j not in done:
+            raise ValueError(f"order: volume {i} starts from {j}, which is not registered before it")
+        out[i] = register(v[reference], v[i], spacing_mm, cfg=cfg, initial=out[j] if j >= 0 else None)
+        done.add(i)
+        if progress is not None:
+            progress.update(1)
+    return out

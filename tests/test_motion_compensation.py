@@ -1,0 +1,394 @@
+"""Motion-model building blocks (clrecon.reconstruction.motion, docs/motion-model.md).
+
+Kernels against their float64 NumPy references on random and edge-case inputs
+(``kernels/mc_backproject.cl``, ``kernels/mc_warp.cl``); the motion-compensated backprojection
+with no motion against the fan-beam FBP's own backprojector; the model fit, its inversion, the
+row weights, the state bins, the registration wrapper (SimpleITK demons) on shifted blobs, the
+separable estimate, and the analytic phantom's true motion.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.ndimage
+
+from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
+from clrecon.reconstruction.motion import correction, estimate, registration, slots, warp
+from clrecon.reconstruction.motion.backproject import (
+    MCBackprojector,
+    MCConfig,
+    PlaneRows,
+    mc_backproject,
+    mc_backproject_reference,
+    plane_range,
+)
+from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel, fit_motion_model, sample
+from clrecon.reconstruction.rebin import CandidateGroups
+from clrecon.simulation.phantoms import motion_field
+from clrecon.simulation.phantoms.analytic import Phantom
+
+# One table for every tolerance in this file: (quantity, why this size).
+TOL = {
+    # float32 kernel vs float64 reference, max |cl - ref| / max |ref|: float32 columns and plane
+    # coordinates (ulp ~ 1e-5 of a cell) times O(1) jumps of random rows, over the views
+    "mc_f32": 2e-5,
+    # the same for the warp: float32 fixed-point steps through random smooth fields
+    "warp_f32": 2e-5,
+    # no motion, one row per view at its own plane vs the fan-beam backprojector (same float32
+    # geometry, different order of operations)
+    "static_vs_fbp": 1e-5,
+    # least-squares fit of fields made exactly from the basis (float32 fields, float64 solve)
+    "fit_rel": 1e-5,
+    # fixed-point inversion of smooth fields (|grad u| < 0.3): residual, mm
+    "inverse_mm": 1e-3,
+    # Lucas-Kanade flow on a (4, -3, 4) mm-shifted ellipsoid, median over its interior, mm
+    "flow_mm": 0.5,
+    # demons on the same: it creeps (measured 2.3-3.0 of 4 mm in x after 80 + 40 iterations,
+    # docs/motion-model.md "Registration"), so only the share of the shift it must recover
+    "demons_share": 0.5,
+}
+
+RNG = np.random.default_rng(34)
+
+
+def _smooth_model(basis, grid, scale_mm, seed=0):
+    rng = np.random.default_rng(seed)
+    f = scipy.ndimage.gaussian_filter(rng.normal(size=(basis.size, 3) + grid.shape), (0, 0, 1, 2, 2))
+    f *= scale_mm / np.abs(f).max()
+    return MotionModel(basis=basis, grid=grid, fields=f.astype(np.float32), reference=(0.5, 0.5))
+
+
+def _random_case(detector="flat", source_shifts=(), seed=1):
+    rng = np.random.default_rng(seed)
+    geom = FanBeamGeometry(sid_mm=500.0, sdd_mm=900.0, n_cols=40, col_pitch_mm=4.0, n_views=12, nx=13, ny=11,
+                           voxel_mm=6.0, detector=detector, source_shifts=source_shifts, beta0_rad=0.2)
+    basis = MotionBasis(resp_degree=1, cardiac_harmonics=1)
+    grid = FieldGrid(nx=13, ny=11, nz=4, voxel_mm=6.0, z0_mm=-9.0, dz_mm=6.0)
+    model = MotionModel(basis=basis, grid=grid, fields=(rng.normal(size=(basis.size, 3) + grid.shape) * 2)
+                        .astype(np.float32), reference=(0.5, 0.5))
+    P, NP = 30, 9
+    rows = PlaneRows(rows=rng.normal(size=(P, NP, geom.n_cols)).astype(np.float32),
+                     plane_first=rng.integers(-12, -2, P).astype(np.int32),
+                     plane_count=rng.integers(1, NP + 1, P).astype(np.int32),   # a count of 1: one plane
+                     projection=np.arange(P), proj_z_mm=rng.uniform(-10, 10, P), plane_dz_mm=2.0, window_mm=7.0)
+    S, K = 3, 4
+    sp = rng.integers(0, P, (S, geom.n_views, K)).astype(np.int32)
+    sp[:, :, 3] = -1          # empty slots at the end of every list
+    sp[0, 0, 1:] = -1         # a view with one slot
+    sw = rng.uniform(0, 1, sp.shape).astype(np.float32)
+    sw[1, 2, 0] = 0.0         # a zero weight
+    pb = basis.values(rng.uniform(0, 1, P), rng.uniform(0, 1, P))
+    zs = np.array([-8.0, 0.5, 7.0])
+    return geom, model, rows, pb, sp, sw, zs
+
+
+# ---------------------------------------------------------------------------------------
+# the motion-compensated backprojection kernel
+@pytest.mark.parametrize("detector, shifts", [("flat", ()), ("cylindrical", ()),
+                                              ("cylindrical", ((0.002, 0.6), (-0.002, -0.6)))])
+def test_mc_backproject_matches_reference(detector, shifts):
+    geom, model, rows, pb, sp, sw, zs = _random_case(detector, shifts)
+    cfg = MCConfig(taper_mm=3.0)
+    got = mc_backproject(rows, pb, sp, sw, model, (0.3, 0.6), zs, geom, cfg)
+    ref = mc_backproject_reference(rows, pb, sp, sw, model, (0.3, 0.6), zs, geom, cfg)
+    assert got.shape == (3, geom.ny, geom.nx) and got.dtype == np.float32
+    assert np.abs(got - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
+    assert np.all(got[:, ~geom.fov_mask()] == 0)
+
+
+def test_mc_backproject_fallback_when_every_taper_is_zero():
+    """Rows farther than the SSRB window from every moved point: the slot nearest in z alone."""
+    geom, model, rows, pb, sp, sw, zs = _random_case()
+    far = dataclasses.replace(rows, proj_z_mm=rows.proj_z_mm + 100.0)
+    got = mc_backproject(far, pb, sp, sw, model, (0.3, 0.6), zs, geom)
+    ref = mc_backproject_reference(far, pb, sp, sw, model, (0.3, 0.6), zs, geom)
+    assert np.abs(got - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
+    assert np.abs(ref).max() > 0
+
+
+def test_mc_backproject_is_slab_independent():
+    geom, model, rows, pb, sp, sw, zs = _random_case()
+    whole = mc_backproject(rows, pb, sp, sw, model, (0.7, 0.2), zs, geom)
+    for s in range(len(zs)):
+        one = mc_backproject(rows, pb, sp[s:s + 1], sw[s:s + 1], model, (0.7, 0.2), zs[s:s + 1], geom)
+        assert np.array_equal(one[0], whole[s])
+
+
+@pytest.mark.parametrize("detector", ["flat", "cylindrical"])
+def test_mc_backproject_without_motion_is_the_fan_beam_backprojection(detector):
+    """Zero fields, one row per view lying on the slice's own plane: the FBP's backprojector."""
+    geom = FanBeamGeometry(sid_mm=300.0, sdd_mm=600.0, n_cols=48, col_pitch_mm=3.0, n_views=30, nx=20, ny=17,
+                           voxel_mm=4.0, detector=detector)
+    basis = MotionBasis(resp_degree=1, cardiac_harmonics=2)
+    grid = FieldGrid(nx=20, ny=17, nz=3, voxel_mm=4.0, z0_mm=-4.0, dz_mm=4.0)
+    model = MotionModel(basis=basis, grid=grid, fields=np.zeros((basis.size, 3) + grid.shape, np.float32),
+                        reference=(0.0, 0.5))
+    q = RNG.normal(size=(geom.n_views, geom.n_cols)).astype(np.float32)
+    # projection j holds the row of view j on the plane z = 2 mm (plane 1 of 3 at 1 mm spacing)
+    rows = PlaneRows(rows=np.repeat(q[:, None, :], 3, axis=1), plane_first=np.ones(geom.n_views, np.int32),
+                     plane_count=np.full(geom.n_views, 3, np.int32), projection=np.arange(geom.n_views),
+                     proj_z_mm=np.full(geom.n_views, 2.0), plane_dz_mm=1.0, window_mm=5.0)
+    sp = np.arange(geom.n_views, dtype=np.int32).reshape(1, -1, 1)
+    sw = np.ones(sp.shape, np.float32)
+    pb = basis.values(RNG.uniform(0, 1, geom.n_views), RNG.uniform(0, 1, geom.n_views))
+    got = mc_backproject(rows, pb, sp, sw, model, (0.4, 0.1), np.array([2.0]), geom)
+    want = backproject(q[None], geom)
+    assert np.abs(got - want).max() < TOL["static_vs_fbp"] * np.abs(want).max()
+
+
+def test_mc_backproject_rejects_bad_inputs():
+    geom, model, rows, pb, sp, sw, zs = _random_case()
+    with pytest.raises(ValueError, match="slot_proj"):
+        mc_backproject(rows, pb, sp[:, :5], sw[:, :5], model, (0.3, 0.6), zs, geom)
+    with pytest.raises(ValueError, match="slot_w"):
+        mc_backproject(rows, pb, sp, -sw, model, (0.3, 0.6), zs, geom)
+    bad = np.where(sp >= 0, sp + 100, sp)
+    with pytest.raises(ValueError, match=r"\[-1, 30\)"):
+        mc_backproject(rows, pb, bad, sw, model, (0.3, 0.6), zs, geom)
+    with pytest.raises(ValueError, match="in-plane grid"):
+        mc_backproject(rows, pb, sp, sw, model, (0.3, 0.6), zs, dataclasses.replace(geom, nx=14))
+    with pytest.raises(ValueError, match="proj_basis"):
+        MCBackprojector(rows, pb[:, :2], model, zs, geom)
+    with pytest.raises(ValueError, match="taper_mm"):
+        MCConfig(taper_mm=0.0)
+
+
+def test_plane_range_keeps_the_window_and_the_slab():
+    first, count = plane_range([0.0, 10.0], window_mm=5.0, plane_dz_mm=2.0, z_lo_mm=-100.0, z_hi_mm=100.0)
+    assert first.tolist() == [-3, 2] and count.tolist() == [7, 7]          # |z_g - z_k| <= 5 + 2
+    first, count = plane_range([0.0], 5.0, 2.0, z_lo_mm=1.0, z_hi_mm=3.0)
+    assert first.tolist() == [1] and count.tolist() == [1]                 # only z = 2 inside [1, 3]
+
+
+def test_plane_rows_local_index():
+    rows = PlaneRows(rows=np.zeros((3, 1, 4), np.float32), plane_first=np.zeros(3, np.int32),
+                     plane_count=np.ones(3, np.int32), projection=np.array([5, 9, 12]), proj_z_mm=np.zeros(3),
+                     plane_dz_mm=1.0, window_mm=1.0)
+    assert rows.local_index([[12, -1], [5, 9]]).tolist() == [[2, -1], [0, 1]]
+    with pytest.raises(ValueError, match="projection 7"):
+        rows.local_index([7])
+
+
+# ---------------------------------------------------------------------------------------
+# the warp kernel
+def test_warp_matches_reference_and_is_identity_without_motion():
+    basis = MotionBasis(resp_degree=1, cardiac_harmonics=2)
+    grid = FieldGrid(nx=13, ny=11, nz=5, voxel_mm=3.0, z0_mm=-8.0, dz_mm=4.0)
+    model = _smooth_model(basis, grid, 8.0)
+    vg = FieldGrid(nx=13, ny=11, nz=9, voxel_mm=3.0, z0_mm=-10.0, dz_mm=2.5)   # finer z of its own
+    vol = RNG.normal(size=vg.shape) * 100
+    states = RNG.uniform(0, 1, (4, 2))
+    zo = np.array([-12.0, -3.3, 0.0, 7.9, 14.0])   # beyond both ends: clamped
+    got = warp.warp(vol, model, states, zo, volume_grid=vg)
+    ref = warp.warp_reference(vol, model, states, zo, volume_grid=vg)
+    assert np.abs(got - ref).max() < TOL["warp_f32"] * np.abs(ref).max()
+    still = dataclasses.replace(model, fields=np.zeros_like(model.fields))
+    on_planes = warp.warp(vol, still, states[:1], vg.coords()[2], volume_grid=vg)[0]
+    assert np.abs(on_planes - vol).max() < TOL["warp_f32"] * np.abs(vol).max()
+    with pytest.raises(ValueError, match="in-plane grid"):
+        warp.warp(vol[:, :, :5], model, states, zo, volume_grid=dataclasses.replace(vg, nx=5))
+
+
+# ---------------------------------------------------------------------------------------
+# the model
+def test_basis_values_and_validation():
+    b = MotionBasis(resp_degree=2, cardiac_harmonics=1)
+    v = b.values([0.25, 0.0], [0.5, 1.0])
+    assert b.size == 5 and b.names == ("1", "a^1", "a^2", "cos1c", "sin1c")
+    assert np.allclose(v, [[1, 0.5, 0.25, 0, 1], [1, 1, 1, 1, 0]], atol=1e-12)
+    for bad in (dict(resp_degree=-1), dict(cardiac_harmonics=9), dict(resp_degree=1.5)):
+        with pytest.raises(ValueError):
+            MotionBasis(**bad)
+    with pytest.raises(ValueError, match="finite"):
+        b.values([np.nan], [0.1])
+
+
+def test_field_grid_validation():
+    g = FieldGrid.of_slices(4, 3, 2.0, [-2.0, 2.0, 6.0])
+    assert g.shape == (3, 3, 4) and g.dz_mm == 4.0 and g.z0_mm == -2.0
+    with pytest.raises(ValueError, match="uniformly"):
+        FieldGrid.of_slices(4, 3, 2.0, [0.0, 1.0, 3.0])
+    with pytest.raises(ValueError, match="nz"):
+        FieldGrid(nx=4, ny=3, nz=1, voxel_mm=1.0, z0_mm=0.0, dz_mm=1.0)
+
+
+def test_fit_recovers_fields_made_from_the_basis():
+    basis = MotionBasis(resp_degree=1, cardiac_harmonics=2)
+    grid = FieldGrid(nx=6, ny=5, nz=3, voxel_mm=2.0, z0_mm=0.0, dz_mm=3.0)
+    truth = _smooth_model(basis, grid, 5.0, seed=3)
+    cc, aa = np.meshgrid(np.arange(5) / 5, (np.arange(10) + 0.5) / 10, indexing="ij")
+    states = np.stack([cc.ravel(), aa.ravel()], 1)
+    fields = np.stack([truth.displacement(c, a) for c, a in states])
+    model, rms = fit_motion_model(fields, states, basis, grid, (0.0, 0.5), ridge=0.0)
+    assert np.abs(model.fields - truth.fields).max() < TOL["fit_rel"] * np.abs(truth.fields).max()
+    assert rms.max() < 1e-5
+    with pytest.raises(ValueError, match="cannot fit"):
+        fit_motion_model(fields[:4], states[:4], basis, grid, (0.0, 0.5))
+    with pytest.raises(ValueError, match="displacements"):
+        fit_motion_model(fields[:, :2], states, basis, grid, (0.0, 0.5))
+
+
+def test_inverse_points_undo_the_model():
+    basis = MotionBasis(resp_degree=1, cardiac_harmonics=1)
+    grid = FieldGrid(nx=16, ny=14, nz=6, voxel_mm=3.0, z0_mm=-10.0, dz_mm=4.0)
+    model = _smooth_model(basis, grid, 2.0, seed=5)
+    pts = RNG.uniform(-15, 15, (50, 3))
+    xr = model.inverse_points(pts, 0.3, 0.8, iterations=30)
+    back = xr + np.moveaxis(sample(model.displacement(0.3, 0.8), grid, xr), 0, -1)
+    assert np.abs(back - pts).max() < TOL["inverse_mm"]
+
+
+# ---------------------------------------------------------------------------------------
+# row weights and state bins
+def _groups(c, a, counts):
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    n = offsets[-1]
+    return CandidateGroups(offsets=offsets, row=np.arange(n), projection=np.arange(n) * 10, dz_mm=np.zeros(n),
+                           slice_z_mm=np.zeros(1), views_per_rotation=len(counts)), np.asarray(c), np.asarray(a)
+
+
+def test_kernel_slots_weights():
+    g, c, a = _groups([0.0, 0.5, 0.95, 0.2, 0.3], [0.5, 0.5, 0.5, 0.1, 0.9], [3, 2])
+    sp, sw = slots.kernel_slots(g, c, a, [[0.0, 0.5]], sigma_c=0.1, sigma_a=0.2, max_slots=2)
+    assert sp.shape == (1, 1, 2, 2)
+    assert sp[0, 0, 0].tolist() == [0, 20]                  # c = 0 and its circular neighbour 0.95 first
+    assert np.allclose(sw.sum(-1), 1.0)
+    flat = slots.kernel_slots(g, c, a, [[0.0, 0.5]], sigma_c=np.inf, sigma_a=np.inf, max_slots=3)[1]
+    assert np.allclose(flat[0, 0, 0], 1 / 3) and np.allclose(flat[0, 0, 1, :2], 0.5) and flat[0, 0, 1, 2] == 0
+    with pytest.raises(ValueError, match="sigma_c"):
+        slots.kernel_slots(g, c, a, [[0.0, 0.5]], sigma_c=0.0, sigma_a=1.0, max_slots=2)
+
+
+def test_plan_slots_moves_zero_weights_out():
+    idx = np.array([[[[4, 5, 6]]]])            # (S, V, T, K) = (1, 1, 1, 3)
+    w = np.array([[[[0.0, 0.7, 0.3]]]])
+    p, ww = slots.plan_slots(idx, w)
+    assert p[0, 0, 0].tolist() == [5, 6, -1] and np.allclose(ww[0, 0, 0], [0.7, 0.3, 0.0])
+
+
+def test_state_bins_are_periodic_in_c_and_clipped_in_a():
+    b, centres = correction.state_bins([0.98, 0.02, 0.5, 0.5], [0.0, 1.0, -0.2, 0.55], 10, 4)
+    assert b.tolist() == [0 * 4 + 0, 0 * 4 + 3, 5 * 4 + 0, 5 * 4 + 2]
+    assert np.allclose(centres[b[2]], [0.5, 0.125])
+    with pytest.raises(ValueError, match="n_cardiac"):
+        correction.state_bins([0.1], [0.1], 0, 4)
+
+
+def test_interpolate_rows():
+    rows = RNG.normal(size=(5, 7)).astype(np.float32)
+    idx = np.array([[[0, 3], [4, 4]]])
+    w = np.array([[[0.25, 0.75], [1.0, 0.0]]])
+    out = correction.interpolate_rows(rows, idx, w)
+    assert np.allclose(out[0, 0], 0.25 * rows[0] + 0.75 * rows[3], atol=1e-6)
+    assert np.allclose(out[0, 1], rows[4])
+
+
+# ---------------------------------------------------------------------------------------
+# registration and the separable estimate
+def _blob_volume(shift):
+    z, y, x = np.meshgrid((np.arange(12) - 5.5) * 4, (np.arange(40) - 19.5) * 3, (np.arange(40) - 19.5) * 3,
+                          indexing="ij")
+    cx, cy, cz = shift
+    inside = ((x - cx) / 30) ** 2 + ((y - cy) / 20) ** 2 + ((z - cz) / 14) ** 2 <= 1
+    ring = ((x - cx) / 12) ** 2 + ((y - cy) / 9) ** 2 + ((z - cz) / 8) ** 2 <= 1   # texture inside
+    return np.where(ring, 400.0, np.where(inside, 60.0, -800.0)).astype(np.float32), (x, y, z)
+
+
+@pytest.mark.parametrize("cfg", [registration.FlowConfig(radius=7),
+                                 registration.DemonsConfig(iterations=(80, 40), shrink=(2, 1), field_sigma_mm=4.0,
+                                                           image_sigma_mm=1.0)], ids=["flow", "demons"])
+def test_registration_recovers_a_shift_and_is_deterministic(cfg):
+    fixed, (x, y, z) = _blob_volume((0.0, 0.0, 0.0))
+    moving, _ = _blob_volume((4.0, -3.0, 4.0))
+    u = registration.register(fixed, moving, (3.0, 3.0, 4.0), cfg=cfg)
+    assert u.shape == (3,) + fixed.shape and u.dtype == np.float32
+    core = (x / 30) ** 2 + (y / 20) ** 2 + (z / 14) ** 2 <= 0.6
+    med = np.array([float(np.median(u[k][core])) for k in range(3)])
+    want = np.array([4.0, -3.0, 4.0])
+    if isinstance(cfg, registration.FlowConfig):
+        assert np.allclose(med, want, atol=TOL["flow_mm"]), med
+    else:
+        assert np.all(np.abs(med - want) <= TOL["demons_share"] * np.abs(want)), med
+    assert np.array_equal(u, registration.register(fixed, moving, (3.0, 3.0, 4.0), cfg=cfg))
+
+
+def test_registration_rejects_bad_inputs():
+    fixed, _ = _blob_volume((0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="one shape"):
+        registration.register(fixed, fixed[:-1], (3.0, 3.0, 4.0))
+    with pytest.raises(ValueError, match="spacing"):
+        registration.register(fixed, fixed, (3.0, 0.0, 4.0))
+    with pytest.raises(ValueError, match="iterations"):
+        registration.DemonsConfig(iterations=(10,), shrink=(2, 1))
+    with pytest.raises(ValueError, match="radius"):
+        registration.FlowConfig(radius=0)
+    with pytest.raises(ValueError, match="starts from zero"):
+        registration.register(fixed, fixed, (3.0, 3.0, 4.0), cfg=registration.FlowConfig(),
+                              initial=np.zeros((3,) + fixed.shape))
+    with pytest.raises(ValueError, match="reference"):
+        registration.register_to_reference(fixed[None], 1, (3.0, 3.0, 4.0))
+
+
+def test_separable_fields_add_breathing_and_beat():
+    """Targets made of a breathing shift (z, by amplitude) plus a beat shift (x, by phase)."""
+    resp_z, card_x = [-3.0, 0.0, 3.0], [0.0, 3.0]
+    vols = np.stack([np.stack([_blob_volume((cx, 0.0, rz))[0] for rz in resp_z]) for cx in card_x])
+    grid = FieldGrid(nx=40, ny=40, nz=12, voxel_mm=3.0, z0_mm=-22.0, dz_mm=4.0)
+    fields, parts = estimate.separable_fields(vols, (0, 1), grid, registration.FlowConfig(radius=7))
+    assert fields.shape == (6, 3) + grid.shape and parts["resp"].shape == (3, 3) + grid.shape
+    _, (x, y, z) = _blob_volume((0, 0, 0))
+    core = (x / 30) ** 2 + (y / 20) ** 2 + (z / 14) ** 2 <= 0.5
+    for i, cx in enumerate(card_x):
+        for j, rz in enumerate(resp_z):
+            med = [float(np.median(fields[i * 3 + j, k][core])) for k in range(3)]
+            assert np.allclose(med, [cx, 0.0, rz], atol=TOL["flow_mm"]), (i, j, med)
+
+
+# ---------------------------------------------------------------------------------------
+# the phantom's own motion
+@pytest.fixture(scope="module")
+def phantom():
+    return Phantom()
+
+
+def test_true_motion_of_named_points(phantom):
+    s0, s1 = (0.8, 0.45), (0.3, 0.95)
+    for name in ("lesion", "lv_blood"):
+        i = phantom.names.index(name)
+        c0, c1 = phantom.objects(*s0)[i, 2:5], phantom.objects(*s1)[i, 2:5]
+        assert np.allclose(motion_field.displacement(phantom, c0[None], s0, s1)[0], c1 - c0, atol=1e-9)
+    spine = phantom.objects(*s0)[phantom.names.index("vertebra_6"), 2:5]
+    assert np.allclose(motion_field.displacement(phantom, spine[None], s0, s1), 0.0)
+
+
+@pytest.mark.parametrize("s0, s1, share", [((0.38, 0.5), (0.0, 0.5), 0.99), ((0.0, 0.5), (0.38, 0.5), 0.93)],
+                         ids=["ES-to-ED", "ED-to-ES"])
+def test_true_motion_keeps_wall_points_in_the_wall(phantom, s0, s1, share):
+    """The shell rule keeps LV wall points in the wall (measured 99.9 % from end-systole to
+    end-diastole, where the outer ellipsoid's affine map carries 28 % into the cavity; 95 % the
+    other way, the misses at the base, whose clip plane the rule does not follow)."""
+    i = phantom.names.index("lv_myocardium")
+    o = phantom.objects(*s0)[i]
+    pts = o[2:5] + np.random.default_rng(34).uniform(-40, 40, (8000, 3))
+    wall = pts[motion_field.owner(phantom, pts, *s0) == i]
+    moved = wall + motion_field.displacement(phantom, wall, s0, s1)
+    assert len(wall) > 500
+    assert np.mean(motion_field.owner(phantom, moved, *s1) == i) > share
+
+
+def test_true_fields_fill_textureless_points(phantom):
+    x = (np.arange(24) - 11.5) * 8.0
+    z = (np.arange(4) - 1.5) * 8.0
+    f = motion_field.displacement_fields(phantom, x, x, z, (0.8, 0.45), [(0.8, 0.95)])
+    raw = motion_field.displacement_fields(phantom, x, x, z, (0.8, 0.45), [(0.8, 0.95)], fill_textureless=False)
+    assert f.shape == (1, 3, 4, 24, 24) and np.all(np.isfinite(f))
+    Z, Y, X = np.meshgrid(z, x, x, indexing="ij")
+    own = motion_field.owner(phantom, np.stack([X, Y, Z], -1), 0.8, 0.45)
+    lung = own == phantom.names.index("lung_left")
+    assert lung.any() and np.abs(raw[0, 2][lung]).max() == 0.0      # the lung's own rule: no SI motion
+    assert np.abs(f[0, 2][lung]).max() > 1.0                        # filled from the heart and diaphragm
+    kept = (own >= 0) & ~np.isin(own, [phantom.names.index(n) for n in motion_field.TEXTURELESS])
+    assert np.array_equal(f[0][:, kept], raw[0][:, kept])
