@@ -1,7 +1,8 @@
 """Knob choice for the motion-model study on demo, pitch 0.10, noise-free, on the TUNING slices only
 (z = -12, -4, 4, 12 mm: midway between the run's reported slices, never reported).
 
-    python docs/data/motion-model/tune.py  -> docs/data/motion-model/tune.json
+    python docs/data/motion-model/tune.py          -> docs/data/motion-model/tune.json
+    python docs/data/motion-model/tune.py rounds   (after study.py: rounds 2 and 3 of registration)
 
 Each line: a variant (motion source x reconstruction x knobs), its MAE (large, small FOV) on the
 tuning slices beside barycentric's, and its seconds. docs/motion-model.md "Knobs".
@@ -23,6 +24,36 @@ from clrecon.reconstruction.motion import model as mm
 from clrecon.reconstruction.motion import registration as reg
 
 OUT = os.path.join(HERE, "tune.json")
+
+
+def rounds(res):
+    """Rounds of registration on the motion-compensated images (A), measured on the tuning slices.
+
+    Round k registers round k-1's A images of the reported slices (made by study.py, cached) and
+    reconstructs the tuning slices with the refitted model; round 1 is tune's "registered-ilk A-bary".
+    """
+    from clrecon.reconstruction.motion import estimate
+    ctx = cm.Context("demo", 0.10)
+    var, z = "noise-free", ctx.tune_z
+    trt = cm.truth(ctx, z)
+    g = cm.field_grid(ctx)
+    ref = tuple(ctx.pairs[44])
+    basis = mm.MotionBasis(resp_degree=1, cardiac_harmonics=2)
+    gg = cm.groups_for(ctx, z, 0.0)
+    rows = cm.plane_rows(ctx, var, gg.projection, z.min() - 20, z.max() + 20, 2.0)
+    bary = cm.bary_slots(ctx, z, rows)
+    for k, src in ((2, "A"), (3, "A2")):
+        key = f"registered-ilk A-bary round {k}"
+        if key in res:
+            continue
+        prev = np.load(os.path.join(cm.CACHE, f"{src}-registered-demo-0.1-{var}.npy"))
+        t0 = time.perf_counter()
+        f, _ = estimate.separable_fields(prev, (4, 4), g, reg.FlowConfig(radius=7))
+        model, _ = mm.fit_motion_model(f, ctx.pairs, basis, g, ref)
+        v = cm.mc_volumes(ctx, rows, model, bary[0], bary[1], z, mcb.MCConfig(taper_mm=2.0))
+        res[key] = {"mae": cm.mae(ctx, v, trt), "seconds": round(time.perf_counter() - t0, 1)}
+        print(key, res[key], flush=True)
+        json.dump(res, open(OUT, "w"), indent=1)
 
 
 def main():
@@ -51,6 +82,8 @@ def main():
     cand = cm.candidate_rows(ctx, var, z)
     fine_z = np.arange(z.min() - 16, z.max() + 16.01, 2.0)
     rg = mm.FieldGrid.of_slices(ctx.geom.nx, ctx.geom.ny, ctx.geom.voxel_mm, fine_z)
+    if sys.argv[1:] == ["rounds"]:
+        return rounds(res)
     want = sys.argv[1:] or ["A-bary", "A-k", "B"]
     for src, model in models.items():
         for name in want:
