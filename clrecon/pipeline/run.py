@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from clrecon.config.scene import Scene
-from clrecon.core import machine_speed, write_behind
+from clrecon.core import atomic, machine_speed, write_behind
 from clrecon.core.errors import ClreconError
 from clrecon.core.progress import progress as progress_counter
 from clrecon.core.resources import peak_rss_bytes
@@ -104,9 +104,7 @@ def _versions() -> dict:
 
 
 def _write_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
-    tmp.replace(path)
+    atomic.write_json(path, obj, indent=2)  # strict JSON, whole or not at all (clrecon.core.atomic)
 
 
 def _json_default(o):
@@ -136,8 +134,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     machine0 = machine_speed.start()  # the probe runs before the clock starts (~0.1 s)
     t_start = time.perf_counter()
     load_start = _load_average()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(out_dir)  # made by the volume writer: a run refused before it leaves no folder behind
     rt = get_runtime()
     methods = tuple(methods or scene.recon.methods)
     unknown = [m for m in methods if m not in scene.recon.methods and m not in reconstruct_methods()]
@@ -377,8 +374,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                                                   phantom, progress=progress, info=metrics_info,
                                                   pool=helper.pool if helper is not None else None)
             times.add("metrics", time.perf_counter() - t0)
-        # the previous run's results must not describe the new volumes, even for a moment
-        (out / "results.json").unlink(missing_ok=True)
+        # the previous run's results and report must not describe the new volumes, even for a moment
+        for name in ("results.json", "report.md", "report.html"):
+            (out / name).unlink(missing_ok=True)
         t0 = time.perf_counter()
         writer.close()
         times.add("assemble_volumes", time.perf_counter() - t0)

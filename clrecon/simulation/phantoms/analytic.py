@@ -41,8 +41,8 @@ from types import MappingProxyType
 
 import numpy as np
 
-from clrecon.core.config import BOOL, FRAC, POS, F, Section, number_in
-from clrecon.core.conventions import MU_WATER_PER_MM
+from clrecon.core.config import BOOL, FRAC, F, Section, number_in
+from clrecon.core.conventions import MU_WATER_PER_MM, MU_WATER_RANGE_PER_MM, MU_WATER_WHY
 from clrecon.core.runtime import aligned_empty
 from clrecon.simulation.phantoms.layout import (  # noqa: F401
     AXES,
@@ -80,7 +80,8 @@ class PhantomConfig(Section):
     diaphragm_si_mm: float = F(20.0, number_in(0, 40), "diaphragm excursion end-exhale -> end-inhale")
     chest_ap_mm: float = F(12.0, number_in(0, 30), "chest AP expansion")
     heart_si_fraction: float = F(0.6, FRAC, "heart SI motion / diaphragm motion")
-    mu_water_per_mm: float = F(MU_WATER_PER_MM, POS, "attenuation of water (1/mm)")
+    mu_water_per_mm: float = F(MU_WATER_PER_MM, number_in(*MU_WATER_RANGE_PER_MM, "/mm", MU_WATER_WHY),
+                               "attenuation of water (1/mm)")
     metal_insert: bool = F(False, BOOL, "add a small metal-like (steel) insert near the spine")
 
 
