@@ -50,7 +50,7 @@ def _one_line_cli_error(capsys, argv, *fragments):
     ("[scanner]\nsid_mm = 1e-308", ["scanner.sid_mm = 1e-308", "a number in [10, 5000] mm (clinical CT"]),
     ("[scanner]\nsdd_mm = 1e308", ["scanner.sdd_mm = 1e+308", "a number in [10, 10000] mm"]),
     ("[scanner]\ncol_pitch_mm = 1e12", ["scanner.col_pitch_mm = 1000000000000.0", "[0.005, 100] mm (detector cells"]),
-    ("[recon]\nny = 1000000", ["recon.ny = 1000000", "an integer in 1..4096"]),
+    ("[recon]\nny = 1000000", ["recon.ny = 1000000", "an integer in 2..4096"]),
     ("[scanner]\nrotation_time_s = 30.0", ["a scan of 4", "at most 600 s"]),            # too long a scan
     ("[noise]\nelectronic_sigma = 3e5", ["noise.electronic_sigma = 300000.0", "at most noise.i0_photons"]),
     ("[recon]\nnx = 400\nvoxel_mm = 12.0", ["recon.nx x recon.voxel_mm = 400 x 12 mm", "at most 2000 mm"]),
@@ -84,7 +84,7 @@ def test_cli_bad_scene_is_one_line_and_debug_shows_the_traceback(tmp_path, capsy
     f = tmp_path / "bad.toml"
     f.write_text("[recon]\nnx = -3\n")
     _one_line_cli_error(capsys, ["run", "--scene", str(f), "--out", str(tmp_path / "out")],
-                        str(f), "recon.nx = -3", "an integer in 1..4096")
+                        str(f), "recon.nx = -3", "an integer in 2..4096")
     with pytest.raises(SceneError):
         main(["--debug", "run", "--scene", str(f), "--out", str(tmp_path / "out")])
 
@@ -249,6 +249,21 @@ def test_every_range_end_is_accepted_or_refused_across_keys_in_one_line():
             _assert_sane(detail)
             accepted += 1
     assert accepted > len(cases) // 2
+
+
+def test_docs_table_of_ranges_is_the_codes():
+    """docs/hostile-inputs.md "Ranges of scene values" lists every ranged key with the code's text."""
+    from dataclasses import fields
+    from pathlib import Path
+
+    from clrecon.simulation.phantoms.voxel import VoxelPhantomConfig
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "hostile-inputs.md").read_text()
+    for sec, cls in list(SECTIONS.items()) + [("phantom", VoxelPhantomConfig)]:
+        tag = " (voxel)" if cls is VoxelPhantomConfig else ""
+        for f in fields(cls):
+            if f.metadata.get("range") is not None:
+                row = f"| `{sec}.{f.name}`{tag} | {f.metadata['allowed'].replace('|', '/')} |"
+                assert row in doc, row
 
 
 #: Range ends and hostile values that reach the kernels, run end to end on the tiny scene (kept

@@ -50,7 +50,7 @@ def test_paper_p010_derives_scan_from_coverage():
     ("scan", "pitches", [], "a list of 1 to 64 numbers"),
     ("scan", "pitches", [0.02, 3.0], "numbers in [0.001, 2]"),
     ("signals", "rhythm", "chaotic", "one of periodic"),
-    ("signals", "rr_s", 0.1, "[0.3, 2.0]"),
+    ("signals", "rr_s", 0.1, "[0.3, 2] s (heart rates of 30-200"),
     ("noise", "enabled", "yes", "true or false"),
     ("noise", "i0_photons", float("nan"), "a number in [1, 1e+15] photons"),
     ("recon", "methods", ["barycentric", "magic"], "a non-empty list from"),

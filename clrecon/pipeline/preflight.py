@@ -31,6 +31,7 @@ from pathlib import Path
 
 from clrecon.core.errors import ClreconError
 from clrecon.core.resources import folder_bytes
+from clrecon.core.runtime import get_runtime
 from clrecon.pipeline.costs import disk_model
 
 GiB = 1024 ** 3
@@ -117,8 +118,6 @@ def check(scene, costs: dict, cache_dir: Path, out_dir: Path, rt=None) -> dict:
     ``rt``: the OpenCL runtime whose device buffers the run uses (default: the process's,
     :func:`clrecon.core.runtime.get_runtime`)."""
     if rt is None:
-        from clrecon.core.runtime import get_runtime
-
         rt = get_runtime()
     check_device(costs, rt.max_alloc_bytes, repr(rt.device.name))
     need = needs(scene, costs, cache_dir, out_dir)

@@ -15,7 +15,6 @@ from clrecon.core.config import (
     F,
     Section,
     _num,
-    _posint,
     field_of,
     integer_in,
     number_in,
@@ -34,10 +33,10 @@ FILTERS = _FILTER_REGISTRY.names
 
 _f = field_of  # (default, allowed, check, doc)
 
-# Ranges (docs/conventions.md "Ranges of scene values"): every real grid and kernel fits, and so
+# Ranges (docs/hostile-inputs.md "Ranges of scene values"): every real grid and kernel fits, and so
 # do the coarse test grids (tiny: 32 x 32 voxels of 12 mm); beyond them a value is a typo, a unit
 # slip or not a number, refused in one line where it enters.
-IMAGE_SIDE = integer_in(1, 4096, "clinical images are 512 x 512, high-resolution ones up to 2048")
+IMAGE_SIDE = integer_in(2, 4096, "clinical images are 512 x 512, high-resolution ones up to 2048; a voxel size needs 2")
 VOXEL_MM = number_in(0.005, 100.0, "mm", "micro-CT 0.005-0.1 mm, clinical 0.3-1 mm, coarse test grids up to tens "
                      "of mm")
 #: Largest extent of the reconstruction grid along any axis (mm): a body is under 2 m.
@@ -58,7 +57,7 @@ class ReconConfig(Section):
     cardiac_phases: tuple = _f((0.0, 0.2, 0.4, 0.6, 0.8), "a non-empty list of numbers in [0, 1)",
                                lambda v: isinstance(v, tuple) and len(v) > 0 and all(_num(c) and 0 <= c < 1 for c in v),
                                "target cardiac phases")
-    resp_bins: int = _f(10, "an integer in 1..50", lambda x: _posint(x) and x <= 50,
+    resp_bins: int = F(10, integer_in(1, 50, "the paper uses 10"),
                         "respiratory amplitude bins of equal width; targets at the bin midpoints")
     methods: tuple = _f(_default_methods(), "a non-empty list from " + ", ".join(METHODS),
                         lambda v: isinstance(v, tuple) and len(v) > 0 and all(m in METHODS for m in v)
@@ -72,7 +71,7 @@ class ReconConfig(Section):
     local_linear_points: str = F("quadrants", one_of(LL_POINT_RULES), "local-linear neighbour selection: "
                                  "'quadrants' (local_linear_count nearest per quadrant, the paper's text) or "
                                  "'nearest' (the local_linear_count nearest overall, the paper's Figure 2B caption)")
-    local_linear_count: int = _f(2, f"an integer in 1..{LL_MAX_SLOTS}", lambda x: _posint(x) and x <= LL_MAX_SLOTS,
+    local_linear_count: int = F(2, integer_in(1, LL_MAX_SLOTS, "the kernel's slots per row"),
                                  "local-linear points per quadrant ('quadrants': 4 x count slots) or in all "
                                  "('nearest')")
     cardiac_distance_scale: float = F(1.0, number_in(0.001, 1000.0, "", "amplitude units per cardiac cycle"),

@@ -29,7 +29,6 @@ from clrecon.core.config import (
     F,
     Section,
     _num,
-    _posint,
     field_of,
     integer_in,
     number_in,
@@ -38,6 +37,7 @@ from clrecon.core.config import (
 )
 from clrecon.core.detector import DETECTORS, FFS_MODES, DetectorModel, detector_for, ffs_cycle, ffs_states
 from clrecon.core.errors import SceneError
+from clrecon.scan.recorded import trace_files
 
 #: The signal trace spans max(TRACE_MIN_S, the longest scan) + TRACE_MARGIN_S seconds.
 TRACE_MIN_S = 60.0
@@ -48,7 +48,7 @@ STR = ("a string", lambda x: isinstance(x, str))
 
 _f = field_of  # (default, allowed, check, doc)
 
-# Physical ranges (docs/conventions.md "Ranges of scene values"): wide enough for every clinical
+# Physical ranges (docs/hostile-inputs.md "Ranges of scene values"): wide enough for every clinical
 # CT, C-arm and micro-CT geometry and for the coarse test scenes (tiny: 7.5 mm cells, 12 mm
 # voxels), narrow enough that a non-number, a unit slip (metres, micrometres) or a typo is refused
 # where it enters, in one line naming the key, the value and the range with its reason.
@@ -216,23 +216,23 @@ class SignalsConfig(Section):
     seed: int = F(1, SEED, "seed of the breathing and rhythm irregularities")
     resp_period_s: float = F(5.0, number_in(1.0, 30.0, "s", "human breathing: 2-8 s at rest, 1 s at 60 breaths "
                                             "a minute"), "mean breathing period")
-    resp_period_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                               "cycle-to-cycle coefficient of variation of the period")
-    resp_depth_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                              "cycle-to-cycle coefficient of variation of the depth")
-    resp_exponent: int = _f(2, "an integer in 1..4", lambda x: _posint(x) and x <= 4,
-                            "n in cos^(2n): larger gives a longer end-exhale dwell")
-    resp_drift: float = _f(0.05, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                           "slow baseline drift, as a fraction of the mean depth, peak to peak")
+    resp_period_cv: float = F(0.15, number_in(0.0, 0.5, "", "a CV above 50 % is no longer one breathing rhythm"),
+                              "cycle-to-cycle coefficient of variation of the period")
+    resp_depth_cv: float = F(0.15, number_in(0.0, 0.5, "", "a CV above 50 % is no longer one breathing depth"),
+                             "cycle-to-cycle coefficient of variation of the depth")
+    resp_exponent: int = F(2, integer_in(1, 4, "n of Lujan's cos^(2n) model; 1-3 in use"),
+                           "n in cos^(2n): larger gives a longer end-exhale dwell")
+    resp_drift: float = F(0.05, number_in(0.0, 0.5, "", "a fraction of the mean depth"),
+                          "slow baseline drift, as a fraction of the mean depth, peak to peak")
     breath_hold: bool = F(False, BOOL, "no breathing: amplitude constant at breath_hold_amplitude")
     breath_hold_amplitude: float = F(0.5, FRAC, "normalised amplitude during a breath hold")
-    rr_s: float = _f(0.75, "a number in [0.3, 2.0]", lambda x: _num(x) and 0.3 <= x <= 2.0, "mean R-R interval")
+    rr_s: float = F(0.75, number_in(0.3, 2.0, "s", "heart rates of 30-200 beats a minute"), "mean R-R interval")
     rhythm: str = _f("periodic", "one of " + ", ".join(RHYTHMS), lambda x: x in RHYTHMS,
                      "periodic; hrv (3 % sinus variability); af (i.i.d. R-R); pvc (ectopic beats)")
-    rr_cv: float = _f(0.0, "a number in [0, 0.4]", lambda x: _num(x) and 0 <= x <= 0.4,
-                      "R-R coefficient of variation for hrv/af (0: the rhythm's default)")
-    ectopic_rate: float = _f(0.0, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                             "fraction of beats that are premature (pvc rhythm)")
+    rr_cv: float = F(0.0, number_in(0.0, 0.4, "", "atrial fibrillation: ~20 %"),
+                     "R-R coefficient of variation for hrv/af (0: the rhythm's default)")
+    ectopic_rate: float = F(0.0, number_in(0.0, 0.5, "", "bigeminy: every other beat"),
+                            "fraction of beats that are premature (pvc rhythm)")
     frame_time_s: float = F(0.0, zero_or_in(0.001, 60.0, "s", "4D phantom frames last 10-100 ms"),
                             "0: continuous motion; > 0: motion frozen in phantom frames of this length")
     breathing_trace: str = F("", STR, "recorded breathing trace (Varian RPM .vxp, or CSV time_s,amplitude) in place of "
@@ -250,8 +250,6 @@ class SignalsConfig(Section):
     PATH_KEYS: ClassVar[tuple] = ("breathing_trace", "ecg_trace")
 
     def check(self) -> None:
-        from clrecon.scan.recorded import trace_files
-
         for key, what in (("breathing_trace", "a Varian RPM .vxp or a time_s,amplitude CSV"),
                           ("ecg_trace", "a CSV of r_peak_s or a WFDB record's .hea")):
             path = getattr(self, key)
