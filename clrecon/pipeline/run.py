@@ -135,7 +135,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     t_start = time.perf_counter()
     load_start = _load_average()
     out = Path(out_dir)  # made by the volume writer: a run refused before it leaves no folder behind
-    rt = get_runtime()
+    rt = get_runtime()  # first: a machine with no working OpenCL driver gets its one line before any file
     methods = tuple(methods or scene.recon.methods)
     unknown = [m for m in methods if m not in scene.recon.methods and m not in reconstruct_methods()]
     if unknown:
@@ -151,7 +151,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches)
     cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     need = (preflight.needs(scene, run_costs, cache_path, out) if force
-            else preflight.check(scene, run_costs, cache_path, out))
+            else preflight.check(scene, run_costs, cache_path, out, rt=rt))
     recon_cfg = reconstruct.ReconstructionConfig.from_scene(scene)
     variants = noise_variants(scene)
     times = StageTimes()
@@ -166,7 +166,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             scene_d["recon"].pop(k)
     run_key = hashlib.sha256(json.dumps(
         {"scene": scene_d, "methods": methods, "pitches": pitches, "variants": variants,
-         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT},
+         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT,
+         **({"driver": rt.cache_tag} if rt.cache_tag else {})},  # no resumption across drivers
         sort_keys=True, default=_json_default).encode()).hexdigest()
     writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
                           run_key=run_key, dtype=rc.volume_dtype, compression=run_costs["volume_compression"])
@@ -443,6 +444,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         "scene_source": scene.source,
         "versions": _versions(),
         "device": rt.description,
+        "driver": rt.driver,
         "request": {"methods": list(methods), "pitches": list(pitches), "variants": list(variants),
                     "targets": {"cardiac": list(targets.cardiac), "resp": list(targets.resp)},
                     "slices": list(slice_range) if slice_range else [0, nz], "slices_z_mm": slices_z.tolist()},
