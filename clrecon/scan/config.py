@@ -75,7 +75,7 @@ class ScannerConfig(Section):
                                        "from ~20 mm"), "source to isocentre distance")
     sdd_mm: float = F(1085.6, number_in(10.0, 10000.0, "mm", "clinical CT 950-1150 mm; more than sid_mm"),
                       "source to detector distance")
-    n_cols: int = F(900, integer_in(2, 16384, "clinical CT 700-1000 channels, flat panels up to ~4300; the ramp "
+    n_cols: int = F(900, integer_in(2, 16384, "clinical CT 670-900 channels, flat panels a few thousand; the ramp "
                                     "filter needs 2"),
                     "detector columns")
     n_rows: int = F(64, integer_in(1, 4096, "clinical CT 16-320 rows, flat panels up to ~3000"), "detector rows")
@@ -83,7 +83,7 @@ class ScannerConfig(Section):
     row_pitch_mm: float = F(0.8, DETECTOR_CELL_MM, "detector row pitch at the detector")
     views_per_rotation: int = F(984, integer_in(2, 20000, "clinical CT 700-5000 views per rotation"),
                                 "projections per rotation")
-    rotation_time_s: float = F(0.3, number_in(0.05, 60.0, "s", "the fastest gantries turn in 0.24 s, C-arm "
+    rotation_time_s: float = F(0.3, number_in(0.05, 60.0, "s", "the fastest gantries turn in 0.25 s, C-arm "
                                               "sweeps take 4-20 s"), "seconds per rotation")
     detector: str = F("flat", one_of(DETECTORS.names), "detector model (clrecon.core.detector)")
     central_col: float = F(-1.0, NUM, "cylindrical: 0-based fractional column the central ray hits; "
