@@ -27,6 +27,10 @@ _DEFAULT_MU = 0.0193
 
 def _geometry(scene) -> dicom_ct_pd.SeriesGeometry:
     sc = scene.scan
+    found = dicom_ct_pd.resolved_geometry(sc.projections, sc.pixel_layout, sc.orientation, sc.flip_channels,
+                                          sc.flip_rows)
+    if found is not None:  # the check as the scene load ran it (with what 'auto' saw)
+        return found
     ix = dicom_ct_pd.series_index(sc.projections)
     has_ts = bool(ix.timestamp.size) and bool((ix.timestamp == ix.timestamp).all())
     return dicom_ct_pd.series_geometry(sc.projections, None if has_ts else scene.scanner.rotation_time_s,

@@ -673,6 +673,23 @@ def _geometry_cached(folder, signature, rotation_time_s, timestamp_unit, pixel_l
     if shape == "CYLINDRICAL":
         # the cylindrical model's keys: 0-based fractional cell of the central ray, in the store's numbering
         scanner.update(central_col=reading.central_col, central_row=reading.central_row)
-    return SeriesGeometry(scanner=scanner, scan=scan, phantom=phantom, angle_rad=views.angle_rad,
+    geom = SeriesGeometry(scanner=scanner, scan=scan, phantom=phantom, angle_rad=views.angle_rad,
                           source_z_mm=z, time_s=views.time_s, tag_of=dict(TAG_OF), reading=reading,
                           reading_keys=keys, check=result)
+    if check:  # the scene records the reading it settled on: find this geometry (and its check) by it
+        RESOLVED[(folder, signature, pixel_layout_key, orientation, keys["flip_channels"], keys["flip_rows"])] = geom
+    return geom
+
+
+#: (folder, signature, pixel_layout key, orientation, resolved flip_channels, flip_rows) -> the checked
+#: geometry of the last scene load in this process (:func:`resolved_geometry`)
+RESOLVED: dict = {}
+
+
+def resolved_geometry(folder, pixel_layout_key: str, orientation: str, flip_channels: bool,
+                      flip_rows: bool) -> SeriesGeometry | None:
+    """The geometry (with its orientation check) that a scene load in this process settled on with these
+    resolved keys, or None: the check as it ran, before ``orientation = 'auto'`` changed the keys."""
+    folder = str(Path(folder))
+    return RESOLVED.get((folder, series_signature(folder), pixel_layout_key, orientation, bool(flip_channels),
+                         bool(flip_rows)))
