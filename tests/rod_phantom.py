@@ -49,7 +49,8 @@ def write_phantom(folder: Path, symmetric: bool = False) -> Path:
 
 def scene_toml(frames: Path, rotation: str = "increasing", table: str = "increasing", detector: str = "cylindrical",
                ffs: str = "none") -> str:
-    """A static scan of the phantom: 160 x 8 cells (a quarter-channel offset when cylindrical), 120 views per rotation, 3 rotations."""
+    """A static scan of the phantom: 160 x 8 cells (a quarter-channel offset when cylindrical), 120 views per
+    rotation, 3 rotations."""
     det = ('detector = "cylindrical"\ncentral_col = 79.75\n' if detector == "cylindrical" else "")
     if ffs != "none":
         det += f'flying_focal_spot = "{ffs}"\nffs_angle_rad = 0.0004\nffs_z_mm = 0.3\n'

@@ -102,7 +102,8 @@ HOSTILE = {
                        r"PROJ000001\.dcm: \(7029,1002\) DetectorElementTransverseSpacing = nan; expected a cell "
                        r"width of 0\.001\.\.50 mm"),
     "zero views per rotation": (lambda fs: _all(fs, _set((0x7033, 0x1013), 0, "US")),
-                                r"PROJ000001\.dcm: \(7033,1013\) NumberofSourceAngularSteps = 0\.0; expected 2\.\.65535"),
+                                r"PROJ000001\.dcm: \(7033,1013\) NumberofSourceAngularSteps = 0\.0; expected "
+                                r"2\.\.65535"),
     "zero rescale slope": (lambda fs: _one(fs, 8, lambda ds: setattr(ds, "RescaleSlope", "0")),
                            r"PROJ000009\.dcm: \(0028,1053\) RescaleSlope = 0\.0; expected a finite, non-zero slope"),
     "water per cm": (lambda fs: _all(fs, _set((0x7041, 0x1001), "0.193", "DS")),
