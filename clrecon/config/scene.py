@@ -298,7 +298,9 @@ def scene_from_dict(raw: dict[str, Any], source: str = "") -> Scene:
     for k in ("name", "description"):
         if k in raw and not isinstance(raw[k], str):
             raise SceneError(f"{prefix}{k} = {raw[k]!r}: must be a string")
-    scene = Scene(name=raw.get("name", Path(source).stem if source else "custom"),
+    # a measured scene's file is often named after the patient: its default name is not the file's
+    default_name = "measured" if parts["scan"].measured_source else (Path(source).stem if source else "custom")
+    scene = Scene(name=raw.get("name", default_name),
                   description=raw.get("description", ""), source=source, **parts)
     _check_consistency(scene, prefix)
     return scene

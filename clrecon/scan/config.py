@@ -165,6 +165,11 @@ class ScanConfig(Section):
 
     PATH_KEYS: ClassVar[tuple] = ("projections",)
 
+    @property
+    def measured_source(self) -> bool:
+        """True for a measured scan (the projections are read from files, not simulated)."""
+        return self.source != "simulated"
+
     def check(self) -> None:
         if self.source == "dicom-ct-pd" and not self.projections:
             raise SceneError("scan.projections = '': scan.source = 'dicom-ct-pd' needs the folder of projection files")

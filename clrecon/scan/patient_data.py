@@ -10,9 +10,10 @@ input path of a measured scene is recorded by its content instead (``docs/measur
   (:func:`clrecon.scan.dicom_ct_pd.series_signature`, names, sizes and times of the files);
 - ``signals.breathing_trace`` / ``signals.ecg_trace`` -> ``"file <digest>"``, the BLAKE2b of
   the file's bytes (:func:`clrecon.scan.recorded.file_digest`);
-- the scene file's path -> its file name alone.
+- the scene file's path -> ``"file <digest>"`` of its bytes.
 
-The scene's ``name`` and ``description`` are recorded as given (a name chosen for the run).
+The scene's ``name`` and ``description`` are recorded as given (a name chosen for the run); a
+measured scene without a ``name`` is called ``measured``, not after its file.
 A redacted scene cannot be loaded again by itself: an export that needs the input (the
 DICOM-CT-PD re-export, ``--keep-identifiers``) takes the scene file again and checks it against
 these digests (:func:`matches`).
@@ -21,7 +22,6 @@ these digests (:func:`matches`).
 from __future__ import annotations
 
 import copy
-from pathlib import Path
 
 #: prefix of a redacted series / trace path
 SERIES_PREFIX = "dicom-ct-pd series "
@@ -64,8 +64,15 @@ def redact_scene_dict(d: dict) -> dict:
 
 
 def redact_source(source: str) -> str:
-    """The scene file's name without its folders ('' stays '')."""
-    return Path(source).name if source else ""
+    """The scene file by the digest of its bytes (its name may be the patient's; '' stays '')."""
+    if not source:
+        return ""
+    from clrecon.scan.recorded import file_digest
+
+    try:
+        return FILE_PREFIX + file_digest(source)
+    except Exception:  # noqa: BLE001 - a scene given as a dictionary, or a file gone since
+        return FILE_PREFIX + "unavailable"
 
 
 def matches(recorded: dict, scene_dict: dict) -> str:

@@ -29,10 +29,12 @@ from clrecon.simulation.store import ProjectionStore
 
 #: Files read per unit file of the store (as the simulation's CHUNK).
 CHUNK = 256
-#: Resident memory of the process before any work (interpreter, NumPy, PyOpenCL and PoCL's runtime,
-#: h5py, pydicom, matplotlib): 169 MiB measured on 2026-12-06 (Python 3.11, PoCL CPU device). The
-#: simulated path's model leaves it out (large runs dwarf it); a measured scan is often small.
-PROCESS_BASELINE_BYTES = 0.17 * 2**30
+#: Resident memory of the process itself (interpreter, NumPy, PyOpenCL and PoCL's runtime, h5py, pydicom,
+#: matplotlib): 169 MiB measured after the imports with PoCL's kernel cache warm, and about 110 MiB more
+#: while PoCL compiles the kernels into a cold cache (a tiny measured run peaked at 0.20 GiB warm, 0.31 GiB
+#: cold; 2026-12-06, Python 3.11): the model takes 0.25 GiB, within 1.5x of both. The simulated path's
+#: model leaves it out (large runs dwarf it); a measured scan is often small.
+PROCESS_BASELINE_BYTES = 0.25 * 2**30
 #: Header index per file: the decoded tag dictionary kept while the series is indexed, and the views' arrays.
 HEADER_BYTES_PER_FILE = 2500
 

@@ -169,6 +169,7 @@ def _write_dicom_target(out: Path, vol: np.ndarray, axes: dict, src: Source, ci:
         ds.AcquisitionNumber = 1
         ds.InstanceNumber = k + 1
         ds.KVP = ""
+        ds.Laterality = ""  # Type 2C: not a paired organ (an empty value states it)
         ds.SeriesDescription = desc[:64]
         ds.ImageComments = f"cardiac_phase={c:.4f} resp_amplitude={a:.4f} source={src.dataset}"
         ds.TemporalPositionIdentifier = temporal

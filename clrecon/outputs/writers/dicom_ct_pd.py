@@ -227,6 +227,7 @@ def projection_dataset(scene: Scene, table, k: int, stored: np.ndarray, slope: f
     ds.InstanceNumber = k + 1
     ds.PatientPosition = scene.scan.patient_position or "HFS"
     ds.KVP = ""
+    ds.Laterality = ""  # Type 2C: not a paired organ (an empty value states it)
     # a projection lies in no patient plane: nominal values for the Type 1 image-plane attributes
     # (the geometry is in the private tags); PixelSpacing = spacing between DICOM rows, columns
     along_rows = (float(sc.col_pitch_mm), float(sc.row_pitch_mm))
