@@ -17,6 +17,7 @@ from __future__ import annotations
 import copy
 from pathlib import Path
 
+from clrecon.config.scene import Scene, load_scene
 from clrecon.core.errors import ClreconError
 from clrecon.scan import dicom_ct_pd, patient_data
 from clrecon.scan.patient_frame import lps_signs
@@ -123,8 +124,6 @@ def run_input_scene(run, scene=None):
         raise ClreconError(f"{run.dir}: this measured run records its series only as {proj!r} (no path: patient "
                            f"data, docs/measured-data.md 'Patient data'); give the scene it was made from: "
                            f"export ... --scene FILE")
-    from clrecon.config.scene import Scene, load_scene
-
     given = scene if isinstance(scene, Scene) else load_scene(scene)
     if patient_data.is_redacted(proj):
         diff = patient_data.matches(rec, given.to_dict())

@@ -50,6 +50,8 @@ import numpy as np
 
 from clrecon.core.detector import ffs_states
 from clrecon.core.errors import InputError
+from clrecon.scan import orientation_check
+from clrecon.scan.patient_frame import lps_signs
 
 #: tag name -> ((group, element), VR): the private DICOM-CT-PD tags clrecon reads and writes.
 TAGS = {
@@ -445,11 +447,9 @@ def pixel_layout(ix: SeriesIndex, requested: str = "auto") -> str:
     return fits[0]
 
 
-def reading_for(ix: SeriesIndex, layout: str, flip_channels: bool, flip_rows: bool,
-                keep_central_col: bool = False) -> Reading:
+def reading_for(ix: SeriesIndex, layout: str, flip_channels: bool, flip_rows: bool) -> Reading:
     """The reading of a series in the DICOM-CT-PD numbering (``flip_*``: the series numbers that axis the
-    other way). ``keep_central_col`` (a mirror hypothesis of the orientation check only): reverse the
-    channels but leave the central element as if they were not."""
+    other way)."""
     c = ix.const
     n_rows, n_cols = int(c["NumberofDetectorRows"]), int(c["NumberofDetectorColumns"])
     central = np.atleast_1d(np.asarray(c["DetectorCentralElement"], dtype=np.float64))
@@ -458,7 +458,7 @@ def reading_for(ix: SeriesIndex, layout: str, flip_channels: bool, flip_rows: bo
                          f"values (column, row), 1-based")
     rev_c, rev_r = not flip_channels, not flip_rows
     x, y = float(central[0]), float(central[1])
-    col = (n_cols - x) if (rev_c and not keep_central_col) else (x - 1.0)
+    col = (n_cols - x) if rev_c else (x - 1.0)
     row = (n_rows - y) if rev_r else (y - 1.0)
     return Reading(layout=layout, reverse_channels=rev_c, reverse_rows=rev_r, central_col=col, central_row=row)
 
@@ -651,8 +651,6 @@ def _geometry_cached(folder, signature, rotation_time_s, timestamp_unit, pixel_l
     if not position:
         raise InputError(f"{f0}: (0018,5100) PatientPosition is not in the series; give scan.patient_position "
                          f"(HFS, HFP, FFS or FFP) so that the image's left is the patient's left")
-    from clrecon.scan.patient_frame import lps_signs  # the supported positions (one line otherwise)
-
     lps_signs(position, where=f"{f0}: (0018,5100) PatientPosition")
     scan = {"n_projections": n, "pitches": (pitch,), "z_centre_mm": 0.5 * float(z[0] + z[-1]),
             "start_angle_deg": math.degrees(float(views.angle_rad[0])),
@@ -666,10 +664,9 @@ def _geometry_cached(folder, signature, rotation_time_s, timestamp_unit, pixel_l
     result = {}
     keys = {"flip_channels": flip_channels, "flip_rows": flip_rows}
     if check:
-        from clrecon.scan import orientation_check
-
-        result = orientation_check.check_series(ix, scanner, views, layout, flip_channels, flip_rows)
-        keys, reading = orientation_check.decide(result, ix, layout, flip_channels, flip_rows, orientation)
+        result = orientation_check.check_series(ix, scanner, views, reading, flip_channels, flip_rows)
+        keys = orientation_check.decide(result, ix.folder, flip_channels, flip_rows, orientation)
+        reading = reading_for(ix, layout, keys["flip_channels"], keys["flip_rows"])
     if shape == "CYLINDRICAL":
         # the cylindrical model's keys: 0-based fractional cell of the central ray, in the store's numbering
         scanner.update(central_col=reading.central_col, central_row=reading.central_row)

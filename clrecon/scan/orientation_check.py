@@ -34,7 +34,6 @@ from __future__ import annotations
 import numpy as np
 
 from clrecon.core.errors import InputError
-from clrecon.scan import dicom_ct_pd
 from clrecon.scan.dicom_ct_pd_pixels import read_projection
 
 #: a mirror is told from the reading when one residual is at least this many times the other
@@ -100,10 +99,11 @@ def conjugate_residual(sino: np.ndarray, beta: np.ndarray, sign: int, gam: np.nd
     return float(np.sqrt(np.mean(d[ok] ** 2)) / max(np.sqrt(np.mean(sino[ok] ** 2)), 1e-30))
 
 
-def check_series(ix, scanner: dict, views, layout: str, flip_channels: bool, flip_rows: bool,
+def check_series(ix, scanner: dict, views, base, flip_channels: bool, flip_rows: bool,
                  reader=read_projection) -> dict:
-    """Residuals of the reading (``layout``, ``flip_*``) and its mirror images; the JSON-able dictionary
-    recorded in ``results.json["measured_scan"]["orientation_check"]`` (no verdict yet: :func:`decide`)."""
+    """Residuals of the reading ``base`` (a :class:`clrecon.scan.dicom_ct_pd.Reading`, from ``flip_*``) and
+    its mirror images; the JSON-able dictionary recorded in
+    ``results.json["measured_scan"]["orientation_check"]`` (no verdict yet: :func:`decide`)."""
     import pydicom
 
     n = len(ix)
@@ -112,11 +112,10 @@ def check_series(ix, scanner: dict, views, layout: str, flip_channels: bool, fli
     geo = {"sid": float(scanner["sid_mm"]), "sdd": float(scanner["sdd_mm"]),
            "col_pitch": float(scanner["col_pitch_mm"]), "row_pitch": float(scanner["row_pitch_mm"]),
            "detector": scanner["detector"]}
-    base = dicom_ct_pd.reading_for(ix, layout, flip_channels, flip_rows)
-    kept = dicom_ct_pd.reading_for(ix, layout, flip_channels, flip_rows, keep_central_col=True)
+    layout = base.layout
     # channel hypotheses in the store numbering of the base reading: (reverse the columns, central column)
     chans = {"as read": (False, base.central_col), "channels mirrored": (True, C - 1.0 - base.central_col)}
-    if abs(kept.central_col - base.central_col) > 1e-6:  # an off-centre detector: the half-way mirror differs
+    if abs((C - 1.0 - base.central_col) - base.central_col) > 1e-6:  # off-centre: the half-way mirror differs
         chans["channels mirrored, central element not reflected"] = (True, base.central_col)
     rows = {"as read": (False, base.central_row), "rows mirrored": (True, R - 1.0 - base.central_row)}
     out = {"method": "conjugate rays (channels) and same-angle views m turns apart (rows), docs/measured-data.md "
@@ -201,14 +200,13 @@ def _verdict(res: dict) -> tuple[str, str | None, float | None]:
     return "cannot tell", best, ratio
 
 
-def decide(result: dict, ix, layout: str, flip_channels: bool, flip_rows: bool, orientation: str):
-    """The verdicts of :func:`check_series`, and the reading to use: ``({flip_channels, flip_rows}, Reading)``.
+def decide(result: dict, folder: str, flip_channels: bool, flip_rows: bool, orientation: str) -> dict:
+    """The verdicts of :func:`check_series`, and the keys of the reading to use: ``{flip_channels, flip_rows}``.
 
     ``orientation = "tags"``: a mirror that fits better is refused (one line with the remedy);
     ``"auto"``: the best fit is taken where the data tell, the tags' reading where they cannot.
     Adds ``verdict``, ``used`` and ``warning`` to ``result``.
     """
-    folder = ix.folder
     vc, bc, rc = _verdict(result.get("channels", {}).get("residuals", {}))
     vr, br, rr = _verdict(result.get("rows", {}).get("residuals", {}))
     result["channels"].update(verdict=vc, best_mirror=bc, ratio=rc)
@@ -247,4 +245,4 @@ def decide(result: dict, ix, layout: str, flip_channels: bool, flip_rows: bool, 
                          else ("confirmed" if vc == vr == "confirmed" else "not confirmed"))
     result["used"] = {"flip_channels": bool(fc), "flip_rows": bool(fr), "orientation": orientation}
     result["warning"] = "; ".join(warn)
-    return {"flip_channels": bool(fc), "flip_rows": bool(fr)}, dicom_ct_pd.reading_for(ix, layout, fc, fr)
+    return {"flip_channels": bool(fc), "flip_rows": bool(fr)}

@@ -23,6 +23,9 @@ from __future__ import annotations
 
 import copy
 
+from clrecon.scan import dicom_ct_pd
+from clrecon.scan.recorded import file_digest
+
 #: prefix of a redacted series / trace path
 SERIES_PREFIX = "dicom-ct-pd series "
 FILE_PREFIX = "file "
@@ -39,9 +42,6 @@ def redact_scene_dict(d: dict) -> dict:
     A simulated scene is returned unchanged (its paths are the user's phantom and trace files, not a
     patient's); so is a scene whose paths are already redacted.
     """
-    from clrecon.scan import dicom_ct_pd
-    from clrecon.scan.recorded import file_digest
-
     scan = d.get("scan") or {}
     if scan.get("source") != "dicom-ct-pd":
         return d
@@ -67,8 +67,6 @@ def redact_source(source: str) -> str:
     """The scene file by the digest of its bytes (its name may be the patient's; '' stays '')."""
     if not source:
         return ""
-    from clrecon.scan.recorded import file_digest
-
     try:
         return FILE_PREFIX + file_digest(source)
     except Exception:  # noqa: BLE001 - a scene given as a dictionary, or a file gone since
