@@ -5,9 +5,11 @@
 - ``DIR/projections/PROJ000001.dcm ...``: every projection of one pitch (the noisy variant when
   the scene has noise: noise is drawn on read, :mod:`clrecon.simulation.noise`), uint16 with
   RescaleSlope/RescaleIntercept to line integrals (per file: slope = range / 65535, so the
-  quantisation error is at most slope / 2), DICOM Rows = detector columns (channels), Columns =
-  detector rows, with the DICOM-CT-PD private tags of :data:`clrecon.scan.dicom_ct_pd.TAGS`
-  (conventions: ``docs/measured-data.md``);
+  quantisation error is at most slope / 2), in the format's conventions (:class:`Convention`,
+  ``docs/measured-data.md``): DICOM Rows = detector channels (the TCIA layout), the channel index
+  towards decreasing phi0, row 1 at the +z0 end, the DetectorCentralElement reflected with them,
+  with the DICOM-CT-PD private tags of :data:`clrecon.scan.dicom_ct_pd.TAGS`, the water coefficient
+  and the patient position, and every attribute the CT Image IOD asks for (dciodvfy: no error);
 - ``DIR/breathing.vxp``: the breathing trace (RPM 1.6 layout, 200 samples/s, the model's raw
   amplitude r(t) in cm with Scale_factor 10, ttlin = 1 while the beam is on) when the scene breathes;
 - ``DIR/r_peaks.csv``: the R-peak times (``r_peak_s``) when the heart beats;
