@@ -138,8 +138,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     t_start = time.perf_counter()
     load_start = _load_average()
     out = Path(out_dir)
+    rt = get_runtime()  # first: a machine with no working OpenCL driver gets its one line before any file
     out.mkdir(parents=True, exist_ok=True)
-    rt = get_runtime()
     methods = tuple(methods or scene.recon.methods)
     unknown = [m for m in methods if m not in scene.recon.methods and m not in reconstruct_methods()]
     if unknown:
@@ -170,7 +170,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             scene_d["recon"].pop(k)
     run_key = hashlib.sha256(json.dumps(
         {"scene": scene_d, "methods": methods, "pitches": pitches, "variants": variants,
-         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT},
+         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT,
+         **({"driver": rt.cache_tag} if rt.cache_tag else {})},  # no resumption across drivers
         sort_keys=True, default=_json_default).encode()).hexdigest()
     writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
                           run_key=run_key, dtype=rc.volume_dtype, compression=run_costs["volume_compression"])
@@ -446,6 +447,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         "scene_source": scene.source,
         "versions": _versions(),
         "device": rt.description,
+        "driver": rt.driver,
         "request": {"methods": list(methods), "pitches": list(pitches), "variants": list(variants),
                     "targets": {"cardiac": list(targets.cardiac), "resp": list(targets.resp)},
                     "slices": list(slice_range) if slice_range else [0, nz], "slices_z_mm": slices_z.tolist()},
