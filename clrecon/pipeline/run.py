@@ -36,6 +36,7 @@ from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
 from clrecon.evaluation import claims, groundtruth, motion, truth_free
 from clrecon.evaluation.truth_cache import TruthCache, truth_key
+from clrecon.outputs import measured_record
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key
 from clrecon.pipeline import costs as costs_mod
@@ -468,6 +469,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                          "why": "measured scan: error against truth is unavailable" if scene.measured else ""},
         "recorded_signals": recorded_summary,
     }
+    if scene.measured:  # the reading, the orientation check, the calibration's sources, the patient frame
+        measured_record.annotate_results(results, scene, log)
     if want_tf:
         results["truth_free"] = truth_free_res
     if dist is not None:
@@ -493,7 +496,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         results["total_seconds"] - sum(st.get("seconds", 0.0) for st in stages.values()), 3)}
     results["peak_rss_bytes"] = peak_rss_bytes()
     results["load_average"] = {"start": load_start, "end": _load_average()}
-    _write_json_atomic(out / "results.json", results)
+    _write_json_atomic(out / "results.json", measured_record.for_disk(results))  # no patient's path on disk
     return results
 
 
