@@ -32,10 +32,12 @@ except ModuleNotFoundError:  # pragma: no cover
 
 from clrecon.core.detector import DETECTORS
 from clrecon.core.errors import SceneError
+from clrecon.core.runtime import default_cache_tag
 from clrecon.core.versions import PROJECTOR_VERSION
 from clrecon.reconstruction.config import FILTERS, METHODS, ReconConfig
 from clrecon.scan import dicom_ct_pd
 from clrecon.scan.config import (
+    MAX_SCAN_S,
     RHYTHMS,
     TRACE_MARGIN_S,
     TRACE_MIN_S,
@@ -142,10 +144,14 @@ class Scene:
         # the longest scan over *all* the scene's pitches: part of what a projection shows.
         # likewise the measured-scan and recorded-trace keys (issue 18) at their defaults
         scan_later = {"source": "simulated", "projections": "", "timestamp_unit": "ms", "flip_channels": False,
-                      "flip_rows": False}
+                      "flip_rows": False, "pixel_layout": "auto", "orientation": "tags", "rotation": "increasing",
+                      "table_direction": "increasing"}
         sig_later = {"breathing_trace": "", "ecg_trace": "", "trace_align": "offset", "trace_offset_s": 0.0,
                      "ecg_offset_s": 0.0, "breathing_inhale": "up"}
-        scan_d = {k: v for k, v in d["scan"].items() if not (k in scan_later and v == scan_later[k])}
+        scan_d = {k: v for k, v in d["scan"].items() if not (k in scan_later and v == scan_later[k])
+                  and k != "patient_position"}  # the patient position changes the labels, not the projections
+        if self.measured:  # the series by its content (recorded_content), not by a path that may name the patient
+            scan_d.pop("projections", None)
         signals_d = {k: v for k, v in d["signals"].items() if not (k in sig_later and v == sig_later[k])}
         payload = {"scanner": scanner, "scan": {**scan_d, "pitches": [pitch]},
                    "signals": signals_d, "phantom": phantom, "projector": PROJECTOR_VERSION,
@@ -155,6 +161,8 @@ class Scene:
         if self.measured:  # the projections are the measured ones: no phantom, no projector
             payload.pop("phantom")
             payload.pop("projector")
+        elif tag := default_cache_tag():  # simulated by another driver than PoCL: last bits differ
+            payload["driver"] = tag
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
     def replace(self, **sections: Any) -> Scene:
@@ -198,8 +206,12 @@ def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
     sc_raw = {k: getattr(scan[0], k) for k in (raw.get("scanner", {}) or {})}
     scan_raw = {k: getattr(scan[1], k) for k in (raw.get("scan", {}) or {})}
     scan = scan[1]
-    geom = dicom_ct_pd.series_geometry(scan.projections, sc_raw.get("rotation_time_s"), scan.timestamp_unit)
-    for sec, given, derived in (("scanner", sc_raw, geom.scanner), ("scan", scan_raw, geom.scan)):
+    ph_raw = {k: getattr(parts["phantom"], k) for k in (raw.get("phantom", {}) or {}) if hasattr(parts["phantom"], k)}
+    geom = dicom_ct_pd.series_geometry(scan.projections, sc_raw.get("rotation_time_s"), scan.timestamp_unit,
+                                       scan.pixel_layout, scan.flip_channels, scan.flip_rows, scan.orientation,
+                                       scan.patient_position)
+    for sec, given, derived in (("scanner", sc_raw, geom.scanner), ("scan", scan_raw, geom.scan),
+                                ("phantom", ph_raw, geom.phantom)):
         for k, v in derived.items():
             if k not in given:
                 continue
@@ -212,6 +224,10 @@ def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
                 src = geom.tag_of.get(k, "the views' angles and axial positions")
                 raise SceneError(f"{prefix}{sec}.{k} = {given[k]!r} contradicts the DICOM-CT-PD series "
                                  f"{scan.projections}: {src} gives {v!r}; remove the key or fix it")
+    noise_raw = raw.get("noise", {}) or {}
+    if noise_raw.get("enabled") is True:
+        raise SceneError(f"{prefix}noise.enabled = true: a measured scan (scan.source = 'dicom-ct-pd') carries its own "
+                         f"noise and clrecon adds none; remove the key")
     if geom.scanner["detector"] not in DETECTORS:
         raise SceneError(f"{prefix}{scan.projections}: (7029,100B) DetectorShape gives detector model "
                          f"{geom.scanner['detector']!r}, which this build does not have (detector models: "
@@ -222,8 +238,10 @@ def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
                          f"scanner.{lacking[0]} = {geom.scanner[lacking[0]]!r}, which this build lacks (the "
                          f"cylindrical-detector / flying-focal-spot model is not on this branch)")
     scanner = ScannerConfig(**{**sc_raw, **geom.scanner})
-    scan = ScanConfig(**{**scan_raw, **geom.scan})
-    return {"scanner": scanner, "scan": scan}
+    scan = ScanConfig(**{**scan_raw, **geom.scan, **geom.reading_keys})  # the reading the orientation check settled
+    # simulation-only sections do not apply: no simulated noise; water from the series where it has it
+    return {"scanner": scanner, "scan": scan, "noise": dataclasses.replace(parts["noise"], enabled=False),
+            "phantom": dataclasses.replace(parts["phantom"], **geom.phantom)}
 
 
 def _suggest(key: str, allowed) -> str:
@@ -236,7 +254,7 @@ def _section_class(sec: str, raw: dict):
     if sec != "phantom":
         return SECTIONS[sec]
     kind = raw.get("kind", "analytic") if isinstance(raw, dict) else "analytic"
-    if kind not in PHANTOM_SOURCES:
+    if not isinstance(kind, str) or kind not in PHANTOM_SOURCES:
         raise SceneError(f"phantom.kind = {kind!r}: must be one of {', '.join(PHANTOM_SOURCES.names)}")
     return PHANTOM_SOURCES[kind].config
 
@@ -284,7 +302,9 @@ def scene_from_dict(raw: dict[str, Any], source: str = "") -> Scene:
     for k in ("name", "description"):
         if k in raw and not isinstance(raw[k], str):
             raise SceneError(f"{prefix}{k} = {raw[k]!r}: must be a string")
-    scene = Scene(name=raw.get("name", Path(source).stem if source else "custom"),
+    # a measured scene's file is often named after the patient: its default name is not the file's
+    default_name = "measured" if parts["scan"].measured_source else (Path(source).stem if source else "custom")
+    scene = Scene(name=raw.get("name", default_name),
                   description=raw.get("description", ""), source=source, **parts)
     _check_consistency(scene, prefix)
     return scene
@@ -302,7 +322,8 @@ def _check_consistency(s: Scene, prefix: str) -> None:
                          f"{sc.flying_focal_spot!r} (the rebinning assumes one source per view angle); use 'direct'")
     if s.scan.n_projections == 0 and s.scan.coverage_mm <= sc.collimation_iso_mm:
         raise SceneError(f"{prefix}scan.coverage_mm = {s.scan.coverage_mm}: must exceed the collimation "
-                         f"W = {sc.collimation_iso_mm:.2f} mm")
+                         f"W = {sc.collimation_iso_mm:.2f} mm (scanner.n_rows = {sc.n_rows} x row_pitch_mm = "
+                         f"{sc.row_pitch_mm:g} at the detector, scaled to the isocentre)")
     # Derived geometry must be finite (extreme values such as sid_mm = 1e-308 pass the
     # per-key checks but overflow or divide by zero here).
     # SSRB needs a candidate for every (slice, view): the feed per rotation must stay within
@@ -324,17 +345,31 @@ def _check_consistency(s: Scene, prefix: str) -> None:
     if too_high:
         raise SceneError(f"{prefix}scan.pitches = {list(s.scan.pitches)}: pitch {too_high[0]:g} leaves "
                          f"(slice, view) pairs without data; the largest pitch that covers every "
-                         f"(slice, view) is {p_max:.4f}")
+                         f"(slice, view) is {p_max:.4f} (scanner.n_rows = {sc.n_rows} x row_pitch_mm = "
+                         f"{sc.row_pitch_mm:g}, field of view radius {min(sc.fov_radius_mm, rc.fov_radius_mm):.1f} mm)")
+    for p in s.scan.pitches:
+        n, t = s.scan.projection_count(sc, p), s.scan.duration_s(sc, p)
+        if t > MAX_SCAN_S:
+            how = (f"scan.n_projections = {n}" if s.scan.n_projections else
+                   f"scan.coverage_mm = {s.scan.coverage_mm:g} at pitch {p:g} with collimation W = "
+                   f"{sc.collimation_iso_mm:.3g} mm (scanner.n_rows = {sc.n_rows} x row_pitch_mm = "
+                   f"{sc.row_pitch_mm:g}): {n} projections")
+            raise SceneError(f"{prefix}{how} x scanner.rotation_time_s = {sc.rotation_time_s:g} / "
+                             f"views_per_rotation = {sc.views_per_rotation}: a scan of {t:.4g} s; at most "
+                             f"{MAX_SCAN_S:g} s (a free-breathing thorax scan lasts under two minutes; the "
+                             f"paper's pitch-0.02 scan: 49 s)")
 
 
 def load_scene(name_or_path: str | Path) -> Scene:
     """A built-in scene by name (``demo``, ``tiny``, ...) or a TOML file by path."""
     p = Path(name_or_path)
-    if not p.suffix and not p.exists():
+    if not p.suffix and not p.is_file():  # a bare name: a built-in scene (even beside a folder of that name)
         p = SCENE_DIR / f"{name_or_path}.toml"
-        if not p.exists():
+        if not p.is_file():
             raise SceneError(f"scene {str(name_or_path)!r} is neither a file nor a built-in scene; "
                              f"built-in: {', '.join(builtin_scene_names())}")
+    if p.is_dir():
+        raise SceneError(f"scene file {str(p)!r} is a folder; expected a scene TOML file or a built-in scene name")
     if not p.is_file():
         raise SceneError(f"scene file {str(p)!r} does not exist")
     try:

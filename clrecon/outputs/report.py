@@ -7,10 +7,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from clrecon.core import machine_speed
+from clrecon.core import atomic, machine_speed
 from clrecon.core.resources import folder_bytes, peak_rss_bytes
 from clrecon.evaluation import claims as claims_mod
-from clrecon.outputs import figures
+from clrecon.outputs import figures, measured_record
 from clrecon.reconstruction.diagnostics import pooled as _pooled_diagnostics
 from clrecon.reconstruction.interpolation import by_rank
 
@@ -225,20 +225,33 @@ def resources_markdown(results: dict, out_dir: Path) -> list[str]:
     return lines
 
 
+def _driver_note(driver: dict | None) -> str:
+    """How the OpenCL driver was chosen, and the drivers the probe passed over (docs/drivers.md)."""
+    if not driver:
+        return ""
+    passed_over = [f"{p['platform']} {p['driver_version']} ({p['reason']})" for p in driver.get("probes", [])
+                   if not p["ok"]]
+    text = f", chosen as {driver['chosen_by']}"
+    return text + (f"; passed over: {'; '.join(passed_over)}" if passed_over else "")
+
+
 def write_report(out_dir: Path, results: dict, pool=None) -> Path:
     """``report.md`` and ``report.html`` of a run folder; ``pool``: a process pool for the
     results-only figures (:func:`clrecon.outputs.figures.write_figures`)."""
     out_dir = Path(out_dir)
     s = results["scene"]
     lines = [f"# clrecon run: scene `{s['name']}`", "", s.get("description", ""), "",
-             f"Device: {results['device']}. clrecon {results['versions']['clrecon']}.", ""]
+             f"Device: {results['device']}{_driver_note(results.get('driver'))}. "
+             f"clrecon {results['versions']['clrecon']}.", ""]
     lines += _sampling_lines(results.get("sampling") or {})
     if results.get("measured"):
         lines += ["## Measured scan", "",
                   "This is a measured scan (DICOM-CT-PD projections): no ground truth exists, so **error against "
                   "truth is unavailable**; the reconstructions, figures and exports are made as for a simulated "
-                  "scan. Patient identifiers of the input are not copied into this report, the logs, "
-                  "results.json or the exports (`export --keep-identifiers` copies them into exported DICOM).", ""]
+                  "scan. Patient identifiers of the input and the paths of its files are not copied into this "
+                  "report, the logs, results.json, the projection cache or the exports (`export --keep-identifiers` "
+                  "copies the identifiers into exported DICOM).", ""]
+        lines += measured_record.report_lines(results)
         for pk, rs in (results.get("recorded_signals") or {}).items():
             why = ", ".join(f"{k} {n}" for k, n in rs["excluded_by_reason"].items() if n)
             lines += [f"Pitch {pk[1:]}: {rs['views_used']} of {rs['views_total']} views used; "
@@ -282,8 +295,6 @@ def write_report(out_dir: Path, results: dict, pool=None) -> Path:
     lines += resources_markdown(results, out_dir)
     lines += figures.write_figures(out_dir, results, pool=pool)
     path = out_dir / "report.md"
-    tmp = path.with_name("report.md.partial")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
+    atomic.write_text(path, "\n".join(lines) + "\n")
     figures.write_html(out_dir, lines, title=f"clrecon run: {s['name']}")
     return path

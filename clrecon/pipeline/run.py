@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from clrecon.config.scene import Scene
-from clrecon.core import machine_speed, write_behind
+from clrecon.core import atomic, machine_speed, write_behind
 from clrecon.core.errors import ClreconError
 from clrecon.core.progress import progress as progress_counter
 from clrecon.core.resources import peak_rss_bytes
@@ -36,6 +36,7 @@ from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
 from clrecon.evaluation import claims, groundtruth, motion, truth_free
 from clrecon.evaluation.truth_cache import TruthCache, truth_key
+from clrecon.outputs import measured_record
 from clrecon.outputs import report as report_mod
 from clrecon.outputs.volumes import VolumeWriter, pitch_key
 from clrecon.pipeline import costs as costs_mod
@@ -104,9 +105,7 @@ def _versions() -> dict:
 
 
 def _write_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
-    tmp.replace(path)
+    atomic.write_json(path, obj, indent=2)  # strict JSON, whole or not at all (clrecon.core.atomic)
 
 
 def _json_default(o):
@@ -136,9 +135,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     machine0 = machine_speed.start()  # the probe runs before the clock starts (~0.1 s)
     t_start = time.perf_counter()
     load_start = _load_average()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    rt = get_runtime()
+    out = Path(out_dir)  # made by the volume writer: a run refused before it leaves no folder behind
+    rt = get_runtime()  # first: a machine with no working OpenCL driver gets its one line before any file
     methods = tuple(methods or scene.recon.methods)
     unknown = [m for m in methods if m not in scene.recon.methods and m not in reconstruct_methods()]
     if unknown:
@@ -154,7 +152,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches)
     cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     need = (preflight.needs(scene, run_costs, cache_path, out) if force
-            else preflight.check(scene, run_costs, cache_path, out))
+            else preflight.check(scene, run_costs, cache_path, out, rt=rt))
     recon_cfg = reconstruct.ReconstructionConfig.from_scene(scene)
     variants = noise_variants(scene)
     times = StageTimes()
@@ -169,7 +167,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
             scene_d["recon"].pop(k)
     run_key = hashlib.sha256(json.dumps(
         {"scene": scene_d, "methods": methods, "pitches": pitches, "variants": variants,
-         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT},
+         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT,
+         **({"driver": rt.cache_tag} if rt.cache_tag else {})},  # no resumption across drivers
         sort_keys=True, default=_json_default).encode()).hexdigest()
     writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
                           run_key=run_key, dtype=rc.volume_dtype, compression=run_costs["volume_compression"])
@@ -377,8 +376,9 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                                                   phantom, progress=progress, info=metrics_info,
                                                   pool=helper.pool if helper is not None else None)
             times.add("metrics", time.perf_counter() - t0)
-        # the previous run's results must not describe the new volumes, even for a moment
-        (out / "results.json").unlink(missing_ok=True)
+        # the previous run's results and report must not describe the new volumes, even for a moment
+        for name in ("results.json", "report.md", "report.html"):
+            (out / name).unlink(missing_ok=True)
         t0 = time.perf_counter()
         writer.close()
         times.add("assemble_volumes", time.perf_counter() - t0)
@@ -445,6 +445,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         "scene_source": scene.source,
         "versions": _versions(),
         "device": rt.description,
+        "driver": rt.driver,
         "request": {"methods": list(methods), "pitches": list(pitches), "variants": list(variants),
                     "targets": {"cardiac": list(targets.cardiac), "resp": list(targets.resp)},
                     "slices": list(slice_range) if slice_range else [0, nz], "slices_z_mm": slices_z.tolist()},
@@ -468,6 +469,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
                          "why": "measured scan: error against truth is unavailable" if scene.measured else ""},
         "recorded_signals": recorded_summary,
     }
+    if scene.measured:  # the reading, the orientation check, the calibration's sources, the patient frame
+        measured_record.annotate_results(results, scene, log)
     if want_tf:
         results["truth_free"] = truth_free_res
     if dist is not None:
@@ -493,7 +496,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         results["total_seconds"] - sum(st.get("seconds", 0.0) for st in stages.values()), 3)}
     results["peak_rss_bytes"] = peak_rss_bytes()
     results["load_average"] = {"start": load_start, "end": _load_average()}
-    _write_json_atomic(out / "results.json", results)
+    _write_json_atomic(out / "results.json", measured_record.for_disk(results))  # no patient's path on disk
     return results
 
 

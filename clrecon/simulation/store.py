@@ -21,7 +21,8 @@ Layout
 - ``present`` (n,) bool: which projections have been simulated. A run may simulate only the
   projections its slices need; a later run simulates only what is still missing.
 - ``table/<column>`` (n,): the :class:`~clrecon.scan.table.ProjectionTable` columns.
-- attrs: ``format``, ``scan_hash``, ``pitch``, ``scene_json`` (the scene that created it),
+- attrs: ``format``, ``scan_hash``, ``pitch``, ``scene_json`` (the scene that created it; a measured
+  scene's input paths replaced by their digests, :mod:`clrecon.scan.patient_data`),
   ``clrecon_version``, ``projector_version``, ``views_per_rotation``, ``complete`` (all n
   projections present and the file closed cleanly).
 
@@ -73,8 +74,10 @@ import h5py
 import numpy as np
 
 from clrecon.core import faults, units
+from clrecon.core.cache import default_cache_dir
 from clrecon.core.errors import StoreError
 from clrecon.core.versions import PROJECTOR_VERSION, __version__
+from clrecon.scan.patient_data import redact_scene_dict  # no patient's path in the shared cache
 from clrecon.scan.table import ProjectionTable, projection_table
 from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.noise import add_noise
@@ -87,12 +90,6 @@ ROW_CHUNK = 8
 #: HDF5 raw-chunk cache per open file (bytes): holds the chunks a read or a write straddles.
 CACHE_BYTES = 64 << 20
 _FLOAT_ATOL = 1e-9
-
-
-def default_cache_dir() -> Path:
-    """``$CLRECON_CACHE`` if set, else ``~/.cache/clrecon``."""
-    env = os.environ.get("CLRECON_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "clrecon"
 
 
 def _one_line(e: BaseException) -> str:
@@ -270,7 +267,7 @@ class ProjectionStore:
                 g.create_dataset(col, data=getattr(self._table, col), fletcher32=True)
             f.attrs.update({
                 "format": FORMAT, "scan_hash": self.scan_hash, "pitch": self.pitch,
-                "scene_json": json.dumps(self.scene.to_dict(), sort_keys=True),
+                "scene_json": json.dumps(redact_scene_dict(self.scene.to_dict()), sort_keys=True),
                 "clrecon_version": __version__, "projector_version": PROJECTOR_VERSION,
                 "views_per_rotation": self._table.views_per_rotation, "complete": False,
             })
