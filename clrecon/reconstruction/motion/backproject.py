@@ -59,8 +59,8 @@ class PlaneRows:
     window_mm: float
 
     def local_index(self, projections) -> np.ndarray:
-        """Position in ``projection`` of each global projection number (-1 stays -1); KeyError-free:
-        a number that is not held raises ValueError."""
+        """Position in ``projection`` of each global projection number (-1 stays -1); a number
+        that is not held raises ValueError."""
         p = np.asarray(projections, np.int64)
         pos = np.searchsorted(self.projection, np.where(p < 0, 0, p))
         pos = np.clip(pos, 0, max(len(self.projection) - 1, 0))

@@ -2,9 +2,8 @@
 
 A first-pass 5D image at the clinical pitch carries streaks that differ from target to target
 (each target takes other rows), while its anatomy at a given cardiac phase or amplitude is the
-same; registering one streaked target to another registers the streaks too (on ``demo`` at pitch
-0.1 a target-to-target demons registration recovered under a fifth of the heart's true motion,
-docs/motion-model.md "Registration"). So the volumes are averaged before they are registered:
+same; registering one streaked target to another follows the streaks as well as the anatomy
+(docs/motion-model.md "Registration"). So the volumes are averaged before they are registered:
 
 1. **breathing**: the targets of each amplitude a_j averaged over the cardiac phases (the beat is
    blurred, the streaks of 5 targets averaged), each registered to the reference amplitude's

@@ -21,9 +21,10 @@ Convention: ``register(fixed, moving)`` returns u on the fixed grid with
 image. With the reference state's volume as ``fixed`` and a target's as ``moving``, u is the
 motion-model field u(x_ref; target) of :mod:`clrecon.reconstruction.motion.model`.
 
-Determinism: ITK's demons filter updates every voxel from the previous iterate (no random
-sampling), so the result does not depend on the thread count; :func:`register` still pins the
-thread count (``threads``) so that runs are reproducible to the bit on any machine.
+Determinism: neither registration samples at random; a repeated call gives the same bits
+(tests/test_motion_compensation.py). ITK's thread count is pinned (``DemonsConfig.threads``) so that
+a run does not depend on the machine's core count; that the demons' result is independent of the
+thread count itself has not been checked.
 """
 
 from __future__ import annotations
@@ -202,12 +203,12 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
     return np.ascontiguousarray(np.moveaxis(u, -1, 0), np.float32)
 
 
-def register_to_reference(volumes, reference: int, spacing_mm: tuple, cfg: DemonsConfig | None = None,
+def register_to_reference(volumes, reference: int, spacing_mm: tuple, cfg: DemonsConfig | FlowConfig | None = None,
                           order=None, progress=None) -> np.ndarray:
     """u(x_ref; s_i) of every volume (n, nz, ny, nx) against ``volumes[reference]``: (n, 3, nz, ny, nx).
 
     ``order``: a sequence of (i, j) pairs, each volume i started from volume j's field (j done
-    before, or -1 for a zero start); default every i from zero. The reference's own field is 0.
+    before, or -1 for a zero start; demons only); default every i from zero. The reference's own field is 0.
     ``progress``: optional ``update(n)`` counter.
     """
     v = np.asarray(volumes)
