@@ -122,7 +122,8 @@ def _cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 def test_graph_is_read_from_the_real_tree():
     edges, _ = _graph()
-    assert "clrecon.pipeline.run" in edges and "clrecon.evaluation.groundtruth" in edges["clrecon.pipeline.run"]
+    truth = "clrecon.pipeline.stages.truth"
+    assert truth in edges and "clrecon.evaluation.groundtruth" in edges[truth]
 
 
 def test_no_import_cycles():

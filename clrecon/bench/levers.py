@@ -15,7 +15,7 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   in-place layout's cost: a read opens the dataset's unit files);
 - ``metrics``: the run's metrics stage (:func:`clrecon.pipeline.evaluate.evaluate`) on demo-sized
   CT-like volumes of 12 reconstructions (2 pitches x 2 variants x 3 methods) and their ground
-  truth, in 2 processes against 1 (``CLRECON_METRICS_PROCESSES``), the results compared for
+  truth, in 2 processes against 1 (``evaluate(processes=...)``), the results compared for
   bit identity;
 - ``write_behind``: the reconstruction's alternation of backprojection and unit writing, on
   paper-p010's sizes: per step a real backprojection of 64 thorax images (512^2 from 984 x 900,
@@ -23,10 +23,10 @@ repeats alternating (so that a change of the machine's load hits both), medians 
   HU in float16 + LZF (about a quarter of the step's backprojection time, as in paper-p010's
   run: 3 s of writing per 12.7 s of FBP); the unit written by the writer thread while the next
   step backprojects (:mod:`clrecon.core.write_behind`) against written in the foreground
-  (``CLRECON_WRITE_BEHIND=0``), the units' values compared;
+  (``WriteBehind(background=False)``), the units' values compared;
 - ``simulate_behind``: demo's whole simulation (both pitches, into fresh stores) with each
   block's projection units written by the writer thread while the next block is projected,
-  against written in the foreground (``CLRECON_WRITE_BEHIND=0``), the stores' projections
+  against written in the foreground (``simulate(write_behind_thread=False)``), the stores' projections
   compared;
 - ``posing``: the analytic phantom posed at demo's first pitch-0.02 projection states in calls
   of one block (:data:`clrecon.simulation.simulate.BLOCK_CHUNKS` chunks, the simulation's
@@ -59,10 +59,8 @@ repeats alternating (so that a change of the machine's load hits both), medians 
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
-import os
 import shutil
 import tempfile
 import time
@@ -106,19 +104,6 @@ def _ct_pattern(shape, k: int) -> np.ndarray:
     v = base + rng.normal(0.0, 3.0, shape)
     v[..., (y - ny / 2) ** 2 + (x - nx / 2) ** 2 > (nx / 2) ** 2] = 0.0
     return v.astype(np.float32)
-
-
-@contextlib.contextmanager
-def _environ(name: str):
-    """Lets the block set ``os.environ[name]`` and puts its value back afterwards (or removes it)."""
-    saved = os.environ.get(name)
-    try:
-        yield
-    finally:
-        if saved is None:
-            os.environ.pop(name, None)
-        else:
-            os.environ[name] = saved
 
 
 def _volumes_once(folder: Path, compression: str, data: dict, axes: dict) -> dict:
@@ -333,13 +318,13 @@ def bench_simulate_behind(quick: bool = False, repeats: int = 3, scene_name: str
     times: dict = {"foreground": [], "behind": []}
     digests: dict = {}
     load = [load1()]
-    with _environ(write_behind.ENV), tempfile.TemporaryDirectory(prefix="clrecon-bench-simulate-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="clrecon-bench-simulate-") as tmp:
         for r in range(max(1, repeats)):
             for mode in (("foreground", "behind") if r % 2 == 0 else ("behind", "foreground")):
-                os.environ[write_behind.ENV] = "1" if mode == "behind" else "0"
                 d = Path(tmp) / f"{mode}{r}"
                 t0 = time.perf_counter()
-                stores = [simulate_mod.simulate(sc, p, cache_dir=d, progress=False) for p in pitches]
+                stores = [simulate_mod.simulate(sc, p, cache_dir=d, progress=False,
+                                                write_behind_thread=mode == "behind") for p in pitches]
                 times[mode].append(time.perf_counter() - t0)
                 digests[mode] = [hashlib.blake2b(s_.read(0, len(s_)).tobytes()).hexdigest() for s_ in stores]
                 for s_ in stores:
@@ -405,14 +390,13 @@ def bench_metrics(quick: bool = False, repeats: int = 3, scene_name: str = "demo
             w.write(name, _ct_pattern(shape, k), np.arange(len(z)))
         f = w.assemble()
         try:
-            with _environ(evaluate_mod.PROCESSES_ENV):
-                for _ in range(max(1, repeats)):
-                    for n in ("1", "2"):
-                        os.environ[evaluate_mod.PROCESSES_ENV] = n
-                        t0 = time.perf_counter()
-                        out = evaluate_mod.evaluate(scene, f, targets, z, pitches, variants, methods, phantom)
-                        times[n].append(time.perf_counter() - t0)
-                        results[n] = json.dumps(out, sort_keys=True)
+            for _ in range(max(1, repeats)):
+                for n in ("1", "2"):
+                    t0 = time.perf_counter()
+                    out = evaluate_mod.evaluate(scene, f, targets, z, pitches, variants, methods, phantom,
+                                                processes=int(n))
+                    times[n].append(time.perf_counter() - t0)
+                    results[n] = json.dumps(out, sort_keys=True)
         finally:
             w.close()
         load.append(load1())

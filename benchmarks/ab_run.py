@@ -1,0 +1,104 @@
+"""Same-run A/B of ``python -m clrecon run`` wall time: this tree against another source tree.
+
+    python benchmarks/ab_run.py --ref /path/to/other/tree [--pairs 3] [--cases demo,paper-slab]
+
+Each case runs alternately from the reference tree (``PYTHONPATH=<ref>``) and from this tree,
+``--pairs`` times, into fresh run folders; both share one projection cache, warmed by a first
+run of each case, and the truth cache is emptied before every run (the truths are computed
+each time; the simulation is reused). Reports per case the median wall seconds of each side,
+their ratio (this / reference: below 1 is faster), the 1-minute load before each run, the CPU
+model, and whether every ``volumes.h5`` dataset is bit-identical between the two sides' last
+runs. Cases: ``demo`` (the default scene, whole) and ``paper-slab`` (``paper-p010``, slices
+54:56, all 50 targets, at the paper's 512^2 / 900 x 64 sizes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import h5py
+
+HERE = Path(__file__).resolve().parent.parent
+CASES = {"demo": ["--scene", "demo"],
+         "paper-slab": ["--scene", "paper-p010", "--slices", "54:56"]}
+
+
+def _cpu() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "unknown"
+
+
+def _load() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def _run(tree: Path, args: list, out: Path, cache: Path, extra: list) -> float:
+    shutil.rmtree(cache / "truth", ignore_errors=True)
+    env = dict(os.environ, PYTHONPATH=str(tree), CLRECON_NO_PROGRESS="1")
+    t0 = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "clrecon", "run", *args, "--out", str(out), "--cache", str(cache),
+                           "--no-progress", *extra], env=env, capture_output=True, text=True, cwd=str(tree))
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise SystemExit(f"{tree}: {' '.join(args)} failed: {done.stderr.strip().splitlines()[-1:]}")
+    return wall
+
+
+def _datasets(path: Path) -> dict:
+    out = {}
+    with h5py.File(path / "volumes.h5", "r") as f:
+        f.visititems(lambda n, o: out.__setitem__(n, o[()].tobytes()) if isinstance(o, h5py.Dataset) else None)
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--ref", required=True, help="the other source tree (a checkout with clrecon/ and kernels/)")
+    p.add_argument("--pairs", type=int, default=3)
+    p.add_argument("--cases", default="demo,paper-slab")
+    p.add_argument("--work", help="folder for the runs and the shared cache (default: a temporary one)")
+    p.add_argument("--json", help="write the numbers here too")
+    a = p.parse_args(argv)
+    ref = Path(a.ref).resolve()
+    work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="clrecon-ab-"))
+    cache = work / "cache"
+    res = {"cpu": _cpu(), "cores": os.cpu_count(), "ref": str(ref), "this": str(HERE), "cases": {}}
+    for case in a.cases.split(","):
+        args = CASES[case]
+        _run(HERE, args, work / f"{case}-warm", cache, [])  # fills the shared projection cache
+        walls: dict = {"ref": [], "this": []}
+        loads: list = []
+        for i in range(a.pairs):
+            for side, tree in (("ref", ref), ("this", HERE)) if i % 2 == 0 else (("this", HERE), ("ref", ref)):
+                loads.append(_load())
+                walls[side].append(_run(tree, args, work / f"{case}-{side}", cache, []))
+                print(f"{case} {side} {walls[side][-1]:.1f} s (load {loads[-1]})", flush=True)
+        same = _datasets(work / f"{case}-ref") == _datasets(work / f"{case}-this")
+        med = {k: statistics.median(v) for k, v in walls.items()}
+        res["cases"][case] = {"walls": walls, "median": med, "ratio_this_over_ref": med["this"] / med["ref"],
+                              "load_1min": loads, "volumes_bit_identical": same}
+        print(f"{case}: this {med['this']:.1f} s, reference {med['ref']:.1f} s, ratio {med['this'] / med['ref']:.3f}, "
+              f"load {min(loads)}-{max(loads)}, volumes bit-identical: {same}", flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps(res, indent=2))
+    if not a.work:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
