@@ -68,22 +68,23 @@ def _datasets(path: Path) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ref", required=True, help="the other source tree (a checkout with clrecon/ and kernels/)")
+    p.add_argument("--this", default=str(HERE), help="this side's source tree (default: the one holding this script)")
     p.add_argument("--pairs", type=int, default=3)
     p.add_argument("--cases", default="demo,paper-slab")
     p.add_argument("--work", help="folder for the runs and the shared cache (default: a temporary one)")
     p.add_argument("--json", help="write the numbers here too")
     a = p.parse_args(argv)
-    ref = Path(a.ref).resolve()
+    ref, this = Path(a.ref).resolve(), Path(a.this).resolve()
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="clrecon-ab-"))
     cache = work / "cache"
-    res = {"cpu": _cpu(), "cores": os.cpu_count(), "ref": str(ref), "this": str(HERE), "cases": {}}
+    res = {"cpu": _cpu(), "cores": os.cpu_count(), "ref": str(ref), "this": str(this), "cases": {}}
     for case in a.cases.split(","):
         args = CASES[case]
-        _run(HERE, args, work / f"{case}-warm", cache, [])  # fills the shared projection cache
+        _run(this, args, work / f"{case}-warm", cache, [])  # fills the shared projection cache
         walls: dict = {"ref": [], "this": []}
         loads: list = []
         for i in range(a.pairs):
-            for side, tree in (("ref", ref), ("this", HERE)) if i % 2 == 0 else (("this", HERE), ("ref", ref)):
+            for side, tree in (("ref", ref), ("this", this)) if i % 2 == 0 else (("this", this), ("ref", ref)):
                 loads.append(_load())
                 walls[side].append(_run(tree, args, work / f"{case}-{side}", cache, []))
                 print(f"{case} {side} {walls[side][-1]:.1f} s (load {loads[-1]})", flush=True)
