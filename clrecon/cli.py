@@ -1,4 +1,5 @@
-"""Command line: ``python -m clrecon {run,sweep,scenes,view,export,phantom,bench}`` (a thin layer over the modules).
+"""Command line: ``python -m clrecon {run,sweep,scenes,devices,view,export,phantom,bench}`` (a thin layer
+over the modules).
 
 User errors (:class:`clrecon.core.errors.ClreconError`) print one line and exit with status 2;
 ``--debug`` shows the traceback instead.
@@ -115,6 +116,16 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def cmd_devices(args) -> int:
+    import json
+
+    from clrecon.core.drivers import format_devices, list_devices
+
+    listing = list_devices(probe_again=args.probe_again)
+    print(json.dumps(listing, indent=1) if args.json else format_devices(listing))
+    return 0
+
+
 def cmd_view(args) -> int:
     try:
         from viewer.app import screenshot, view
@@ -154,6 +165,8 @@ def cmd_bench(args) -> int:
     from clrecon.bench.suite import format_report, run_bench, write_json
 
     only = [x.strip() for x in args.only.split(",") if x.strip()] if args.only else None
+    if args.drivers:
+        only = (only or []) + ["drivers"]
     res = run_bench(quick=args.quick, only=only, repeats=args.repeats)
     print(format_report(res))
     if args.json:
@@ -225,6 +238,12 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("scenes", help="list the built-in scenes with their size, disk and memory")
     s.set_defaults(func=cmd_scenes)
 
+    dv = sub.add_parser("devices", help="every OpenCL platform and device, whether each builds and runs clrecon's "
+                                        "probe kernel, and which one runs by default (docs/drivers.md)")
+    dv.add_argument("--json", action="store_true", help="print the listing as JSON")
+    dv.add_argument("--probe-again", action="store_true", help="probe every device again (forget remembered verdicts)")
+    dv.set_defaults(func=cmd_devices)
+
     v = sub.add_parser("view", help="3D viewer of a run's 5D volumes (pyvista); --screenshot renders offscreen")
     v.add_argument("run_dir", help="run directory (with volumes.h5)")
     v.add_argument("--screenshot", metavar="FILE", help="render offscreen to this PNG and exit (no display needed)")
@@ -270,6 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "distributed (Dask overhead, speedup 1 -> 2 workers, paper-p002 on N nodes, ~5 min), truth_free "
                    "(cost of recon.truth_free against the reconstruction, ~2 min) and truth_free_trust (CV error "
                    "against true MAE, docs/truth-free.md, ~1 h)")
+    b.add_argument("--drivers", action="store_true",
+                   help="every CPU OpenCL driver that passes the probe side by side: projector, SSRB, interpolation, "
+                        "backprojection, noise and the demo cold (docs/drivers.md); with --only, added to it")
     b.add_argument("--repeats", type=int, help="timed repeats per figure (default 3; --quick 1); the median is shown")
     b.set_defaults(func=cmd_bench)
     return p

@@ -3,12 +3,13 @@
 import numpy as np
 import pytest
 
+from clrecon.core import kernel_sources
 from clrecon.core import runtime as cl_runtime
 from clrecon.core.errors import OpenCLUnavailable
 
 
 def test_kernel_dir_has_sources():
-    d = cl_runtime.kernel_dir()
+    d = kernel_sources.kernel_dir()
     assert any(d.glob("*.cl"))
 
 
@@ -16,10 +17,10 @@ def test_include_expansion(tmp_path, monkeypatch):
     (tmp_path / "a.h").write_text("#define A 3\n")
     (tmp_path / "k.cl").write_text('#include "a.h"\n#include "a.h"\n__kernel void f(__global int*x){x[0]=A;}\n')
     (tmp_path / "k2.cl").write_text('#include "a.h"\n__kernel void f(__global int*x){x[0]=A+1;}\n')
-    monkeypatch.setattr(cl_runtime, "kernel_dir", lambda: tmp_path)
-    src = cl_runtime.load_source("k.cl")
+    rt, rt2 = cl_runtime.Runtime(), cl_runtime.Runtime()  # (their driver probe reads kernels/probe.cl)
+    monkeypatch.setattr(kernel_sources, "kernel_dir", lambda: tmp_path)
+    src = kernel_sources.load_source("k.cl")
     assert src.count("#define A 3") == 1 and "#include" not in src
-    rt = cl_runtime.Runtime()
     prog = rt.program("k.cl")
     assert rt.program("k.cl") is prog  # built once
     buf = rt.empty((1,), np.int32)
@@ -27,15 +28,19 @@ def test_include_expansion(tmp_path, monkeypatch):
     assert rt.from_device(buf, (1,), np.int32)[0] == 3
     # editing the header changes the source handed to the driver -> rebuilt with the new value
     (tmp_path / "a.h").write_text("#define A 5\n")
-    rt2 = cl_runtime.Runtime()
     rt2.kernel("k2.cl", "f")(rt2.queue, (1,), None, buf2 := rt2.empty((1,), np.int32))
     assert rt2.from_device(buf2, (1,), np.int32)[0] == 6
 
 
-def test_default_device_is_pocl_cpu():
+def test_default_device_is_a_cpu_driver_that_passed_the_probe():
+    """Without CLRECON_DEVICE the runtime takes the first CPU driver in clrecon's order that passes the
+    probe (tests/test_drivers.py tests the order and the fallback); with it, exactly that platform."""
     rt = cl_runtime.get_runtime()
     assert rt.is_cpu
     assert cl_runtime.get_runtime() is rt
+    if not rt.driver["chosen_by"].startswith("CLRECON_DEVICE"):
+        assert rt.driver["probes"] and rt.driver["probes"][-1]["ok"]
+        assert rt.driver["probes"][-1]["platform"] == rt.device.platform.name
 
 
 def test_bad_device_spec_names_installed_platforms():
@@ -46,7 +51,7 @@ def test_bad_device_spec_names_installed_platforms():
 def test_no_platform_says_what_to_install(monkeypatch):
     import pyopencl as cl
     monkeypatch.setattr(cl, "get_platforms", lambda: [])
-    with pytest.raises(OpenCLUnavailable, match="pip install 'pyopencl\\[pocl\\]'"):
+    with pytest.raises(OpenCLUnavailable, match=r"no OpenCL platform found.*pip install --force-reinstall clrecon"):
         cl_runtime.Runtime()
 
 
@@ -72,5 +77,9 @@ def test_programs_are_built_with_their_own_options_only():
 
 def test_a_failed_build_names_the_file_the_device_and_the_options():
     rt = cl_runtime.get_runtime()
-    with pytest.raises(RuntimeError, match=r"kernels/broken\.cl: the OpenCL build failed on .* with options -DX=1"):
+    want = r"kernels/broken\.cl: the OpenCL build failed on .* with options -DX=1"
+    with pytest.raises(RuntimeError, match=want) as e:
         rt._build("broken.cl", "__kernel void k(__global float *a) { a[0] = undeclared_name; }", ["-DX=1"])
+    msg = str(e.value)
+    assert "\n" not in msg and "undeclared_name" in msg and "CLRECON_DEVICE=" in msg  # one line, the cause, a remedy
+    assert "undeclared_name" in e.value.log

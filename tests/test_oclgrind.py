@@ -94,6 +94,16 @@ def test_oclgrind_reports_an_out_of_bounds_write_and_a_race(which, request, capf
 
 
 # ---------------------------------------------------------------------------------------
+# kernels/probe.cl (the driver probe; its float64 reference is driver_probe.probe_reference)
+def test_driver_probe_kernel(grind, clean):
+    from clrecon.core import driver_probe
+
+    verdict = driver_probe.probe_on(grind.context, grind.device)
+    assert verdict["ok"], verdict
+    clean()
+
+
+# ---------------------------------------------------------------------------------------
 # kernels/interp.cl
 @pytest.mark.parametrize("precision,K", [("double", 8), ("single", 8), ("single", 5)])
 def test_local_linear_weights(grind, clean, precision, K):

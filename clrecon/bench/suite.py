@@ -73,6 +73,8 @@ Sections (``--only`` picks some):
     accompanies (demo, 4 middle slices; :func:`bench_truth_free_section`).
 ``truth_free_trust`` (only when named, about an hour): Spearman of the cross-validated error against
     the true MAE and the CV choice's gain (:mod:`clrecon.bench.truth_free_trust`, docs/truth-free.md).
+``drivers`` (only when named, or ``--drivers``): :mod:`clrecon.bench.drivers`, every CPU driver that passes
+    the probe side by side (projector, SSRB, interpolation, backprojection, noise, the demo cold).
 ``tradeoff`` (only with ``--only tradeoff``: not in the default set, about 20 minutes)
     :func:`clrecon.bench.tradeoff.run_tradeoff`: per method, the knobs that trade seconds for
     error (local-linear neighbours, kappa, sigma; candidate turns; views; grid) swept on demo
@@ -105,6 +107,8 @@ from clrecon.bench.backprojector import bench_backprojector
 from clrecon.bench.backprojector import report_lines as backprojector_report_lines
 from clrecon.bench.distributed import bench_distributed_section
 from clrecon.bench.distributed import report_lines as distributed_report_lines
+from clrecon.bench.drivers import bench_drivers
+from clrecon.bench.drivers import report_lines as drivers_report_lines
 from clrecon.bench.fbp import bench_backprojection
 from clrecon.bench.levers import bench_levers
 from clrecon.bench.levers import report_lines as levers_report_lines
@@ -132,7 +136,7 @@ SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
 SECTIONS = SECTIONS + paper.SECTIONS + ("backprojector", "levers")
 #: Sections run only when ``--only`` names them (long).
-EXTRA_SECTIONS = ("tradeoff", "distributed", "truth_free", "truth_free_trust")
+EXTRA_SECTIONS = ("tradeoff", "distributed", "truth_free", "truth_free_trust", "drivers")
 
 #: Goals of the issue (bench output marks them).
 GOAL_BACKPROJECTION_GUPS = 4.0
@@ -167,6 +171,7 @@ def machine() -> dict:
 
     return {"cpu_model": cpu, "logical_cores": os.cpu_count(), "memory_gib": mem_gib,
             "load_average": [round(x, 2) for x in os.getloadavg()], "device": get_runtime().description,
+            "driver": get_runtime().driver,
             "platform": platform.platform(), "python": platform.python_version(), "numpy": np.__version__,
             "pyopencl": pyopencl.VERSION_TEXT, "clrecon": __version__}
 
@@ -750,6 +755,9 @@ def format_report(res: dict) -> str:
         out.extend("   " + line for line in tradeoff_table(tr).splitlines())
     out.extend(distributed_report_lines(res.get("distributed")))
     out.extend(levers_report_lines(res.get("levers")))
+    if res.get("drivers"):
+        out += ["", "drivers: each CPU driver that passes the probe, same inputs, same process (clrecon.bench.drivers)"]
+        out.extend(drivers_report_lines(res["drivers"]))
     out.extend(detectors.format_lines(res.get("detectors")))
     out.extend(measured_report_lines(res.get("measured")))
     return "\n".join(out)
@@ -783,6 +791,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "truth_free": lambda: bench_truth_free_section(quick),
         "truth_free_trust": lambda: truth_free_trust.bench_section(
             quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
+        "drivers": lambda: bench_drivers(quick, repeats),
     }
     for name in SECTIONS + EXTRA_SECTIONS:
         if name in only:

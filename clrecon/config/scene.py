@@ -32,6 +32,7 @@ except ModuleNotFoundError:  # pragma: no cover
 
 from clrecon.core.detector import DETECTORS
 from clrecon.core.errors import SceneError
+from clrecon.core.runtime import default_cache_tag
 from clrecon.core.versions import PROJECTOR_VERSION
 from clrecon.reconstruction.config import FILTERS, METHODS, ReconConfig
 from clrecon.scan import dicom_ct_pd
@@ -155,6 +156,8 @@ class Scene:
         if self.measured:  # the projections are the measured ones: no phantom, no projector
             payload.pop("phantom")
             payload.pop("projector")
+        elif tag := default_cache_tag():  # simulated by another driver than PoCL: last bits differ
+            payload["driver"] = tag
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
     def replace(self, **sections: Any) -> Scene:

@@ -1,64 +1,42 @@
 """The one OpenCL runtime everyone uses: device choice, program build and cache.
 
-Device choice, in order: the ``device`` argument, the ``CLRECON_DEVICE`` environment
-variable, then the PoCL CPU device (installed from PyPI with ``pyopencl[pocl]``).
-``CLRECON_DEVICE`` is ``PLATFORM_SUBSTRING[:DEVICE_INDEX]`` matched case-insensitively
-against platform names (e.g. ``portable``, ``nvidia:0``, ``oclgrind``).
+Device choice, in order: the ``device`` argument, the ``CLRECON_DEVICE`` environment variable,
+then the first OpenCL CPU driver in :data:`clrecon.core.drivers.CPU_DRIVERS` order (Intel's CPU
+runtime, then PoCL, both installed from PyPI with the package) that passes the driver probe
+(:mod:`clrecon.core.drivers`, docs/drivers.md). ``CLRECON_DEVICE`` is
+``PLATFORM_SUBSTRING[:DEVICE_INDEX]`` matched case-insensitively against platform names (e.g.
+``intel``, ``portable``, ``nvidia:0``, ``oclgrind``); nothing is probed then.
 
 Programs are built once per (context, file, defines) and kept; kernels are fetched once per
-program. The ``.cl`` sources live in the top-level ``kernels/`` folder (``clrecon/kernels``
-inside an installed wheel). ``#include "x.h"`` lines are expanded here, in Python, so the
-source string handed to the driver changes whenever a header does: PoCL's on-disk build
-cache (keyed on the source text and options, ``POCL_CACHE_DIR``) then rebuilds exactly when
-needed, and PyOpenCL's own cache (skipped on PoCL) is not relied upon.
+program. The sources come from :mod:`clrecon.core.kernel_sources` with their ``#include`` lines
+expanded, so every on-disk cache keyed on the source text rebuilds exactly when a header
+changes. Across processes: PoCL keeps its own build cache (keyed on source and options,
+``POCL_CACHE_DIR``); for drivers without one (Intel's CPU runtime compiles every program again in
+every process, about 1 s for ``interp.cl``) the runtime keeps the built binaries under
+``<cache>/kernels/``, keyed on platform, driver version, device, options and source.
+PyOpenCL's own cache is not relied upon.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
-import re
 import threading
 import warnings
-from pathlib import Path
 
 import numpy as np
 
-from clrecon.core.errors import OpenCLUnavailable
+from clrecon.core import drivers
+from clrecon.core.cache import default_cache_dir
+from clrecon.core.errors import OpenCLUnavailable, first_error_line
+from clrecon.core.kernel_sources import kernel_dir, load_source  # noqa: F401 - kernel_dir re-exported
 
 _INSTALL_HINT = (
-    "no OpenCL platform found. Install the PoCL CPU driver with "
-    "`pip install 'pyopencl[pocl]'` (or `pip install pocl-binary-distribution`), "
-    "or set CLRECON_DEVICE to a platform that is installed"
+    "no OpenCL platform found. Install the drivers that come with clrecon "
+    "(`pip install --force-reinstall clrecon`: Intel's CPU runtime on x86-64 Linux and "
+    "`pyopencl[pocl]`), or set CLRECON_DEVICE to a platform that is installed"
 )
-
-
-def kernel_dir() -> Path:
-    """Folder holding the ``.cl`` sources, from a checkout or an installed wheel."""
-    package = Path(__file__).resolve().parent.parent  # clrecon/
-    for cand in (package / "kernels", package.parent / "kernels"):
-        if cand.is_dir() and any(cand.glob("*.cl")):
-            return cand
-    raise FileNotFoundError(f"OpenCL kernel sources not found next to {package}")
-
-
-_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.M)
-
-
-def load_source(name: str, _seen: set | None = None) -> str:
-    """Source of ``kernels/name`` with local ``#include "..."`` expanded (each header once)."""
-    seen = set() if _seen is None else _seen
-    path = kernel_dir() / name
-    text = path.read_text()
-
-    def sub(m):
-        inc = m.group(1)
-        if inc in seen:
-            return ""
-        seen.add(inc)
-        return f"// ---- begin {inc}\n{load_source(inc, seen)}\n// ---- end {inc}\n"
-
-    return _INCLUDE.sub(sub, text)
 
 
 def _format_define(key: str, value) -> str:
@@ -86,6 +64,21 @@ def aligned_empty(shape, dtype=np.float32) -> np.ndarray:
     return raw[off:off + nbytes].view(dtype).reshape(shape)
 
 
+class KernelBuildError(OpenCLUnavailable):
+    """A kernel file the chosen driver cannot build: one line naming file, device, options and the
+    compiler's first error, and where to turn; the whole build log in ``.log``."""
+
+    def __init__(self, name: str, rt: Runtime, opts: list[str], err, log: str):
+        self.log = log
+        first = first_error_line(log or str(err))
+        others = [d.key for d in drivers.CPU_DRIVERS if not d.matches(rt.device.platform.name)]
+        super().__init__(
+            f"kernels/{name}: the OpenCL build failed on {rt.device.name!r} ({rt.device.platform.name} "
+            f"{rt.device.driver_version}) with options {' '.join(opts) or '(none)'}: {first}; another driver may "
+            f"build it: CLRECON_DEVICE={others[0] if others else 'NAME'} (`python -m clrecon devices` lists them; "
+            f"--debug shows the build log)")
+
+
 class Runtime:
     """Owns a context, a queue and the programs built in that context."""
 
@@ -94,13 +87,19 @@ class Runtime:
 
         self.cl = cl
         spec = device_spec or os.environ.get("CLRECON_DEVICE", "")
+        registration = drivers.register_wheel_drivers()  # before the first platform query
         try:
             platforms = cl.get_platforms()
         except cl.Error:  # pragma: no cover - depends on the machine
             platforms = []
         if not platforms:
             raise OpenCLUnavailable(_INSTALL_HINT)
-        self.device = self._pick(platforms, spec)
+        if spec:
+            how = f"CLRECON_DEVICE={spec}" if not device_spec else f"device {spec!r} asked for"
+            self.choice = drivers.Choice(self._pick(platforms, spec), how, [], registration)
+        else:
+            self.choice = drivers.choose_cpu_device(platforms)
+        self.device = self.choice.device
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
         self._programs: dict = {}
@@ -109,27 +108,35 @@ class Runtime:
 
     @staticmethod
     def _pick(platforms, spec: str):
-        if spec:
-            name, _, idx = spec.partition(":")
-            for p in platforms:
-                if name.lower() in p.name.lower():
-                    devs = p.get_devices()
-                    i = int(idx) if idx else 0
-                    if not 0 <= i < len(devs):
-                        raise OpenCLUnavailable(
-                            f"CLRECON_DEVICE={spec!r}: platform {p.name!r} has devices 0..{len(devs) - 1}")
-                    return devs[i]
-            names = ", ".join(repr(p.name) for p in platforms)
-            raise OpenCLUnavailable(f"CLRECON_DEVICE={spec!r} matches no OpenCL platform; installed: {names}")
-        for p in platforms:  # default: PoCL CPU
-            if "portable" in p.name.lower() or "pocl" in p.name.lower():
-                return p.get_devices()[0]
-        return platforms[0].get_devices()[0]
+        name, _, idx = spec.partition(":")
+        for p in platforms:
+            if name.lower() in p.name.lower():
+                devs = p.get_devices()
+                i = int(idx) if idx else 0
+                if not 0 <= i < len(devs):
+                    raise OpenCLUnavailable(
+                        f"CLRECON_DEVICE={spec!r}: platform {p.name!r} has devices 0..{len(devs) - 1}")
+                return devs[i]
+        names = ", ".join(repr(p.name) for p in platforms)
+        raise OpenCLUnavailable(f"CLRECON_DEVICE={spec!r} matches no OpenCL platform; installed: {names}")
+
+    @property
+    def driver(self) -> dict:
+        """Platform, driver version, device and how it was chosen (results.json ``driver``)."""
+        return self.choice.as_dict()
+
+    @property
+    def cache_tag(self) -> str:
+        """This driver's part of cache keys: ``""`` for PoCL (the driver every existing cache was made
+        with, so those stay valid), else ``"<platform> <driver version>"``. Projections, truths and
+        kernel binaries of two drivers differ in their last bits, so each driver keeps its own."""
+        p = self.device.platform
+        return "" if drivers.POCL.matches(p.name) else f"{p.name} {self.device.driver_version}"
 
     @property
     def description(self) -> str:
         d = self.device
-        return f"{d.platform.name} / {d.name} ({d.max_compute_units} compute units)"
+        return f"{d.platform.name} {d.driver_version} / {d.name} ({d.max_compute_units} compute units)"
 
     @property
     def max_alloc_bytes(self) -> int:
@@ -162,6 +169,16 @@ class Runtime:
         options the sources' own, a build made once on a machine serves every checkout of the
         same sources."""
         cl = self.cl
+        cached = self._binary_path(src, opts)
+        if cached is not None and cached.is_file():
+            try:
+                raw = cl._Program(self.context, [self.device], [cached.read_bytes()])
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    raw.build(" ".join(opts).encode())
+                return cl.Program(raw)
+            except (cl.Error, OSError):  # a binary of another driver build, or damaged: build from source
+                cached.unlink(missing_ok=True)
         raw = cl._Program(self.context, src)  # the unwrapped program (pyopencl's public 1-argument form below)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # PyOpenCL's "build succeeded with warnings" chatter
@@ -172,9 +189,32 @@ class Runtime:
                     log = raw.get_build_info(self.device, cl.program_build_info.LOG)
                 except cl.Error:
                     log = ""
-                raise RuntimeError(f"kernels/{name}: the OpenCL build failed on {self.device.name!r} with "
-                                   f"options {' '.join(opts) or '(none)'}: {err}\n{log}") from err
+                raise KernelBuildError(name, self, opts, err, log) from err
+        if cached is not None:
+            self._keep_binary(raw, cached)
         return cl.Program(raw)
+
+    def _binary_path(self, src: str, opts: list[str]):
+        """Where this program's binary is kept, or None where the driver keeps its own cache (PoCL)."""
+        p = self.device.platform
+        if drivers.POCL.matches(p.name) or "oclgrind" in p.name.lower():
+            return None
+        key = "\0".join([p.name, p.version, self.device.name, self.device.driver_version, " ".join(opts), src])
+        return default_cache_dir() / "kernels" / f"{hashlib.sha256(key.encode()).hexdigest()[:32]}.bin"
+
+    def _keep_binary(self, raw, path) -> None:
+        """Write the built program's binary to ``path`` (temporary name, then rename); a failure costs
+        only the next process's build."""
+        try:
+            binary = raw.get_info(self.cl.program_info.BINARIES)[0]
+            if not binary:
+                return
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+            tmp.write_bytes(bytes(binary))
+            os.replace(tmp, path)
+        except (self.cl.Error, OSError):
+            pass
 
     def kernel(self, name: str, kernel_name: str, **defines):
         """Kernel object ``kernel_name`` from ``kernels/name``, fetched once and kept."""
@@ -268,3 +308,9 @@ def get_runtime(device_spec: str | None = None) -> Runtime:
             rt = Runtime(device_spec)
             _runtimes[key] = rt
         return rt
+
+
+def default_cache_tag() -> str:
+    """:attr:`Runtime.cache_tag` of the default runtime (``get_runtime()``): the driver's part of the keys
+    of the projection stores and the truth cache."""
+    return get_runtime().cache_tag

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from clrecon.core import units
+from clrecon.core.runtime import default_cache_tag
 from clrecon.core.versions import PROJECTOR_VERSION
 from clrecon.reconstruction.parallel_fbp import S_OVERSAMPLE
 
@@ -43,6 +44,8 @@ def truth_key(scene, slices_z, targets) -> str:
         payload["backprojector"] = {"name": rc["backprojector"], "s_oversample": S_OVERSAMPLE}
     if hasattr(scene.phantom, "content_hash"):  # a phantom read from files: their content
         payload["phantom_content"] = scene.phantom.content_hash()
+    if tag := default_cache_tag():  # computed by another driver than PoCL: last bits differ
+        payload["driver"] = tag
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:24]
 
 

@@ -225,13 +225,24 @@ def resources_markdown(results: dict, out_dir: Path) -> list[str]:
     return lines
 
 
+def _driver_note(driver: dict | None) -> str:
+    """How the OpenCL driver was chosen, and the drivers the probe passed over (docs/drivers.md)."""
+    if not driver:
+        return ""
+    passed_over = [f"{p['platform']} {p['driver_version']} ({p['reason']})" for p in driver.get("probes", [])
+                   if not p["ok"]]
+    text = f", chosen as {driver['chosen_by']}"
+    return text + (f"; passed over: {'; '.join(passed_over)}" if passed_over else "")
+
+
 def write_report(out_dir: Path, results: dict, pool=None) -> Path:
     """``report.md`` and ``report.html`` of a run folder; ``pool``: a process pool for the
     results-only figures (:func:`clrecon.outputs.figures.write_figures`)."""
     out_dir = Path(out_dir)
     s = results["scene"]
     lines = [f"# clrecon run: scene `{s['name']}`", "", s.get("description", ""), "",
-             f"Device: {results['device']}. clrecon {results['versions']['clrecon']}.", ""]
+             f"Device: {results['device']}{_driver_note(results.get('driver'))}. "
+             f"clrecon {results['versions']['clrecon']}.", ""]
     lines += _sampling_lines(results.get("sampling") or {})
     if results.get("measured"):
         lines += ["## Measured scan", "",

@@ -151,7 +151,8 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
             scene_d["recon"].pop(k)
     run_key = hashlib.sha256(json.dumps(
         {"scene": scene_d, "methods": methods, "pitches": pitches, "variants": variants,
-         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT},
+         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT,
+         **({"driver": rt.cache_tag} if rt.cache_tag else {})},  # no resumption across drivers
         sort_keys=True, default=json_default).encode()).hexdigest()
     writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
                           run_key=run_key, dtype=rc.volume_dtype, compression=run_costs["volume_compression"])

@@ -55,9 +55,10 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     t_start = time.perf_counter()
     load_start = results_mod.load_average()
     out = Path(out_dir)
+    rt = get_runtime()  # first: a machine with no working OpenCL driver gets its one line before any file
     out.mkdir(parents=True, exist_ok=True)
     ex = executors.make(executor, client)
-    ctx = open_run(scene, out, methods, cardiac, resp, slice_range, pitches, cache_dir, rt=get_runtime(),
+    ctx = open_run(scene, out, methods, cardiac, resp, slice_range, pitches, cache_dir, rt=rt,
                    executor_kind=ex.kind, distributed=ex.fine_units, force=force, report=report, progress=progress,
                    log=log)
     ctx.extra.update(graph=GRAPH, executor=ex.kind, machine_speed=machine0, summary=ex.summary)

@@ -73,6 +73,7 @@ import h5py
 import numpy as np
 
 from clrecon.core import faults, units
+from clrecon.core.cache import default_cache_dir
 from clrecon.core.errors import StoreError
 from clrecon.core.versions import PROJECTOR_VERSION, __version__
 from clrecon.scan.table import ProjectionTable, projection_table
@@ -87,12 +88,6 @@ ROW_CHUNK = 8
 #: HDF5 raw-chunk cache per open file (bytes): holds the chunks a read or a write straddles.
 CACHE_BYTES = 64 << 20
 _FLOAT_ATOL = 1e-9
-
-
-def default_cache_dir() -> Path:
-    """``$CLRECON_CACHE`` if set, else ``~/.cache/clrecon``."""
-    env = os.environ.get("CLRECON_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "clrecon"
 
 
 def _one_line(e: BaseException) -> str:

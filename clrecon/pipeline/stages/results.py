@@ -89,6 +89,7 @@ def stage(run, pitch=None, volumes=None, metrics=None) -> dict:
         "scene_source": scene.source,
         "versions": _versions(),
         "device": run.rt.description,
+        "driver": run.rt.driver,
         "request": {"methods": list(run.methods), "pitches": list(run.pitches), "variants": list(run.variants),
                     "targets": {"cardiac": list(targets.cardiac), "resp": list(targets.resp)},
                     "slices": list(run.slice_range) if run.slice_range else [0, scene.recon.nz],
