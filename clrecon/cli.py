@@ -128,7 +128,7 @@ def cmd_devices(args) -> int:
 
 def cmd_view(args) -> int:
     try:
-        from viewer.app import screenshot, view
+        from clrecon.viewer.app import screenshot, view
     except ImportError as e:
         raise ClreconError(f"the viewer is not installed with this package ({e})") from None
     choices = dict(method=args.method, pitch=args.pitch, variant=args.variant, cardiac=args.cardiac,

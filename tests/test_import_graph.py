@@ -21,7 +21,7 @@ else:  # pragma: no cover - Python 3.10: the backport the package depends on the
     import tomli as tomllib
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("clrecon", "viewer")
+PACKAGES = ("clrecon",)
 #: modules allowed to import clrecon modules inside functions, and why
 LAZY_OK = {
     "clrecon.cli": "each subcommand imports its stage on demand (fast --help)",
@@ -157,10 +157,9 @@ def _drawn_levels() -> list[list[str]]:
 
 
 def _package(module: str) -> str:
-    """``clrecon.scan.table`` -> ``scan``; ``viewer.app`` -> ``viewer``; ``clrecon``/``clrecon.__main__`` -> ``""``."""
+    """``clrecon.scan.table`` -> ``scan``; ``clrecon.viewer.app`` -> ``viewer``;
+    ``clrecon``/``clrecon.__main__`` -> ``""``."""
     parts = module.split(".")
-    if parts[0] == "viewer":
-        return "viewer"
     if len(parts) == 1 or parts[1] == "__main__":
         return ""  # the package root: PEP 562 lazy API and `python -m clrecon`, above everything
     return parts[1]
