@@ -64,7 +64,7 @@ def grind():
 @pytest.fixture(scope="module")
 def grind_memcheck_races():
     """Oclgrind with memcheck and the data-race plugin only. For the projector: Oclgrind
-    19.10's uninitialised-value plugin segfaults now and then on kernels/prepare.cl and, in
+    19.10's uninitialised-value plugin segfaults now and then on kernels/project_cull.cl and, in
     the one-row layout, flags the float64 records it writes (none with the same records made
     by the NumPy reference; results equal PoCL's), which looks like its 3-vector padding."""
     return _oclgrind_runtime(OCLGRIND_DATA_RACES="1", OCLGRIND_UNINITIALIZED="0")
@@ -180,7 +180,7 @@ def test_backprojection_kernels(grind, clean):
 
 
 # ---------------------------------------------------------------------------------------
-# kernels/parallel.cl (recon.backprojector = "parallel-rebin")
+# kernels/parallel_beam.cl (recon.backprojector = "parallel-rebin")
 def test_parallel_rebin_kernels(grind, clean):
     from clrecon.core.runtime import get_runtime
     from clrecon.reconstruction import fbp

@@ -1,4 +1,5 @@
-// Per-view records for kernels/project.cl, in float64 (clrecon.simulation.projector).
+// The projector's culling pass: per-(view, object) records for kernels/project.cl, in float64
+// (clrecon.simulation.projector).
 //
 // One work-item per view loops over the view's objects (packed layout of clrecon.simulation.phantoms.layout),
 // culls them (bounding sphere against the pyramid of rays, then the object's detector
@@ -78,14 +79,14 @@ static void store_rect(__global float *p, double4 r) {
     p[0] = (float)q.x; p[1] = (float)q.y; p[2] = (float)q.z; p[3] = (float)q.w;
 }
 
-__kernel void prepare(__global const double *objs,   // views' objects: view i at objs + i * view_stride
-                      const long view_stride,         // doubles between views (0: the same objects)
-                      const int n_obj,
-                      __global const double *views,  // (m, 12): src, det - src, e_u, e_v
-                      const double ul, const double uh, const double vl, const double vh,
-                      const int m,
-                      __global float *rec,            // (m, n_obj, REC), compacted per view
-                      __global int *count)            // (m,)
+__kernel void cull_records(__global const double *objs,   // views' objects: view i at objs + i * view_stride
+                           const long view_stride,         // doubles between views (0: the same objects)
+                           const int n_obj,
+                           __global const double *views,  // (m, 12): src, det - src, e_u, e_v
+                           const double ul, const double uh, const double vl, const double vh,
+                           const int m,
+                           __global float *rec,            // (m, n_obj, REC), compacted per view
+                           __global int *count)            // (m,)
 {
     const int iv = get_global_id(0);
     if (iv >= m)
