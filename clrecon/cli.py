@@ -285,10 +285,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="smaller sizes and one repeat (about a minute)")
     b.add_argument("--json", metavar="FILE", help="also write every number and the machine description here")
     b.add_argument("--only", help="comma list from backprojection,projector,voxel-projector,interpolation,"
-                   "end-to-end,memory,scaling; also, only when named: tradeoff (error against run time, ~20 min) "
-                   "distributed (Dask overhead, speedup 1 -> 2 workers, paper-p002 on N nodes, ~5 min), truth_free "
-                   "(cost of recon.truth_free against the reconstruction, ~2 min) and truth_free_trust (CV error "
-                   "against true MAE, docs/truth-free.md, ~1 h)")
+                   "end-to-end,memory,scaling,measured and the paper-scale paper-projector,noise,paper-fbp,"
+                   "groundtruth; also, only when named: tradeoff (error against run time, ~20 min), truth_free "
+                   "(cost of recon.truth_free against the reconstruction, ~2 min), drivers. The A/B benchmarks of "
+                   "the code's own levers are in a checkout's benchmarks/ folder (benchmarks/README.md)")
     b.add_argument("--drivers", action="store_true",
                    help="every CPU OpenCL driver that passes the probe side by side: projector, SSRB, interpolation, "
                         "backprojection, noise and the demo cold (docs/drivers.md); with --only, added to it")

@@ -125,6 +125,8 @@ def test_local_linear_weights(grind, clean, precision, K):
 
 
 def test_apply_weights(grind, clean):
+    """kernels/reference/interp_reference.cl's apply_weights (the tests' and benchmarks' reference)."""
+    from clrecon.bench import reference_kernels
     from clrecon.reconstruction.interpolation import weights as ip
 
     rng = np.random.default_rng(2)
@@ -133,7 +135,7 @@ def test_apply_weights(grind, clean):
     index = rng.integers(0, 4, (9, 3)).astype(np.int32)
     weight = rng.normal(size=(9, 3)).astype(np.float32)
     index[:, 2], weight[:, 2] = 4, 0.0
-    got = ip.apply_weights(rows, index, weight, rt=grind)
+    got = reference_kernels.apply_weights(rows, index, weight, rt=grind)
     ref = ip.apply_weights_reference(rows, index, weight)
     assert np.all(np.isfinite(got))
     assert np.abs(got - ref).max() < TOL["f32"] * np.abs(rows[:4]).max() * np.abs(weight).sum(1).max()
@@ -158,8 +160,9 @@ def test_ssrb_rows(grind, clean):
 
 
 # ---------------------------------------------------------------------------------------
-# kernels/backproject.cl
+# kernels/backproject.cl and its reference kernels/reference/backproject_single.cl
 def test_backprojection_kernels(grind, clean):
+    from clrecon.bench import reference_kernels
     from clrecon.core.runtime import get_runtime
     from clrecon.reconstruction import fbp
 
@@ -168,7 +171,7 @@ def test_backprojection_kernels(grind, clean):
     rng = np.random.default_rng(4)
     q = rng.standard_normal((17, geom.n_views, geom.n_cols)).astype(np.float32)   # 2 groups of 16, 1 partial
     batched = fbp.backproject(q, geom, runtime=grind)
-    single = fbp.backproject_single(q[:2], geom, runtime=grind)
+    single = reference_kernels.backproject_single(q[:2], geom, runtime=grind)
     pocl = fbp.backproject(q, geom, runtime=get_runtime())
     scale = np.abs(pocl).max()
     assert np.abs(batched - pocl).max() < TOL["f32"] * scale
@@ -305,6 +308,7 @@ def test_cylindrical_projector_kernels(grind_memcheck_races, clean):
 
 
 def test_cylindrical_ssrb_and_backprojection(grind, clean):
+    from clrecon.bench import reference_kernels
     from clrecon.config.scene import ScannerConfig
     from clrecon.core.detector import spot_shift_in_frame
     from clrecon.reconstruction import fbp, rebin
@@ -325,7 +329,7 @@ def test_cylindrical_ssrb_and_backprojection(grind, clean):
                                nx=11, ny=9, voxel_mm=4.0, beta0_rad=0.3, detector="cylindrical", central_col=6.25)
     q = rng.standard_normal((17, geom.n_views, geom.n_cols)).astype(np.float32)
     batched = fbp.backproject(q, geom, runtime=grind)
-    single = fbp.backproject_single(q[:2], geom, runtime=grind)
+    single = reference_kernels.backproject_single(q[:2], geom, runtime=grind)
     pocl = fbp.backproject(q, geom)
     scale = np.abs(pocl).max()
     assert np.abs(batched - pocl).max() < TOL["f32"] * scale

@@ -1,4 +1,4 @@
-"""``bench --only distributed``: Dask overhead per unit, speedup 1 -> 2 workers, paper-p002 on 10 and 100 nodes.
+"""``python -m benchmarks.dask_scaling``: Dask overhead, speedup 1 -> 2 workers, paper-p002 on 10 and 100 nodes.
 
 Three parts, each printed with the machine's load average (a shared 2-core machine: medians):
 
@@ -357,3 +357,9 @@ def _tls_lines(t: dict | None) -> list[str]:
             f"{1e3 * tr['tls']:.1f} vs {1e3 * tr['tcp']:.1f} ms ({t['tls_over_tcp_trivial']:.2f}x), 8 MiB there and "
             f"back {1e3 * pay['tls']:.0f} vs {1e3 * pay['tcp']:.0f} ms ({t['tls_over_tcp_payload']:.2f}x, "
             f"{t['tls_payload_bytes_per_s'] / 1e6:.0f} MB/s over TLS)"]
+
+
+if __name__ == "__main__":  # pragma: no cover - run by hand: python -m benchmarks.dask_scaling
+    from benchmarks._cli import main
+
+    raise SystemExit(main(bench_distributed_section, report_lines))

@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 import clrecon
-from clrecon.bench.truth_free_trust import CASES
+from benchmarks.truth_free_trust import CASES
 from clrecon.evaluation import truth_free as tf
 from clrecon.pipeline.run import resolve_targets
 from clrecon.pipeline.variants import noise_variants
@@ -34,6 +34,6 @@ for name in ("demo", "demo-hrv", "paper-p010"):
         print(name, pitch, round(time.time() - t0), r["folds"], flush=True)
 json.dump(
     {"cases": out, "load": os.getloadavg(), "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime())},
-    open("docs/data/truth-free/interior.json", "w"),
+    open("benchmarks/studies/truth-free/interior.json", "w"),
     indent=1,
 )

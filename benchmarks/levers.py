@@ -1,4 +1,4 @@
-"""``bench --only levers``: the speed levers of the demo run, each against its same-run reference.
+"""``python -m benchmarks.levers``: the run's speed levers, each against what it replaced, in the same run.
 
 Each row times the lever and what it replaced on the same data in the same process, the
 repeats alternating (so that a change of the machine's load hits both), medians reported:
@@ -69,6 +69,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from clrecon.bench import reference_kernels
 from clrecon.bench.paper import _scene, _thorax_sinograms, spread_indices
 from clrecon.bench.timing import load1, timed
 from clrecon.config.scene import load_scene
@@ -434,7 +435,7 @@ def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str =
 
             def before(idx=idx, w=w, images=images):
                 for _ in range(launches):
-                    buf, g = apply_mod.apply_interleaved_loop(d_rows, idx, w, rt=rt)
+                    buf, g = reference_kernels.apply_interleaved_loop(d_rows, idx, w, rt=rt)
                     images["before"] = fbp.backproject_interleaved(buf, g, geom, runtime=rt)
                     buf.release()
 
@@ -446,7 +447,7 @@ def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str =
 
             def lanes(pi=pi, pw=pw, images=images):
                 for _ in range(launches):
-                    buf, g = apply_mod.apply_padded_interleaved_lanes(d_rows, pi, pw, step, rt=rt, out=d_sino)
+                    buf, g = reference_kernels.apply_padded_interleaved_lanes(d_rows, pi, pw, step, rt=rt, out=d_sino)
                     images["lanes"] = fbp.backproject_interleaved(buf, g, geom, runtime=rt, out_buf=d_img,
                                                                   out=host).copy()
 
@@ -458,7 +459,7 @@ def bench_interp_launch(quick: bool = False, repeats: int = 3, scene_name: str =
 
             def interp_lanes(pi=pi, pw=pw):
                 for _ in range(launches):
-                    apply_mod.apply_padded_interleaved_lanes(d_rows, pi, pw, step, rt=rt, out=d_sino)
+                    reference_kernels.apply_padded_interleaved_lanes(d_rows, pi, pw, step, rt=rt, out=d_sino)
 
             def interp_now(pi=pi, pw=pw):
                 for _ in range(launches):
@@ -672,37 +673,40 @@ def bench_table2_kept(quick: bool = False, repeats: int = 3, scene_name: str = "
             "load": load, "repeats": max(2, repeats)}
 
 
+#: The rows, in report order (``--only`` picks some).
+ROWS = ("volumes", "assembly", "write_behind", "simulate_behind", "metrics", "posing", "interp_launch",
+        "rows_shared", "objects_shared", "table2_kept", "store_rows")
+
+
 def bench_levers(quick: bool = False, repeats: int = 3, metrics_scene: str = "demo",
                  write_scene: str = "paper-p010", simulate_scene: str = "demo",
-                 store_scene: str = "paper-p002") -> dict:
-    """Every lever row (module docstring); ``metrics_scene``: the metrics row's scene (its grid and
-    targets); ``write_scene``: the write-behind row's (its scanner and grid); ``simulate_scene``:
-    the simulation row's; ``store_scene``: the store row's (its detector and scan)."""
-    return {"volumes": bench_volumes(quick, repeats), "assembly": bench_assembly(quick, repeats),
-            "write_behind": bench_write_behind(quick, repeats, write_scene),
-            "simulate_behind": bench_simulate_behind(quick, repeats, simulate_scene),
-            "metrics": bench_metrics(quick, repeats, metrics_scene),
-            "posing": bench_posing(quick, repeats),
-            "interp_launch": bench_interp_launch(quick, repeats, write_scene),
-            "rows_shared": bench_rows_shared(quick, repeats, write_scene),
-            "objects_shared": bench_objects_shared(quick, repeats, simulate_scene),
-            "table2_kept": bench_table2_kept(quick, repeats, write_scene),
-            "store_rows": bench_store_rows(quick, repeats, store_scene)}
+                 store_scene: str = "paper-p002", only=None) -> dict:
+    """The lever rows ``only`` (default: every one, :data:`ROWS`; module docstring); ``metrics_scene``:
+    the metrics row's scene (its grid and targets); ``write_scene``: the write-behind row's (its
+    scanner and grid); ``simulate_scene``: the simulation row's; ``store_scene``: the store row's."""
+    rows = {"volumes": lambda: bench_volumes(quick, repeats), "assembly": lambda: bench_assembly(quick, repeats),
+            "write_behind": lambda: bench_write_behind(quick, repeats, write_scene),
+            "simulate_behind": lambda: bench_simulate_behind(quick, repeats, simulate_scene),
+            "metrics": lambda: bench_metrics(quick, repeats, metrics_scene),
+            "posing": lambda: bench_posing(quick, repeats),
+            "interp_launch": lambda: bench_interp_launch(quick, repeats, write_scene),
+            "rows_shared": lambda: bench_rows_shared(quick, repeats, write_scene),
+            "objects_shared": lambda: bench_objects_shared(quick, repeats, simulate_scene),
+            "table2_kept": lambda: bench_table2_kept(quick, repeats, write_scene),
+            "store_rows": lambda: bench_store_rows(quick, repeats, store_scene)}
+    bad = [r for r in (only or ()) if r not in rows]
+    if bad:
+        raise SystemExit(f"--only {bad[0]!r}: rows are {', '.join(ROWS)}")
+    return {name: rows[name]() for name in (only or ROWS)}
 
 
 def report_lines(res: dict | None) -> list[str]:
-    """The bench report's lines for ``bench --only levers``."""
+    """The report's lines of the rows in ``res``."""
     if not res:
         return []
-    v, p = res["volumes"], res["posing"]
-    mn, ml = v["median"]["none"], v["median"]["lzf"]
     return [
         "levers (each against its same-run reference, alternating, medians):",
-        f"   volumes, {v['datasets']} demo-sized datasets ({v['raw_bytes'] / 1e9:.2f} GB raw), write + assemble + "
-        f"read: none {v['total_s']['none']:.2f} s ({mn['write_s']:.2f} + {mn['assemble_s']:.2f} + "
-        f"{mn['read_s']:.2f}), lzf {v['total_s']['lzf']:.2f} s ({ml['write_s']:.2f} + {ml['assemble_s']:.2f} + "
-        f"{ml['read_s']:.2f}): speedup {v['speedup']:.2f}x; disk {mn['disk_bytes'] / 1e9:.2f} vs "
-        f"{ml['disk_bytes'] / 1e9:.2f} GB (load {v['load'][0]:.1f} -> {v['load'][-1]:.1f})",
+        *_volumes_lines(res.get("volumes")),
         *_assembly_lines(res.get("assembly")),
         *_write_behind_lines(res.get("write_behind")),
         *_simulate_behind_lines(res.get("simulate_behind")),
@@ -711,15 +715,32 @@ def report_lines(res: dict | None) -> list[str]:
            f"1 process {res['metrics']['median_s']['1']:.2f} s: speedup {res['metrics']['speedup']:.2f}x, "
            f"results {'bit-identical' if res['metrics']['identical'] else 'DIFFERENT'} "
            f"(load {res['metrics']['load'][0]:.1f} -> {res['metrics']['load'][-1]:.1f})"] if "metrics" in res else []),
-        f"   phantom posing, {p['states']} demo states: blocks of {p['block']} {p['median_s']['block']:.2f} s, "
-        f"chunks of {p['chunk']} {p['median_s']['chunk']:.2f} s: speedup {p['speedup']:.2f}x "
-        f"(load {p['load'][0]:.1f} -> {p['load'][-1]:.1f})",
+        *_posing_lines(res.get("posing")),
         *_interp_launch_lines(res.get("interp_launch")),
         *_rows_shared_lines(res.get("rows_shared")),
         *_objects_shared_lines(res.get("objects_shared")),
         *_table2_kept_lines(res.get("table2_kept")),
         *_store_rows_lines(res.get("store_rows")),
     ]
+
+
+def _volumes_lines(v: dict | None) -> list[str]:
+    if not v:
+        return []
+    mn, ml = v["median"]["none"], v["median"]["lzf"]
+    return [f"   volumes, {v['datasets']} demo-sized datasets ({v['raw_bytes'] / 1e9:.2f} GB raw), write + assemble + "
+            f"read: none {v['total_s']['none']:.2f} s ({mn['write_s']:.2f} + {mn['assemble_s']:.2f} + "
+            f"{mn['read_s']:.2f}), lzf {v['total_s']['lzf']:.2f} s ({ml['write_s']:.2f} + {ml['assemble_s']:.2f} + "
+            f"{ml['read_s']:.2f}): speedup {v['speedup']:.2f}x; disk {mn['disk_bytes'] / 1e9:.2f} vs "
+            f"{ml['disk_bytes'] / 1e9:.2f} GB (load {v['load'][0]:.1f} -> {v['load'][-1]:.1f})"]
+
+
+def _posing_lines(p: dict | None) -> list[str]:
+    if not p:
+        return []
+    return [f"   phantom posing, {p['states']} demo states: blocks of {p['block']} {p['median_s']['block']:.2f} s, "
+            f"chunks of {p['chunk']} {p['median_s']['chunk']:.2f} s: speedup {p['speedup']:.2f}x "
+            f"(load {p['load'][0]:.1f} -> {p['load'][-1]:.1f})"]
 
 
 def _store_rows_lines(a: dict | None) -> list[str]:
@@ -819,3 +840,9 @@ def _simulate_behind_lines(a: dict | None) -> list[str]:
             f"stores: {m['behind']:.2f} s, in the foreground {m['foreground']:.2f} s: speedup {a['speedup']:.2f}x, "
             f"projections {'identical' if a['identical'] else 'DIFFERENT'} "
             f"(load {a['load'][0]:.1f} -> {a['load'][-1]:.1f})"]
+
+
+if __name__ == "__main__":  # pragma: no cover - run by hand: python -m benchmarks.levers [--only ROW,...]
+    from benchmarks._cli import main
+
+    raise SystemExit(main(bench_levers, report_lines, rows=ROWS))

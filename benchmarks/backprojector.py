@@ -1,4 +1,4 @@
-"""``bench --only backprojector``: images/s of each ``recon.backprojector`` at the paper's size.
+"""``python -m benchmarks.backprojector``: images/s of each ``recon.backprojector`` at the paper's size.
 
 Every option runs on the same in-plane fan-beam sinograms of the thorax phantom (paper-p010's
 scanner: 984 views x 900 columns, 512^2 images of 1 mm), already on the device in the
@@ -134,3 +134,14 @@ def report_lines(res: dict | None) -> list:
     out.append(f"   pixel difference parallel-rebin - direct in the FOV: max {pd['max']:.1f} HU, "
                f"RMS {pd['rms']:.2f} HU, mean {pd['mean']:+.3f} HU")
     return out
+
+
+def _bench(quick: bool = False, repeats: int = 3) -> dict:
+    """Images/s of every recon.backprojector on paper-p010's thorax images, same run."""
+    return bench_backprojector(n_images=16 if quick else 32, repeats=repeats)
+
+
+if __name__ == "__main__":  # pragma: no cover - run by hand: python -m benchmarks.backprojector
+    from benchmarks._cli import main
+
+    raise SystemExit(main(_bench, report_lines))

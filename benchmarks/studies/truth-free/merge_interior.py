@@ -1,11 +1,11 @@
 import glob
 import json
 
-from clrecon.bench.truth_free_trust import analyse
+from benchmarks.truth_free_trust import analyse
 
-I = json.load(open("docs/data/truth-free/interior.json"))
+I = json.load(open("benchmarks/studies/truth-free/interior.json"))
 cases = []
-for f in sorted(glob.glob("docs/data/truth-free/case-*.json")):
+for f in sorted(glob.glob("benchmarks/studies/truth-free/case-*.json")):
     c = json.load(open(f))
     for r in c["rows"]:
         e = I["cases"][f"{c['case']}/{r['pitch']}"]["errors"][r["variant"]]["interior"][r["kernel"]]

@@ -1,4 +1,6 @@
-"""Cylindrical against flat detector: projector, SSRB and backprojection rates in the same run.
+"""``python -m benchmarks.detectors``: cylindrical against flat detector, projector, SSRB and backprojection rates.
+
+The rates of both models are measured in the same run.
 
 Each stage runs on both detector models with the same sizes, data and process, the calls
 interleaved (flat, cylindrical, flat, ...), and the median of ``repeats`` timings is kept, so
@@ -171,3 +173,9 @@ def format_lines(res: dict | None) -> list[str]:
 
 def _cpu_text(r: dict) -> str:
     return "by CPU time " + ", ".join(f"{k} {v:.2f}" for k, v in r.get("cpu_ratio", {}).items())
+
+
+if __name__ == "__main__":  # pragma: no cover - run by hand: python -m benchmarks.detectors
+    from benchmarks._cli import main
+
+    raise SystemExit(main(bench_detectors_section, format_lines))

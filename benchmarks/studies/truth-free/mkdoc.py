@@ -1,9 +1,9 @@
 import glob
 import json
 
-d = "docs/data/truth-free"
+d = "benchmarks/studies/truth-free"
 cases = [json.load(open(f)) for f in sorted(glob.glob(f"{d}/case-*.json"))]
-from clrecon.bench.truth_free_trust import analyse
+from benchmarks.truth_free_trust import analyse
 
 an = analyse(cases)
 print("n configurations", an["n_configurations"])

@@ -1,9 +1,9 @@
 import glob
 import json
 
-from clrecon.bench.truth_free_trust import analyse
+from benchmarks.truth_free_trust import analyse
 
-cases = {json.load(open(f))["case"]: json.load(open(f)) for f in glob.glob("docs/data/truth-free/case-*.json")}
+cases = {json.load(open(f))["case"]: json.load(open(f)) for f in glob.glob("benchmarks/studies/truth-free/case-*.json")}
 keys = [
     "small:loto:heart",
     "small:nndm:heart",

@@ -1,16 +1,16 @@
 """Can the truth-free cross-validated error be trusted? And what does choosing by it gain?
 
-``python -m clrecon bench --only truth_free_trust`` (or ``python -m clrecon.bench.truth_free_trust
---out DIR``). On simulated scenes, where truth exists, every configuration (scene x pitch x
-noise variant x fixed kernel of :data:`clrecon.evaluation.truth_free.DEFAULT_KERNELS`) gets its
-cross-validated row error (``recon.truth_free``) and its true MAE against the ground truth; the
-study reports Spearman's rank correlation between them (scipy.stats.spearmanr), pooled and
-within each (scene, pitch, variant) case, per scheme (loto, nndm), region (heart channels <->
-small FOV, whole row <-> large FOV) and with / without the noise floor subtracted. It also
-reports, per case, the MAE of the kernel the CV chooses (what ``cv_tuned`` reconstructs, bit for
-bit), of the better of barycentric and local linear, and of the true-MAE oracle among the
-kernels (issue 19's goal: >= 15 % below the better of the two), and the candidate-window
-option (``recon.candidate_window_mm``) at 0 (SSRB-exact) and 28 mm.
+``python -m benchmarks.truth_free_trust --out DIR`` (about an hour). On simulated scenes, where
+truth exists, every configuration (scene x pitch x noise variant x fixed kernel of
+:data:`clrecon.evaluation.truth_free.DEFAULT_KERNELS`) gets its cross-validated row error
+(``recon.truth_free``) and its true MAE against the ground truth; the study reports Spearman's rank
+correlation between them (scipy.stats.spearmanr), pooled and within each (scene, pitch, variant)
+case, per scheme (loto, nndm), region (heart channels <-> small FOV, whole row <-> large FOV) and
+with / without the noise floor subtracted. It also reports, per case, the MAE of the kernel the CV
+chooses (what ``cv_tuned`` reconstructs, bit for bit), of the better of barycentric and local
+linear, and of the true-MAE oracle among the kernels (issue 19's goal: >= 15 % below the better of
+the two), and the candidate-window option (``recon.candidate_window_mm``) at 0 (SSRB-exact) and 28
+mm.
 
 Small enough for a loaded 2-core machine: a few central slices; the paper slab uses a few
 targets (the configuration is written with the numbers).

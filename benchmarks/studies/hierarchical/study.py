@@ -26,8 +26,8 @@ same in-plane sinogram, the noise module's generator), and ``motion``: MAE of (a
 phase - this one), over the FOV (large) and the scene's small-FOV box.
 
 Run from the repository root (about 3 min on one core):
-    python docs/data/hierarchical/study.py          -> docs/data/hierarchical/study.json
-    python docs/data/hierarchical/study.py hann     -> study-hann.json (the same with the Hann window)
+    python benchmarks/studies/hierarchical/study.py          -> benchmarks/studies/hierarchical/study.json
+    python benchmarks/studies/hierarchical/study.py hann     -> study-hann.json (the same with the Hann window)
 """
 
 import json
