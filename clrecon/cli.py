@@ -149,7 +149,7 @@ def cmd_export(args) -> int:
     from clrecon.outputs.export import export
 
     index = export(args.run_dir, args.format, method=args.method, pitch=args.pitch, variant=args.variant,
-                   out=args.out, keep_identifiers=args.keep_identifiers)
+                   out=args.out, keep_identifiers=args.keep_identifiers, scene=args.scene)
     if index.get("format") == "dicom-ct-pd":
         print(f"wrote {index['files']['n_projections']} projections ({index['variant']}, pitch {index['pitch']:g}) "
               f"as DICOM-CT-PD with {index['files']['scene']} to {index['out']}")
@@ -267,6 +267,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", help="output folder (default: RUN_DIR/export/FORMAT/SOURCE)")
     e.add_argument("--keep-identifiers", action="store_true",
                    help="measured scans: copy the input's patient attributes into the exported DICOM (default: none)")
+    e.add_argument("--scene", help="measured scans: the scene file the run was made from, for an export that reads "
+                                   "the input again (dicom-ct-pd, --keep-identifiers): results.json records the "
+                                   "series only by its digest (docs/measured-data.md 'Patient data')")
     e.set_defaults(func=cmd_export)
 
     ph = sub.add_parser("phantom", help="voxel phantoms: export the analytic phantom as XCAT or NIfTI frames")

@@ -14,6 +14,7 @@ import pytest
 from ref_projector import line_integrals
 from test_projector import random_objects, tol
 
+import clrecon.config.scene as scene_mod
 from clrecon.core.detector import CylindricalDetector, spot_shift_in_frame
 from clrecon.simulation import projector
 from clrecon.simulation.phantoms import analytic as ph
@@ -442,11 +443,17 @@ from clrecon.core.errors import SceneError  # noqa: E402
 from clrecon.scan.table import projection_table  # noqa: E402
 
 
-def test_flat_scenes_keep_their_store_hash_and_curved_ones_change_it():
+def test_flat_scenes_keep_their_store_hash_and_curved_ones_change_it(monkeypatch):
     demo = load_scene("demo")
+    # the stores made so far were made by PoCL, whose cache tag is empty (docs/drivers.md); another
+    # driver's projections differ in their last bits and get their own store
+    monkeypatch.setattr(scene_mod, "default_cache_tag", lambda: "Intel(R) OpenCL 2026.22.10.0.01_160000")
+    intel_hash = demo.scan_hash(0.02)
+    monkeypatch.setattr(scene_mod, "default_cache_tag", lambda: "")
     # the hash of `demo` before this change (git c397708), hard-coded on purpose: a flat
     # scene's store must stay valid
     assert demo.scan_hash(0.02) == "719a9b63ffd15b36"
+    assert intel_hash != demo.scan_hash(0.02)
     same = demo.replace(scanner={"detector": "flat", "central_col": -1.0, "flying_focal_spot": "none"})
     assert same.scan_hash(0.02) == demo.scan_hash(0.02)
     cyl = demo.replace(scanner={"detector": "cylindrical"})

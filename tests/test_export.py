@@ -142,3 +142,84 @@ def test_cli_export_and_one_line_errors(run_dir, tmp_path, capsys):
     assert main(["export", str(old), "--format", "dicom"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "re-run" in err
+
+
+# ---------------------------------------------------------------------------------------
+# standards: dciodvfy (dicom3tools) and two independent readers; the patient position
+def _dciodvfy_errors(path) -> list[str]:
+    import subprocess
+
+    out = subprocess.run(["dciodvfy", str(path)], capture_output=True, text=True, timeout=60)
+    return [line for line in (out.stdout + out.stderr).splitlines() if line.startswith("Error")]
+
+
+def test_dicom_series_passes_dciodvfy(run_dir, tmp_path):
+    """Zero dciodvfy errors on every file of one target's series (5 per file before issue 37)."""
+    import shutil
+
+    if shutil.which("dciodvfy") is None:
+        pytest.skip("dciodvfy not installed (Debian package dicom3tools: apt-get install -y dicom3tools)")
+    index = export(run_dir, "dicom", method="barycentric", pitch="0.1", variant="noisy", out=tmp_path / "dcm")
+    for name in index["targets"][0]["files"]:
+        assert _dciodvfy_errors(tmp_path / "dcm" / name) == [], name
+
+
+def _with_position(run_dir, tmp_path, position):
+    import json
+    import shutil
+
+    d = tmp_path / f"run-{position}"
+    shutil.copytree(run_dir, d)
+    res = json.loads((d / "results.json").read_text())
+    res["scene"]["scan"]["patient_position"] = position
+    (d / "results.json").write_text(json.dumps(res))
+    return d
+
+
+@pytest.mark.parametrize("position", ["HFS", "HFP", "FFS", "FFP"])
+def test_dicom_geometry_in_two_readers_for_every_patient_position(run_dir, tmp_path, position):
+    """The volumes are in the scanner frame; the series' ImageOrientationPatient / ImagePositionPatient map
+    them onto the patient's LPS for its position. nibabel's DICOM wrapper (always) and SimpleITK (where
+    installed) must put voxel (x_i, y_j, z_k) of the scanner frame at LPS (sx x_i, sy y_j, sz z_k)."""
+    import warnings
+
+    with warnings.catch_warnings():  # nibabel: "The DICOM readers are highly experimental" (on import)
+        warnings.simplefilter("ignore", UserWarning)
+        from nibabel.nicom import dicomwrappers
+    from clrecon.scan.patient_frame import to_lps
+
+    d = _with_position(run_dir, tmp_path, position)
+    index = export(d, "dicom", method="barycentric", pitch="0.1", variant="noisy", out=tmp_path / "dcm")
+    ax, vol = _truth(d, "recon/p0.100/noisy/barycentric")
+    t = index["targets"][0]
+    i, j, k = 3, ax["y_mm"].size - 2, 1
+    want = to_lps(position, [ax["x_mm"][i], ax["y_mm"][j], ax["z_mm"][k]])
+    w = dicomwrappers.wrapper_from_file(str(tmp_path / "dcm" / t["files"][k]))
+    got = w.affine @ [j, i, 0, 1]  # nibabel's wrapper indexes (row, column): row = y, column = x
+    np.testing.assert_allclose(got[:3], want, atol=1e-4)
+    assert pydicom.dcmread(tmp_path / "dcm" / t["files"][k]).PatientPosition == position
+    sitk = pytest.importorskip("SimpleITK", reason="SimpleITK not installed (pip install SimpleITK): the second "
+                                                   "independent reader of the series")
+    folder = str((tmp_path / "dcm" / t["files"][0]).parent)
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(reader.GetGDCMSeriesFileNames(folder))
+    img = reader.Execute()
+    assert img.GetSize() == (ax["x_mm"].size, ax["y_mm"].size, ax["z_mm"].size)
+    arr = sitk.GetArrayFromImage(img)  # [slice, row, column] in the reader's slice order
+    # SimpleITK sorts the slices along the slice normal: find slice k by its position
+    kk = int(np.argmin([abs(img.TransformIndexToPhysicalPoint((0, 0, s))[2] - want[2]) for s in range(arr.shape[0])]))
+    np.testing.assert_allclose(img.TransformIndexToPhysicalPoint((i, j, kk)), want, atol=1e-4)
+    np.testing.assert_allclose(arr[kk, j, i], vol[t["cardiac_index"], t["resp_index"], k, j, i], atol=0.51)
+
+
+def test_nifti_affine_follows_the_patient_position(run_dir, tmp_path):
+    from clrecon.scan.patient_frame import to_lps
+
+    d = _with_position(run_dir, tmp_path, "FFS")
+    index = export(d, "nifti", method="groundtruth", out=tmp_path / "nii")
+    ax, _ = _truth(d, "groundtruth")
+    img = nib.load(tmp_path / "nii" / index["targets"][0]["files"][0])
+    i, j, k = 2, 5, 1
+    ras = img.affine @ [i, j, k, 1]
+    np.testing.assert_allclose([-ras[0], -ras[1], ras[2]], to_lps("FFS", [ax["x_mm"][i], ax["y_mm"][j], ax["z_mm"][k]]),
+                               atol=1e-6)

@@ -143,10 +143,14 @@ class Scene:
         # the longest scan over *all* the scene's pitches: part of what a projection shows.
         # likewise the measured-scan and recorded-trace keys (issue 18) at their defaults
         scan_later = {"source": "simulated", "projections": "", "timestamp_unit": "ms", "flip_channels": False,
-                      "flip_rows": False}
+                      "flip_rows": False, "pixel_layout": "auto", "orientation": "tags", "rotation": "increasing",
+                      "table_direction": "increasing"}
         sig_later = {"breathing_trace": "", "ecg_trace": "", "trace_align": "offset", "trace_offset_s": 0.0,
                      "ecg_offset_s": 0.0, "breathing_inhale": "up"}
-        scan_d = {k: v for k, v in d["scan"].items() if not (k in scan_later and v == scan_later[k])}
+        scan_d = {k: v for k, v in d["scan"].items() if not (k in scan_later and v == scan_later[k])
+                  and k != "patient_position"}  # the patient position changes the labels, not the projections
+        if self.measured:  # the series by its content (recorded_content), not by a path that may name the patient
+            scan_d.pop("projections", None)
         signals_d = {k: v for k, v in d["signals"].items() if not (k in sig_later and v == sig_later[k])}
         payload = {"scanner": scanner, "scan": {**scan_d, "pitches": [pitch]},
                    "signals": signals_d, "phantom": phantom, "projector": PROJECTOR_VERSION,
@@ -201,8 +205,12 @@ def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
     sc_raw = {k: getattr(scan[0], k) for k in (raw.get("scanner", {}) or {})}
     scan_raw = {k: getattr(scan[1], k) for k in (raw.get("scan", {}) or {})}
     scan = scan[1]
-    geom = dicom_ct_pd.series_geometry(scan.projections, sc_raw.get("rotation_time_s"), scan.timestamp_unit)
-    for sec, given, derived in (("scanner", sc_raw, geom.scanner), ("scan", scan_raw, geom.scan)):
+    ph_raw = {k: getattr(parts["phantom"], k) for k in (raw.get("phantom", {}) or {}) if hasattr(parts["phantom"], k)}
+    geom = dicom_ct_pd.series_geometry(scan.projections, sc_raw.get("rotation_time_s"), scan.timestamp_unit,
+                                       scan.pixel_layout, scan.flip_channels, scan.flip_rows, scan.orientation,
+                                       scan.patient_position)
+    for sec, given, derived in (("scanner", sc_raw, geom.scanner), ("scan", scan_raw, geom.scan),
+                                ("phantom", ph_raw, geom.phantom)):
         for k, v in derived.items():
             if k not in given:
                 continue
@@ -215,6 +223,10 @@ def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
                 src = geom.tag_of.get(k, "the views' angles and axial positions")
                 raise SceneError(f"{prefix}{sec}.{k} = {given[k]!r} contradicts the DICOM-CT-PD series "
                                  f"{scan.projections}: {src} gives {v!r}; remove the key or fix it")
+    noise_raw = raw.get("noise", {}) or {}
+    if noise_raw.get("enabled") is True:
+        raise SceneError(f"{prefix}noise.enabled = true: a measured scan (scan.source = 'dicom-ct-pd') carries its own "
+                         f"noise and clrecon adds none; remove the key")
     if geom.scanner["detector"] not in DETECTORS:
         raise SceneError(f"{prefix}{scan.projections}: (7029,100B) DetectorShape gives detector model "
                          f"{geom.scanner['detector']!r}, which this build does not have (detector models: "
@@ -225,8 +237,10 @@ def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
                          f"scanner.{lacking[0]} = {geom.scanner[lacking[0]]!r}, which this build lacks (the "
                          f"cylindrical-detector / flying-focal-spot model is not on this branch)")
     scanner = ScannerConfig(**{**sc_raw, **geom.scanner})
-    scan = ScanConfig(**{**scan_raw, **geom.scan})
-    return {"scanner": scanner, "scan": scan}
+    scan = ScanConfig(**{**scan_raw, **geom.scan, **geom.reading_keys})  # the reading the orientation check settled
+    # simulation-only sections do not apply: no simulated noise; water from the series where it has it
+    return {"scanner": scanner, "scan": scan, "noise": dataclasses.replace(parts["noise"], enabled=False),
+            "phantom": dataclasses.replace(parts["phantom"], **geom.phantom)}
 
 
 def _suggest(key: str, allowed) -> str:
@@ -287,7 +301,9 @@ def scene_from_dict(raw: dict[str, Any], source: str = "") -> Scene:
     for k in ("name", "description"):
         if k in raw and not isinstance(raw[k], str):
             raise SceneError(f"{prefix}{k} = {raw[k]!r}: must be a string")
-    scene = Scene(name=raw.get("name", Path(source).stem if source else "custom"),
+    # a measured scene's file is often named after the patient: its default name is not the file's
+    default_name = "measured" if parts["scan"].measured_source else (Path(source).stem if source else "custom")
+    scene = Scene(name=raw.get("name", default_name),
                   description=raw.get("description", ""), source=source, **parts)
     _check_consistency(scene, prefix)
     return scene

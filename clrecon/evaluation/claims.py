@@ -277,6 +277,8 @@ def claim_best_combination(met) -> list[dict]:
 
 def evaluate_claims(results: dict) -> list[dict]:
     """Every claim for ``results`` (needs ``metrics``; uses ``respiratory_only`` if present)."""
+    if results.get("measured"):  # every claim is about error against truth, which a measured scan has not
+        return []
     met = results.get("metrics") or {}
     met = {pk: byv for pk, byv in met.items() if byv}
     ro = results.get("respiratory_only") or {}

@@ -36,6 +36,7 @@ import json
 from pathlib import Path
 
 from clrecon.core.errors import ClreconError, StoreError
+from clrecon.outputs.measured_record import run_input_scene
 
 # Run directory -> one volume source: the one reader, clrecon.outputs.rundir (names re-exported)
 from clrecon.outputs.rundir import (  # noqa: F401
@@ -57,6 +58,7 @@ from clrecon.outputs.writers.base import _file_tag, _spacing, source_stem, targe
 from clrecon.outputs.writers.dicom import CT_IMAGE_STORAGE, PRIVATE_CREATOR, PRIVATE_GROUP, hu_to_stored  # noqa: F401
 from clrecon.outputs.writers.dicom_ct_pd import input_identifiers
 from clrecon.outputs.writers.nifti import nifti_affine  # noqa: F401 (re-exported)
+from clrecon.scan.patient_frame import position_of_run
 
 #: Export formats, in registry order (``clrecon.outputs.writers``).
 FORMATS = WRITERS.names
@@ -75,30 +77,37 @@ def _run_identity(run_dir: Path, run: RunDirectory) -> str:
 
 # ----------------------------------------------------------------------------------------
 def export(run_dir, fmt: str, method: str | None = None, pitch=None, variant: str | None = None,
-           out=None, keep_identifiers: bool = False) -> dict:
+           out=None, keep_identifiers: bool = False, scene=None) -> dict:
     """Export one source of a run, every target; returns the ``index.json`` dictionary.
 
     ``out`` defaults to ``RUN_DIR/export/<fmt>/<method>[_<pitch>_<variant>]``. Files:
     DICOM ``<out>/<C40_R05>/IM0001.dcm ...``; NIfTI ``<out>/<method>_<C40_R05>.nii.gz``.
-    The writer is ``WRITERS[fmt]`` (:class:`clrecon.outputs.writers.base.Writer`).
+    The writer is ``WRITERS[fmt]`` (:class:`clrecon.outputs.writers.base.Writer`). ``scene`` (a scene
+    file or :class:`~clrecon.config.scene.Scene`): a measured run's own scene, which ``results.json``
+    records without the series' path (patient data): needed to re-export its projections or to copy
+    its identifiers (``docs/measured-data.md`` "Patient data").
     """
     if fmt not in WRITERS:
         raise ClreconError(f"--format {fmt!r}: must be one of {', '.join(WRITERS.names)}")
     writer = WRITERS[fmt]()
     run_dir = Path(run_dir)
     f = RunDirectory(run_dir)
+    need_input = getattr(writer, "scan_export", False) or keep_identifiers
+    given = run_input_scene(f, scene) if need_input else None
     if getattr(writer, "scan_export", False):  # the run's projections, not its volumes (dicom-ct-pd)
         try:
             out = Path(out) if out is not None else run_dir / "export" / fmt
-            index = writer.export_scan(f, out, pitch=pitch, keep_identifiers=keep_identifiers)
+            index = writer.export_scan(f, out, pitch=pitch, keep_identifiers=keep_identifiers, scene=given)
             (out / "index.json").write_text(json.dumps(index, indent=1))
             return index
         finally:
             f.close()
     try:
         if f.has_results and f.results.get("measured"):  # a patient's scan: anonymous unless asked
-            writer.patient = (input_identifiers(f.scene) if keep_identifiers
+            writer.patient = (input_identifiers(given) if keep_identifiers
                               else {"PatientName": "ANONYMOUS", "PatientID": "ANONYMOUS"})
+        if f.has_results:  # the volumes are in the scanner frame: the patient position maps it onto LPS
+            writer.position = position_of_run(f.results)
     except StoreError:
         pass
     try:

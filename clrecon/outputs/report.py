@@ -10,7 +10,7 @@ from pathlib import Path
 from clrecon.core import machine_speed
 from clrecon.core.resources import folder_bytes, peak_rss_bytes
 from clrecon.evaluation import claims as claims_mod
-from clrecon.outputs import figures
+from clrecon.outputs import figures, measured_record
 from clrecon.reconstruction.diagnostics import pooled as _pooled_diagnostics
 from clrecon.reconstruction.interpolation import by_rank
 
@@ -248,8 +248,10 @@ def write_report(out_dir: Path, results: dict, pool=None) -> Path:
         lines += ["## Measured scan", "",
                   "This is a measured scan (DICOM-CT-PD projections): no ground truth exists, so **error against "
                   "truth is unavailable**; the reconstructions, figures and exports are made as for a simulated "
-                  "scan. Patient identifiers of the input are not copied into this report, the logs, "
-                  "results.json or the exports (`export --keep-identifiers` copies them into exported DICOM).", ""]
+                  "scan. Patient identifiers of the input and the paths of its files are not copied into this "
+                  "report, the logs, results.json, the projection cache or the exports (`export --keep-identifiers` "
+                  "copies the identifiers into exported DICOM).", ""]
+        lines += measured_record.report_lines(results)
         for pk, rs in (results.get("recorded_signals") or {}).items():
             why = ", ".join(f"{k} {n}" for k, n in rs["excluded_by_reason"].items() if n)
             lines += [f"Pitch {pk[1:]}: {rs['views_used']} of {rs['views_total']} views used; "

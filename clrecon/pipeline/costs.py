@@ -12,6 +12,7 @@ from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.rebin import slice_window_mm
 from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, slab_bytes_per_slice, slices_per_slab
+from clrecon.simulation.measured import memory_bytes as measured_memory_bytes
 
 GiB = 1024 ** 3
 #: Modelled compression of the projection store and its units (LZF + shuffle on float32 line
@@ -87,6 +88,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     regions = n_targets * target_vox if any(g == "resp" for g in grid.values()) else 0
     metrics_peak = n_proc * (regions + 3 * target_vox * 4) + (n_proc - 1) * 0.4e9
     peak = max(peak, metrics_peak)
+    if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)
+        peak += measured_memory_bytes(scene)
     out = {"projections": n_proj, "projections_needed": needed, "store_bytes": sum(n_proj.values()) * proj_bytes,
            "needed_store_bytes": sum(needed.values()) * proj_bytes, "projection_bytes": proj_bytes,
            "volume_bytes": int(vol_bytes * n_vols), "n_volumes": round(n_vols, 3), "n_targets": n_targets,

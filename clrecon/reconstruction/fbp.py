@@ -142,7 +142,11 @@ class FanBeamGeometry:
         if sc.detector != "flat":
             extra = {"detector": sc.detector, "central_col": sc.detector_model.central_col}
             if sc.flying_focal_spot != "none":
-                extra["source_shifts"] = tuple((float(a), float(r)) for a, r, _ in sc.ffs_shifts)
+                states = [(float(a), float(r)) for a, r, _ in sc.ffs_shifts]
+                # view j holds projections k = sign * j (mod N): with a gantry turning the other way
+                # (scan.rotation = "decreasing") view j's focal-spot state is state (-j) mod cycle
+                sign = getattr(scene.scan, "rotation_sign", 1)
+                extra["source_shifts"] = tuple(states[(sign * j) % len(states)] for j in range(len(states)))
         return cls(sid_mm=sc.sid_mm, sdd_mm=sc.sdd_mm, n_cols=sc.n_cols, col_pitch_mm=sc.col_pitch_mm,
                    n_views=sc.views_per_rotation, nx=rc.nx, ny=rc.ny, voxel_mm=rc.voxel_mm,
                    beta0_rad=math.radians(scene.scan.start_angle_deg), **extra)

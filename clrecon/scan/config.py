@@ -44,6 +44,10 @@ TRACE_MIN_S = 60.0
 TRACE_MARGIN_S = 5.0
 RHYTHMS = ("periodic", "hrv", "af", "pvc")
 SCAN_SOURCES = ("simulated", "dicom-ct-pd")
+#: scan.pixel_layout: TCIA's (DICOM Rows = detector channels) or the other (DICOM Rows = detector rows)
+PIXEL_LAYOUTS = ("auto", "rows-are-channels", "rows-are-detector-rows")
+#: scan.patient_position: DICOM (0018,5100) values clrecon maps onto LPS ('' = from the series / HFS)
+PATIENT_POSITIONS = ("", "HFS", "HFP", "FFS", "FFP")
 STR = ("a string", lambda x: isinstance(x, str))
 
 _f = field_of  # (default, allowed, check, doc)
@@ -142,11 +146,29 @@ class ScanConfig(Section):
                     "scan: projections = a folder of DICOM-CT-PD files, one projection each; docs/measured-data.md)")
     projections: str = F("", STR, "dicom-ct-pd: the folder of projection files (relative: to the scene file)")
     timestamp_unit: str = F("ms", one_of(("ms", "s")), "dicom-ct-pd: unit of the Timestamp tag (7033,1067)")
-    flip_channels: bool = F(False, BOOL, "dicom-ct-pd: reverse the channel order of every projection "
-                            "(docs/measured-data.md 'Pixel layout')")
-    flip_rows: bool = F(False, BOOL, "dicom-ct-pd: reverse the detector-row order of every projection")
+    flip_channels: bool = F(False, BOOL, "dicom-ct-pd: the series numbers its channels opposite to the "
+                            "DICOM-CT-PD convention (docs/measured-data.md 'Channel and row numbering')")
+    flip_rows: bool = F(False, BOOL, "dicom-ct-pd: the series numbers its detector rows opposite to the "
+                        "DICOM-CT-PD convention")
+    pixel_layout: str = F("auto", one_of(PIXEL_LAYOUTS), "dicom-ct-pd: which detector axis the DICOM Rows run "
+                          "along; auto: decided from the tags (docs/measured-data.md 'Pixel layout')")
+    orientation: str = F("tags", one_of(("tags", "auto")), "dicom-ct-pd: 'tags' reads the numbering the series "
+                         "declares and refuses it when the data fit a mirror better; 'auto' takes the best fit "
+                         "(docs/measured-data.md 'Orientation check')")
+    patient_position: str = F("", one_of(PATIENT_POSITIONS), "patient position (DICOM (0018,5100)); '': from the "
+                              "series (dicom-ct-pd), HFS for a simulated scan (docs/measured-data.md 'Patient "
+                              "position and the image frame')")
+    rotation: str = F("increasing", one_of(("increasing", "decreasing")), "gantry angle from view to view "
+                      "(a measured series gives it)")
+    table_direction: str = F("increasing", one_of(("increasing", "decreasing")), "source z from view to view "
+                             "(a measured series gives it)")
 
     PATH_KEYS: ClassVar[tuple] = ("projections",)
+
+    @property
+    def measured_source(self) -> bool:
+        """True for a measured scan (the projections are read from files, not simulated)."""
+        return self.source != "simulated"
 
     def check(self) -> None:
         if self.source == "dicom-ct-pd" and not self.projections:
@@ -168,7 +190,18 @@ class ScanConfig(Section):
         return (n - 1) * self.feed_mm(scanner, pitch) / scanner.views_per_rotation
 
     def z_start_mm(self, scanner: ScannerConfig, pitch: float) -> float:
-        return self.z_centre_mm - self.travel_mm(scanner, pitch) / 2.0
+        """Source z of the first view (mm): the low end of the travel, the high end when the table runs -z."""
+        return self.z_centre_mm - self.table_sign * self.travel_mm(scanner, pitch) / 2.0
+
+    @property
+    def rotation_sign(self) -> int:
+        """+1 when the gantry angle increases from view to view, -1 when it decreases."""
+        return 1 if self.rotation == "increasing" else -1
+
+    @property
+    def table_sign(self) -> int:
+        """+1 when the source z increases from view to view, -1 when it decreases."""
+        return 1 if self.table_direction == "increasing" else -1
 
     def duration_s(self, scanner: ScannerConfig, pitch: float) -> float:
         return self.projection_count(scanner, pitch) * scanner.rotation_time_s / scanner.views_per_rotation

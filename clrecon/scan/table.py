@@ -22,7 +22,8 @@ class ProjectionTable:
 
     index          int64   projection number k in the helical scan (0-based)
     time_s         float64 acquisition time t_k = k T_rot / N_views (s)
-    angle_rad      float64 gantry angle beta_k = beta0 + 2 pi k / N_views (rad, not wrapped)
+    angle_rad      float64 gantry angle beta_k = beta0 +- 2 pi k / N_views (rad, not wrapped; - when
+                           ``angle_sign`` = -1, a gantry turning the other way)
     source_z_mm    float64 source z_k = z_start + h k / N_views (mm)
     cardiac_phase  float64 c in [0, 1): fraction of the current R-R interval (recorded)
     resp_amplitude float64 a in [0, 1], 1 = end-inhale (recorded)
@@ -48,6 +49,7 @@ class ProjectionTable:
     state_resp: np.ndarray
     views_per_rotation: int
     focal_shift: np.ndarray | None = None
+    angle_sign: int = 1
 
     COLUMNS = ("index", "time_s", "angle_rad", "source_z_mm", "cardiac_phase", "resp_amplitude",
                "resp_direction", "state_cardiac", "state_resp")
@@ -57,8 +59,9 @@ class ProjectionTable:
 
     @property
     def view(self) -> np.ndarray:
-        """View number within the rotation, k mod N_views, shape (n,)."""
-        return self.index % self.views_per_rotation
+        """View number within the rotation, shape (n,): k mod N_views, or -k mod N_views when the gantry
+        angle decreases (``angle_sign`` = -1), so that view j is always at angle beta0 + 2 pi j / N_views."""
+        return (self.angle_sign * self.index) % self.views_per_rotation
 
     @property
     def shifts(self) -> np.ndarray:
@@ -79,7 +82,8 @@ class ProjectionTable:
         """Sub-table of the rows ``sel`` (indices or boolean mask)."""
         return ProjectionTable(**{c: getattr(self, c)[sel] for c in self.COLUMNS},
                                views_per_rotation=self.views_per_rotation,
-                               focal_shift=None if self.focal_shift is None else self.focal_shift[sel])
+                               focal_shift=None if self.focal_shift is None else self.focal_shift[sel],
+                               angle_sign=self.angle_sign)
 
     def as_dict(self) -> dict:
         return {c: getattr(self, c) for c in self.COLUMNS}
@@ -95,15 +99,16 @@ def projection_table(scene: Acquisition, pitch: float) -> ProjectionTable:
         n = scan.projection_count(sc, pitch)
         k = np.arange(n, dtype=np.int64)
         t = k * (sc.rotation_time_s / nv)
-        beta = np.deg2rad(scan.start_angle_deg) + 2.0 * np.pi * k / nv
-        z = scan.z_start_mm(sc, pitch) + scan.feed_mm(sc, pitch) * k / nv
+        beta = np.deg2rad(scan.start_angle_deg) + scan.rotation_sign * 2.0 * np.pi * k / nv
+        z = scan.z_start_mm(sc, pitch) + scan.table_sign * scan.feed_mm(sc, pitch) * k / nv
     phys = signals.physiology(scene, t)
     states = sc.ffs_shifts
     shift = None if sc.flying_focal_spot == "none" else states[k % len(states)]
     return ProjectionTable(index=k, time_s=t, angle_rad=beta, source_z_mm=z,
                            cardiac_phase=phys.cardiac_phase, resp_amplitude=phys.resp_amplitude,
                            resp_direction=phys.resp_direction, state_cardiac=phys.state_cardiac,
-                           state_resp=phys.state_resp, views_per_rotation=nv, focal_shift=shift)
+                           state_resp=phys.state_resp, views_per_rotation=nv, focal_shift=shift,
+                           angle_sign=scan.rotation_sign)
 
 
 def usable_table(scene: Acquisition, table: ProjectionTable) -> tuple[ProjectionTable, dict]:

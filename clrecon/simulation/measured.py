@@ -3,9 +3,10 @@
 What :func:`clrecon.simulation.simulate.simulate` does with the projector, this does with the
 files of a DICOM-CT-PD series: the projections the run needs and the store lacks are read with
 pydicom one file at a time (never the whole scan in memory), converted to line integrals
-(``stored * RescaleSlope + RescaleIntercept``), laid out as the store's ``[row, column]``
-(the file's pixel array is ``[channel, row]``: DICOM Rows = detector columns), flipped where
-``scan.flip_channels`` / ``scan.flip_rows`` say, and written in chunks through the store's
+(``stored * RescaleSlope + RescaleIntercept``), laid out as the store's ``[row, column]`` and
+numbered as the store numbers them (the reading the scene load settled from the tags, the
+``scan.*`` keys and the orientation check: :func:`clrecon.scan.dicom_ct_pd_pixels.read_projection`),
+and written in chunks through the store's
 public API (``writing()`` / ``write()``): each chunk is a checksummed unit file, so an import
 killed at any instant resumes with the chunks already written, exactly as a simulation does.
 A file that cannot be read fails the chunk before anything of it is written. Conventions:
@@ -21,44 +22,39 @@ import numpy as np
 from clrecon.core.errors import InputError
 from clrecon.core.progress import progress as progress_counter
 from clrecon.scan import dicom_ct_pd
+from clrecon.scan.dicom_ct_pd_pixels import PIXEL_TAGS, read_projection  # noqa: F401 (read_projection: patched in tests)
 from clrecon.scan.table import projection_table
 from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.store import ProjectionStore
 
-#: The attributes the pixel pass parses (the header pass has read the rest).
-PIXEL_TAGS = ["Rows", "Columns", "BitsAllocated", "PixelRepresentation", "PixelData"]
 #: Files read per unit file of the store (as the simulation's CHUNK).
 CHUNK = 256
+#: Header index per file: the decoded tag dictionary kept while the series is indexed, and the views' arrays.
+HEADER_BYTES_PER_FILE = 2500
+#: PoCL compiling the kernels into a cold kernel cache grows the process by about this much after
+#: the pre-flight has measured it (110 MiB on 2026-12-06; Intel's CPU runtime: none measured).
+KERNEL_BUILD_BYTES = 0.1 * 2**30
 
 
-def read_projection(path: str, slope: float, intercept: float, n_rows: int, n_cols: int, pydicom,
-                    flip_channels: bool = False, flip_rows: bool = False) -> np.ndarray:
-    """One file's line integrals as ``[row, column]`` float32, shape (n_rows, n_cols)."""
-    try:
-        ds = pydicom.dcmread(path, specific_tags=PIXEL_TAGS)
-        rows, cols = int(ds.Rows), int(ds.Columns)
-        bits, signed = int(ds.BitsAllocated), int(getattr(ds, "PixelRepresentation", 0))
-        raw = ds.PixelData
-    except Exception as e:  # noqa: BLE001 - pydicom raises many types on a damaged file
-        raise InputError(f"{path}: pixel data unreadable ({type(e).__name__}); truncated file?") from None
-    if (rows, cols) != (n_cols, n_rows):
-        raise InputError(f"{path}: Rows x Columns = {rows} x {cols}; expected {n_cols} x {n_rows} "
-                         f"(channels x detector rows) as in the rest of the series")
-    if bits != 16:
-        raise InputError(f"{path}: (0028,0100) BitsAllocated = {bits}; expected 16")
-    need = rows * cols * 2
-    if len(raw) < need:
-        raise InputError(f"{path}: PixelData holds {len(raw)} bytes, expected {need} ({rows} x {cols} x 16 bit); "
-                         f"truncated file?")
-    pix = np.frombuffer(raw[:need], "<i2" if signed else "<u2").reshape(rows, cols)
-    p = pix.T.astype(np.float32) * np.float32(slope) + np.float32(intercept)  # [channel, row] -> [row, channel]
-    if flip_channels:
-        p = p[:, ::-1]
-    if flip_rows:
-        p = p[::-1, :]
-    if not np.all(np.isfinite(p)):
-        raise InputError(f"{path}: non-finite line integrals after RescaleSlope/Intercept")
-    return np.ascontiguousarray(p)
+def memory_bytes(scene: SimulatedScan) -> int:
+    """Modelled peak memory (bytes) of a measured scan beyond the reconstruction's own model
+    (:func:`clrecon.pipeline.costs.run_costs`): the header index, one import chunk (the stacked float32
+    line integrals and the files' decoded pixels), the orientation check's rebinned rows and a cold
+    kernel build (``docs/measured-data.md`` "Import into the store"). The process itself (interpreter,
+    libraries, the OpenCL driver: 0.2-0.4 GiB by driver) is measured by the pre-flight, not modelled."""
+    sc = scene.scanner
+    n = scene.scan.projection_count(sc, scene.scan.pitches[0])
+    proj = sc.n_rows * sc.n_cols * 4
+    chunk = CHUNK * proj * 2 + CHUNK * sc.n_rows * sc.n_cols * 2  # the stack, its rows list, the uint16 pixels
+    check = sc.views_per_rotation * sc.n_cols * 8 * 10  # (rows x channels hypotheses + pairs) x V x C float64
+    return int(n * HEADER_BYTES_PER_FILE + chunk + check + KERNEL_BUILD_BYTES)
+
+
+def measured_reading(scene: SimulatedScan) -> dicom_ct_pd.Reading:
+    """The reading (layout, numbering) of a measured scene's series, as its scan keys resolved it at load."""
+    sc = scene.scan
+    ix = dicom_ct_pd.series_index(sc.projections)
+    return dicom_ct_pd.reading_for(ix, dicom_ct_pd.pixel_layout(ix, sc.pixel_layout), sc.flip_channels, sc.flip_rows)
 
 
 def import_series(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, chunk: int = CHUNK,
@@ -73,6 +69,7 @@ def import_series(scene: SimulatedScan, pitch: float, needed=None, cache_dir=Non
     if table is None:
         table = projection_table(scene, pitch)
     ix = dicom_ct_pd.series_index(scene.scan.projections)
+    reading = measured_reading(scene)
     n = len(table)
     if len(ix) != n:
         raise InputError(f"{scene.scan.projections}: {len(ix)} files but the scan table has {n} views")
@@ -88,8 +85,7 @@ def import_series(scene: SimulatedScan, pitch: float, needed=None, cache_dir=Non
             for lo in range(0, missing.size, chunk):
                 idx = missing[lo:lo + chunk]
                 data = np.stack([read_projection(ix.files[k], ix.slope[k], ix.intercept[k], sc.n_rows, sc.n_cols,
-                                                 pydicom, scene.scan.flip_channels, scene.scan.flip_rows)
-                                 for k in idx])
+                                                 pydicom, reading) for k in idx])
                 store.write(idx, data)
                 store.n_simulated += int(idx.size)
                 bar.update(int(idx.size))

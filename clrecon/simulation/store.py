@@ -21,7 +21,8 @@ Layout
 - ``present`` (n,) bool: which projections have been simulated. A run may simulate only the
   projections its slices need; a later run simulates only what is still missing.
 - ``table/<column>`` (n,): the :class:`~clrecon.scan.table.ProjectionTable` columns.
-- attrs: ``format``, ``scan_hash``, ``pitch``, ``scene_json`` (the scene that created it),
+- attrs: ``format``, ``scan_hash``, ``pitch``, ``scene_json`` (the scene that created it; a measured
+  scene's input paths replaced by their digests, :mod:`clrecon.scan.patient_data`),
   ``clrecon_version``, ``projector_version``, ``views_per_rotation``, ``complete`` (all n
   projections present and the file closed cleanly).
 
@@ -76,6 +77,7 @@ from clrecon.core import faults, units
 from clrecon.core.cache import default_cache_dir
 from clrecon.core.errors import StoreError
 from clrecon.core.versions import PROJECTOR_VERSION, __version__
+from clrecon.scan.patient_data import redact_scene_dict  # no patient's path in the shared cache
 from clrecon.scan.table import ProjectionTable, projection_table
 from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.noise import add_noise
@@ -265,7 +267,7 @@ class ProjectionStore:
                 g.create_dataset(col, data=getattr(self._table, col), fletcher32=True)
             f.attrs.update({
                 "format": FORMAT, "scan_hash": self.scan_hash, "pitch": self.pitch,
-                "scene_json": json.dumps(self.scene.to_dict(), sort_keys=True),
+                "scene_json": json.dumps(redact_scene_dict(self.scene.to_dict()), sort_keys=True),
                 "clrecon_version": __version__, "projector_version": PROJECTOR_VERSION,
                 "views_per_rotation": self._table.views_per_rotation, "complete": False,
             })

@@ -1,7 +1,12 @@
 """DICOM writer: one CT Image Storage series per target, one file per slice.
 
-Rows run along +x and columns along +y, so ImageOrientationPatient = [1, 0, 0, 0, 1, 0];
-ImagePositionPatient is the centre of the first voxel of the slice (x0, y0, z_k) in mm;
+The volumes are in the scanner frame: rows run along +x and columns along +y of it. For a
+patient head first supine (HFS, every simulated scan) that is the patient's LPS frame, so
+ImageOrientationPatient = [1, 0, 0, 0, 1, 0] and ImagePositionPatient is the centre of the
+first voxel of the slice (x0, y0, z_k) in mm; for another patient position (a measured series'
+PatientPosition) the LPS axes are the scanner's with signs (sx, sy, sz)
+(:mod:`clrecon.scan.patient_frame`): ImageOrientationPatient = [sx, 0, 0, 0, sy, 0] and
+ImagePositionPatient = (sx x0, sy y0, sz z_k), so a planning system shows the patient's left as left;
 PixelSpacing = [dy, dx] (row spacing, column spacing). Stored values are int16 with
 RescaleSlope/RescaleIntercept giving HU (slope 1 HU unless the HU range does not fit in
 int16). All series of one export share one StudyInstanceUID and one FrameOfReferenceUID,
@@ -26,6 +31,7 @@ import numpy as np
 from clrecon.core.errors import StoreError
 from clrecon.outputs.writers import WRITERS
 from clrecon.outputs.writers.base import Writer, _file_tag, _spacing, target_tag
+from clrecon.scan.patient_frame import image_orientation, lps_signs
 
 if TYPE_CHECKING:
     from clrecon.outputs.rundir import Source
@@ -44,10 +50,13 @@ class DicomWriter(Writer):
 
     #: patient attributes to write in place of the phantom's (export() sets them for a measured run)
     patient: dict | None = None
+    #: patient position of the run's volumes (export() sets it; docs/measured-data.md)
+    position: str = "HFS"
 
     def begin(self, ident: str, src: Source, n_targets: int) -> _DicomContext:
         ctx = _DicomContext.create(ident, src, n_targets)
         ctx.patient = dict(self.patient or {})
+        ctx.position = self.position or "HFS"
         return ctx
 
     def write_target(self, out, vol, axes, src, ci, ri, ctx):
@@ -69,6 +78,7 @@ class _DicomContext:
     n_targets: int
     when: datetime.datetime
     patient: dict | None = None
+    position: str = "HFS"
 
     @classmethod
     def create(cls, ident: str, src: Source, n_targets: int) -> _DicomContext:
@@ -112,6 +122,7 @@ def _write_dicom_target(out: Path, vol: np.ndarray, axes: dict, src: Source, ci:
     dx, dy = _spacing(x, "x_mm"), _spacing(y, "y_mm")
     dz = _spacing(z, "z_mm") if z.size > 1 else dx
     stored, slope, intercept = hu_to_stored(vol)
+    sx, sy, sz = lps_signs(ctx.position)
     n_r = len(axes["resp_amplitude"])
     temporal = ci * n_r + ri + 1
     series_uid = generate_uid(entropy_srcs=[ctx.ident, "series", str(ci), str(ri)])
@@ -139,9 +150,9 @@ def _write_dicom_target(out: Path, vol: np.ndarray, axes: dict, src: Source, ci:
         ds.Manufacturer = "clrecon"
         ds.PatientName = "clrecon^phantom"
         ds.PatientID = "CLRECON-PHANTOM"
-        for key, val in (ctx.patient or {}).items():
-            setattr(ds, key, val)
-        ds.PatientPosition = "HFS"
+        ds.PatientBirthDate = ""
+        ds.PatientSex = ""
+        ds.PatientPosition = ctx.position
         ds.StudyInstanceUID = ctx.study_uid
         ds.SeriesInstanceUID = series_uid
         ds.FrameOfReferenceUID = ctx.frame_uid
@@ -152,17 +163,22 @@ def _write_dicom_target(out: Path, vol: np.ndarray, axes: dict, src: Source, ci:
         ds.StudyTime = ds.SeriesTime = ds.ContentTime = time_
         ds.AccessionNumber = ""
         ds.ReferringPhysicianName = ""
+        for key, val in (ctx.patient or {}).items():  # after the defaults: --keep-identifiers copies them all
+            setattr(ds, key, val)
         ds.SeriesNumber = temporal
+        ds.AcquisitionNumber = 1
         ds.InstanceNumber = k + 1
+        ds.KVP = ""
+        ds.Laterality = ""  # Type 2C: not a paired organ (an empty value states it)
         ds.SeriesDescription = desc[:64]
         ds.ImageComments = f"cardiac_phase={c:.4f} resp_amplitude={a:.4f} source={src.dataset}"
         ds.TemporalPositionIdentifier = temporal
         ds.NumberOfTemporalPositions = ctx.n_targets
         ds.NominalPercentageOfCardiacPhase = c * 100.0
         ds.NominalPercentageOfRespiratoryPhase = a * 100.0
-        ds.ImagePositionPatient = [_ds(x[0]), _ds(y[0]), _ds(z[k])]
-        ds.ImageOrientationPatient = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
-        ds.SliceLocation = _ds(z[k])
+        ds.ImagePositionPatient = [_ds(sx * x[0]), _ds(sy * y[0]), _ds(sz * z[k])]
+        ds.ImageOrientationPatient = image_orientation(ctx.position)
+        ds.SliceLocation = _ds(sz * z[k])
         ds.SliceThickness = _ds(dz)
         ds.SpacingBetweenSlices = _ds(dz)
         ds.PixelSpacing = [_ds(dy), _ds(dx)]

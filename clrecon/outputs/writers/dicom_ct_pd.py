@@ -5,9 +5,11 @@
 - ``DIR/projections/PROJ000001.dcm ...``: every projection of one pitch (the noisy variant when
   the scene has noise: noise is drawn on read, :mod:`clrecon.simulation.noise`), uint16 with
   RescaleSlope/RescaleIntercept to line integrals (per file: slope = range / 65535, so the
-  quantisation error is at most slope / 2), DICOM Rows = detector columns (channels), Columns =
-  detector rows, with the DICOM-CT-PD private tags of :data:`clrecon.scan.dicom_ct_pd.TAGS`
-  (conventions: ``docs/measured-data.md``);
+  quantisation error is at most slope / 2), in the format's conventions (:class:`Convention`,
+  ``docs/measured-data.md``): DICOM Rows = detector channels (the TCIA layout), the channel index
+  towards decreasing phi0, row 1 at the +z0 end, the DetectorCentralElement reflected with them,
+  with the DICOM-CT-PD private tags of :data:`clrecon.scan.dicom_ct_pd.TAGS`, the water coefficient
+  and the patient position, and every attribute the CT Image IOD asks for (dciodvfy: no error);
 - ``DIR/breathing.vxp``: the breathing trace (RPM 1.6 layout, 200 samples/s, the model's raw
   amplitude r(t) in cm with Scale_factor 10, ttlin = 1 while the beam is on) when the scene breathes;
 - ``DIR/r_peaks.csv``: the R-peak times (``r_peak_s``) when the heart beats;
@@ -20,6 +22,7 @@ A run whose store lacks projections (``--slices``) has them simulated first.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -74,8 +77,8 @@ class DicomCtPdWriter(Writer):
     #: exports the run's projections (not its volumes): export() calls export_scan
     scan_export = True
 
-    def export_scan(self, run, out: Path, pitch=None, keep_identifiers: bool = False) -> dict:
-        return export_scan(run, out, pitch=pitch, keep_identifiers=keep_identifiers)
+    def export_scan(self, run, out: Path, pitch=None, keep_identifiers: bool = False, scene=None) -> dict:
+        return export_scan(run, out, pitch=pitch, keep_identifiers=keep_identifiers, scene=scene)
 
 
 def _private(ds, name: str, value) -> None:
@@ -84,13 +87,38 @@ def _private(ds, name: str, value) -> None:
     block.add_new(elem & 0xFF, vr, value)
 
 
-def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False) -> dict:
-    """Write the scan of ``run`` (a :class:`clrecon.outputs.rundir.RunDirectory`) under ``out``."""
+@dataclass(frozen=True)
+class Convention:
+    """How the exported files lay out and number the detector (docs/measured-data.md).
+
+    ``layout``: ``rows-are-channels`` (DICOM Rows = detector channels, as the TCIA files) or
+    ``rows-are-detector-rows``; ``flip_channels`` / ``flip_rows``: number that axis opposite to the
+    DICOM-CT-PD convention (the store's own order; a reader then needs ``scan.flip_channels`` /
+    ``scan.flip_rows``). The default is the format's convention, which every reader of it expects.
+    """
+
+    layout: str = "rows-are-channels"
+    flip_channels: bool = False
+    flip_rows: bool = False
+
+    def __post_init__(self):
+        if self.layout not in pd_tags.LAYOUTS:
+            raise ClreconError(f"layout = {self.layout!r}: must be one of {', '.join(pd_tags.LAYOUTS)}")
+
+
+def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False, convention: Convention | None = None,
+                scene: Scene | None = None) -> dict:
+    """Write the scan of ``run`` (a :class:`clrecon.outputs.rundir.RunDirectory`) under ``out``.
+
+    ``scene``: the run's scene where ``results.json`` records a measured series only by its signature
+    (patient data): the measured scene the run was made from (checked against that record).
+    """
     pydicom = DicomCtPdWriter().require()
     from pydicom.uid import generate_uid
 
+    convention = convention or Convention()
     res = run.results
-    scene = run.scene
+    scene = scene if scene is not None else run.scene
     pitches = [float(p) for p in res["request"]["pitches"]]
     if pitch is None:
         pitch = min(pitches)
@@ -118,7 +146,6 @@ def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False) -> d
     n = len(table)
     photons = np.full(sc.n_cols, scene.noise.i0_photons if noisy else 0.0, np.float32)
     max_err = 0.0
-    files = []
     for lo in range(0, n, BATCH):
         idx = np.arange(lo, min(n, lo + BATCH), dtype=np.int64)
         data = store.read_indices(idx, noisy=noisy)
@@ -129,28 +156,30 @@ def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False) -> d
             sop = generate_uid(entropy_srcs=[seed, "sop", str(int(k))])
             ds = projection_dataset(scene, table, int(k), stored, slope, intercept, photons,
                                     (study_uid, series_uid, frame_uid), sop,
-                                    f"clrecon {scene.name} pitch {pitch:g} {variant} projections", ident)
+                                    f"clrecon {scene.name} pitch {pitch:g} {variant} projections", ident, convention)
             ds.SpiralPitchFactor = float(pitch)
-            path = proj_dir / f"PROJ{int(k) + 1:06d}.dcm"
-            pydicom.dcmwrite(path, ds, enforce_file_format=True)
-            files.append(path)
+            pydicom.dcmwrite(proj_dir / f"PROJ{int(k) + 1:06d}.dcm", ds, enforce_file_format=True)
     store.close()
     written = {"projections": "projections", "n_projections": n, "variant": variant,
-               "quantisation_max_error": max_err}
+               "quantisation_max_error": max_err, "convention": {"layout": convention.layout,
+                                                                 "flip_channels": convention.flip_channels,
+                                                                 "flip_rows": convention.flip_rows}}
     sig = {}
-    if scene.has_respiratory:
+    if scene.has_respiratory and not scene.measured:
         write_vxp(out / "breathing.vxp", scene, float(table.time_s[-1]))
         written["breathing_trace"] = "breathing.vxp"
         sig.update(breathing_trace="breathing.vxp", trace_align="beam-on")
-    elif scene.measured and scene.signals.breathing_trace:
-        pass  # a measured run: the trace is the input's (not copied: it may carry identifiers)
-    if scene.has_cardiac:
-        peaks = (signals.r_peaks(scene) if not scene.measured else None)
-        if peaks is not None:
-            write_r_peaks(out / "r_peaks.csv", peaks)
-            written["ecg_trace"] = "r_peaks.csv"
-            sig["ecg_trace"] = "r_peaks.csv"
-    (out / "measured.toml").write_text(measured_toml(scene, sig, res))
+    # a measured run: the traces are the input's (not copied: they may carry identifiers)
+    if scene.has_cardiac and not scene.measured:
+        write_r_peaks(out / "r_peaks.csv", signals.r_peaks(scene))
+        written["ecg_trace"] = "r_peaks.csv"
+        sig["ecg_trace"] = "r_peaks.csv"
+    scan_keys = {}
+    if convention.flip_channels:
+        scan_keys["flip_channels"] = True
+    if convention.flip_rows:
+        scan_keys["flip_rows"] = True
+    (out / "measured.toml").write_text(measured_toml(scene, sig, res, scan_keys))
     written["scene"] = "measured.toml"
     return {"format": "dicom-ct-pd", "pitch": pitch, "source": f"projections {pk}", "method": "projections",
             "pitch_key": pk, "variant": variant, "frame": DicomCtPdWriter.frame, "targets": [],
@@ -158,11 +187,14 @@ def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False) -> d
 
 
 def projection_dataset(scene: Scene, table, k: int, stored: np.ndarray, slope: float, intercept: float,
-                       photons: np.ndarray, uids: tuple, sop: str, description: str, ident: dict | None = None):
-    """The DICOM-CT-PD dataset of projection ``k`` of ``table`` (``stored``: uint16 (R, C) ``[row, column]``)."""
+                       photons: np.ndarray, uids: tuple, sop: str, description: str, ident: dict | None = None,
+                       convention: Convention | None = None):
+    """The DICOM-CT-PD dataset of projection ``k`` of ``table`` (``stored``: uint16 (R, C) in the store's
+    ``[row, column]`` order), laid out and numbered as ``convention`` says (default: the format's)."""
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian
 
+    convention = convention or Convention()
     sc = scene.scanner
     study_uid, series_uid, frame_uid = uids
     meta = FileMetaDataset()
@@ -171,20 +203,42 @@ def projection_dataset(scene: Scene, table, k: int, stored: np.ndarray, slope: f
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     ds = Dataset()
     ds.file_meta = meta
+    ds.SpecificCharacterSet = "ISO_IR 100"
     ds.SOPClassUID = CT_IMAGE_STORAGE
     ds.SOPInstanceUID = sop
     ds.Modality = "CT"
     ds.Manufacturer = "clrecon"
     ds.PatientName = "ANONYMOUS" if scene.measured else "clrecon^phantom"
     ds.PatientID = "ANONYMOUS" if scene.measured else "CLRECON-PHANTOM"
-    for key, val in (ident or {}).items():
-        setattr(ds, key, val)
+    ds.PatientBirthDate = ""
+    ds.PatientSex = ""
+    ds.StudyDate = ds.SeriesDate = ds.ContentDate = ""
+    ds.StudyTime = ds.SeriesTime = ds.ContentTime = ""
+    ds.StudyID = ""
+    ds.AccessionNumber = ""
+    ds.ReferringPhysicianName = ""
     ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study_uid, series_uid, frame_uid
+    ds.PositionReferenceIndicator = ""
+    for key, val in (ident or {}).items():  # --keep-identifiers: the input's own values
+        setattr(ds, key, val)
+    ds.SeriesNumber = 1
+    ds.AcquisitionNumber = 1
     ds.SeriesDescription = description[:64]
-    ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL", "CT_PROJECTION"] if scene.measured else \
-        ["DERIVED", "SECONDARY", "AXIAL", "CT_PROJECTION"]
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL"] if scene.measured else ["DERIVED", "SECONDARY", "AXIAL"]
+    ds.ImageComments = "DICOM-CT-PD projection (CT_PROJECTION): geometry in the private groups 7029-7041"
     ds.InstanceNumber = k + 1
-    ds.Rows, ds.Columns = sc.n_cols, sc.n_rows
+    ds.PatientPosition = scene.scan.patient_position or "HFS"
+    ds.KVP = ""
+    ds.Laterality = ""  # Type 2C: not a paired organ (an empty value states it)
+    # a projection lies in no patient plane: nominal values for the Type 1 image-plane attributes
+    # (the geometry is in the private tags); PixelSpacing = spacing between DICOM rows, columns
+    along_rows = (float(sc.col_pitch_mm), float(sc.row_pitch_mm))
+    if convention.layout == "rows-are-detector-rows":
+        along_rows = along_rows[::-1]
+    ds.PixelSpacing = [f"{along_rows[0]:.6g}", f"{along_rows[1]:.6g}"]
+    ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+    ds.ImagePositionPatient = [0, 0, f"{float(table.source_z_mm[k]):.6f}"[:16]]
+    ds.SliceThickness = ""
     ds.SamplesPerPixel = 1
     ds.PhotometricInterpretation = "MONOCHROME2"
     ds.BitsAllocated = 16
@@ -194,6 +248,20 @@ def projection_dataset(scene: Scene, table, k: int, stored: np.ndarray, slope: f
     ds.RescaleSlope = f"{slope:.9g}"
     ds.RescaleIntercept = f"{intercept:.9g}"
     ds.RescaleType = "LINE_INTEGRAL"[:16]
+    # the format's numbering: channel index towards decreasing phi0, row index towards decreasing z0
+    # (row 1 at the +z end): the store's two axes reversed, the central element reflected with them
+    pix = stored if convention.flip_rows else stored[::-1, :]
+    pix = pix if convention.flip_channels else pix[:, ::-1]
+    cc, cr = getattr(sc, "central_col", -1.0), getattr(sc, "central_row", -1.0)
+    cc = (sc.n_cols - 1) / 2.0 if cc == -1.0 else float(cc)
+    cr = (sc.n_rows - 1) / 2.0 if cr == -1.0 else float(cr)
+    x = cc + 1.0 if convention.flip_channels else sc.n_cols - cc
+    y = cr + 1.0 if convention.flip_rows else sc.n_rows - cr
+    if convention.layout == "rows-are-channels":
+        ds.Rows, ds.Columns = sc.n_cols, sc.n_rows
+        pix = pix.T  # pixel[channel, row]
+    else:
+        ds.Rows, ds.Columns = sc.n_rows, sc.n_cols
     _private(ds, "NumberofDetectorRows", sc.n_rows)
     _private(ds, "NumberofDetectorColumns", sc.n_cols)
     _private(ds, "DetectorElementTransverseSpacing", float(sc.col_pitch_mm))
@@ -204,13 +272,10 @@ def projection_dataset(scene: Scene, table, k: int, stored: np.ndarray, slope: f
     _private(ds, "DetectorFocalCenterAxialPosition", float(table.source_z_mm[k]))
     _private(ds, "DetectorFocalCenterRadialDistance", float(sc.sid_mm))
     _private(ds, "ConstantRadialDistance", float(sc.sdd_mm))
-    # a cylindrical detector's central element and the flying focal spot (the scanner keys and the
-    # table's focal_shift of the issue-17 model, where present; the flat detector: centred, none)
-    cc, cr = getattr(sc, "central_col", -1.0), getattr(sc, "central_row", -1.0)
-    _private(ds, "DetectorCentralElement", [(sc.n_cols + 1) / 2.0 if cc == -1.0 else cc + 1.0,
-                                            (sc.n_rows + 1) / 2.0 if cr == -1.0 else cr + 1.0])
+    _private(ds, "DetectorCentralElement", [x, y])
+    # the flying focal spot (the scanner keys and the table's focal_shift of the issue-17 model)
     shift = getattr(table, "focal_shift", None)
-    dphi, drho, dz = (0.0, 0.0, 0.0) if shift is None else (float(x) for x in shift[k])
+    dphi, drho, dz = (0.0, 0.0, 0.0) if shift is None else (float(v) for v in shift[k])
     _private(ds, "SourceAngularPositionShift", dphi)
     _private(ds, "SourceAxialPositionShift", dz)
     _private(ds, "SourceRadialDistanceShift", drho)
@@ -221,8 +286,8 @@ def projection_dataset(scene: Scene, table, k: int, stored: np.ndarray, slope: f
     _private(ds, "Timestamp", float(table.time_s[k] * 1000.0))
     _private(ds, "TypeofProjectionData", "HELICAL")
     _private(ds, "TypeofProjectionGeometry", "FANBEAM")
-    # DICOM Rows = channels: pixel[channel, row] = p[row, channel]
-    ds.PixelData = np.ascontiguousarray(stored.T).astype("<u2").tobytes()
+    _private(ds, "WaterAttenuationCoefficient", f"{float(scene.phantom.mu_water_per_mm):.8g}"[:16])
+    ds.PixelData = np.ascontiguousarray(pix).astype("<u2").tobytes()
     return ds
 
 
@@ -260,7 +325,7 @@ def _toml_value(v) -> str:
     raise TypeError(type(v))
 
 
-def measured_toml(scene: Scene, sig: dict, results: dict) -> str:
+def measured_toml(scene: Scene, sig: dict, results: dict, scan_keys: dict | None = None) -> str:
     """A scene reconstructing the exported folder as a measured scan on the run's grid and methods."""
     d = scene.to_dict()
     recon = dict(d["recon"])
@@ -268,8 +333,9 @@ def measured_toml(scene: Scene, sig: dict, results: dict) -> str:
     lines = [f"# written by clrecon export --format dicom-ct-pd from the run of scene {scene.name!r}",
              f'name = "{scene.name}-measured"',
              f'description = "the {scene.name} scan exported as DICOM-CT-PD and read back as a measured scan"',
-             "", "[scan]", 'source = "dicom-ct-pd"', 'projections = "projections"', 'timestamp_unit = "ms"',
-             "", "[signals]"]
+             "", "[scan]", 'source = "dicom-ct-pd"', 'projections = "projections"', 'timestamp_unit = "ms"']
+    lines += [f"{k} = {_toml_value(v)}" for k, v in (scan_keys or {}).items()]
+    lines += ["", "[signals]"]
     lines += [f"{k} = {_toml_value(v)}" for k, v in sig.items()]
     lines += ["", "[noise]", "enabled = false", "", "[recon]"]
     lines += [f"{k} = {_toml_value(v)}" for k, v in recon.items()]

@@ -2,7 +2,8 @@
 
 Array indexed ``[i, j, k] = [x, y, z]``, float32 HU, with qform = sform (code 1, scanner)
 mapping voxel indices to **RAS** mm: NIfTI's RAS is LPS with x and y negated, so the affine is
-``diag(-dx, -dy, dz)`` with origin ``(-x0, -y0, z0)``.
+``diag(-dx, -dy, dz)`` with origin ``(-x0, -y0, z0)`` for a patient head first supine; another
+patient position multiplies the axes by its LPS signs (:mod:`clrecon.scan.patient_frame`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from clrecon.outputs.writers.base import (
     source_stem,
     target_tag,
 )
+from clrecon.scan.patient_frame import lps_signs
 
 if TYPE_CHECKING:
     from clrecon.outputs.rundir import Source
@@ -32,17 +34,27 @@ class NiftiWriter(Writer):
     frame = "RAS (NIfTI; LPS with x and y negated)"
     requires = "nibabel"
 
+    #: patient position of the run's volumes (export() sets it; docs/measured-data.md)
+    position: str = "HFS"
+
+    def begin(self, ident, src, n_targets):
+        return self
+
     def write_target(self, out, vol, axes, src, ci, ri, ctx):
         return _write_nifti_target(out, vol, axes, src, ci, ri, ctx)
 
 
-def nifti_affine(axes: dict) -> np.ndarray:
-    """4x4 voxel-index (i=x, j=y, k=z) -> RAS mm affine of a run's grid (LPS axes negated in x, y)."""
+def nifti_affine(axes: dict, position: str = "HFS") -> np.ndarray:
+    """4x4 voxel-index (i=x, j=y, k=z) -> RAS mm affine of a run's grid (LPS axes negated in x, y).
+
+    The grid is the scanner frame; ``position`` (the patient position, :mod:`clrecon.scan.patient_frame`)
+    gives the signs that turn it into the patient's LPS (all + for HFS)."""
     x, y, z = axes["x_mm"], axes["y_mm"], axes["z_mm"]
     dx, dy = _spacing(x, "x_mm"), _spacing(y, "y_mm")
     dz = _spacing(z, "z_mm") if z.size > 1 else dx
-    aff = np.diag([-dx, -dy, dz, 1.0])
-    aff[:3, 3] = [-x[0], -y[0], z[0]]
+    sx, sy, sz = lps_signs(position)
+    aff = np.diag([-sx * dx, -sy * dy, sz * dz, 1.0])
+    aff[:3, 3] = [-sx * x[0], -sy * y[0], sz * z[0]]
     return aff
 
 
@@ -52,7 +64,7 @@ def _write_nifti_target(out: Path, vol: np.ndarray, axes: dict, src: Source, ci:
     c = float(axes["cardiac_phase"][ci])
     a = float(axes["resp_amplitude"][ri])
     data = np.ascontiguousarray(np.transpose(vol, (2, 1, 0)), np.float32)  # [z,y,x] -> [x,y,z]
-    aff = nifti_affine(axes)
+    aff = nifti_affine(axes, getattr(ctx, "position", None) or "HFS")
     img = nib.Nifti1Image(data, aff)
     img.header.set_qform(aff, code=1)
     img.header.set_sform(aff, code=1)

@@ -17,6 +17,7 @@ import numpy as np
 from clrecon.core.resources import peak_rss_bytes
 from clrecon.core.versions import __version__
 from clrecon.evaluation import claims, motion
+from clrecon.outputs import measured_record
 from clrecon.pipeline.context import RESULTS_FORMAT, json_default
 from clrecon.pipeline.stages import assemble
 
@@ -45,7 +46,10 @@ def _write_json_atomic(path: Path, obj) -> None:
     tmp.replace(path)
 
 
-write_json_atomic = _write_json_atomic
+def write_json_atomic(path: Path, results: dict) -> None:
+    """``results.json`` as it goes to disk: no patient's path in it
+    (:func:`clrecon.outputs.measured_record.for_disk`)."""
+    _write_json_atomic(path, measured_record.for_disk(results))
 
 #: What ``waited_for`` says of a part computed beside the run.
 BESIDE = ("the seconds are the run's own time on it and its wait for what was done beside it; beside_seconds the "
@@ -115,6 +119,8 @@ def stage(run, pitch=None, volumes=None, metrics=None) -> dict:
                          "why": "measured scan: error against truth is unavailable" if scene.measured else ""},
         "recorded_signals": rec["recorded_signals"],
     }
+    if scene.measured:  # the reading, the orientation check, the calibration's sources, the patient frame
+        measured_record.annotate_results(results, scene, run.log)
     if run.want_truth_free:
         results["truth_free"] = rec["truth_free"]
     summary = run.extra["summary"]()
