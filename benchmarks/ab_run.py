@@ -1,15 +1,16 @@
 """Same-run A/B of ``python -m clrecon run`` wall time: this tree against another source tree.
 
-    python benchmarks/ab_run.py --ref /path/to/other/tree [--pairs 3] [--cases demo,paper-slab]
+    python -m benchmarks.ab_run --ref /path/to/other/tree [--pairs 3] [--cases tiny,demo,paper-slab]
 
 Each case runs alternately from the reference tree (``PYTHONPATH=<ref>``) and from this tree,
-``--pairs`` times, into fresh run folders; both share one projection cache, warmed by a first
-run of each case, and the truth cache is emptied before every run (the truths are computed
-each time; the simulation is reused). Reports per case the median wall seconds of each side,
-their ratio (this / reference: below 1 is faster), the 1-minute load before each run, the CPU
-model, and whether every ``volumes.h5`` dataset is bit-identical between the two sides' last
-runs. Cases: ``demo`` (the default scene, whole) and ``paper-slab`` (``paper-p010``, slices
-54:56, all 50 targets, at the paper's 512^2 / 900 x 64 sizes).
+``--pairs`` times, into fresh run folders; both share one projection cache, warmed by a first run of
+each case, and the truth cache is emptied before every run (the truths are computed each time; the
+simulation is reused). Reports per case the median wall seconds of each side, their ratio (this /
+reference: below 1 is faster), the runs' own CPU core-seconds (from their ``results.json``; much
+less sensitive to other jobs on a shared machine), the 1-minute load before each run, the CPU model,
+and whether every ``volumes.h5`` dataset is bit-identical between the two sides' last runs. Cases:
+``tiny``, ``demo`` (the default scene, whole) and ``paper-slab`` (``paper-p010``, slices 54:56, all
+50 targets, at the paper's 512^2 / 900 x 64 sizes).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from pathlib import Path
 import h5py
 
 HERE = Path(__file__).resolve().parent.parent
-CASES = {"demo": ["--scene", "demo"],
+CASES = {"tiny": ["--scene", "tiny"], "demo": ["--scene", "demo"],
          "paper-slab": ["--scene", "paper-p010", "--slices", "54:56"]}
 
 
@@ -44,6 +45,15 @@ def _cpu() -> str:
 
 def _load() -> float:
     return round(os.getloadavg()[0], 2)
+
+
+def _own_core_s(out: Path) -> float | None:
+    """The run's own CPU core-seconds (``results.json`` ``machine_speed``): less sensitive to other
+    jobs than wall time."""
+    try:
+        return json.loads((out / "results.json").read_text())["machine_speed"]["own_core_s"]
+    except (OSError, KeyError, ValueError):
+        return None
 
 
 def _run(tree: Path, args: list, out: Path, cache: Path, extra: list) -> float:
@@ -82,18 +92,25 @@ def main(argv=None) -> int:
         args = CASES[case]
         _run(this, args, work / f"{case}-warm", cache, [])  # fills the shared projection cache
         walls: dict = {"ref": [], "this": []}
+        cpu: dict = {"ref": [], "this": []}
         loads: list = []
         for i in range(a.pairs):
             for side, tree in (("ref", ref), ("this", this)) if i % 2 == 0 else (("this", this), ("ref", ref)):
                 loads.append(_load())
                 walls[side].append(_run(tree, args, work / f"{case}-{side}", cache, []))
-                print(f"{case} {side} {walls[side][-1]:.1f} s (load {loads[-1]})", flush=True)
+                cpu[side].append(_own_core_s(work / f"{case}-{side}"))
+                print(f"{case} {side} {walls[side][-1]:.1f} s, own {cpu[side][-1]} core-s (load {loads[-1]})",
+                      flush=True)
         same = _datasets(work / f"{case}-ref") == _datasets(work / f"{case}-this")
         med = {k: statistics.median(v) for k, v in walls.items()}
+        mcpu = {k: statistics.median(v) if all(x is not None for x in v) else None for k, v in cpu.items()}
         res["cases"][case] = {"walls": walls, "median": med, "ratio_this_over_ref": med["this"] / med["ref"],
-                              "load_1min": loads, "volumes_bit_identical": same}
-        print(f"{case}: this {med['this']:.1f} s, reference {med['ref']:.1f} s, ratio {med['this'] / med['ref']:.3f}, "
-              f"load {min(loads)}-{max(loads)}, volumes bit-identical: {same}", flush=True)
+                              "own_core_s": cpu, "median_own_core_s": mcpu, "load_1min": loads,
+                              "volumes_bit_identical": same}
+        cpu_ratio = mcpu["this"] / mcpu["ref"] if mcpu["this"] and mcpu["ref"] else float("nan")
+        print(f"{case}: this {med['this']:.1f} s, reference {med['ref']:.1f} s, ratio {med['this'] / med['ref']:.3f}; "
+              f"own core-s ratio {cpu_ratio:.3f}; load {min(loads)}-{max(loads)}, volumes bit-identical: {same}",
+              flush=True)
     if a.json:
         Path(a.json).write_text(json.dumps(res, indent=2))
     if not a.work:
