@@ -50,8 +50,12 @@ def _load() -> float:
 def _own_core_s(out: Path) -> float | None:
     """The run's own CPU core-seconds (``results.json`` ``machine_speed``): less sensitive to other
     jobs than wall time."""
+    return _speed(out, "own_core_s")
+
+
+def _speed(out: Path, key: str) -> float | None:
     try:
-        return json.loads((out / "results.json").read_text())["machine_speed"]["own_core_s"]
+        return json.loads((out / "results.json").read_text())["machine_speed"][key]
     except (OSError, KeyError, ValueError):
         return None
 
@@ -93,19 +97,22 @@ def main(argv=None) -> int:
         _run(this, args, work / f"{case}-warm", cache, [])  # fills the shared projection cache
         walls: dict = {"ref": [], "this": []}
         cpu: dict = {"ref": [], "this": []}
+        others: dict = {"ref": [], "this": []}
         loads: list = []
         for i in range(a.pairs):
             for side, tree in (("ref", ref), ("this", this)) if i % 2 == 0 else (("this", this), ("ref", ref)):
                 loads.append(_load())
                 walls[side].append(_run(tree, args, work / f"{case}-{side}", cache, []))
                 cpu[side].append(_own_core_s(work / f"{case}-{side}"))
-                print(f"{case} {side} {walls[side][-1]:.1f} s, own {cpu[side][-1]} core-s (load {loads[-1]})",
-                      flush=True)
+                others[side].append(_speed(work / f"{case}-{side}", "others_core_s"))
+                print(f"{case} {side} {walls[side][-1]:.1f} s, own {cpu[side][-1]} core-s, other jobs "
+                      f"{others[side][-1]} core-s (load {loads[-1]})", flush=True)
         same = _datasets(work / f"{case}-ref") == _datasets(work / f"{case}-this")
         med = {k: statistics.median(v) for k, v in walls.items()}
         mcpu = {k: statistics.median(v) if all(x is not None for x in v) else None for k, v in cpu.items()}
         res["cases"][case] = {"walls": walls, "median": med, "ratio_this_over_ref": med["this"] / med["ref"],
-                              "own_core_s": cpu, "median_own_core_s": mcpu, "load_1min": loads,
+                              "own_core_s": cpu, "median_own_core_s": mcpu, "others_core_s": others,
+                              "load_1min": loads,
                               "volumes_bit_identical": same}
         cpu_ratio = mcpu["this"] / mcpu["ref"] if mcpu["this"] and mcpu["ref"] else float("nan")
         print(f"{case}: this {med['this']:.1f} s, reference {med['ref']:.1f} s, ratio {med['this'] / med['ref']:.3f}; "
