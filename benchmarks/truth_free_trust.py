@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 from clrecon.config.scene import load_scene
+from clrecon.core import atomic, jsonio
 from clrecon.evaluation.truth_free import DEFAULT_KERNELS, Kernel
 from clrecon.pipeline.run import run
 
@@ -184,14 +185,14 @@ def run_study(out_dir, cases=STUDY, cache=None, log=print) -> dict:
     for name in cases:
         f = out / f"case-{name}.json"
         if f.exists():
-            done.append(json.loads(f.read_text()))
+            done.append(jsonio.loads(f.read_text()))
             continue
         log(f"truth_free_trust: {name} ...", file=sys.stderr)
         c = run_case(name, out / "runs", cache, log)
-        f.write_text(json.dumps(c, indent=1))
+        atomic.write_json(f, c, indent=1)
         done.append(c)
     res = {"cases": [c["case"] for c in done], "analysis": analyse(done)}
-    (out / "trust.json").write_text(json.dumps(res, indent=1))
+    atomic.write_json(out / "trust.json", res, indent=1)
     return res
 
 

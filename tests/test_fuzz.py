@@ -5,15 +5,18 @@ traceback unless ``--debug``; fuzzed scene files and stores raise nothing else."
 
 from __future__ import annotations
 
+import math
 import random
 import warnings
 
+import hostile_scenes as hostile
 import numpy as np
 import pytest
 
 from clrecon.cli import main
-from clrecon.config.scene import SCENE_DIR, load_scene, scene_from_dict
+from clrecon.config.scene import SCENE_DIR, SECTIONS, load_scene, scene_from_dict
 from clrecon.core.errors import ClreconError, SceneError, StoreError
+from clrecon.reconstruction.config import MAX_GRID_MM
 from clrecon.simulation.store import ProjectionStore
 
 # Sizes of the fuzz loops (seeded: the same cases every run).
@@ -38,14 +41,22 @@ def _one_line_cli_error(capsys, argv, *fragments):
     ("[scanner]\nn_colz = 96", ["scanner.n_colz: unknown key", "did you mean 'n_cols'"]),
     ("colour = 1", ["colour: unknown key", "valid keys"]),
     ("[recon]\nresp_bins = 99", ["recon.resp_bins = 99", "an integer in 1..50"]),
-    ("[noise]\ni0_photons = nan", ["noise.i0_photons = nan", "a number in (0, 1e15]"]),
-    ("[noise]\ni0_photons = 1e19", ["noise.i0_photons = 1e+19", "a number in (0, 1e15]"]),
-    ("[scan]\npitches = 0.5", ["scan.pitches = 0.5", "a non-empty list"]),            # scalar for a list
-    ("[scan]\npitches = [0.1, inf]", ["scan.pitches", "(0, 2]"]),
+    ("[noise]\ni0_photons = nan", ["noise.i0_photons = nan", "a number in [1, 1e+15] photons"]),
+    ("[noise]\ni0_photons = 1e19", ["noise.i0_photons = 1e+19", "a number in [1, 1e+15] photons"]),
+    ("[scan]\npitches = 0.5", ["scan.pitches = 0.5", "a list of 1 to 64 numbers"]),  # scalar for a list
+    ("[scan]\npitches = [0.1, inf]", ["scan.pitches = [0.1, inf]", "[0.001, 2]"]),
     ("[signals]\nrhythm = 3", ["signals.rhythm = 3", "one of periodic"]),
     ("scanner = 5", ["scanner: expected a table"]),
-    ("[scanner]\nsid_mm = 1e-308", ["derived geometry", "not finite"]),               # overflow
-    ("[scanner]\nsdd_mm = 1e308", ["derived geometry", "not finite"]),
+    ("[scanner]\nsid_mm = 1e-308", ["scanner.sid_mm = 1e-308", "a number in [10, 5000] mm (clinical CT"]),
+    ("[scanner]\nsdd_mm = 1e308", ["scanner.sdd_mm = 1e+308", "a number in [10, 10000] mm"]),
+    ("[scanner]\ncol_pitch_mm = 1e12", ["scanner.col_pitch_mm = 1000000000000.0", "[0.005, 100] mm (detector cells"]),
+    ("[recon]\nny = 1000000", ["recon.ny = 1000000", "an integer in 2..4096"]),
+    ("[scanner]\nrotation_time_s = 30.0", ["a scan of 4", "at most 600 s"]),            # too long a scan
+    ("[noise]\nelectronic_sigma = 3e5", ["noise.electronic_sigma = 300000.0", "at most noise.i0_photons"]),
+    ("[recon]\nnx = 400\nvoxel_mm = 12.0", ["recon.nx x recon.voxel_mm = 400 x 12 mm", "at most 2000 mm"]),
+    ("[signals]\nbreathing_trace = 'no-such.vxp'", ["signals.breathing_trace = ",
+                                                      "no-such.vxp': no such file (expected a Varian RPM"]),
+    ("[scan]\nflip_rows = true", ["scan.flip_rows = True", "only used with scan.source = 'dicom-ct-pd'"]),
     ("[scan]\npitches = [1.5]", ["pitch 1.5 leaves (slice, view) pairs without data",
                                  "the largest pitch that covers every (slice, view) is 0.8870"]),
 ])
@@ -73,7 +84,7 @@ def test_cli_bad_scene_is_one_line_and_debug_shows_the_traceback(tmp_path, capsy
     f = tmp_path / "bad.toml"
     f.write_text("[recon]\nnx = -3\n")
     _one_line_cli_error(capsys, ["run", "--scene", str(f), "--out", str(tmp_path / "out")],
-                        str(f), "recon.nx = -3", "an integer > 0")
+                        str(f), "recon.nx = -3", "an integer in 2..4096")
     with pytest.raises(SceneError):
         main(["--debug", "run", "--scene", str(f), "--out", str(tmp_path / "out")])
 
@@ -119,14 +130,54 @@ def test_fuzzed_scene_files_raise_only_scene_errors(tmp_path):
     assert n_ok > 0 and n_err > 0                 # the fuzz reaches both outcomes
 
 
-def test_fuzzed_scene_dicts_raise_only_scene_errors():
-    """Random values of every type in random keys of every section."""
+def _finite_numbers(obj, where=""):
+    """Every number in a (nested) dict/list is finite; yields the path of any that is not."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        yield where
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _finite_numbers(v, f"{where}.{k}")
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            yield from _finite_numbers(v, f"{where}[{i}]")
+
+
+def _assert_sane(scene):
+    """What an accepted scene must satisfy whatever its values: finite numbers, every ranged key in its
+    declared range, and derived geometry (collimation, field of view, projection count, scan length)
+    finite and within the limits the stages are built for."""
     from dataclasses import fields
 
-    from clrecon.config.scene import SECTIONS
+    from clrecon.scan.config import MAX_SCAN_S
+    assert not list(_finite_numbers(scene.to_dict()))
+    for sec in SECTIONS:
+        cfg = getattr(scene, sec)
+        for f in fields(cfg):
+            rng = f.metadata.get("range")
+            v = getattr(cfg, f.name)
+            if rng is not None and isinstance(v, (int, float)) and not isinstance(v, bool):
+                lo, hi = rng
+                assert v == 0 or lo <= v <= hi, (sec, f.name, v, rng)
+    sc = scene.scanner
+    assert math.isfinite(sc.collimation_iso_mm) and sc.collimation_iso_mm > 0
+    assert math.isfinite(sc.fov_radius_mm) and sc.fov_radius_mm > 0
+    for p in scene.scan.pitches:
+        assert 1 <= scene.scan.projection_count(sc, p) <= 10 ** 8
+        assert 0 < scene.scan.duration_s(sc, p) <= MAX_SCAN_S
+    rc = scene.recon
+    assert max(rc.nx, rc.ny) * rc.voxel_mm <= MAX_GRID_MM and rc.nz * rc.slice_mm <= MAX_GRID_MM
+
+
+def test_fuzzed_scene_dicts_are_refused_in_one_line_or_sane():
+    """Random values of every type in random keys of every section: a one-line SceneError naming the
+    key, or a scene that passes :func:`_assert_sane` (no other exception, nothing absurd accepted)."""
+    from dataclasses import fields
+
     rnd = random.Random(7)
-    values = [0, 1, -1, 2 ** 63 - 1, -2 ** 63, 10 ** 30, 0.0, 1e308, -1e308, 1e-308, 5e-324, float("inf"),
-              float("nan"), True, "x", [], [1], [1.0, 2.0], {}, {"a": 1}, 0.5, 3]
+    values = [0, 1, -1, 2 ** 63 - 1, -2 ** 63, 2 ** 63, 10 ** 30, 0.0, 1e308, -1e308, 1e-308, 5e-324, 1e-300,
+              float("inf"), -float("inf"), float("nan"), True, "x", [], [1], [1.0, 2.0], {}, {"a": 1}, 0.5, 3, 1e6,
+              1e12, [float("nan")], [0.02, float("inf")]]
+    outcomes = {"refused": 0, "accepted": 0}
     for _ in range(2000):
         d = {}
         for sec, cls in SECTIONS.items():
@@ -134,9 +185,370 @@ def test_fuzzed_scene_dicts_raise_only_scene_errors():
                 names = [f.name for f in fields(cls)]
                 d[sec] = {k: rnd.choice(values) for k in rnd.sample(names, rnd.randint(1, 3))}
         try:
-            scene_from_dict(d)
-        except SceneError:
-            pass
+            scene = scene_from_dict(d)
+        except SceneError as e:
+            msg = str(e)
+            assert "\n" not in msg and any(f"{sec}." in msg or f"{sec}:" in msg for sec in d), (d, msg)
+            outcomes["refused"] += 1
+            continue
+        _assert_sane(scene)
+        outcomes["accepted"] += 1
+    assert outcomes["refused"] > 1000 and outcomes["accepted"] > 10, outcomes
+
+
+# ---------------------------------------------------------------------------------------
+# the hostile grid: every key x VALUES (tests/hostile_scenes.py), on the tiny scene
+def _grid_outcomes():
+    base = hostile.base_dict()
+    for sec, key in hostile.grid_keys():
+        for label, value in hostile.VALUES:
+            yield sec, key, label, value, hostile.validate(hostile.case_dict(base, sec, key, value))
+
+
+def test_hostile_grid_refuses_every_absurd_value_in_one_line_naming_key_and_value():
+    """79 keys x 13 values: no exception other than a one-line SceneError that names ``section.key =``
+    (the key and the value it was given), a refusal of every case not declared legitimate in
+    ``hostile_scenes.ACCEPTED``, and acceptance of every declared case (a seed of 10^12, a table
+    position of -1 mm, truth_free = true), each accepted scene sane."""
+    counts = {"refused": 0, "accepted": 0}
+    for sec, key, label, _value, (status, detail) in _grid_outcomes():
+        case = f"{sec}.{key} = {label}"
+        assert status != "traceback", (case, detail)
+        if hostile.expected_accepted(sec, key, label):
+            assert status == "accepted", (case, detail)
+            _assert_sane(detail)
+        else:
+            assert status == "refused", f"{case}: accepted, but declared absurd"
+            assert "\n" not in detail and f"{sec}.{key} = " in detail, (case, detail)
+        counts[status] += 1
+    assert counts["refused"] + counts["accepted"] == len(hostile.grid_keys()) * len(hostile.VALUES)
+    assert counts["accepted"] == sum(len(v) for v in hostile.ACCEPTED.values())
+
+
+def test_hostile_grid_covers_every_key_and_declares_only_real_keys():
+    keys = {f"{sec}.{key}" for sec, key in hostile.grid_keys()}
+    assert len(keys) >= 79
+    assert set(hostile.ACCEPTED) <= keys
+    labels = {label for label, _ in hostile.VALUES}
+    assert all(v <= labels for v in hostile.ACCEPTED.values())
+
+
+def test_every_range_end_is_accepted_or_refused_across_keys_in_one_line():
+    """Both ends of every declared range: accepted (then sane), or refused by a check across keys
+    (an end of one key's range can clash with the tiny scene's other values) in one line."""
+    base = hostile.base_dict()
+    cases = hostile.edge_cases()
+    assert len(cases) >= 60
+    accepted = 0
+    for sec, key, label, value in cases:
+        status, detail = hostile.validate(hostile.case_dict(base, sec, key, value))
+        assert status != "traceback", (sec, key, label, detail)
+        if status == "refused":
+            assert "\n" not in detail and (key in detail or "scan." in detail), (sec, key, label, detail)
+        else:
+            _assert_sane(detail)
+            accepted += 1
+    assert accepted > len(cases) // 2
+
+
+def test_docs_table_of_ranges_is_the_codes():
+    """docs/hostile-inputs.md "Ranges of scene values" lists every ranged key with the code's text."""
+    from dataclasses import fields
+    from pathlib import Path
+
+    from clrecon.simulation.phantoms.voxel import VoxelPhantomConfig
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "hostile-inputs.md").read_text()
+    for sec, cls in list(SECTIONS.items()) + [("phantom", VoxelPhantomConfig)]:
+        tag = " (voxel)" if cls is VoxelPhantomConfig else ""
+        for f in fields(cls):
+            if f.metadata.get("range") is not None:
+                row = f"| `{sec}.{f.name}`{tag} | {f.metadata['allowed'].replace('|', '/')} |"
+                assert row in doc, row
+
+
+#: Range ends and hostile values that reach the kernels, run end to end on the tiny scene (kept
+#: few: the full end-to-end grid is ``python tests/hostile_scenes.py --grids hostile,edge``).
+E2E_CASES = [
+    ("scanner", "col_pitch_mm", "min", None),     # 1e-300 was a ZeroDivisionError in the ramp filter
+    ("recon", "voxel_mm", "min", None),           # 1e-300 was a ZeroDivisionError in the motion metrics
+    ("phantom", "mu_water_per_mm", "min", None),  # 1e-300 gave rc 0 with non-finite voxels
+    ("noise", "i0_photons", "min", {"noise": {"electronic_sigma": 0.0}}),  # one photon per cell: most counts 0
+    ("recon", "sigma", "min", None),
+    ("recon", "kappa", "max", None),
+]
+
+
+@pytest.mark.parametrize("sec,key,end,extra", E2E_CASES)
+def test_range_ends_that_reach_the_kernels_run_to_finite_outputs(tmp_path, sec, key, end, extra):
+    from dataclasses import fields
+
+    cls = SECTIONS[sec]
+    lo, hi = next(f.metadata["range"] for f in fields(cls) if f.name == key)
+    rec = hostile.run_one(sec, key, lo if end == "min" else hi, tmp_path, tmp_path / "cache", report=False,
+                          extra=extra)
+    assert rec == {"outcome": "ran", "strict_json": True, "non_finite_voxels": 0}, rec
+
+
+def test_truth_free_results_are_strict_json_with_a_reason_for_each_null(tmp_path):
+    """recon.truth_free = true wrote 144 bare NaN tokens into results.json (strict parsers reject the file)."""
+    from clrecon.core import jsonio
+    from clrecon.outputs.rundir import RunDirectory
+    from clrecon.pipeline.run import run
+
+    scene = load_scene("tiny").replace(recon={"truth_free": True})
+    run(scene, tmp_path / "run", methods=["nearest", "local_linear"], cache_dir=tmp_path / "cache", progress=False,
+        log=lambda *a: None, report=False)
+    text = (tmp_path / "run" / "results.json").read_text()
+    res = hostile.strict_json(text)  # json.loads with parse_constant raising: no NaN / Infinity token
+    nulls = res[jsonio.NULLS_KEY]
+    assert nulls and all(r.startswith(("NaN: ", "Infinity: ", "-Infinity: ")) for r in nulls.values()), nulls
+    for ptr in nulls:  # each pointer names a null in the file
+        node = res
+        for part in ptr.split("/")[1:]:
+            node = node[int(part)] if isinstance(node, list) else node[part.replace("~1", "/").replace("~0", "~")]
+        assert node is None, ptr
+    back = RunDirectory(tmp_path / "run").results  # clrecon's reader sees the floats again
+    ptr = next(iter(nulls))
+    node = back
+    for part in ptr.split("/")[1:]:
+        node = node[part.replace("~1", "/").replace("~0", "~")]
+    assert math.isnan(node)
+
+
+def test_strict_json_round_trip():
+    from clrecon.core import jsonio
+
+    obj = {"a": [1.0, float("nan"), {"b": float("inf"), "null_because": "no images"}], "c/d": -float("inf"),
+           "e": np.float32(2.5), "f": np.arange(3), "g": (1, 2)}
+    text = jsonio.dumps(obj)
+    strict = jsonio.loads_strictly(text)
+    assert strict["a"][1] is None and strict["a"][2]["b"] is None and strict["c/d"] is None
+    assert strict["null_values"] == {"/a/1": "NaN", "/a/2/b": "Infinity: no images", "/c~1d": "-Infinity"}
+    back = jsonio.loads(text)
+    assert math.isnan(back["a"][1]) and back["a"][2]["b"] == math.inf and back["c/d"] == -math.inf
+    assert back["e"] == 2.5 and back["f"] == [0, 1, 2] and back["g"] == [1, 2]
+    with pytest.raises(ValueError, match="bare NaN"):
+        jsonio.loads_strictly('{"x": NaN}')
+    assert math.isnan(jsonio.loads('{"x": NaN}')["x"])  # a results.json of an earlier version still reads
+
+
+def test_a_folder_named_like_a_builtin_scene_does_not_hide_it(tmp_path, monkeypatch):
+    """``--out demo`` leaves a folder ``demo``; ``--scene demo`` must still mean the built-in scene."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "tiny").mkdir()
+    assert load_scene("tiny").name == "tiny"
+    assert main(["run", "--scene", "tiny", "--out", "tiny", "--methods", "nearest", "--slices", "0:1", "--targets",
+                 "0/0.25", "--no-progress", "--cache", str(tmp_path / "cache")]) == 0  # and a run into that folder
+    (tmp_path / "x.toml").mkdir()
+    with pytest.raises(SceneError, match=r"'x.toml' is a folder; expected a scene TOML file or a built-in"):
+        load_scene("x.toml")
+
+
+# ---------------------------------------------------------------------------------------
+# recorded traces: non-finite values refused naming file, line and value, or (a lost .vxp sample)
+# left out and counted; never a traceback, never a silently wrong amplitude
+def _write_vxp(path, t, amp, flag=None, ttl=None):
+    """A Varian RPM .vxp of samples at times ``t`` (s); ``amp``, ``flag``, ``ttl``: strings or numbers per row."""
+    flag = ["0"] * len(t) if flag is None else flag
+    ttl = ["1"] * len(t) if ttl is None else ttl
+    rows = [f"{a},0.0,{ts},{f},{g},,0" for a, ts, f, g in zip(amp, t, flag, ttl, strict=True)]
+    path.write_text("[Header]\nCRC=0\nVersion=1.6\nData_layout=amplitude,phase,timestamp,validflag,ttlin,mark,ttlout\n"
+                    "Samples_per_second=25\nScale_factor=10.0\n[Data]\n" + "\n".join(rows) + "\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def trace():
+    """The tiny scene's breathing (0..3 s at 25 Hz: the scan lasts 1.28 s) as .vxp fields (strings)."""
+    from clrecon.scan import signals
+
+    tr = signals.respiratory_trace(load_scene("tiny"), step_s=0.04)
+    keep = tr.time_s <= 3.0
+    ms = [str(int(round(x * 1000))) for x in tr.time_s[keep]]
+    return ms, [f"{a:.7f}" for a in tr.raw[keep]]
+
+
+VXP_LINE0 = 8  # file line of the first data row
+
+
+@pytest.mark.parametrize("column,row,token,fragment", [
+    ("timestamp", 30, "inf", "timestamp = inf: expected a time in ms (a finite number)"),
+    ("timestamp", 30, "nan", "timestamp = nan: expected a time in ms"),
+    ("timestamp", 0, "-inf", "timestamp = -inf"),
+    ("validflag", 12, "nan", "validflag = 'nan': expected an integer"),
+    ("validflag", 12, "inf", "validflag = 'inf': expected an integer"),
+    ("ttlin", 5, "inf", "ttlin = 'inf': expected an integer"),
+    ("validflag", 12, "0.5", "validflag = '0.5': expected an integer"),
+    ("amplitude", 12, "x", "expected numbers in amplitude"),
+])
+def test_broken_vxp_rows_are_one_line_errors_naming_file_line_and_value(tmp_path, trace, column, row, token,
+                                                                        fragment):
+    from clrecon.core.errors import InputError
+    from clrecon.scan import recorded
+
+    ms, amp = trace
+    fields = {"timestamp": list(ms), "amplitude": list(amp), "validflag": ["0"] * len(ms), "ttlin": ["1"] * len(ms)}
+    fields[column][row] = token
+    f = _write_vxp(tmp_path / "b.vxp", fields["timestamp"], fields["amplitude"], fields["validflag"],
+                   fields["ttlin"])
+    with pytest.raises(InputError) as e:
+        recorded.read_breathing_trace(f)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{f}: line {VXP_LINE0 + row}: ") and fragment in msg, msg
+
+
+@pytest.mark.parametrize("text,fragment", [
+    ("time_s,amplitude\n0.0,1.0\nnan,2.0\n0.2,1.0\n", "line 3: time_s = nan: expected a time in s"),
+    ("time_s,amplitude\n0.0,1.0\n0.1,inf\n0.2,1.0\n", "line 3: amplitude = 'inf': expected a finite number "
+                                                      "(mark a lost sample with valid = 0 in a third column valid)"),
+    ("time_s,amplitude,valid\n0.0,1.0,1\n0.1,nan,1\n0.2,1.0,1\n", "line 3: amplitude = 'nan'"),
+    ("time_s,amplitude,valid\n0.0,1.0,1\n0.1,1.0,inf\n0.2,1.0,1\n", "line 3: valid = 'inf': expected an integer"),
+])
+def test_broken_breathing_csv_rows_are_one_line_errors(tmp_path, text, fragment):
+    from clrecon.core.errors import InputError
+    from clrecon.scan import recorded
+
+    f = tmp_path / "b.csv"
+    f.write_text(text)
+    with pytest.raises(InputError) as e:
+        recorded.read_breathing_trace(f)
+    assert "\n" not in str(e.value) and str(e.value).startswith(f"{f}: {fragment.split(':')[0]}:")
+    assert fragment in str(e.value), str(e.value)
+
+
+def test_a_csv_sample_marked_invalid_may_have_no_amplitude(tmp_path):
+    from clrecon.scan import recorded
+
+    f = tmp_path / "b.csv"
+    f.write_text("time_s,amplitude,valid\n" + "".join(f"{0.04 * i:.2f},{'nan' if i == 7 else math.sin(i / 5)},"
+                                                       f"{0 if i == 7 else 1}\n" for i in range(100)))
+    tr = recorded.read_breathing_trace(f)
+    assert np.isfinite(tr.amplitude).all() and tr.status[7] == recorded.STATUS["invalid"]
+
+
+def test_lost_vxp_amplitudes_are_left_out_and_counted_like_lost_tracking(tmp_path, trace):
+    """A .vxp amplitude of inf (a lost RPM sample) changed 6 176 voxels by up to 93 HU, silently: its views
+    are now left out and counted, exactly the views a validflag of -1 (lost tracking) leaves out."""
+    from clrecon.scan import recorded
+    from clrecon.scan.table import projection_table
+
+    ms, amp = trace
+    scene = load_scene("tiny")
+    t = projection_table(scene, 0.1).time_s
+    bad = list(amp)
+    bad[10], bad[20] = "inf", "nan"               # 0.40 s and 0.80 s: inside the 1.28 s scan
+    lost = ["0"] * len(ms)
+    lost[10] = lost[20] = "-1"
+    a = recorded.view_signals(scene.replace(signals={"breathing_trace": str(_write_vxp(
+        tmp_path / "inf.vxp", ms, bad))}).signals, t)
+    b = recorded.view_signals(scene.replace(signals={"breathing_trace": str(_write_vxp(
+        tmp_path / "lost.vxp", ms, amp, lost))}).signals, t)
+    assert a.excluded["non_finite_amplitude"] == b.excluded["lost_tracking"] > 0
+    assert np.array_equal(a.usable, b.usable)
+    assert np.isfinite(a.resp_amplitude).all()
+    np.testing.assert_allclose(a.resp_amplitude[a.usable], b.resp_amplitude[b.usable], rtol=0, atol=1e-12)
+    # and the run counts them in results.json
+    from clrecon.pipeline.run import run
+
+    res = run(scene.replace(signals={"breathing_trace": str(tmp_path / "inf.vxp")}), tmp_path / "run",
+              methods=["nearest"], cache_dir=tmp_path / "cache", progress=False, report=False, log=lambda *x: None)
+    rs = res["recorded_signals"]["p0.100"]
+    assert rs["excluded_by_reason"]["non_finite_amplitude"] == a.excluded["non_finite_amplitude"]
+    assert rs["views_excluded"] == int((~a.usable).sum())
+
+
+def test_vxp_with_no_finite_amplitudes_says_so(tmp_path, trace):
+    from clrecon.core.errors import InputError
+    from clrecon.scan import recorded
+
+    ms, amp = trace
+    with pytest.raises(InputError, match=r"every amplitude is nan or inf; expected a breathing trace"):
+        recorded.read_breathing_trace(_write_vxp(tmp_path / "a.vxp", ms, ["nan"] * len(ms)))
+    one = ["nan"] * len(ms)
+    one[3] = amp[3]
+    with pytest.raises(InputError) as e:  # was "no spread (P5 = P95 = nan)"
+        recorded.read_breathing_trace(_write_vxp(tmp_path / "b.vxp", ms, one)).percentiles()
+    assert "fewer than 2 valid samples with a finite amplitude" in str(e.value)
+    assert f"{len(ms) - 1} of {len(ms)} amplitudes are nan or inf" in str(e.value) and "nan)" not in str(e.value)
+
+
+def test_nan_r_peak_is_a_one_line_error_not_a_traceback(tmp_path):
+    """A NaN R peak inside the scan gave ``ValueError: c and a: must be finite`` from deep in the planning."""
+    from clrecon.scan import signals
+
+    scene = load_scene("tiny")
+    peaks = [f"{x:.6f}" for x in signals.r_peaks(scene)]
+    peaks[1] = "nan"
+    f = tmp_path / "ecg.csv"
+    f.write_text("r_peak_s\n" + "\n".join(peaks) + "\n")
+    out = tmp_path / "run"
+    toml = tmp_path / "s.toml"
+    toml.write_text(SCENE_DIR.joinpath("tiny.toml").read_text() + f"\n[signals]\necg_trace = '{f}'\n")
+    with pytest.raises(ClreconError) as e:
+        from clrecon.pipeline.run import run
+        run(load_scene(toml), out, methods=["nearest"], cache_dir=tmp_path / "cache", progress=False,
+            report=False, log=lambda *x: None)
+    assert str(e.value) == f"{f}: line 3: r_peak_s = nan: expected an R-peak time in s (a finite number)"
+
+
+def test_wfdb_record_with_a_gap_names_the_sample(tmp_path):
+    wfdb = pytest.importorskip("wfdb")
+    from clrecon.core.errors import InputError
+    from clrecon.scan import recorded
+
+    fs = 250
+    sig = np.sin(np.arange(fs * 10) / fs * 2 * np.pi * 1.2)[:, None]
+    sig[1234] = np.nan                            # WFDB's missing-sample value reads back as NaN
+    wfdb.wrsamp("gap", fs=fs, units=["mV"], sig_name=["II"], p_signal=sig, write_dir=str(tmp_path), fmt=["16"])
+    with pytest.raises(InputError) as e:
+        recorded.read_r_peaks(tmp_path / "gap.hea")
+    assert "sample 1234 (t = 4.936 s) is nan, 1 of 2500 samples are missing" in str(e.value)
+    assert "\n" not in str(e.value)
+
+
+def test_fuzzed_traces_raise_only_input_errors_and_give_finite_signals(tmp_path, trace):
+    """Random tokens (nan, inf, -inf, 1e308, '', 'x', -1, -2) in random cells of a .vxp and of the CSVs:
+    one-line InputErrors, or traces whose every number is finite."""
+    from clrecon.core.errors import InputError
+    from clrecon.scan import recorded
+
+    ms, amp = trace
+    rnd = random.Random(11)
+    tokens = ["nan", "inf", "-inf", "1e308", "-1e308", "", "x", "-1", "-2", "0", "1e-320", "NaN", "+inf"]
+    outcomes = {"error": 0, "read": 0}
+    for i in range(150):
+        kind = rnd.randrange(3)
+        if kind == 0:
+            cols = [list(ms), list(amp), ["0"] * len(ms), ["1"] * len(ms)]
+            for _ in range(rnd.randint(1, 4)):
+                cols[rnd.randrange(4)][rnd.randrange(len(ms))] = rnd.choice(tokens)
+            f = _write_vxp(tmp_path / f"f{i}.vxp", *cols)
+            read = recorded.read_breathing_trace
+        elif kind == 1:
+            rows = [[f"{int(x) / 1000:.3f}", a, "1"] for x, a in zip(ms, amp, strict=True)]
+            for _ in range(rnd.randint(1, 4)):
+                rows[rnd.randrange(len(rows))][rnd.randrange(3)] = rnd.choice(tokens)
+            f = tmp_path / f"f{i}.csv"
+            f.write_text("time_s,amplitude,valid\n" + "".join(",".join(r) + "\n" for r in rows))
+            read = recorded.read_breathing_trace
+        else:
+            rows = [f"{0.8 * k:.3f}" for k in range(10)]
+            for _ in range(rnd.randint(1, 2)):
+                rows[rnd.randrange(len(rows))] = rnd.choice(tokens)
+            f = tmp_path / f"r{i}.csv"
+            f.write_text("r_peak_s\n" + "\n".join(rows) + "\n")
+            read = recorded.read_r_peaks
+        try:
+            tr = read(f)
+            if kind < 2:
+                tr.percentiles()
+        except InputError as e:
+            assert "\n" not in str(e) and str(e).startswith(str(f)), str(e)
+            outcomes["error"] += 1
+            continue
+        assert np.isfinite(tr.time_s).all() and (kind == 2 or np.isfinite(tr.amplitude).all())
+        outcomes["read"] += 1
+    assert outcomes["error"] > 30 and outcomes["read"] > 10, outcomes
 
 
 # ---------------------------------------------------------------------------------------

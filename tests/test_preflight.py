@@ -24,7 +24,9 @@ def roomy(monkeypatch):
 def test_huge_volume_is_a_one_line_error_not_a_memory_error(tmp_path, roomy, capsys):
     toml = tmp_path / "huge.toml"
     src = load_scene("tiny").source
-    text = open(src).read().replace("nx = 32", "nx = 100000").replace("ny = 32", "ny = 100000")
+    # the largest grid the scene checks let through (4000^2 x 400 slices of 0.5 x 0.5 x 5 mm): ~190 GiB modelled
+    text = (open(src).read().replace("nx = 32", "nx = 4000").replace("ny = 32", "ny = 4000")
+            .replace("voxel_mm = 12.0", "voxel_mm = 0.5").replace("nz = 2\n", "nz = 400\n"))
     toml.write_text(text.replace('name = "tiny"', 'name = "huge"'))
     rc = main(["run", "--scene", str(toml), "--out", str(tmp_path / "run"), "--cache", str(tmp_path / "c"),
                "--no-progress"])

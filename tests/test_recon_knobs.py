@@ -29,7 +29,7 @@ TARGETS = np.array([[c, a] for c in (0.0, 0.2, 0.4, 0.6, 0.8) for a in np.arange
     ("local_linear_count", 0, "an integer in 1..32"),
     ("local_linear_count", 2.0, "an integer in 1..32"),
     ("local_linear_count", 9, "at most 8"),       # quadrants: 4 x 9 > 32 slots
-    ("max_turns", -1, "an integer >= 0"),
+    ("max_turns", -1, "an integer in 0..10000"),
 ])
 def test_scene_rejects_bad_knobs(key, value, fragment):
     with pytest.raises(SceneError, match=f"recon.{key}") as e:

@@ -103,7 +103,7 @@ from clrecon.bench.tradeoff import format_table as tradeoff_table
 from clrecon.bench.tradeoff import run_tradeoff
 from clrecon.bench.voxel_projector import bench_voxel_projector
 from clrecon.config.scene import load_scene
-from clrecon.core import machine_speed
+from clrecon.core import atomic, machine_speed
 from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import get_runtime
 from clrecon.core.versions import __version__
@@ -789,7 +789,7 @@ def _json_default(o):
 
 
 def write_json(res: dict, path) -> None:
-    Path(path).write_text(json.dumps(res, indent=2, default=_json_default))
+    atomic.write_json(path, res, indent=2)  # strict JSON, whole or not at all
 
 
 def main(argv=None) -> int:  # pragma: no cover - the CLI's bench command is the entry point

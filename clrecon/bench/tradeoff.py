@@ -28,7 +28,6 @@ tradeoff`` runs it (not part of the default bench set: about 30 minutes on 2 cor
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import tempfile
@@ -40,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from clrecon.config.scene import load_scene
+from clrecon.core import atomic
 from clrecon.outputs.figures import _plt
 from clrecon.outputs.volumes import pitch_key
 from clrecon.pipeline.run import run
@@ -232,7 +232,7 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
               "seconds_definition": "results.json method_seconds: the method's plan (weights + candidate search) "
                                     "+ interpolation + FBP of that variant, this machine's OpenCL device; the "
                                     "fastest of `repeats` timed runs"}
-    (out / "tradeoff.json").write_text(json.dumps(result, indent=1, ensure_ascii=False))
+    atomic.write_json(out / "tradeoff.json", result, indent=1, ensure_ascii=False)
     plot_tradeoff(result, out / "tradeoff.png")
     result["out_dir"] = str(out)
     return result
@@ -408,7 +408,7 @@ def plot_tradeoff(result: dict, path) -> Path:
                       others=[it for it, i in zip(items, inside, strict=True) if i])
         _place_labels(fig, axes[1, k], [it for it, i in zip(items, inside, strict=True) if i])
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    atomic.save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 

@@ -37,6 +37,7 @@ from clrecon.core.versions import PROJECTOR_VERSION
 from clrecon.reconstruction.config import FILTERS, METHODS, ReconConfig
 from clrecon.scan import dicom_ct_pd
 from clrecon.scan.config import (
+    MAX_SCAN_S,
     RHYTHMS,
     TRACE_MARGIN_S,
     TRACE_MIN_S,
@@ -253,7 +254,7 @@ def _section_class(sec: str, raw: dict):
     if sec != "phantom":
         return SECTIONS[sec]
     kind = raw.get("kind", "analytic") if isinstance(raw, dict) else "analytic"
-    if kind not in PHANTOM_SOURCES:
+    if not isinstance(kind, str) or kind not in PHANTOM_SOURCES:
         raise SceneError(f"phantom.kind = {kind!r}: must be one of {', '.join(PHANTOM_SOURCES.names)}")
     return PHANTOM_SOURCES[kind].config
 
@@ -321,7 +322,8 @@ def _check_consistency(s: Scene, prefix: str) -> None:
                          f"{sc.flying_focal_spot!r} (the rebinning assumes one source per view angle); use 'direct'")
     if s.scan.n_projections == 0 and s.scan.coverage_mm <= sc.collimation_iso_mm:
         raise SceneError(f"{prefix}scan.coverage_mm = {s.scan.coverage_mm}: must exceed the collimation "
-                         f"W = {sc.collimation_iso_mm:.2f} mm")
+                         f"W = {sc.collimation_iso_mm:.2f} mm (scanner.n_rows = {sc.n_rows} x row_pitch_mm = "
+                         f"{sc.row_pitch_mm:g} at the detector, scaled to the isocentre)")
     # Derived geometry must be finite (extreme values such as sid_mm = 1e-308 pass the
     # per-key checks but overflow or divide by zero here).
     # SSRB needs a candidate for every (slice, view): the feed per rotation must stay within
@@ -343,17 +345,31 @@ def _check_consistency(s: Scene, prefix: str) -> None:
     if too_high:
         raise SceneError(f"{prefix}scan.pitches = {list(s.scan.pitches)}: pitch {too_high[0]:g} leaves "
                          f"(slice, view) pairs without data; the largest pitch that covers every "
-                         f"(slice, view) is {p_max:.4f}")
+                         f"(slice, view) is {p_max:.4f} (scanner.n_rows = {sc.n_rows} x row_pitch_mm = "
+                         f"{sc.row_pitch_mm:g}, field of view radius {min(sc.fov_radius_mm, rc.fov_radius_mm):.1f} mm)")
+    for p in s.scan.pitches:
+        n, t = s.scan.projection_count(sc, p), s.scan.duration_s(sc, p)
+        if t > MAX_SCAN_S:
+            how = (f"scan.n_projections = {n}" if s.scan.n_projections else
+                   f"scan.coverage_mm = {s.scan.coverage_mm:g} at pitch {p:g} with collimation W = "
+                   f"{sc.collimation_iso_mm:.3g} mm (scanner.n_rows = {sc.n_rows} x row_pitch_mm = "
+                   f"{sc.row_pitch_mm:g}): {n} projections")
+            raise SceneError(f"{prefix}{how} x scanner.rotation_time_s = {sc.rotation_time_s:g} / "
+                             f"views_per_rotation = {sc.views_per_rotation}: a scan of {t:.4g} s; at most "
+                             f"{MAX_SCAN_S:g} s (a free-breathing thorax scan lasts under two minutes; the "
+                             f"paper's pitch-0.02 scan: 49 s)")
 
 
 def load_scene(name_or_path: str | Path) -> Scene:
     """A built-in scene by name (``demo``, ``tiny``, ...) or a TOML file by path."""
     p = Path(name_or_path)
-    if not p.suffix and not p.exists():
+    if not p.suffix and not p.is_file():  # a bare name: a built-in scene (even beside a folder of that name)
         p = SCENE_DIR / f"{name_or_path}.toml"
-        if not p.exists():
+        if not p.is_file():
             raise SceneError(f"scene {str(name_or_path)!r} is neither a file nor a built-in scene; "
                              f"built-in: {', '.join(builtin_scene_names())}")
+    if p.is_dir():
+        raise SceneError(f"scene file {str(p)!r} is a folder; expected a scene TOML file or a built-in scene name")
     if not p.is_file():
         raise SceneError(f"scene file {str(p)!r} does not exist")
     try:

@@ -55,9 +55,35 @@ BOOL = ("true or false", _bool)
 FRAC = ("a number in [0, 1]", _frac)
 
 
-def number_in(lo: float, hi: float):
-    """A finite number in [lo, hi]."""
-    return (f"a number in [{lo:g}, {hi:g}]", lambda x: _num(x) and lo <= x <= hi)
+def _why(unit: str, why: str) -> str:
+    return (f" {unit}" if unit else "") + (f" ({why})" if why else "")
+
+
+def number_in(lo: float, hi: float, unit: str = "", why: str = ""):
+    """A finite number in [lo, hi]; ``unit`` and ``why`` (the physical reason for the range) join the message."""
+    return (f"a number in [{lo:g}, {hi:g}]{_why(unit, why)}", lambda x: _num(x) and lo <= x <= hi, (lo, hi))
+
+
+def zero_or_in(lo: float, hi: float, unit: str = "", why: str = ""):
+    """0 (a key's "off" or "derive it" value) or a finite number in [lo, hi]."""
+    return (f"0 or a number in [{lo:g}, {hi:g}]{_why(unit, why)}",
+            lambda x: _num(x) and (x == 0 or lo <= x <= hi), (lo, hi))
+
+
+def integer_in(lo: int, hi: int, why: str = ""):
+    """An integer in lo..hi (not a bool)."""
+    return (f"an integer in {lo}..{hi}{_why('', why)}",
+            lambda x: isinstance(x, int) and not isinstance(x, bool) and lo <= x <= hi, (lo, hi))
+
+
+def numbers_in(n: int, lo: float, hi: float, unit: str = "", why: str = ""):
+    """A list of ``n`` finite numbers, each in [lo, hi]."""
+    return (f"a list of {n} numbers in [{lo:g}, {hi:g}]{_why(unit, why)}",
+            lambda v: isinstance(v, tuple) and len(v) == n and all(_num(x) and lo <= x <= hi for x in v), (lo, hi))
+
+
+#: Seeds: what NumPy's SeedSequence, HDF5 attributes and JSON readers all hold (a signed 64-bit integer).
+SEED = integer_in(0, 2 ** 63 - 1, "a signed 64-bit seed")
 
 
 def one_of(names):
@@ -66,14 +92,21 @@ def one_of(names):
     return ("one of " + ", ".join(names), lambda x: x in names)
 
 
-def field_of(default, allowed: str, check, doc: str = ""):
-    """A dataclass field carrying its check, the text of what is allowed and its doc."""
-    return field(default=default, metadata={"allowed": allowed, "check": check, "doc": doc})
+def field_of(default, allowed: str, check, doc: str = "", value_range: tuple | None = None):
+    """A dataclass field carrying its check, the text of what is allowed, its doc and (for a number
+    in a range) the range ``(lo, hi)``, which the tests run at both ends (tests/hostile_scenes.py)."""
+    return field(default=default, metadata={"allowed": allowed, "check": check, "doc": doc, "range": value_range})
 
 
 def F(default, kind, doc: str = ""):
-    """:func:`field_of` with a ``(allowed, check)`` pair such as :data:`POS`."""
-    return field_of(default, kind[0], kind[1], doc)
+    """:func:`field_of` with an ``(allowed, check)`` or ``(allowed, check, (lo, hi))`` kind such as :data:`POS`
+    or :func:`number_in`'s."""
+    return field_of(default, kind[0], kind[1], doc, kind[2] if len(kind) > 2 else None)
+
+
+def value_ranges(cls) -> dict[str, tuple]:
+    """``{key: (lo, hi)}`` of a section's keys that are numbers in a range."""
+    return {f.name: f.metadata["range"] for f in fields(cls) if f.metadata.get("range") is not None}
 
 
 def _coerce(default: Any, value: Any) -> Any:
@@ -105,7 +138,8 @@ class Section:
             value = _coerce(f.default, getattr(self, f.name))
             object.__setattr__(self, f.name, value)
             if not f.metadata["check"](value):
-                raise SceneError(f"{self.SECTION}.{f.name} = {value!r}: must be {f.metadata['allowed']}")
+                shown = list(value) if isinstance(value, tuple) else value  # as the TOML list it came from
+                raise SceneError(f"{self.SECTION}.{f.name} = {shown!r}: must be {f.metadata['allowed']}")
         self.check()
 
     def check(self) -> None:

@@ -31,6 +31,10 @@ import numpy as np
 
 #: Linear attenuation of water at about 70 keV effective energy, 1/mm.
 MU_WATER_PER_MM = 0.0193
+#: Water attenuations a scene may give (1/mm): water from 150 keV (0.015) to 20 keV (0.081), NIST XCOM,
+#: with a margin; outside it a value is a unit slip (1/cm, 1/m) or not a number of this world.
+MU_WATER_RANGE_PER_MM = (0.01, 0.1)
+MU_WATER_WHY = "water at 150-20 keV: 0.015-0.081 /mm (NIST XCOM), at 120 kVp ~0.019"
 
 
 def hu_to_mu(hu, mu_water: float = MU_WATER_PER_MM):

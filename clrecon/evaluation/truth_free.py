@@ -488,6 +488,8 @@ def kernel_errors(folds: dict, rows, row_var, kernels, options: dict, pos=None, 
                 es = ErrorSums(sq, fl, n)
                 ent[r] = {"rms_hu_mm": es.rms(row_var is not None) * scale, "rms_raw_hu_mm": es.rms(False) * scale,
                           "cells": n}
+                if n == 0:  # results.json writes the NaNs as null with this reason (clrecon.core.jsonio)
+                    ent[r]["null_because"] = f"no held-out detector cell of this scheme falls in the {r} region"
     return out
 
 
@@ -504,8 +506,14 @@ def image_fold_errors(folds: Folds, signed, offsets, views_per_rotation: int, vi
     variant it includes the held-out rows' own noise image.
     """
     nvs = views_per_rotation // view_step
-    if views_per_rotation % view_step or folds.held.size == 0:
-        return {r: {"rms_hu": float("nan"), "images": 0} for r in masks}
+
+    def none(why: str) -> dict:  # results.json writes the NaN as null with this reason (clrecon.core.jsonio)
+        return {r: {"rms_hu": float("nan"), "images": 0, "null_because": why} for r in masks}
+
+    if views_per_rotation % view_step:
+        return none(f"the view step {view_step} does not divide the {views_per_rotation} views per rotation")
+    if folds.held.size == 0:
+        return none("the folds hold out no row")
     g = folds.group
     sl = g // views_per_rotation
     vi = (g % views_per_rotation) // view_step
@@ -517,7 +525,8 @@ def image_fold_errors(folds: Folds, signed, offsets, views_per_rotation: int, vi
     keep = np.flatnonzero(count == nvs)
     out = {r: [0.0, 0] for r in masks}
     if keep.size == 0:
-        return {r: {"rms_hu": float("nan"), "images": 0} for r in masks}
+        return none(f"no fold rank (candidate turn) is present at all {nvs} sampled views of a slice, so no fold "
+                    f"sinogram is complete enough to reconstruct (a short scan or a high pitch)")
     pos = np.full(S * R, -1)
     pos[keep] = np.arange(keep.size)
     sino = np.zeros((keep.size, nvs, signed.shape[1]), np.float32)
@@ -532,7 +541,8 @@ def image_fold_errors(folds: Folds, signed, offsets, views_per_rotation: int, vi
         for r, m in masks.items():
             out[r][0] += float((img[:, m] ** 2).sum())
             out[r][1] += int(m.sum()) * img.shape[0]
-    return {r: {"rms_hu": float(np.sqrt(sq / n)) if n else float("nan"), "images": int(keep.size)}
+    return {r: ({"rms_hu": float(np.sqrt(sq / n)), "images": int(keep.size)} if n else
+                {"rms_hu": float("nan"), "images": int(keep.size), "null_because": f"the {r} region is empty"})
             for r, (sq, n) in out.items()}
 
 

@@ -26,7 +26,6 @@ No dask. ``ds.close()`` (or ``with``) closes the file.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +33,7 @@ import xarray as xr
 from xarray.backends import BackendArray
 from xarray.core import indexing
 
+from clrecon.core import jsonio
 from clrecon.core.errors import StoreError
 from clrecon.outputs.rundir import RunDirectory, Source
 from clrecon.outputs.volumes import DIMS, FORMAT_VERSION, read_part
@@ -96,14 +96,8 @@ def _variable_attrs(run: RunDirectory, src: Source) -> dict:
 
 
 def _json(obj) -> str:
-    def default(o):
-        if isinstance(o, (np.floating, np.integer)):
-            return o.item()
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        raise TypeError(type(o).__name__)
-
-    return json.dumps(obj, default=default)
+    """Strict JSON (non-finite values as null, listed with their reason: :mod:`clrecon.core.jsonio`)."""
+    return jsonio.dumps(obj)
 
 
 def open_dataset(path) -> xr.Dataset:

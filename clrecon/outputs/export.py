@@ -35,6 +35,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from clrecon.core import atomic
 from clrecon.core.errors import ClreconError, StoreError
 from clrecon.outputs.measured_record import run_input_scene
 
@@ -98,7 +99,7 @@ def export(run_dir, fmt: str, method: str | None = None, pitch=None, variant: st
         try:
             out = Path(out) if out is not None else run_dir / "export" / fmt
             index = writer.export_scan(f, out, pitch=pitch, keep_identifiers=keep_identifiers, scene=given)
-            (out / "index.json").write_text(json.dumps(index, indent=1))
+            atomic.write_json(out / "index.json", index, indent=1)
             return index
         finally:
             f.close()
@@ -130,7 +131,7 @@ def export(run_dir, fmt: str, method: str | None = None, pitch=None, variant: st
                                          "resp_amplitude": float(a), "tag": target_tag(c, a),
                                          "files": [str(Path(p).relative_to(out)) for p in files]})
         index.update(writer.finish(ctx))
-        (out / "index.json").write_text(json.dumps(index, indent=1))
+        atomic.write_json(out / "index.json", index, indent=1)
         index["out"] = str(out)
         return index
     finally:

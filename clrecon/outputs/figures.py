@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clrecon.core import atomic
 from clrecon.core.conventions import circular_difference
 from clrecon.core.errors import ClreconError
 from clrecon.evaluation.groundtruth import offers_lv_region
@@ -219,7 +220,7 @@ def plot_phase_space(path: Path, samples: list[tuple[str, dict]]) -> Path:
     fig.suptitle("Phase space of one (slice, view): candidate projections and the interpolation choices",
                  fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomic.save_figure(fig, path, dpi=110)  # whole or not at all
     plt.close(fig)
     return path
 
@@ -292,7 +293,7 @@ def fig_coronal(run: _Run, path: Path, window: str = "cardiac") -> str:
     fig.suptitle("\n".join(lines), fontsize=9)
     fig.tight_layout(rect=(0, 0, 0.88, 1.0 - 0.25 * len(lines) / fig.get_size_inches()[1]))
     _colourbar(fig, im, "HU")
-    fig.savefig(path, dpi=110)
+    atomic.save_figure(fig, path, dpi=110)  # whole or not at all
     plt.close(fig)
     return (f"Coronal panels (paper Figure 3) through the heart (y = {run.y[iy]:.1f} mm) for c = {run.c[ci]:.2f}, "
             f"a = {run.a[ri]:.2f}: phantom, ground truth and each method at each pitch; physical aspect "
@@ -366,7 +367,7 @@ def fig_motion_rows(run: _Run, path: Path, window: str = "cardiac") -> str:
                  f"(superior up); window W{w:.0f}/L{lv:.0f} HU", fontsize=9)
     fig.tight_layout(rect=(0.0, 0, 0.88, 0.93))
     _colourbar(fig, im, "HU")
-    fig.savefig(path, dpi=110)
+    atomic.save_figure(fig, path, dpi=110)  # whole or not at all
     plt.close(fig)
     return ("Respiratory-only (fixed cardiac phase, every amplitude) and cardiac-only (fixed amplitude, every "
             "phase) rows of the 5DCT against r4DCT (paper Figure 4), noise-free where available, coronal "
@@ -459,7 +460,7 @@ def fig_mae_per_target(run_results: dict, path: Path, fov: str) -> str:
     fig.subplots_adjust(left=0.75 / w_in, right=0.86, bottom=0.85 / h_in, top=1 - 0.75 / h_in, wspace=0.35,
                         hspace=0.6)
     _colourbar(fig, im, "MAE (HU)")
-    fig.savefig(path, dpi=110)
+    atomic.save_figure(fig, path, dpi=110)  # whole or not at all
     plt.close(fig)
     return (f"MAE (HU) per cardiac x respiratory target, {fov} FOV, one panel per method, pitch and variant; "
             f"colour scale 0 to {vmax:.0f} HU.")
@@ -513,7 +514,7 @@ def fig_error_vs_time(results: dict, path: Path) -> str:
     device = str(results.get("device", "?"))
     fig.suptitle(f"Error against run time (device: {device[:70] + ('...' if len(device) > 70 else '')})",
                  fontsize=9)
-    fig.savefig(path, dpi=110)
+    atomic.save_figure(fig, path, dpi=110)  # whole or not at all
     plt.close(fig)
     return ("MAE (HU, pooled over all targets) against the seconds each method took (its plan, interpolation "
             "and FBP), per pitch and variant.")
@@ -571,7 +572,7 @@ def fig_motion_metrics(results: dict, path: Path) -> str:
     axes[-1].legend(handles=leg, fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
     fig.suptitle("Motion metrics, means over targets", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    atomic.save_figure(fig, path, dpi=110)  # whole or not at all
     plt.close(fig)
     return ("Means over targets of the LV edge width, the LV blood-pool volume error, the lesion localisation "
             "error and the noise std per method, pitch (colour) and variant (filled: noise-free, open: noisy); "
@@ -750,7 +751,5 @@ def write_html(out_dir, lines: list[str], title: str = "clrecon report") -> Path
     """Write ``out_dir/report.html`` from the report's markdown lines, figures inline."""
     out_dir = Path(out_dir)
     path = out_dir / "report.html"
-    tmp = path.with_name("report.html.partial")
-    tmp.write_text(markdown_to_html(lines, out_dir, title))
-    tmp.replace(path)
+    atomic.write_text(path, markdown_to_html(lines, out_dir, title))
     return path

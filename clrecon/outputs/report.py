@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from clrecon.core import machine_speed
+from clrecon.core import atomic, machine_speed
 from clrecon.core.resources import folder_bytes, peak_rss_bytes
 from clrecon.evaluation import claims as claims_mod
 from clrecon.outputs import figures, measured_record
@@ -295,8 +295,6 @@ def write_report(out_dir: Path, results: dict, pool=None) -> Path:
     lines += resources_markdown(results, out_dir)
     lines += figures.write_figures(out_dir, results, pool=pool)
     path = out_dir / "report.md"
-    tmp = path.with_name("report.md.partial")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
+    atomic.write_text(path, "\n".join(lines) + "\n")
     figures.write_html(out_dir, lines, title=f"clrecon run: {s['name']}")
     return path

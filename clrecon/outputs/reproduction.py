@@ -11,11 +11,10 @@ in it is typed by hand: rerun it on new runs.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from clrecon.core import machine_speed
+from clrecon.core import jsonio, machine_speed
 from clrecon.core.resources import folder_bytes
 from clrecon.evaluation import claims as claims_mod
 from clrecon.outputs import report
@@ -34,7 +33,7 @@ def load(run_dirs) -> list[tuple[Path, dict]]:
     for d in run_dirs:
         p = Path(d) / "results.json"
         try:
-            out.append((Path(d), json.loads(p.read_text())))
+            out.append((Path(d), jsonio.loads(p.read_text())))
         except (OSError, ValueError) as e:
             raise SystemExit(f"{p}: not a finished run ({e})") from None
     return out

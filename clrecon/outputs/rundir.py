@@ -25,7 +25,6 @@ The module-level functions (:func:`sources`, :func:`describe_sources`,
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeAlias
@@ -33,6 +32,7 @@ from typing import TYPE_CHECKING, Any, TypeAlias
 import numpy as np
 
 from clrecon.config.scene import Scene, scene_from_dict
+from clrecon.core import jsonio
 from clrecon.core.errors import ClreconError, StoreError
 from clrecon.outputs.volumes import (
     DIMS,
@@ -250,7 +250,7 @@ class RunDirectory:
             if not p.exists():
                 raise StoreError(f"{p}: no results.json in this run directory (was `clrecon run` finished?)")
             try:
-                res = json.loads(p.read_text())
+                res = jsonio.loads(p.read_text())  # null_values back to the floats they were
             except (OSError, ValueError) as e:
                 raise StoreError(f"{p}: not a readable results.json ({e})") from None
             if not isinstance(res, dict):

@@ -40,13 +40,12 @@ cardiac, resp, z, y, x coordinates are the same, so ``da - ds["groundtruth"]`` a
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import xarray as xr
 from xarray.backends import BackendArray
 from xarray.core import indexing
 
+from clrecon.core import jsonio
 from clrecon.core.errors import StoreError
 from clrecon.outputs.dataset import open_dataset
 from clrecon.outputs.volumes import DIMS
@@ -135,7 +134,7 @@ def open_stacked(path) -> RunArray:
             raise StoreError(f"{ds.attrs.get('run_dir', path)}: no reconstructions in this run directory to stack "
                              f"(it holds {', '.join(ds.data_vars) or 'no volumes'})")
         methods = list(dict.fromkeys(a["method"] for _, a in recons))
-        requested = json.loads(ds.attrs.get("results", "{}")).get("request", {}).get("methods") or []
+        requested = jsonio.loads(ds.attrs.get("results", "{}")).get("request", {}).get("methods") or []
         methods.sort(key=lambda m: requested.index(m) if m in requested else len(requested))  # stable
         pkeys = sorted({a["pitch_key"] for _, a in recons}, key=lambda k: float(k[1:]))
         variants = sorted({a["variant"] for _, a in recons},

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from clrecon.core import atomic
+
 METRICS = ("mae_small_hu", "mae_large_hu", "edge_width_mm", "lv_volume_error_ml", "target_error_mm", "noise_std_hu")
 
 
@@ -58,21 +60,17 @@ def write(root: Path, grid: dict, points: list[tuple[str, dict, dict]]) -> dict:
     rows = [r for name, point, res in points for r in rows_of(name, point, res)]
     cols = ["point", *grid, "pitch", "variant", "method", *METRICS, "run_seconds"]
     csv_path, md_path = root / "summary.csv", root / "summary.md"
-    tmp = csv_path.with_name(csv_path.name + ".partial")
-    with open(tmp, "w", newline="") as f:
+    with atomic.replacing(csv_path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=cols)
         w.writeheader()
         for r in rows:
             w.writerow({c: "" if r.get(c) is None else r.get(c) for c in cols})
-    tmp.replace(csv_path)
     lines = [f"# Sweep over {', '.join(grid)}", "", f"{len(points)} points; MAE in HU (small / large FOV), "
              "motion metrics as defined in each point's results.json (means over the targets).", "",
              "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         lines.append("| " + " | ".join(_md(r.get(c)) for c in cols) + " |")
-    tmp = md_path.with_name(md_path.name + ".partial")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(md_path)
+    atomic.write_text(md_path, "\n".join(lines) + "\n")
     figures = [_figure(root, key, grid[key], rows) for key in grid]
     return {"table_csv": str(csv_path), "table_md": str(md_path), "figures": [str(p) for p in figures if p],
             "rows": rows}
@@ -114,6 +112,6 @@ def _figure(root: Path, key: str, values: list, rows: list[dict]) -> Path | None
     axes[0][0].legend(fontsize=7)
     fig.tight_layout()
     path = root / f"sweep_{key.replace('.', '_')}.png"
-    fig.savefig(path, dpi=90)
+    atomic.save_figure(fig, path, dpi=90)
     plt.close(fig)
     return path

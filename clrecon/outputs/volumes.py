@@ -27,6 +27,7 @@ the volumes of a paper-scale run (docs/reproduction.md gives the measured effect
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import secrets
@@ -141,6 +142,8 @@ class VolumeWriter:
         self._old_files: dict[str, tuple[Path, np.ndarray]] = {}  # name -> (format-2 dataset file, its done)
         #: bytes under the run's volume paths after each step of :meth:`assemble` (peak bookkeeping)
         self.disk_trace: list[tuple[str, int]] = []
+        self._made_folder = not self.path.parent.exists()  # removed again by a failed start (abort)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.partial.unlink(missing_ok=True)  # only ever an assembly in progress: rebuilt from the units
         meta_path = self.units_dir / "run.json"
         try:
@@ -428,12 +431,34 @@ class VolumeWriter:
         self._drop_datasets(keep=self.datasets_dir.name)
 
     def abort(self) -> None:
-        """Close the assembly file if open; the units stay for the next run."""
+        """Close the assembly file if open; the units stay for the next run.
+
+        A run that fails before any unit is written (a failed start: a kernel that does not build,
+        a bad input found late) leaves nothing behind: no ``volumes.h5.units/run.json`` stub, no empty
+        ``volumes.d/<gen>/``, and no run folder this writer made, so that nothing looks like a run
+        to resume or read."""
         if self.f is not None:
             try:
                 self.f.close()
             except Exception:  # noqa: BLE001 - best-effort cleanup on a failing run: the original error matters
                 pass
+        try:
+            self._drop_empty_start()
+        except OSError:  # best effort: the original error matters
+            pass
+
+    def _drop_empty_start(self) -> None:
+        if any(self.datasets_dir.iterdir()):
+            return  # units to keep: the next run resumes from them
+        self.datasets_dir.rmdir()
+        with contextlib.suppress(OSError):
+            self.datasets_root.rmdir()  # only when empty: an earlier result's folder stays
+        if self.units_dir.is_dir() and {p.name for p in self.units_dir.iterdir()} <= {"run.json"}:
+            (self.units_dir / "run.json").unlink(missing_ok=True)
+            self.units_dir.rmdir()
+        if self._made_folder:
+            with contextlib.suppress(OSError):
+                self.path.parent.rmdir()  # only when empty
 
 
 def _linked_gen(path: Path) -> str | None:

@@ -141,7 +141,7 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
                                     overlap=executor_kind != "serial")
     cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     need = (preflight.needs(scene, run_costs, cache_path, out) if force
-            else preflight.check(scene, run_costs, cache_path, out))
+            else preflight.check(scene, run_costs, cache_path, out, rt=rt))
     variants = noise_variants(scene)
     axes = {"cardiac_phase": targets.cardiac, "resp_amplitude": targets.resp, "z_mm": slices_z,
             "y_mm": reconstruct.voxel_coords(rc.ny, rc.voxel_mm), "x_mm": reconstruct.voxel_coords(rc.nx, rc.voxel_mm)}

@@ -9,6 +9,7 @@ from clrecon.outputs.volumes import resolve_compression
 from clrecon.pipeline import evaluate
 from clrecon.pipeline.stages import truth as truth_stage
 from clrecon.pipeline.variants import noise_variants
+from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.rebin import slice_window_mm
 from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, slab_bytes_per_slice, slices_per_slab
@@ -73,7 +74,10 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     chunk = 512 * proj_bytes * (1 + n_var)
     plans = min(KEEP_PLANS_BYTES, 40.0 * nz * sc.views_per_rotation * n_targets * 8 * len(methods))
     slab_sinos = 2 * 32 * sc.views_per_rotation * sc.n_cols * 4
-    peak = chunk + slab * per_slice + plans + slab_sinos + 2 * nz * rc.ny * rc.nx * 4
+    buffers = device_buffers(scene, rows_per_slice)
+    # one launch's images twice: the device buffer (host memory on a CPU device) and its host copy
+    launch_images = 2 * buffers["the images of one backprojection launch"]
+    peak = chunk + slab * per_slice + plans + slab_sinos + 2 * nz * rc.ny * rc.nx * 4 + launch_images
     # ``overlap``: an executor that overlaps the stages (local, dask; not serial)
     if overlap:  # the truths beside the reconstruction: one target's working set on top
         peak += truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx)
@@ -95,9 +99,30 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
            "volume_bytes": int(vol_bytes * n_vols), "n_volumes": round(n_vols, 3), "n_targets": n_targets,
            "recon_bytes_per_pitch": int(vol_bytes * n_var * per_pitch_variant), "truth_bytes": int(2 * vol_bytes),
            "largest_dataset_bytes": int(vol_bytes), "peak_memory_bytes": int(peak), "slab_slices": slab,
-           "volume_compression": resolve_compression(rc.volume_compression, int(vol_bytes * n_vols))}
+           "volume_compression": resolve_compression(rc.volume_compression, int(vol_bytes * n_vols)),
+           "device_buffers": buffers}
     out.update(disk_model(out))
     return out
+
+
+def device_buffers(scene, rows_per_slice: float) -> dict[str, int]:
+    """Bytes of the largest single device buffers the run cannot split further, by what they hold.
+
+    Each must fit the device's largest allocation (``CL_DEVICE_MAX_MEM_ALLOC_SIZE``), which the
+    pre-flight checks before any work (:func:`clrecon.pipeline.preflight.check`): one backprojection
+    launch's images (``groups_per_launch`` x 16 images of ny x nx float32,
+    :func:`clrecon.reconstruction.fbp.groups_per_launch`) and interleaved sinograms (V x (n_cols + 2)
+    x 16 per group), one slice's rebinned candidate rows (``rows_per_slice`` x n_cols; a slab is
+    halved until its rows fit, one slice cannot be) and one projection (n_rows x n_cols).
+    """
+    sc, rc = scene.scanner, scene.recon
+    geom = fbp_mod.FanBeamGeometry.from_scene(scene)
+    groups, lanes = fbp_mod.groups_per_launch(geom), fbp_mod.BATCH_LANES
+    return {"the images of one backprojection launch": groups * lanes * rc.ny * rc.nx * 4,
+            "the interleaved sinograms of one backprojection launch": groups * geom.n_views * (geom.n_cols + 2)
+            * lanes * 4,
+            "one slice's rebinned rows": int(rows_per_slice + 1) * sc.n_cols * 4,
+            "one projection": sc.n_rows * sc.n_cols * 4}
 
 
 def disk_model(c: dict, existing: dict | None = None, present_out: int = 0, truth_copies: bool = False) -> dict:

@@ -31,6 +31,7 @@ from pathlib import Path
 
 from clrecon.core.errors import ClreconError
 from clrecon.core.resources import folder_bytes, peak_rss_bytes
+from clrecon.core.runtime import get_runtime
 from clrecon.pipeline.costs import disk_model
 
 GiB = 1024 ** 3
@@ -103,8 +104,25 @@ def needs(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
     return {"memory": memory, **disk}
 
 
-def check(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
-    """Raise a one-line :class:`ClreconError` when the run will not fit; returns the needs."""
+def check_device(costs: dict, max_alloc_bytes: int, device: str = "the OpenCL device") -> None:
+    """Raise a one-line :class:`ClreconError` when one of the run's device buffers that cannot be split
+    (:func:`clrecon.pipeline.costs.device_buffers`) is above the device's largest allocation."""
+    for what, b in sorted(costs.get("device_buffers", {}).items(), key=lambda kv: -kv[1]):
+        if b > max_alloc_bytes:
+            raise ClreconError(f"pre-flight: {what} need one device buffer of {_gib(b)}, above the largest "
+                               f"allocation of {device} ({_gib(max_alloc_bytes)}, CL_DEVICE_MAX_MEM_ALLOC_SIZE); "
+                               f"use a smaller recon.nx/ny, fewer detector columns or views, or a device with a "
+                               f"larger allocation limit (CLRECON_DEVICE)")
+
+
+def check(scene, costs: dict, cache_dir: Path, out_dir: Path, rt=None) -> dict:
+    """Raise a one-line :class:`ClreconError` when the run will not fit; returns the needs.
+
+    ``rt``: the OpenCL runtime whose device buffers the run uses (default: the process's,
+    :func:`clrecon.core.runtime.get_runtime`)."""
+    if rt is None:
+        rt = get_runtime()
+    check_device(costs, rt.max_alloc_bytes, repr(rt.device.name))
     need = needs(scene, costs, cache_dir, out_dir)
     force = "pass --force (clrecon run) or force=True (clrecon.api.run) to run anyway"
     mem = available_memory_bytes()

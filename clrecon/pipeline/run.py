@@ -54,9 +54,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     machine0 = machine_speed.start()  # the probe runs before the clock starts (~0.1 s)
     t_start = time.perf_counter()
     load_start = results_mod.load_average()
-    out = Path(out_dir)
+    out = Path(out_dir)  # made by the volume writer: a run refused before it leaves no folder behind
     rt = get_runtime()  # first: a machine with no working OpenCL driver gets its one line before any file
-    out.mkdir(parents=True, exist_ok=True)
     ex = executors.make(executor, client)
     ctx = open_run(scene, out, methods, cardiac, resp, slice_range, pitches, cache_dir, rt=rt,
                    executor_kind=ex.kind, distributed=ex.fine_units, force=force, report=report, progress=progress,

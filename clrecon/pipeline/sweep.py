@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from clrecon.config import overrides as scene_overrides
+from clrecon.core import jsonio
 from clrecon.core.errors import ClreconError
 from clrecon.core.units import write_json_atomic
 from clrecon.outputs import sweep_summary
@@ -198,6 +199,6 @@ def _finished(pdir: Path, record: dict) -> dict | None:
     try:
         if json.loads((pdir / "point.json").read_text()) != record:
             return None
-        return json.loads((pdir / "results.json").read_text())
+        return jsonio.loads((pdir / "results.json").read_text())
     except (OSError, ValueError):
         return None

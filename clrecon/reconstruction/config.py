@@ -10,7 +10,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from clrecon.core.config import BOOL, NONNEG, NONNEGINT, POS, POSINT, F, Section, _num, _posint, field_of, one_of
+from clrecon.core.config import (
+    BOOL,
+    F,
+    Section,
+    _num,
+    field_of,
+    integer_in,
+    number_in,
+    one_of,
+    zero_or_in,
+)
 from clrecon.core.errors import SceneError
 from clrecon.reconstruction.backprojectors import BACKPROJECTORS
 from clrecon.reconstruction.filters import FILTERS as _FILTER_REGISTRY
@@ -23,6 +33,15 @@ FILTERS = _FILTER_REGISTRY.names
 
 _f = field_of  # (default, allowed, check, doc)
 
+# Ranges (docs/hostile-inputs.md "Ranges of scene values"): every real grid and kernel fits, and so
+# do the coarse test grids (tiny: 32 x 32 voxels of 12 mm); beyond them a value is a typo, a unit
+# slip or not a number, refused in one line where it enters.
+IMAGE_SIDE = integer_in(2, 4096, "clinical images are 512 x 512, high-resolution ones up to 2048; a voxel size needs 2")
+VOXEL_MM = number_in(0.005, 100.0, "mm", "micro-CT 0.005-0.1 mm, clinical 0.3-1 mm, coarse test grids up to tens "
+                     "of mm")
+#: Largest extent of the reconstruction grid along any axis (mm): a body is under 2 m.
+MAX_GRID_MM = 2000.0
+
 
 @dataclass(frozen=True, kw_only=True)
 class ReconConfig(Section):
@@ -30,37 +49,43 @@ class ReconConfig(Section):
 
     SECTION = "recon"
 
-    nx: int = F(512, POSINT, "voxels along x (patient left)")
-    ny: int = F(512, POSINT, "voxels along y (posterior)")
-    nz: int = F(100, POSINT, "slices")
-    voxel_mm: float = F(1.0, POS, "in-plane voxel size")
-    slice_mm: float = F(1.0, POS, "slice spacing")
+    nx: int = F(512, IMAGE_SIDE, "voxels along x (patient left)")
+    ny: int = F(512, IMAGE_SIDE, "voxels along y (posterior)")
+    nz: int = F(100, integer_in(1, 20000, "2 m of 0.1 mm slices"), "slices")
+    voxel_mm: float = F(1.0, VOXEL_MM, "in-plane voxel size")
+    slice_mm: float = F(1.0, VOXEL_MM, "slice spacing")
     cardiac_phases: tuple = _f((0.0, 0.2, 0.4, 0.6, 0.8), "a non-empty list of numbers in [0, 1)",
                                lambda v: isinstance(v, tuple) and len(v) > 0 and all(_num(c) and 0 <= c < 1 for c in v),
                                "target cardiac phases")
-    resp_bins: int = _f(10, "an integer in 1..50", lambda x: _posint(x) and x <= 50,
+    resp_bins: int = F(10, integer_in(1, 50, "the paper uses 10"),
                         "respiratory amplitude bins of equal width; targets at the bin midpoints")
     methods: tuple = _f(_default_methods(), "a non-empty list from " + ", ".join(METHODS),
                         lambda v: isinstance(v, tuple) and len(v) > 0 and all(m in METHODS for m in v)
                         and len(set(v)) == len(v), "reconstruction methods")
-    kappa: float = F(1.0, POS, "von Mises concentration of the local-linear cardiac kernel")
-    sigma: float = F(0.15, POS, "Gaussian width of the local-linear amplitude kernel")
+    kappa: float = F(1.0, number_in(0.01, 1000.0, "", "0.01 is flat over the cardiac cycle, 1000 narrower than 1 % "
+                                    "of it"), "von Mises concentration of the local-linear cardiac kernel")
+    sigma: float = F(0.15, number_in(0.001, 10.0, "", "amplitude units: the amplitude spans [0, 1]"),
+                     "Gaussian width of the local-linear amplitude kernel")
     local_linear_extrapolate: bool = F(False, BOOL, "true: the paper's plain local-linear fit, which extrapolates "
                                        "along an axis the points do not bracket; false: locally constant there")
     local_linear_points: str = F("quadrants", one_of(LL_POINT_RULES), "local-linear neighbour selection: "
                                  "'quadrants' (local_linear_count nearest per quadrant, the paper's text) or "
                                  "'nearest' (the local_linear_count nearest overall, the paper's Figure 2B caption)")
-    local_linear_count: int = _f(2, f"an integer in 1..{LL_MAX_SLOTS}", lambda x: _posint(x) and x <= LL_MAX_SLOTS,
+    local_linear_count: int = F(2, integer_in(1, LL_MAX_SLOTS, "the kernel's slots per row"),
                                  "local-linear points per quadrant ('quadrants': 4 x count slots) or in all "
                                  "('nearest')")
-    cardiac_distance_scale: float = F(1.0, POS, "s, dimensionless (amplitude units per cardiac cycle): the "
-                                      "phase-space distance is sqrt((s dc)^2 + da^2) for neighbour selection "
+    cardiac_distance_scale: float = F(1.0, number_in(0.001, 1000.0, "", "amplitude units per cardiac cycle"),
+                                      "s, dimensionless (amplitude units per cardiac cycle): the phase-space "
+                                      "distance is sqrt((s dc)^2 + da^2) for neighbour selection "
                                       "(local_linear, nearest, barycentric's two-nearest fallback) and barycentric's "
                                       "Delaunay triangulation runs in (s c, a); 1 = unscaled, as the paper")
-    max_turns: int = F(0, NONNEGINT, "0: every candidate turn within the SSRB window; N > 0: only the N candidates "
-                       "nearest in z per (slice, view), for every method")
-    candidate_window_mm: float = F(0.0, NONNEG, "candidate window |slice z - source z| (mm); 0: the SSRB-exact "
-                                   "window (no SSRB row off the detector); the 5DCT paper: half the detector width "
+    max_turns: int = F(0, integer_in(0, 10000, "0: every candidate; a scan within its length limit has fewer turns"),
+                       "0: every candidate turn within the SSRB window; N > 0: only the N candidates nearest in z per "
+                       "(slice, view), for every method")
+    candidate_window_mm: float = F(0.0, zero_or_in(0.1, MAX_GRID_MM, "mm", "0: the SSRB-exact window; the "
+                                                   "paper's is ~28 mm"),
+                                   "candidate window |slice z - source z| (mm); 0: the SSRB-exact window (no SSRB "
+                                   "row off the detector); the 5DCT paper: half the detector width "
                                    "projected to the isocentre, ~28 mm (rows off the detector clamp to its edge)")
     truth_free: bool = F(False, BOOL, "cross-validate every method in sinogram space (no truth needed): "
                          "results.json['truth_free'] and a report section (clrecon.evaluation.truth_free)")
@@ -77,12 +102,19 @@ class ReconConfig(Section):
                                 "shuffle, 2-3.5x smaller, ~80 MB/s to write on one core), 'none', or 'auto' (lzf "
                                 "when the run's volumes are >= 4 GiB raw, as the paper scenes; none below: demo, "
                                 "tiny); the values stored are the same either way")
-    small_fov_mm: tuple = _f((-70.0, 85.0, -100.0, 40.0), "[x_min, x_max, y_min, y_max] with min < max",
-                             lambda v: isinstance(v, tuple) and len(v) == 4 and all(_num(x) for x in v)
-                             and v[0] < v[1] and v[2] < v[3],
+    small_fov_mm: tuple = _f((-70.0, 85.0, -100.0, 40.0), f"[x_min, x_max, y_min, y_max] with min < max, each in "
+                             f"[{-MAX_GRID_MM:g}, {MAX_GRID_MM:g}] mm (a box in the patient)",
+                             lambda v: isinstance(v, tuple) and len(v) == 4
+                             and all(_num(x) and abs(x) <= MAX_GRID_MM for x in v) and v[0] < v[1] and v[2] < v[3],
                              "box around the heart (mm, LPS): the phantom's epicardial fat at every state + 10 mm")
 
     def check(self) -> None:
+        for key, n, size in (("nx", self.nx, self.voxel_mm), ("ny", self.ny, self.voxel_mm),
+                             ("nz", self.nz, self.slice_mm)):
+            if n * size > MAX_GRID_MM:
+                what = "voxel_mm" if key != "nz" else "slice_mm"
+                raise SceneError(f"recon.{key} x recon.{what} = {n} x {size:g} mm = {n * size:g} mm: the grid must "
+                                 f"span at most {MAX_GRID_MM:g} mm along each axis (a body is under 2 m)")
         if self.local_linear_points == "quadrants" and 4 * self.local_linear_count > LL_MAX_SLOTS:
             raise SceneError(f"recon.local_linear_count = {self.local_linear_count}: with local_linear_points = "
                              f"'quadrants' must be at most {LL_MAX_SLOTS // 4} (4 x count <= {LL_MAX_SLOTS} slots)")

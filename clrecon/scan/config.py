@@ -24,20 +24,20 @@ from clrecon.core.config import (
     BOOL,
     FRAC,
     NONNEG,
-    NONNEGINT,
     NUM,
-    POS,
-    POSINT,
+    SEED,
     F,
     Section,
     _num,
-    _pos,
-    _posint,
     field_of,
+    integer_in,
+    number_in,
     one_of,
+    zero_or_in,
 )
 from clrecon.core.detector import DETECTORS, FFS_MODES, DetectorModel, detector_for, ffs_cycle, ffs_states
 from clrecon.core.errors import SceneError
+from clrecon.scan.recorded import trace_files
 
 #: The signal trace spans max(TRACE_MIN_S, the longest scan) + TRACE_MARGIN_S seconds.
 TRACE_MIN_S = 60.0
@@ -52,6 +52,21 @@ STR = ("a string", lambda x: isinstance(x, str))
 
 _f = field_of  # (default, allowed, check, doc)
 
+# Physical ranges (docs/hostile-inputs.md "Ranges of scene values"): wide enough for every clinical
+# CT, C-arm and micro-CT geometry and for the coarse test scenes (tiny: 7.5 mm cells, 12 mm
+# voxels), narrow enough that a non-number, a unit slip (metres, micrometres) or a typo is refused
+# where it enters, in one line naming the key, the value and the range with its reason.
+DETECTOR_CELL_MM = number_in(0.005, 100.0, "mm", "detector cells are 0.05-1.4 mm; coarse test detectors up to "
+                             "tens of mm")
+#: Longest scan (s) a scene may ask for: a free-breathing thorax scan lasts seconds to two
+#: minutes (the paper's pitch-0.02 scan: 49 s); the signal model samples its trace every 5 ms.
+MAX_SCAN_S = 600.0
+#: Largest pitch list (one scan per pitch).
+MAX_PITCHES = 64
+PITCH_RANGE = (0.001, 2.0)
+#: Offsets between a recorded trace's clock and the scan's (s).
+OFFSET_S = number_in(-86400.0, 86400.0, "s", "within a day of the trace's start")
+
 
 # ---------------------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
@@ -60,14 +75,20 @@ class ScannerConfig(Section):
 
     SECTION = "scanner"
 
-    sid_mm: float = F(595.0, POS, "source to isocentre distance")
-    sdd_mm: float = F(1085.6, POS, "source to detector distance")
-    n_cols: int = F(900, POSINT, "detector columns")
-    n_rows: int = F(64, POSINT, "detector rows")
-    col_pitch_mm: float = F(0.8, POS, "detector column pitch at the detector")
-    row_pitch_mm: float = F(0.8, POS, "detector row pitch at the detector")
-    views_per_rotation: int = F(984, POSINT, "projections per rotation")
-    rotation_time_s: float = F(0.3, POS, "seconds per rotation")
+    sid_mm: float = F(595.0, number_in(10.0, 5000.0, "mm", "clinical CT 500-650 mm, C-arm ~800 mm, micro-CT "
+                                       "from ~20 mm"), "source to isocentre distance")
+    sdd_mm: float = F(1085.6, number_in(10.0, 10000.0, "mm", "clinical CT 950-1150 mm; more than sid_mm"),
+                      "source to detector distance")
+    n_cols: int = F(900, integer_in(2, 16384, "clinical CT 670-900 channels, flat panels a few thousand; the ramp "
+                                    "filter needs 2"),
+                    "detector columns")
+    n_rows: int = F(64, integer_in(1, 4096, "clinical CT 16-320 rows, flat panels up to ~3000"), "detector rows")
+    col_pitch_mm: float = F(0.8, DETECTOR_CELL_MM, "detector column pitch at the detector")
+    row_pitch_mm: float = F(0.8, DETECTOR_CELL_MM, "detector row pitch at the detector")
+    views_per_rotation: int = F(984, integer_in(2, 20000, "clinical CT 700-5000 views per rotation"),
+                                "projections per rotation")
+    rotation_time_s: float = F(0.3, number_in(0.05, 60.0, "s", "the fastest gantries turn in 0.25 s, C-arm "
+                                              "sweeps take 4-20 s"), "seconds per rotation")
     detector: str = F("flat", one_of(DETECTORS.names), "detector model (clrecon.core.detector)")
     central_col: float = F(-1.0, NUM, "cylindrical: 0-based fractional column the central ray hits; "
                                       "-1 = the middle (n_cols - 1) / 2 (quarter offset: middle + 0.25)")
@@ -135,13 +156,19 @@ class ScanConfig(Section):
 
     SECTION = "scan"
 
-    pitches: tuple = _f((0.02,), "a non-empty list of numbers in (0, 2]",
-                        lambda v: isinstance(v, tuple) and len(v) > 0 and all(_pos(p) and p <= 2 for p in v),
+    pitches: tuple = _f((0.02,), f"a list of 1 to {MAX_PITCHES} numbers in [{PITCH_RANGE[0]:g}, {PITCH_RANGE[1]:g}] "
+                        "(5DCT scans at 0.02-0.1, clinical helical scans at 0.2-1.5; no scanner covers more than 2)",
+                        lambda v: isinstance(v, tuple) and 0 < len(v) <= MAX_PITCHES
+                        and all(_num(p) and PITCH_RANGE[0] <= p <= PITCH_RANGE[1] for p in v),
                         "table feed per rotation / collimation W; one scan per pitch")
-    coverage_mm: float = F(119.7, POS, "longitudinal coverage = travel + W")
-    n_projections: int = F(0, NONNEGINT, "if > 0: the scan length in projections (overrides coverage_mm)")
-    z_centre_mm: float = F(0.0, NUM, "table position of the scan centre")
-    start_angle_deg: float = F(0.0, NUM, "gantry angle of the first view")
+    coverage_mm: float = F(119.7, number_in(1.0, 2000.0, "mm", "a body is under 2 m long"),
+                           "longitudinal coverage = travel + W")
+    n_projections: int = F(0, integer_in(0, 10 ** 7, "0: from coverage_mm; the paper's pitch-0.02 scan has "
+                                         "160 689"), "if > 0: the scan length in projections (overrides coverage_mm)")
+    z_centre_mm: float = F(0.0, number_in(-5000.0, 5000.0, "mm", "a table position; CT tables travel under 2 m"),
+                           "table position of the scan centre")
+    start_angle_deg: float = F(0.0, number_in(-3600.0, 3600.0, "deg", "within ten turns of 0; only the angle "
+                                              "modulo 360 matters"), "gantry angle of the first view")
     source: str = F("simulated", one_of(SCAN_SOURCES), "'simulated' (the phantom) or 'dicom-ct-pd' (a measured "
                     "scan: projections = a folder of DICOM-CT-PD files, one projection each; docs/measured-data.md)")
     projections: str = F("", STR, "dicom-ct-pd: the folder of projection files (relative: to the scene file)")
@@ -173,6 +200,12 @@ class ScanConfig(Section):
     def check(self) -> None:
         if self.source == "dicom-ct-pd" and not self.projections:
             raise SceneError("scan.projections = '': scan.source = 'dicom-ct-pd' needs the folder of projection files")
+        if self.source == "simulated":  # the measured-scan keys do nothing here: say so rather than ignore them
+            for key, off in (("projections", ""), ("timestamp_unit", "ms"), ("flip_channels", False),
+                             ("flip_rows", False), ("pixel_layout", "auto"), ("orientation", "tags")):
+                if getattr(self, key) != off:
+                    raise SceneError(f"scan.{key} = {getattr(self, key)!r}: only used with scan.source = "
+                                     f"'dicom-ct-pd' (a measured scan); this scene is simulated")
 
 
     def feed_mm(self, scanner: ScannerConfig, pitch: float) -> float:
@@ -213,39 +246,53 @@ class SignalsConfig(Section):
 
     SECTION = "signals"
 
-    seed: int = F(1, NONNEGINT, "seed of the breathing and rhythm irregularities")
-    resp_period_s: float = F(5.0, POS, "mean breathing period")
-    resp_period_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                               "cycle-to-cycle coefficient of variation of the period")
-    resp_depth_cv: float = _f(0.15, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                              "cycle-to-cycle coefficient of variation of the depth")
-    resp_exponent: int = _f(2, "an integer in 1..4", lambda x: _posint(x) and x <= 4,
-                            "n in cos^(2n): larger gives a longer end-exhale dwell")
-    resp_drift: float = _f(0.05, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                           "slow baseline drift, as a fraction of the mean depth, peak to peak")
+    seed: int = F(1, SEED, "seed of the breathing and rhythm irregularities")
+    resp_period_s: float = F(5.0, number_in(1.0, 30.0, "s", "human breathing: 2-8 s at rest, 1 s at 60 breaths "
+                                            "a minute"), "mean breathing period")
+    resp_period_cv: float = F(0.15, number_in(0.0, 0.5, "", "a CV above 50 % is no longer one breathing rhythm"),
+                              "cycle-to-cycle coefficient of variation of the period")
+    resp_depth_cv: float = F(0.15, number_in(0.0, 0.5, "", "a CV above 50 % is no longer one breathing depth"),
+                             "cycle-to-cycle coefficient of variation of the depth")
+    resp_exponent: int = F(2, integer_in(1, 4, "n of Lujan's cos^(2n) model; 1-3 in use"),
+                           "n in cos^(2n): larger gives a longer end-exhale dwell")
+    resp_drift: float = F(0.05, number_in(0.0, 0.5, "", "a fraction of the mean depth"),
+                          "slow baseline drift, as a fraction of the mean depth, peak to peak")
     breath_hold: bool = F(False, BOOL, "no breathing: amplitude constant at breath_hold_amplitude")
     breath_hold_amplitude: float = F(0.5, FRAC, "normalised amplitude during a breath hold")
-    rr_s: float = _f(0.75, "a number in [0.3, 2.0]", lambda x: _num(x) and 0.3 <= x <= 2.0, "mean R-R interval")
+    rr_s: float = F(0.75, number_in(0.3, 2.0, "s", "heart rates of 30-200 beats a minute"), "mean R-R interval")
     rhythm: str = _f("periodic", "one of " + ", ".join(RHYTHMS), lambda x: x in RHYTHMS,
                      "periodic; hrv (3 % sinus variability); af (i.i.d. R-R); pvc (ectopic beats)")
-    rr_cv: float = _f(0.0, "a number in [0, 0.4]", lambda x: _num(x) and 0 <= x <= 0.4,
-                      "R-R coefficient of variation for hrv/af (0: the rhythm's default)")
-    ectopic_rate: float = _f(0.0, "a number in [0, 0.5]", lambda x: _num(x) and 0 <= x <= 0.5,
-                             "fraction of beats that are premature (pvc rhythm)")
-    frame_time_s: float = F(0.0, NONNEG, "0: continuous motion; > 0: motion frozen in phantom frames of this length")
+    rr_cv: float = F(0.0, number_in(0.0, 0.4, "", "atrial fibrillation: ~20 %"),
+                     "R-R coefficient of variation for hrv/af (0: the rhythm's default)")
+    ectopic_rate: float = F(0.0, number_in(0.0, 0.5, "", "bigeminy: every other beat"),
+                            "fraction of beats that are premature (pvc rhythm)")
+    frame_time_s: float = F(0.0, zero_or_in(0.001, 60.0, "s", "4D phantom frames last 10-100 ms"),
+                            "0: continuous motion; > 0: motion frozen in phantom frames of this length")
     breathing_trace: str = F("", STR, "recorded breathing trace (Varian RPM .vxp, or CSV time_s,amplitude) in place of "
                              "the breathing model (clrecon.scan.recorded)")
     ecg_trace: str = F("", STR, "recorded ECG (CSV of R-peak times r_peak_s, or a WFDB record .hea) in place of the "
                        "rhythm model")
     trace_align: str = F("offset", one_of(("offset", "beam-on")), "breathing trace time of scan time 0: "
                          "trace_offset_s, or the first beam-on (ttlin = 1) sample of the .vxp plus trace_offset_s")
-    trace_offset_s: float = F(0.0, NUM, "breathing trace time (s) at scan time 0 (added to the beam-on time "
+    trace_offset_s: float = F(0.0, OFFSET_S, "breathing trace time (s) at scan time 0 (added to the beam-on time "
                               "with trace_align = 'beam-on')")
-    ecg_offset_s: float = F(0.0, NUM, "ECG time (s) at scan time 0")
+    ecg_offset_s: float = F(0.0, OFFSET_S, "ECG time (s) at scan time 0")
     breathing_inhale: str = F("up", one_of(("up", "down")), "the recorded amplitude rises ('up') or falls ('down') "
                               "on inhalation")
 
     PATH_KEYS: ClassVar[tuple] = ("breathing_trace", "ecg_trace")
+
+    def check(self) -> None:
+        for key, what in (("breathing_trace", "a Varian RPM .vxp or a time_s,amplitude CSV"),
+                          ("ecg_trace", "a CSV of r_peak_s or a WFDB record's .hea")):
+            path = getattr(self, key)
+            if path and not trace_files(path):
+                raise SceneError(f"signals.{key} = {path!r}: no such file (expected {what})")
+        if not self.breathing_trace:  # the trace keys do nothing without a trace: say so rather than ignore them
+            for key, off in (("trace_align", "offset"), ("breathing_inhale", "up")):
+                if getattr(self, key) != off:
+                    raise SceneError(f"signals.{key} = {getattr(self, key)!r}: only used with "
+                                     f"signals.breathing_trace (a recorded breathing trace); none is given")
 
 
 class MotionFlags(Protocol):

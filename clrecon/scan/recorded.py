@@ -35,8 +35,14 @@ Per view
   linearly interpolated at the view time. The model normalises over its whole trace the same way.
 - Direction: sign of the slope of the two samples bracketing the view (+1 when flat).
 - A view is **left out** (``usable`` false) when a bracketing sample is flagged (-1 or -2,
-  or ``valid`` = 0 in a CSV) or the two bracketing samples are further apart than
-  ``GAP_FACTOR`` times the nominal sample interval (a gap in the trace).
+  or ``valid`` = 0 in a CSV), has no finite amplitude (a ``.vxp`` row whose amplitude is ``nan``
+  or ``inf``: a lost RPM sample; counted as ``non_finite_amplitude``), or the two bracketing
+  samples are further apart than ``GAP_FACTOR`` times the nominal sample interval (a gap in the
+  trace). A lost sample's amplitude is filled from its finite neighbours (every number stays
+  finite) and never enters the percentiles.
+- A non-finite time (a ``.vxp`` timestamp, a CSV time, an R peak), validflag or ttlin, and a
+  non-finite CSV amplitude of a sample not marked ``valid`` = 0, is an error naming the file,
+  the line and the value (:class:`InputError`); so is a WFDB record with a missing (NaN) sample.
 - A trace or ECG that does not cover every view is an error (:class:`InputError`), as is an
   ECG with fewer than two R peaks.
 """
@@ -54,14 +60,20 @@ import numpy as np
 from clrecon.core.errors import InputError, SceneError
 
 
-def file_digest(path) -> str:
-    """BLAKE2b (16 hex) of a file's bytes; a WFDB record (``.hea`` or its base name): of all its files."""
+def trace_files(path) -> list[Path]:
+    """The files of a recorded trace: the file itself, or every file of a WFDB record (``.hea`` or its
+    base name); empty when there is none."""
     p = Path(path)
     if p.suffix.lower() in (".hea", ".dat") or (not p.suffix and p.with_suffix(".hea").exists()):
         base = p.with_suffix("")
-        files = sorted(q for q in base.parent.glob(base.name + ".*") if q.is_file())
-    else:
-        files = [p] if p.is_file() else []
+        return sorted(q for q in base.parent.glob(base.name + ".*") if q.is_file())
+    return [p] if p.is_file() else []
+
+
+def file_digest(path) -> str:
+    """BLAKE2b (16 hex) of a file's bytes; a WFDB record (``.hea`` or its base name): of all its files."""
+    p = Path(path)
+    files = trace_files(p)
     if not files:
         raise SceneError(f"{p}: no such file")
     h = hashlib.blake2b(digest_size=8)
@@ -78,7 +90,9 @@ NORMALISE_PERCENTILES = (5.0, 95.0)
 #: Columns a .vxp Data_layout must name.
 VXP_REQUIRED = ("amplitude", "timestamp", "validflag")
 #: Reasons a view is left out, as counted in results.json.
-EXCLUSION_REASONS = ("lost_tracking", "non_periodic", "trace_gap", "invalid")
+EXCLUSION_REASONS = ("lost_tracking", "non_periodic", "trace_gap", "invalid", "non_finite_amplitude")
+#: ``BreathingTrace.status`` of each reason a sample is not valid.
+STATUS = {"lost_tracking": -1, "non_periodic": -2, "invalid": -3, "non_finite_amplitude": -4}
 
 
 @dataclass(frozen=True)
@@ -87,7 +101,8 @@ class BreathingTrace:
 
     time_s    (m,) float64 trace time (s), strictly increasing
     amplitude (m,) float64 raw amplitude (cm for .vxp, file units for CSV), inhale = larger
-    status    (m,) int8    0 valid, -1 lost tracking, -2 non-periodic, -3 invalid (CSV valid = 0)
+    status    (m,) int8    0 valid, -1 lost tracking, -2 non-periodic, -3 invalid (CSV valid = 0),
+                           -4 no finite amplitude (a lost .vxp sample; its amplitude filled from its neighbours)
     sample_s  float        nominal sample interval (s)
     beam_on_s float | None trace time of the first ttlin = 1 sample (None without a ttlin column)
     path      str
@@ -104,7 +119,9 @@ class BreathingTrace:
         """(P5, P95) of the valid samples: the amplitudes that map to 0 and 1."""
         ok = self.status == 0
         if ok.sum() < 2:
-            raise InputError(f"{self.path}: fewer than 2 valid samples (validflag >= 0); "
+            lost = int((self.status == STATUS["non_finite_amplitude"]).sum())
+            raise InputError(f"{self.path}: fewer than 2 valid samples with a finite amplitude (validflag >= 0"
+                             f"{f'; {lost} of {self.status.size} amplitudes are nan or inf' if lost else ''}); "
                              f"cannot normalise the amplitude")
         lo, hi = (float(x) for x in np.percentile(self.amplitude[ok], NORMALISE_PERCENTILES))
         if not hi > lo:
@@ -201,10 +218,12 @@ def _read_vxp(p: Path) -> BreathingTrace:
                              f"truncated file?")
         try:
             amp[j] = float(f[col["amplitude"]])
-            ts[j] = float(f[col["timestamp"]])
-            flag[j] = int(float(f[col["validflag"]]))
+            ts[j] = _finite(p, lineno, "timestamp", float(f[col["timestamp"]]), "a time in ms")
+            flag[j] = _integer(p, lineno, "validflag", f[col["validflag"]])
             if "ttlin" in col and col["ttlin"] < len(f) and f[col["ttlin"]].strip():
-                ttl[j] = int(float(f[col["ttlin"]]))
+                ttl[j] = _integer(p, lineno, "ttlin", f[col["ttlin"]])
+        except InputError:  # a ValueError too: its own message names the column
+            raise
         except ValueError:
             raise InputError(f"{p}: line {lineno}: {s.strip()[:60]!r}: expected numbers in amplitude, timestamp, "
                              f"validflag, ttlin") from None
@@ -219,9 +238,12 @@ def _read_vxp(p: Path) -> BreathingTrace:
         raise InputError(f"{p}: Samples_per_second = {rate:g} but the timestamps are {1.0 / dt:.4g} samples/s apart "
                          f"(median); expected them to agree within 20 %")
     status = np.where(flag >= 0, 0, np.where(flag == -1, -1, -2)).astype(np.int8)
+    with np.errstate(over="ignore"):  # an amplitude beyond float64 once scaled is lost as inf is
+        amp = amp * scale / 10.0
+    amp, status = _lost_amplitudes(p, t, amp, status, [r[0] for r in rows])
     beam = np.flatnonzero(ttl == 1)
     beam_on = float(t[beam[0]]) if ("ttlin" in col and beam.size) else None
-    return BreathingTrace(time_s=t, amplitude=amp * scale / 10.0, status=status, sample_s=1.0 / rate,
+    return BreathingTrace(time_s=t, amplitude=amp, status=status, sample_s=1.0 / rate,
                           beam_on_s=beam_on, path=str(p))
 
 
@@ -243,19 +265,53 @@ def _read_breathing_csv(p: Path) -> BreathingTrace:
         if len(r) < need:
             raise InputError(f"{p}: line {lineno}: {len(r)} fields, expected {need}; truncated file?")
         try:
-            t[j], a[j] = float(r[0]), float(r[1])
-            if has_valid and int(float(r[2])) == 0:
-                status[j] = -3
+            t[j], a[j] = _finite(p, lineno, "time_s", float(r[0]), "a time in s"), float(r[1])
+            if has_valid and _integer(p, lineno, "valid", r[2]) == 0:
+                status[j] = STATUS["invalid"]
+        except InputError:  # a ValueError too: its own message names the column
+            raise
         except ValueError:
             raise InputError(f"{p}: line {lineno}: {','.join(r)[:60]!r}: expected numbers") from None
+        if not np.isfinite(a[j]) and status[j] == 0:
+            raise InputError(f"{p}: line {lineno}: amplitude = {r[1].strip()!r}: expected a finite number "
+                             f"(mark a lost sample with valid = 0{'' if has_valid else ' in a third column valid'})")
     bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
         raise InputError(f"{p}: line {body[bad[0] + 1][0]}: time_s {t[bad[0] + 1]:g} after {t[bad[0]]:g}; "
                          f"expected strictly increasing times")
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(a))):
-        raise InputError(f"{p}: non-finite time or amplitude; expected finite numbers")
+    a, status = _lost_amplitudes(p, t, a, status, [b[0] for b in body], counted="invalid")
     return BreathingTrace(time_s=t, amplitude=a, status=status, sample_s=float(np.median(np.diff(t))),
                           beam_on_s=None, path=str(p))
+
+
+def _finite(p: Path, lineno: int, what: str, x: float, expected: str) -> float:
+    if not np.isfinite(x):
+        raise InputError(f"{p}: line {lineno}: {what} = {x!r}: expected {expected} (a finite number)")
+    return x
+
+
+def _integer(p: Path, lineno: int, what: str, text: str) -> int:
+    """An integer column (validflag, ttlin, valid): nan/inf/fractions refused naming the line."""
+    x = float(text)  # a ValueError (not a number at all) is reported by the caller with the whole row
+    if not (np.isfinite(x) and x == int(x) and abs(x) < 2 ** 31):
+        raise InputError(f"{p}: line {lineno}: {what} = {text.strip()!r}: expected an integer (a flag such as 0, 1, "
+                         f"-1)")
+    return int(x)
+
+
+def _lost_amplitudes(p: Path, t, amp, status, linenos, counted: str = "non_finite_amplitude"):
+    """Samples without a finite amplitude: status ``counted`` (their views are left out and counted),
+    amplitude filled from the finite neighbours so that every number downstream stays finite."""
+    lost = ~np.isfinite(amp)
+    if not lost.any():
+        return amp, status
+    if lost.all():
+        raise InputError(f"{p}: line {linenos[0]}: every amplitude is nan or inf; expected a breathing trace")
+    status = status.copy()
+    status[lost & (status == 0)] = STATUS[counted]
+    amp = amp.copy()
+    amp[lost] = np.interp(t[lost], t[~lost], amp[~lost])
+    return amp, status
 
 
 # ---------------------------------------------------------------------------------------
@@ -276,7 +332,9 @@ def read_r_peaks(path) -> RPeaks:
     t = np.empty(len(body))
     for j, (lineno, r) in enumerate(body):
         try:
-            t[j] = float(r[0])
+            t[j] = _finite(p, lineno, "r_peak_s", float(r[0]), "an R-peak time in s")
+        except InputError:  # a ValueError too: its own message names the column
+            raise
         except ValueError:
             raise InputError(f"{p}: line {lineno}: {r[0][:40]!r}: expected an R-peak time in s") from None
     bad = np.flatnonzero(np.diff(t) <= 0)
@@ -299,9 +357,16 @@ def _read_wfdb(p: Path) -> RPeaks:
         msg = str(e).splitlines()[0][:80] if str(e) else ""
         raise InputError(f"{p}: not a readable WFDB record ({type(e).__name__}: {msg})") from None
     sig = np.asarray(rec.p_signal[:, 0], dtype=np.float64)
-    if sig.size < 2 * rec.fs or not np.all(np.isfinite(sig)):
-        raise InputError(f"{p}: channel 0 ({rec.sig_name[0]}) has {sig.size} samples at {rec.fs:g} Hz or non-finite "
-                         f"values; expected at least 2 s of ECG")
+    if sig.size < 2 * rec.fs:
+        raise InputError(f"{p}: channel 0 ({rec.sig_name[0]}) has {sig.size} samples at {rec.fs:g} Hz; expected at "
+                         f"least 2 s of ECG")
+    gap = np.flatnonzero(~np.isfinite(sig))
+    if gap.size:
+        k = int(gap[0])
+        raise InputError(f"{p}: channel 0 ({rec.sig_name[0]}) sample {k} (t = {k / rec.fs:.3f} s) is "
+                         f"{float(sig[k])!r}, "
+                         f"{gap.size} of {sig.size} samples are missing or not finite; expected a continuous ECG "
+                         f"(R peaks cannot be detected across a gap: give the R peaks as a CSV instead)")
     idx = np.asarray(processing.xqrs_detect(sig=sig, fs=rec.fs, verbose=False), dtype=np.int64)
     return _checked(RPeaks(time_s=np.sort(idx) / float(rec.fs), path=str(p), kind="wfdb"))
 
@@ -377,8 +442,7 @@ def view_signals(cfg, t_s) -> ViewSignals:
         s_hi = np.where(on, s_lo, s_hi)
         gap = (tr.time_s[hi] - tr.time_s[lo] > GAP_FACTOR * tr.sample_s) & ~on
         worst = np.minimum(s_lo, s_hi)
-        for reason, mask in (("lost_tracking", worst == -1), ("non_periodic", worst == -2),
-                             ("invalid", worst == -3), ("trace_gap", gap & (worst == 0))):
+        for reason, mask in [(r, worst == code) for r, code in STATUS.items()] + [("trace_gap", gap & (worst == 0))]:
             excluded[reason] = int(mask.sum())
             usable &= ~mask
     ecg = load_ecg(cfg)

@@ -11,10 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from clrecon.core.config import BOOL, NONNEG, NONNEGINT, F, Section, _pos, field_of
+from clrecon.core.config import BOOL, SEED, F, Section, number_in
+from clrecon.core.errors import SceneError
 from clrecon.scan.config import Acquisition
-
-_f = field_of  # (default, allowed, check, doc)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -24,11 +23,20 @@ class NoiseConfig(Section):
     SECTION = "noise"
 
     enabled: bool = F(True, BOOL, "add noise")
-    i0_photons: float = _f(2.0e5, "a number in (0, 1e15]", lambda x: _pos(x) and x <= 1e15,
-                           "unattenuated photons per detector cell (above 1e15 NumPy's Poisson sampler fails)")
-    electronic_sigma: float = F(5.0, NONNEG, "std of the electronic noise, in photon-equivalent counts")
-    seed: int = F(7, NONNEGINT, "noise seed")
+    i0_photons: float = F(2.0e5, number_in(1.0, 1e15, "photons", "clinical CT 1e4-1e6 per cell and view; below "
+                                           "1 nothing is measured; above 1e15 NumPy's Poisson sampler fails"),
+                          "unattenuated photons per detector cell")
+    electronic_sigma: float = F(5.0, number_in(0.0, 1e6, "counts", "detectors: a few photon-equivalent counts; "
+                                               "at most i0_photons"),
+                                "std of the electronic noise, in photon-equivalent counts")
+    seed: int = F(7, SEED, "noise seed")
     also_noise_free: bool = F(True, BOOL, "also reconstruct the noise-free projections (the paper's Table 2)")
+
+    def check(self) -> None:
+        if self.electronic_sigma > self.i0_photons:
+            raise SceneError(f"noise.electronic_sigma = {self.electronic_sigma!r}: must be at most noise.i0_photons = "
+                             f"{self.i0_photons!r} (electronic noise above the unattenuated signal drowns every "
+                             f"measurement)")
 
 
 class SimulatedScan(Acquisition, Protocol):

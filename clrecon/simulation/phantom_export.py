@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clrecon.core import atomic
 from clrecon.core.conventions import mu_to_hu
 from clrecon.core.errors import ClreconError
 from clrecon.scan import signals
@@ -147,19 +148,20 @@ def export_phantom(scene: SimulatedScan, out, fmt: str, n_frames: int = 0, voxel
         mu = voxelise_objects(phantom.objects(float(c[k]), float(a[k])), x, y, z, supersample=supersample, rt=rt)
         if fmt == "xcat":
             f = out / f"{name}_atn_{k + 1}.bin"
-            (mu.astype(np.float64) * h).astype("<f4").tofile(f)
+            atomic.write_bytes(f, (mu.astype(np.float64) * h).astype("<f4").tobytes())
         else:
             f = out / f"frame_{k + 1:03d}.nii"
             affine = np.diag([-1.0, -1.0, 1.0, 1.0]) @ np.array(
                 [[h, 0, 0, x[0]], [0, h, 0, y[0]], [0, 0, h, z[0]], [0, 0, 0, 1.0]])     # LPS -> RAS
             img = nib.Nifti1Image(mu_to_hu(mu, mu_w).astype(np.float32).transpose(2, 1, 0), affine)
             img.header.set_xyzt_units("mm", "sec")
-            nib.save(img, str(f))
+            with atomic.replacing(f, keep_suffix=True) as tmp:  # whole or not at all
+                nib.save(img, str(tmp))
         files.append(f)
     if fmt == "xcat":
         header = out / f"{name}_log"
         dt = float(t[1] - t[0]) if len(t) > 1 else 1.0
-        header.write_text(_xcat_log(name, scene, h, len(x), len(z), len(c), dt, mu_w))
+        atomic.write_text(header, _xcat_log(name, scene, h, len(x), len(z), len(c), dt, mu_w))
         snippet = ['[phantom]', 'kind = "voxel"', f"frames = {_toml_str(header.resolve())}", 'format = "xcat"',
                    'timing = "scene"', 'interpolation = "linear"',
                    "centre_mm = [" + ", ".join(f"{0.5 * (v[0] + v[-1]):.10g}" for v in (x, y, z)) + "]"]
@@ -172,7 +174,7 @@ def export_phantom(scene: SimulatedScan, out, fmt: str, n_frames: int = 0, voxel
             if t is not None:
                 rows.append(f"time_s = {float(t[k])!r}")
             rows.append("")
-        header.write_text("\n".join(rows))
+        atomic.write_text(header, "\n".join(rows))
         snippet = ['[phantom]', 'kind = "voxel"', f"frames = {_toml_str(header.resolve())}", 'format = "nifti"',
                    'timing = "table"', 'interpolation = "linear"', 'values = "hu"', f"mu_water_per_mm = {mu_w!r}"]
     if not scene.phantom.cardiac_motion:
@@ -180,7 +182,7 @@ def export_phantom(scene: SimulatedScan, out, fmt: str, n_frames: int = 0, voxel
     if not scene.phantom.respiratory_motion:
         snippet.append("respiratory_motion = false")
     toml = out / "phantom.toml"
-    toml.write_text("# paste into a scene file (replacing its [phantom] table)\n" + "\n".join(snippet) + "\n")
+    atomic.write_text(toml, "# paste into a scene file (replacing its [phantom] table)\n" + "\n".join(snippet) + "\n")
     return {"format": fmt, "out": str(out), "files": [str(f) for f in files], "header": str(header),
             "phantom_toml": str(toml), "shape": (len(z), len(y), len(x)), "voxel_mm": h,
             "origin_mm": (float(x[0]), float(y[0]), float(z[0])), "states": (c.tolist(), a.tolist()),

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clrecon.core import atomic
 from clrecon.core.errors import ClreconError
 from clrecon.outputs.export import target_tag
 from clrecon.outputs.rundir import RunDirectory, Source
@@ -298,7 +299,8 @@ class Viewer:
         """Render offscreen and write a PNG; returns the path."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        self.p.screenshot(str(path))
+        with atomic.replacing(path, keep_suffix=True) as tmp:  # whole or not at all
+            self.p.screenshot(str(tmp))
         return path
 
     def close(self) -> None:

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from clrecon.core import atomic
 from clrecon.core.errors import StoreError
 from clrecon.outputs.writers import WRITERS
 from clrecon.outputs.writers.base import Writer, _file_tag, _spacing, target_tag
@@ -214,9 +215,11 @@ def _ds(value: float):
 
 
 def _dcmwrite(pydicom, path: Path, ds) -> None:
-    try:  # pydicom >= 3
-        pydicom.dcmwrite(path, ds, enforce_file_format=True)
-    except TypeError:  # pydicom 2.x
-        ds.is_little_endian = True
-        ds.is_implicit_VR = False
-        ds.save_as(path, write_like_original=False)
+    """``ds`` as the file ``path``, whole or not at all (:mod:`clrecon.core.atomic`)."""
+    with atomic.replacing(path) as tmp:
+        try:  # pydicom >= 3
+            pydicom.dcmwrite(tmp, ds, enforce_file_format=True)
+        except TypeError:  # pydicom 2.x
+            ds.is_little_endian = True
+            ds.is_implicit_VR = False
+            ds.save_as(tmp, write_like_original=False)

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from clrecon.config.scene import Scene
+from clrecon.core import atomic
 from clrecon.core.errors import ClreconError
 from clrecon.outputs.writers import WRITERS
 from clrecon.outputs.writers.base import Writer
@@ -158,7 +159,8 @@ def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False, conv
                                     (study_uid, series_uid, frame_uid), sop,
                                     f"clrecon {scene.name} pitch {pitch:g} {variant} projections", ident, convention)
             ds.SpiralPitchFactor = float(pitch)
-            pydicom.dcmwrite(proj_dir / f"PROJ{int(k) + 1:06d}.dcm", ds, enforce_file_format=True)
+            with atomic.replacing(proj_dir / f"PROJ{int(k) + 1:06d}.dcm") as tmp:
+                pydicom.dcmwrite(tmp, ds, enforce_file_format=True)
     store.close()
     written = {"projections": "projections", "n_projections": n, "variant": variant,
                "quantisation_max_error": max_err, "convention": {"layout": convention.layout,
@@ -179,7 +181,7 @@ def export_scan(run, out: Path, pitch=None, keep_identifiers: bool = False, conv
         scan_keys["flip_channels"] = True
     if convention.flip_rows:
         scan_keys["flip_rows"] = True
-    (out / "measured.toml").write_text(measured_toml(scene, sig, res, scan_keys))
+    atomic.write_text(out / "measured.toml", measured_toml(scene, sig, res, scan_keys))
     written["scene"] = "measured.toml"
     return {"format": "dicom-ct-pd", "pitch": pitch, "source": f"projections {pk}", "method": "projections",
             "pitch_key": pk, "variant": variant, "frame": DicomCtPdWriter.frame, "targets": [],
@@ -304,11 +306,11 @@ def write_vxp(path: Path, scene: Scene, scan_end_s: float) -> None:
              f"Samples_per_second={VXP_RATE}", "Scale_factor=10.0", "[Data]"]
     for i in range(t_ms.size):
         lines.append(f"{tr.raw[i]:.7f},{phase[i]:.4f},{t_ms[i]},0,{int(beam[i])},,0")
-    path.write_text("\n".join(lines) + "\n")
+    atomic.write_text(path, "\n".join(lines) + "\n")
 
 
 def write_r_peaks(path: Path, peaks: np.ndarray) -> None:
-    path.write_text("r_peak_s\n" + "".join(f"{t:.9f}\n" for t in peaks))
+    atomic.write_text(path, "r_peak_s\n" + "".join(f"{t:.9f}\n" for t in peaks))
 
 
 def _toml_value(v) -> str:

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from clrecon.core import atomic
 from clrecon.outputs.writers import WRITERS
 from clrecon.outputs.writers.base import (
     Writer,
@@ -71,5 +72,6 @@ def _write_nifti_target(out: Path, vol: np.ndarray, axes: dict, src: Source, ci:
     img.header.set_xyzt_units("mm", "sec")
     img.header["descrip"] = f"5DCT {src.method} {target_tag(c, a)}".encode()[:79]
     path = out / f"{source_stem(src)}_{_file_tag(c, a)}.nii.gz"
-    nib.save(img, path)
+    with atomic.replacing(path, keep_suffix=".nii.gz") as tmp:  # whole or not at all
+        nib.save(img, tmp)
     return [path]

@@ -12,9 +12,10 @@ def stage(run, pitch=None, volume_units=None):
 
 
 def close(run) -> None:
-    """Finish ``volumes.h5`` (timed as ``assemble_volumes``); the previous run's results are removed
-    first: they must not describe the new volumes, even for a moment."""
-    (run.out / "results.json").unlink(missing_ok=True)
+    """Finish ``volumes.h5`` (timed as ``assemble_volumes``); the previous run's results and report
+    are removed first: they must not describe the new volumes, even for a moment."""
+    for name in ("results.json", "report.md", "report.html"):
+        (run.out / name).unlink(missing_ok=True)
     t0 = time.perf_counter()
     run.writer.close()
     run.clock.add("assemble_volumes", time.perf_counter() - t0)

@@ -5,7 +5,6 @@ and :func:`write_json_atomic` writes it."""
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import sys
@@ -14,11 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
+from clrecon.core import atomic
 from clrecon.core.resources import peak_rss_bytes
 from clrecon.core.versions import __version__
 from clrecon.evaluation import claims, motion
 from clrecon.outputs import measured_record
-from clrecon.pipeline.context import RESULTS_FORMAT, json_default
+from clrecon.pipeline.context import RESULTS_FORMAT
 from clrecon.pipeline.stages import assemble
 
 
@@ -41,9 +41,7 @@ def _versions() -> dict:
 
 
 def _write_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(obj, indent=2, default=json_default))
-    tmp.replace(path)
+    atomic.write_json(path, obj, indent=2)  # strict JSON, whole or not at all (clrecon.core.atomic)
 
 
 def write_json_atomic(path: Path, results: dict) -> None:

@@ -41,8 +41,8 @@ from types import MappingProxyType
 
 import numpy as np
 
-from clrecon.core.config import BOOL, FRAC, POS, F, Section, number_in
-from clrecon.core.conventions import MU_WATER_PER_MM
+from clrecon.core.config import BOOL, FRAC, F, Section, number_in
+from clrecon.core.conventions import MU_WATER_PER_MM, MU_WATER_RANGE_PER_MM, MU_WATER_WHY
 from clrecon.core.runtime import aligned_empty
 from clrecon.simulation.phantoms.layout import (  # noqa: F401
     AXES,
@@ -77,10 +77,12 @@ class PhantomConfig(Section):
     kind: str = F("analytic", ("analytic", lambda x: x == "analytic"), "phantom source (registry PHANTOM_SOURCES)")
     cardiac_motion: bool = F(True, BOOL, "heart beats")
     respiratory_motion: bool = F(True, BOOL, "thorax breathes")
-    diaphragm_si_mm: float = F(20.0, number_in(0, 40), "diaphragm excursion end-exhale -> end-inhale")
-    chest_ap_mm: float = F(12.0, number_in(0, 30), "chest AP expansion")
+    diaphragm_si_mm: float = F(20.0, number_in(0, 40, "mm", "10-20 mm quiet, up to ~40 mm deep breathing"),
+                               "diaphragm excursion end-exhale -> end-inhale")
+    chest_ap_mm: float = F(12.0, number_in(0, 30, "mm", "5-15 mm quiet breathing"), "chest AP expansion")
     heart_si_fraction: float = F(0.6, FRAC, "heart SI motion / diaphragm motion")
-    mu_water_per_mm: float = F(MU_WATER_PER_MM, POS, "attenuation of water (1/mm)")
+    mu_water_per_mm: float = F(MU_WATER_PER_MM, number_in(*MU_WATER_RANGE_PER_MM, "/mm", MU_WATER_WHY),
+                               "attenuation of water (1/mm)")
     metal_insert: bool = F(False, BOOL, "add a small metal-like (steel) insert near the spine")
 
 

@@ -39,8 +39,8 @@ from typing import ClassVar
 import numpy as np
 from scipy import sparse
 
-from clrecon.core.config import BOOL, NONNEG, F, Section, _num, field_of, one_of
-from clrecon.core.conventions import MU_WATER_PER_MM, circular_difference
+from clrecon.core.config import BOOL, F, Section, field_of, number_in, numbers_in, one_of, zero_or_in
+from clrecon.core.conventions import MU_WATER_PER_MM, MU_WATER_RANGE_PER_MM, MU_WATER_WHY, circular_difference
 from clrecon.core.errors import SceneError
 from clrecon.simulation.phantoms import frames as fr
 from clrecon.simulation.voxel_projector import project_volume
@@ -69,15 +69,17 @@ class VoxelPhantomConfig(Section):
     format: str = F("auto", one_of(FORMATS), "frame format; auto: from the path (a *_log is XCAT)")
     interpolation: str = F("linear", one_of(INTERPOLATIONS), "the phantom between frames")
     timing: str = F("auto", one_of(TIMINGS), "where each frame's (cardiac phase, amplitude) comes from")
-    time_offset_s: float = F(0.0, NONNEG, "timing = scene: the scene time of the first frame")
+    time_offset_s: float = F(0.0, number_in(0.0, 86400.0, "s", "within a day"),
+                             "timing = scene: the scene time of the first frame")
     values: str = F("hu", one_of(("hu", "mu")), "NIfTI voxel values: HU, or mu in 1/mm")
-    mu_water_per_mm: float = F(0.0, NONNEG, "attenuation of water (1/mm); 0: from the frames")
+    mu_water_per_mm: float = F(0.0, zero_or_in(*MU_WATER_RANGE_PER_MM, "/mm", MU_WATER_WHY),
+                               "attenuation of water (1/mm); 0: from the frames")
     byte_order: str = F("little", one_of(("little", "big")), "XCAT: byte order of the float32 frames")
     slice_direction: str = F("superior", one_of(("superior", "inferior")),
                              "XCAT: the direction in which slice numbers increase")
-    centre_mm: tuple = field_of((0.0, 0.0, 0.0), "[x, y, z] finite numbers",
-                                lambda v: isinstance(v, tuple) and len(v) == 3 and all(_num(x) for x in v),
-                                "XCAT: world position (LPS, mm) of the frames' centre")
+    centre_mm: tuple = F((0.0, 0.0, 0.0), numbers_in(3, -5000.0, 5000.0, "mm", "[x, y, z], a position in the "
+                                                     "scanner; CT tables travel under 2 m"),
+                         "XCAT: world position (LPS, mm) of the frames' centre")
     cardiac_motion: bool = F(True, BOOL, "the frames beat (false: posed at c = 0)")
     respiratory_motion: bool = F(True, BOOL, "the frames breathe (false: posed at a = 0.5)")
 
