@@ -64,8 +64,8 @@ __kernel void apply_weights_interleaved16_loop(__global const float *rows,    //
         float acc = 0.0f;
         for (int k = 0; k < k_slots; ++k) {
             const float wk = weight[slot + k];
-            if (wk != 0.0f)
-                acc += wk * rows[(size_t)index[slot + k] * (size_t)n_cols + (size_t)col];
+            if (wk != 0.0f)  // fused as the cols8 kernel's sum is, on every driver
+                acc = fma(wk, rows[(size_t)index[slot + k] * (size_t)n_cols + (size_t)col], acc);
         }
         o[lane] = acc;
     }
