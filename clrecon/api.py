@@ -109,7 +109,8 @@ def _slices(slices: SlicesLike, nz: int) -> tuple[int, int] | None:
 def run(scene: Scene | PathLike, out: PathLike | None = None, *, methods: Sequence[str] | str | None = None,
         targets: TargetsLike = None, slices: SlicesLike = None, pitches: Sequence[float] | float | None = None,
         progress: bool = False, cache: PathLike | None = None, report: bool = True,
-        log: Callable[[str], Any] | None = None, force: bool = False, client: Any = None) -> RunResult:
+        log: Callable[[str], Any] | None = None, force: bool = False, client: Any = None,
+        executor: str | None = None) -> RunResult:
     """Simulate (or reuse) -> reconstruct -> evaluate -> report, like ``clrecon run``.
 
     ``scene``: a :class:`Scene` or a built-in name / TOML path. ``out``: the run directory
@@ -123,7 +124,8 @@ def run(scene: Scene | PathLike, out: PathLike | None = None, *, methods: Sequen
     pre-flight check (modelled peak memory and disk need against the machine) says it will not fit.
     ``client``: a ``distributed.Client`` (e.g. ``Client(LocalCluster(n_workers=2, threads_per_worker=1))``
     or ``clrecon.pipeline.distributed.connect(workers=2)``): the units are computed on its
-    workers, with the same results bit for bit (docs/distributed.md).
+    workers, with the same results bit for bit (docs/distributed.md). ``executor``: ``"serial"``,
+    ``"local"`` (default) or ``"dask"`` (docs/data-flow.md "Executors").
 
     Returns a :class:`RunResult` (``.path``, ``.results``, ``.open()``). Wraps
     :func:`clrecon.pipeline.run.run`.
@@ -142,7 +144,7 @@ def run(scene: Scene | PathLike, out: PathLike | None = None, *, methods: Sequen
                            slice_range=slice_range, pitches=list(pitches) if pitches else None,
                            cache_dir=None if cache is None else str(cache), progress=progress, report=report,
                            log=log if log is not None else (lambda *a, **k: None), force=force,
-                           client=client)
+                           client=client, executor=executor)
     return RunResult(path=path, results=results)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import errno
+import os
 import signal
 import sys
 import threading
@@ -50,7 +51,8 @@ def cmd_run(args) -> int:
     out = args.out or f"runs/{scene.name}"
     with _client(args) as client:
         res = run(scene, out, methods=methods, cardiac=cardiac, resp=resp, slice_range=slices, pitches=pitches,
-                  cache_dir=args.cache, progress=not args.no_progress, force=args.force, client=client)
+                  cache_dir=args.cache, progress=not args.no_progress, force=args.force, client=client,
+                  executor=args.executor)
     print(f"wrote {out}/results.json, {out}/report.md, {out}/volumes.h5 in {res['total_seconds']:.1f} s")
     from clrecon.evaluation.claims import claim_summary_lines
     from clrecon.outputs.report import summary_lines
@@ -67,8 +69,14 @@ def _client(args):
         where = f"--cluster {args.cluster}" if args.cluster else "no --cluster"
         raise ClreconError(f"--tls-ca-file/--tls-cert/--tls-key with {where}: the certificates are for a tls:// "
                            f"scheduler, e.g. --cluster tls://head:8786 (docs/distributed.md)")
+    executor = getattr(args, "executor", None)
+    if executor in ("serial", "local") and (args.workers is not None or args.cluster is not None):
+        raise ClreconError(f"--executor {executor} with --workers/--cluster: the workers are Dask's; give "
+                           f"--executor dask or leave --executor out")
     if args.workers is None and args.cluster is None:
-        return contextlib.nullcontext(None)
+        if executor != "dask":
+            return contextlib.nullcontext(None)
+        args.workers = os.cpu_count() or 1  # --executor dask alone: a local cluster, one worker per core
     from clrecon.pipeline.distributed import connect, tls_security
 
     security = tls_security(*tls, address=args.cluster) if has_tls else None
@@ -120,7 +128,7 @@ def cmd_devices(args) -> int:
 
 def cmd_view(args) -> int:
     try:
-        from viewer.app import screenshot, view
+        from clrecon.viewer.app import screenshot, view
     except ImportError as e:
         raise ClreconError(f"the viewer is not installed with this package ({e})") from None
     choices = dict(method=args.method, pitch=args.pitch, variant=args.variant, cardiac=args.cardiac,
@@ -210,6 +218,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-progress", action="store_true", help=NO_PROGRESS_HELP)
     r.add_argument("--force", action="store_true",
                    help="run even if the pre-flight check says the memory or disk will not suffice")
+    r.add_argument("--executor", choices=("serial", "local", "dask"),
+                   help="who runs the stages: serial (one after the other, in this process), local (default: "
+                        "overlapped on this machine's cores), dask (the units on Dask workers; implied by "
+                        "--workers/--cluster; alone: a local cluster, one worker per core); the results are the "
+                        "same bit for bit (docs/data-flow.md \"Executors\")")
     _add_cluster_args(r)
     r.set_defaults(func=cmd_run)
 
@@ -275,10 +288,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="smaller sizes and one repeat (about a minute)")
     b.add_argument("--json", metavar="FILE", help="also write every number and the machine description here")
     b.add_argument("--only", help="comma list from backprojection,projector,voxel-projector,interpolation,"
-                   "end-to-end,memory,scaling; also, only when named: tradeoff (error against run time, ~20 min) "
-                   "distributed (Dask overhead, speedup 1 -> 2 workers, paper-p002 on N nodes, ~5 min), truth_free "
-                   "(cost of recon.truth_free against the reconstruction, ~2 min) and truth_free_trust (CV error "
-                   "against true MAE, docs/truth-free.md, ~1 h)")
+                   "end-to-end,memory,scaling,measured and the paper-scale paper-projector,noise,paper-fbp,"
+                   "groundtruth; also, only when named: tradeoff (error against run time, ~20 min), truth_free "
+                   "(cost of recon.truth_free against the reconstruction, ~2 min), drivers. The A/B benchmarks of "
+                   "the code's own levers are in a checkout's benchmarks/ folder (benchmarks/README.md)")
     b.add_argument("--drivers", action="store_true",
                    help="every CPU OpenCL driver that passes the probe side by side: projector, SSRB, interpolation, "
                         "backprojection, noise and the demo cold (docs/drivers.md); with --only, added to it")

@@ -3,7 +3,7 @@
 // weight w -- (R/U)^2 on a flat detector, R^2/L^2 on a cylindrical one (CURVED = 1, with
 // ATAN_TERMS and the coefficients of atan_poly.h defined). Shared by backproject.cl (the
 // fan-beam FBP) and mc_backproject.cl (its motion-compensated form, which calls it at the
-// point's moved position). Formulas and PoCL notes: backproject.cl's header.
+// point's moved position). Formulas and PoCL notes: fan_beam.h's header.
 #ifndef CLRECON_FAN_COLUMN_H
 #define CLRECON_FAN_COLUMN_H
 #ifndef CURVED

@@ -3,7 +3,10 @@
 // local_linear_weights: per row (one (slice, view, target)), the weights l of the local
 //   weighted linear regression  y ~ b0 + b1 dc + b2 da,  value b0 = l^T y; a per-row guard
 //   flag drops the dc and/or da slope column (extrapolation guard).
-// apply_weights: rows of the output = weighted sums of rebinned rows.
+// apply_weights_interleaved16_cols8: rows of the output = weighted sums of rebinned rows, written
+//   straight into the batched backprojector's layout (the reconstruction's kernel). Its earlier
+//   versions (apply_weights, apply_weights_interleaved16, apply_weights_interleaved16_loop) are
+//   kept as references in kernels/reference/interp_reference.cl (tests and benchmarks only).
 //
 // Build options: USE_DOUBLE (compute the 3x3 solve in double; needs cl_khr_fp64),
 // K_SLOTS (points per row, 8 for the paper's two-per-quadrant selection).
@@ -141,31 +144,6 @@ __kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) s
     }
 }
 
-// out[b, col] = sum_k weight[b, k] * rows[index[b, k], col].
-// One work-item per output element (gather, one owner), column fastest so neighbouring
-// work-items read neighbouring columns of the same rebinned row. Zero weights are skipped,
-// so an unused slot never reads (or propagates a NaN from) the row it points to.
-__kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinned rows
-                            __global const int *index,     // (B, k_slots) into P
-                            __global const float *weight,  // (B, k_slots)
-                            __global float *out,           // (B, n_cols)
-                            const int n_out,
-                            const int n_cols,
-                            const int k_slots)
-{
-    const int col = get_global_id(0);
-    const int b = get_global_id(1);
-    if (col >= n_cols || b >= n_out)
-        return;
-    float acc = 0.0f;
-    for (int k = 0; k < k_slots; ++k) {
-        const float wk = weight[b * k_slots + k];
-        if (wk != 0.0f)
-            acc += wk * rows[(size_t)index[b * k_slots + k] * (size_t)n_cols + (size_t)col];
-    }
-    out[(size_t)b * (size_t)n_cols + (size_t)col] = acc;
-}
-
 // apply_weights straight into the batched backprojector's layout (clrecon.reconstruction.fbp.interleave_batch):
 // out16[g][v][cp][lane] = sum_k weight16[g, v, k, lane] * rows[index16[g, v, k, lane], clamp(cp - 1, 0, C - 1)]
 // for sinogram b = 16 g + lane, cp = 0 .. n_cols + 1 (one replica of each edge column on either side).
@@ -179,70 +157,9 @@ __kernel void apply_weights(__global const float *rows,    // (P, n_cols) rebinn
 // there is in range, and the select keeps whatever it holds (a NaN too) out of the sum. Per lane the
 // slots are summed in k order exactly as the loop with a branch did (until 2026-12-03: a dynamic K,
 // `if (w != 0)`, lane-major index/weight; bit-identical sums, 1.6-2.2x slower: docs/algorithms.md).
-#ifndef APPLY_K
-#define APPLY_K 1
-#endif
-// the row column a padded column cp reads (edge replicas: cp 0 and n_cols + 1 read columns 0 and
-// n_cols - 1)
-inline int row_column(const int cp, const int n_cols)
-{
-    return cp < 1 ? 0 : (cp > n_cols ? n_cols - 1 : cp - 1);
-}
-// work-item (cp, v, g) of the interleaved kernels: its padded column cp, view v, group g and the
-// row column it reads
-#define APPLY16_COLUMN                                                    \
-    const int cp = get_global_id(0);                                      \
-    const int v = get_global_id(1);                                       \
-    const int g = get_global_id(2);                                       \
-    if (cp >= n_cols + 2 || v >= n_views)                                 \
-        return;                                                           \
-    const int col = row_column(cp, n_cols);
-// 16 lanes read and written through a 16-vector pointer, not vload16/vstore16: PoCL 3.0 (LLVM 14)
-// aborts compiling its own vload16/vstore16 on CPUs with AVX-512 ("LLVM ERROR: Do not know how to
-// scalarize this operator's operand", seen 2026-12-04 on an AMD EPYC that PoCL names znver3 with
-// 16-float native vectors), and two vload8 halves make Oclgrind report the joined vector as
-// uninitialised. The pointer needs 64-byte alignment: every address here is a multiple of 16
-// floats past the start of a buffer (OpenCL aligns buffers to CL_DEVICE_MEM_BASE_ADDR_ALIGN, at
-// least 128 bytes in the full profile: the size of a long16).
-#define LOAD16(T, p) (*(__global const T##16 *)(p))
-#define STORE16(x, p) (*(__global float16 *)(p) = (x))
-#define APPLY_ROW(s) r.s = rows[(size_t)ik.s * (size_t)n_cols + (size_t)col];
-// The 16 lanes of one padded column: sum over the APPLY_K slots (index and weight lane-inner at
-// `slot`) of weight * rows[index, col], zero weights selected out. Inlined (a call would stop
-// PoCL's vectoriser), shared by the per-lane kernel and the 8-columns kernel's edge blocks.
-inline __attribute__((always_inline)) float16 lanes_of_column(__global const float *rows,
-                                                               __global const int *index,
-                                                               __global const float *weight,
-                                                               const size_t slot, const int col,
-                                                               const int n_cols)
-{
-    float16 acc = (float16)(0.0f);
-#pragma unroll
-    for (int k = 0; k < APPLY_K; ++k) {
-        const float16 wk = LOAD16(float, weight + slot + k * 16);
-        const int16 ik = LOAD16(int, index + slot + k * 16);
-        float16 r;
-        APPLY_ROW(s0) APPLY_ROW(s1) APPLY_ROW(s2) APPLY_ROW(s3) APPLY_ROW(s4) APPLY_ROW(s5) APPLY_ROW(s6) APPLY_ROW(s7)
-        APPLY_ROW(s8) APPLY_ROW(s9) APPLY_ROW(sa) APPLY_ROW(sb) APPLY_ROW(sc) APPLY_ROW(sd) APPLY_ROW(se) APPLY_ROW(sf)
-        acc = wk != 0.0f ? acc + wk * r : acc;
-    }
-    return acc;
-}
-#undef APPLY_ROW
-__kernel void apply_weights_interleaved16(__global const float *rows,    // (P, n_cols)
-                                          __global const int *index,     // (G, n_views, APPLY_K, 16) into P
-                                          __global const float *weight,  // (G, n_views, APPLY_K, 16)
-                                          __global float *out,           // (G, n_views, n_cols + 2, 16)
-                                          const int n_views,
-                                          const int n_cols)
-{
-    APPLY16_COLUMN
-    const size_t gv = (size_t)g * n_views + v;
-    STORE16(lanes_of_column(rows, index, weight, gv * (size_t)APPLY_K * 16, col, n_cols),
-            out + (gv * (size_t)(n_cols + 2) + (size_t)cp) * 16);
-}
+#include "interp16.h"
 
-// apply_weights_interleaved16's sums, 8 padded columns per work-item (the reconstruction's kernel
+// apply_weights_interleaved16's sums (kernels/reference/interp_reference.cl), 8 padded columns per work-item (the reconstruction's kernel
 // since 2026-12-05). Work-item (cb, v, g) owns padded columns cp = 8 cb .. 8 cb + 7 of view v,
 // group g. Each slot's 16 rows are read as 8 consecutive columns each (one unaligned 8-float load
 // per lane and slot instead of 16 scalar gathers per column), accumulated per lane over those 8
@@ -311,30 +228,3 @@ __kernel void apply_weights_interleaved16_cols8(__global const float *rows,    /
 }
 #undef COLS8_LANE
 #undef COLS8_STORE
-
-// The reconstruction's kernel until 2026-12-03, kept as the same-run reference of
-// `bench --only levers` ("interpolation launch"): apply_weights_interleaved16's sums with a run-time
-// slot count, a branch per zero weight and lane-major index/weight (16 G, n_views, k_slots); the
-// loops inside the work-item keep PoCL from vectorising it (docs/algorithms.md, "Making kernels
-// fast on PoCL"). Same output, bit for bit.
-__kernel void apply_weights_interleaved16_loop(__global const float *rows,    // (P, n_cols)
-                                               __global const int *index,     // (16 G, n_views, k_slots) into P
-                                               __global const float *weight,  // (16 G, n_views, k_slots)
-                                               __global float *out,           // (G, n_views, n_cols + 2, 16)
-                                               const int n_views,
-                                               const int n_cols,
-                                               const int k_slots)
-{
-    APPLY16_COLUMN
-    __global float *o = out + (((size_t)g * n_views + v) * (size_t)(n_cols + 2) + (size_t)cp) * 16;
-    for (int lane = 0; lane < 16; ++lane) {
-        const size_t slot = ((size_t)(g * 16 + lane) * (size_t)n_views + (size_t)v) * (size_t)k_slots;
-        float acc = 0.0f;
-        for (int k = 0; k < k_slots; ++k) {
-            const float wk = weight[slot + k];
-            if (wk != 0.0f)
-                acc += wk * rows[(size_t)index[slot + k] * (size_t)n_cols + (size_t)col];
-        }
-        o[lane] = acc;
-    }
-}

@@ -1,4 +1,4 @@
-// Per-(view, object) record written by prepare.cl and read by project.cl (and mirrored by
+// Per-(view, object) record written by project_cull.cl (the culling pass) and read by project.cl (and mirrored by
 // clrecon/simulation/projector.py): REC floats per record, field offsets below.
 #ifndef CLRECON_RECORD_H
 #define CLRECON_RECORD_H

@@ -1,5 +1,5 @@
 // STORE16(o, plane, acc): the 16 lanes of a float16 accumulator to 16 images `plane` floats
-// apart (o[k * plane] = acc.sk): the batched layout shared by backproject.cl and parallel.cl.
+// apart (o[k * plane] = acc.sk): the batched layout shared by backproject.cl and parallel_beam.cl.
 #ifndef CLRECON_STORE16_H
 #define CLRECON_STORE16_H
 #define STORE16(o, plane, acc)                                                                     \

@@ -40,15 +40,15 @@ def assert_identical(out, ref, keys=KEYS) -> dict:
     return res
 
 
-def reference_run(tmp_path_factory, env: dict, scene: str = "tiny"):
-    """``(out_dir, results, cache_dir)`` of ``scene`` run with the environment ``env`` set (the
-    module-scoped reference of a test comparing a setting against it); the environment is put
-    back afterwards."""
+def reference_run(tmp_path_factory, env: dict, scene: str = "tiny", executor=None):
+    """``(out_dir, results, cache_dir)`` of ``scene`` run with the environment ``env`` set and
+    ``executor`` (the module-scoped reference of a test comparing a setting against it); the
+    environment is put back afterwards."""
     mp = pytest.MonkeyPatch()
     try:
         for k, v in env.items():
             mp.setenv(k, v)
         out, cache = tmp_path_factory.mktemp("ref"), tmp_path_factory.mktemp("cache")
-        return out, run(load_scene(scene), out, cache_dir=cache, **QUIET), cache
+        return out, run(load_scene(scene), out, cache_dir=cache, executor=executor, **QUIET), cache
     finally:
         mp.undo()

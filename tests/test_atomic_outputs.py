@@ -43,9 +43,9 @@ def _whole_png(p: Path) -> bool:
 
 @pytest.fixture
 def fresh_faults(monkeypatch):
-    """A clean fault counter and no figure process (the figures drawn here, where the fault is set)."""
+    """A clean fault counter (the figures are drawn here, where the fault is set: no helper process
+    under pytest, and write_figures without a pool draws in this process)."""
     faults._counts.clear()
-    monkeypatch.setenv("CLRECON_FIGURE_PROCESS", "0")
     yield monkeypatch
     faults._counts.clear()
 

@@ -69,8 +69,8 @@ def test_programs_are_built_with_their_own_options_only():
     prog = rt.program("ssrb.cl")
     opts = prog.get_build_info(rt.device, rt.cl.program_build_info.OPTIONS)
     assert "pyopencl" not in opts and "site-packages" not in opts, opts
-    knl = rt.kernel("interp.cl", "apply_weights_interleaved16", APPLY_K=2)
-    assert knl.function_name == "apply_weights_interleaved16"
+    knl = rt.kernel("interp.cl", "apply_weights_interleaved16_cols8", APPLY_K=2)
+    assert knl.function_name == "apply_weights_interleaved16_cols8"
     opts = knl.program.get_build_info(rt.device, rt.cl.program_build_info.OPTIONS)
     assert opts.split() == ["-DAPPLY_K=2"], opts
 

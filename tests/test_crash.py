@@ -16,15 +16,15 @@ from clrecon.config.scene import load_scene
 from clrecon.pipeline.run import run
 
 
-def _cli(out, cache, fault=None, thread="0"):
-    # thread "0": the truths after the reconstruction, so that the units each fault leaves are
-    # fixed (CASES); the thread's own case is test_sigkill_in_the_truth_thread_then_resume
-    env = dict(os.environ, CLRECON_NO_PROGRESS="1", CLRECON_TRUTH_THREAD=thread)
+def _cli(out, cache, fault=None, executor="serial"):
+    # serial: the truths after the reconstruction, so that the units each fault leaves are fixed
+    # (CASES); the truth thread's own case is test_sigkill_in_the_truth_thread_then_resume
+    env = dict(os.environ, CLRECON_NO_PROGRESS="1")
     env.pop("CLRECON_FAULT", None)
     if fault:
         env["CLRECON_FAULT"] = fault
     cmd = [sys.executable, "-m", "clrecon", "run", "--scene", "tiny", "--out", str(out), "--cache", str(cache),
-           "--no-progress"]
+           "--no-progress", "--executor", executor]
     return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
 
 
@@ -74,9 +74,9 @@ def test_sigkill_then_resume_is_bit_identical(tmp_path, reference, fault):
 
 def test_sigkill_in_the_truth_thread_then_resume_is_bit_identical(tmp_path, reference):
     out, cache = tmp_path / "run", tmp_path / "cache"
-    killed = _cli(out, cache, "truth:3", thread="1")   # the 3rd truth unit, mid-write, beside the reconstruction
+    killed = _cli(out, cache, "truth:3", "local")   # the 3rd truth unit, mid-write, beside the reconstruction
     assert killed.returncode == -signal.SIGKILL, killed.stderr
-    again = _cli(out, cache, thread="1")
+    again = _cli(out, cache, executor="local")
     assert again.returncode == 0, again.stderr
     res = assert_identical(out, reference, ("metrics", "respiratory_only", "motion"))
     P, R, T = (reference[1]["units_written"][k] for k in ("projections", "recon", "truth"))

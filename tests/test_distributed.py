@@ -254,8 +254,8 @@ def test_tls_errors_are_one_line(tmp_path, certs, capsys):
 
 
 def test_bench_tls_round_trips():
-    """``bench --only distributed``'s tls:// vs tcp:// figure runs and reports both protocols."""
-    from clrecon.bench.distributed import _tls_lines, tls_overhead
+    """``python -m benchmarks.dask_scaling``'s tls:// vs tcp:// figure runs and reports both protocols."""
+    from benchmarks.dask_scaling import _tls_lines, tls_overhead
 
     t = tls_overhead(1)
     assert set(t["trivial_round_trip_s"]) == {"tcp", "tls"} and t["round_trips"] == 10

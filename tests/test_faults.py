@@ -69,11 +69,10 @@ def test_signal_mid_run_then_resume(tmp_path, sig):
     _assert_same(out, ref_out)
 
 
-@pytest.mark.parametrize("thread", ["0", "1"])
-def test_interrupt_during_ground_truth_resumes_only_the_rest(tmp_path, reference, monkeypatch, thread):
-    # "0": the truths after the reconstruction; "1": beside it (the interrupt may then come before
-    # the reconstruction is done, and the resumed run does what is left of it)
-    monkeypatch.setenv("CLRECON_TRUTH_THREAD", thread)
+@pytest.mark.parametrize("executor", ["serial", "local"])
+def test_interrupt_during_ground_truth_resumes_only_the_rest(tmp_path, reference, monkeypatch, executor):
+    # serial: the truths after the reconstruction; local: beside it (the interrupt may then come
+    # before the reconstruction is done, and the resumed run does what is left of it)
     ref_out, cache = reference
     calls = {"n": 0}
     real = groundtruth.groundtruth_sinograms
@@ -87,16 +86,16 @@ def test_interrupt_during_ground_truth_resumes_only_the_rest(tmp_path, reference
     monkeypatch.setattr(groundtruth, "groundtruth_sinograms", flaky)
     shutil.rmtree(cache / "truth", ignore_errors=True)  # the truths must be computed, not taken from the cache
     with pytest.raises(KeyboardInterrupt):
-        run(load_scene("tiny"), tmp_path, cache_dir=cache, **QUIET)
+        run(load_scene("tiny"), tmp_path, cache_dir=cache, executor=executor, **QUIET)
     assert (tmp_path / "volumes.h5.units").is_dir() and not (tmp_path / "results.json").exists()
     assert not (tmp_path / "volumes.h5").exists()
     done = sorted(p.name.split(".")[1] for p in (tmp_path / "volumes.d").rglob("groundtruth.*.unit"))
     assert done == ["t00000", "t00001"]
     calls["n"] = 100                                     # no more interruptions
-    res = run(load_scene("tiny"), tmp_path, cache_dir=cache, **QUIET)
+    res = run(load_scene("tiny"), tmp_path, cache_dir=cache, executor=executor, **QUIET)
     assert res["resumed"] is True
     assert calls["n"] == 102                             # only the two missing targets were redone
-    if thread == "0":
+    if executor == "serial":
         assert res["stages"]["plan"]["ran"] is False     # every slice was already reconstructed
     _assert_same(tmp_path, ref_out)
 

@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 
 from clrecon.bench.fbp import bench_backprojection
+from clrecon.bench.reference_kernels import backproject_single
 from clrecon.config.scene import load_scene
 from clrecon.core.conventions import MU_WATER_PER_MM, detector_frames, mu_to_hu
 from clrecon.reconstruction.fbp import (
     WINDOWS,
     FanBeamGeometry,
     backproject,
-    backproject_single,
     cosine_weights,
     fbp,
     fbp_hu,

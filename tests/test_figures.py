@@ -9,6 +9,7 @@ import pytest
 from fake_run_dir import fake_scene, make_fake_run
 
 from clrecon.core.conventions import circular_difference
+from clrecon.core.resources import spawned_pool
 from clrecon.outputs import figures, report
 
 ALL = ("phase_space.png", "coronal.png", "motion_rows.png", "mae_per_target_small.png",
@@ -93,14 +94,17 @@ def test_single_target_run(tmp_path):
     assert _img(tmp_path / "figures" / "coronal.png").std() > 0.05
 
 
-def test_the_figure_process_starts_by_itself_only_where_spawning_cannot_rerun_a_script(monkeypatch):
-    """Unset: a second process only under ``python -m clrecon`` or without a main script (a user's
-    unguarded script would run again in a spawned child); ``1`` forces it, ``0`` turns it off."""
-    monkeypatch.setattr("os.cpu_count", lambda: 2)
-    for env, safe, want in (("", False, False), ("", True, True), ("1", False, True), ("0", True, False)):
-        monkeypatch.setenv(figures.FIGURE_PROCESS_ENV, env)
-        monkeypatch.setattr(figures, "spawn_is_safe", lambda s=safe: s)
-        pool = figures._figure_pool()
-        assert (pool is not None) == want, (env, safe)
-        if pool is not None:
-            pool.shutdown()
+def test_figures_drawn_in_a_helper_process_are_the_same(tmp_path):
+    """The results-only figures drawn in a process pool (the run's helper) are those drawn here:
+    the same lines in the same order, the same pixels."""
+    results = make_fake_run(tmp_path / "a")
+    make_fake_run(tmp_path / "b")
+    here = figures.write_figures(tmp_path / "a", json.loads(json.dumps(results)))
+    pool = spawned_pool(1)
+    try:
+        there = figures.write_figures(tmp_path / "b", json.loads(json.dumps(results)), pool=pool)
+    finally:
+        pool.shutdown()
+    assert here == there and "failed" not in "\n".join(here)
+    for p in sorted((tmp_path / "a" / "figures").glob("*.png")):
+        assert np.array_equal(_img(p), _img(tmp_path / "b" / "figures" / p.name)), p.name

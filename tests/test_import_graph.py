@@ -12,10 +12,16 @@ pydicom, nibabel, ...), for the CLI's subcommands, which are imported on demand 
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10: the backport the package depends on there
+    import tomli as tomllib
+
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("clrecon", "viewer")
+PACKAGES = ("clrecon",)
 #: modules allowed to import clrecon modules inside functions, and why
 LAZY_OK = {
     "clrecon.cli": "each subcommand imports its stage on demand (fast --help)",
@@ -122,7 +128,8 @@ def _cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 def test_graph_is_read_from_the_real_tree():
     edges, _ = _graph()
-    assert "clrecon.pipeline.run" in edges and "clrecon.evaluation.groundtruth" in edges["clrecon.pipeline.run"]
+    truth = "clrecon.pipeline.stages.truth"
+    assert truth in edges and "clrecon.evaluation.groundtruth" in edges[truth]
 
 
 def test_no_import_cycles():
@@ -140,20 +147,19 @@ def test_no_project_imports_inside_functions():
 
 
 # ----------------------------------------------------------------------------------------
-# packages: the folders stand in the order the README draws
+# packages: the folders stand in the order pyproject.toml's [tool.clrecon.layers] gives
 def _drawn_levels() -> list[list[str]]:
-    """The README's layering line (``core -> scan -> ... -> api, cli``) as levels of package names."""
-    for line in (ROOT / "README.md").read_text().splitlines():
-        if line.startswith("core -> "):
-            return [[p.strip() for p in level.split(",")] for level in line.split("->")]
-    raise AssertionError("README.md has no layering line starting 'core -> '")
+    """``[tool.clrecon.layers] order`` of pyproject.toml: the levels of package names, first to last."""
+    with open(ROOT / "pyproject.toml", "rb") as fh:
+        order = tomllib.load(fh).get("tool", {}).get("clrecon", {}).get("layers", {}).get("order")
+    assert order, "pyproject.toml has no [tool.clrecon.layers] order"
+    return [[str(p) for p in level] for level in order]
 
 
 def _package(module: str) -> str:
-    """``clrecon.scan.table`` -> ``scan``; ``viewer.app`` -> ``viewer``; ``clrecon``/``clrecon.__main__`` -> ``""``."""
+    """``clrecon.scan.table`` -> ``scan``; ``clrecon.viewer.app`` -> ``viewer``;
+    ``clrecon``/``clrecon.__main__`` -> ``""``."""
     parts = module.split(".")
-    if parts[0] == "viewer":
-        return "viewer"
     if len(parts) == 1 or parts[1] == "__main__":
         return ""  # the package root: PEP 562 lazy API and `python -m clrecon`, above everything
     return parts[1]
@@ -170,11 +176,21 @@ def _backward_package_edges(edges: dict[str, set[str]], levels: list[list[str]])
             if not a or a == b or not b:
                 continue
             if a not in rank or b not in rank:
-                bad.append(f"{m} -> {t}: package {a if a not in rank else b!r} is not in the README's layering line")
+                missing = a if a not in rank else b
+                bad.append(f"{m} -> {t}: package {missing!r} is not in pyproject.toml's [tool.clrecon.layers]")
             elif rank[b] >= rank[a]:
                 bad.append(f"{m} -> {t}: {a} (level {rank[a]}) may import only packages drawn before it, "
                            f"not {b} (level {rank[b]})")
     return bad
+
+
+def test_the_data_flow_note_draws_the_same_levels():
+    """docs/data-flow.md "Layering" draws the levels for a reader; it must say what pyproject.toml says."""
+    for line in (ROOT / "docs" / "data-flow.md").read_text().splitlines():
+        if line.startswith("core -> "):
+            assert [[p.strip() for p in lv.split(",")] for lv in line.split("->")] == _drawn_levels()
+            return
+    raise AssertionError("docs/data-flow.md has no layering line starting 'core -> '")
 
 
 def test_every_package_is_drawn_once():

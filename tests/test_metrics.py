@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from clrecon.bench.levers import _table2_fresh
+from benchmarks.levers import _table2_fresh
 from clrecon.config.scene import load_scene
 from clrecon.evaluation.metrics import (
     MetricsConfig,

@@ -2,19 +2,35 @@
 
 import json
 
+import h5py
+import numpy as np
 import pytest
-from run_compare import QUIET, reference_run
+from run_compare import reference_run
 
 from clrecon.config.scene import load_scene
 from clrecon.pipeline import evaluate as evaluate_mod
-from clrecon.pipeline.run import run
+from clrecon.pipeline.run import resolve_targets
+from clrecon.simulation.phantom_sources import phantom_from_config
 
 KEYS = ("metrics", "respiratory_only", "motion")
 
 
 @pytest.fixture(scope="module")
-def one_process(tmp_path_factory):
-    return reference_run(tmp_path_factory, {"CLRECON_METRICS_PROCESSES": "1"})[1:]
+def tiny(tmp_path_factory):
+    """tiny run by the serial executor: its volumes and its one-process metrics."""
+    return reference_run(tmp_path_factory, {}, executor="serial")[:2]
+
+
+def _evaluate(out, res, **kw):
+    scene = load_scene("tiny")
+    info: dict = {}
+    req = res["request"]
+    targets = resolve_targets(scene, req["targets"]["cardiac"], req["targets"]["resp"])
+    with h5py.File(out / "volumes.h5", "r") as f:
+        got = evaluate_mod.evaluate(scene, f, targets, np.asarray(req["slices_z_mm"]), req["pitches"],
+                                    tuple(req["variants"]), tuple(req["methods"]), phantom_from_config(scene.phantom),
+                                    info=info, **kw)
+    return dict(zip(KEYS, got, strict=True)), info["processes"]
 
 
 def _same(a, b):
@@ -23,35 +39,32 @@ def _same(a, b):
 
 
 @pytest.mark.parametrize("n", [2, 3])
-def test_split_over_processes_is_bit_identical(tmp_path, one_process, monkeypatch, n):
-    ref, cache = one_process
-    monkeypatch.setenv("CLRECON_METRICS_PROCESSES", str(n))
-    res = run(load_scene("tiny"), tmp_path, cache_dir=cache, **QUIET)
+def test_split_over_processes_is_bit_identical(tiny, n):
+    out, ref = tiny
     assert ref["stages"]["metrics"]["processes"] == 1
-    assert res["stages"]["metrics"]["processes"] == n   # the split path was taken
-    _same(res, ref)
+    got, processes = _evaluate(out, ref, processes=n)
+    assert processes == n   # the split path was taken
+    _same(json.loads(json.dumps(got)), ref)
 
 
-def test_a_pool_that_cannot_start_runs_every_group_here(tmp_path, one_process, monkeypatch):
-    ref, cache = one_process
-    monkeypatch.setenv("CLRECON_METRICS_PROCESSES", "2")
+def test_a_pool_that_cannot_start_runs_every_group_here(tiny, monkeypatch):
+    out, ref = tiny
     monkeypatch.setattr(evaluate_mod, "spawned_pool", lambda n: None)
-    res = run(load_scene("tiny"), tmp_path, cache_dir=cache, **QUIET)
-    assert res["stages"]["metrics"]["processes"] == 1
-    _same(res, ref)
+    got, processes = _evaluate(out, ref, processes=2)
+    assert processes == 1
+    _same(json.loads(json.dumps(got)), ref)
 
 
-def test_automatic_choice_and_bad_value(monkeypatch):
-    monkeypatch.delenv("CLRECON_METRICS_PROCESSES", raising=False)
+def test_modelled_process_count(monkeypatch):
+    """The memory model's count: 2 with a warm helper, else 2 only from PROCESS_MIN_BYTES on a
+    machine of >= 2 cores where a child may be spawned."""
     monkeypatch.setattr(evaluate_mod.os, "cpu_count", lambda: 2)
     monkeypatch.setattr(evaluate_mod, "spawn_is_safe", lambda: True)
     assert evaluate_mod.process_count(evaluate_mod.PROCESS_MIN_BYTES - 1) == 1
     assert evaluate_mod.process_count(evaluate_mod.PROCESS_MIN_BYTES) == 2
+    assert evaluate_mod.process_count(1, warm=True) == 2
     monkeypatch.setattr(evaluate_mod.os, "cpu_count", lambda: 1)
     assert evaluate_mod.process_count(10 * evaluate_mod.PROCESS_MIN_BYTES) == 1
-    monkeypatch.setenv("CLRECON_METRICS_PROCESSES", "two")
-    with pytest.raises(ValueError, match="CLRECON_METRICS_PROCESSES='two'"):
-        evaluate_mod.process_count(0)
 
 
 def test_groups_keep_every_key_once_in_order():
@@ -69,7 +82,6 @@ def test_spawn_is_safe_only_without_a_main_script_to_rerun(monkeypatch):
     script.__file__ = "/home/user/my_study.py"        # an unguarded script would run again in the child
     monkeypatch.setitem(sys.modules, "__main__", script)
     assert evaluate_mod.spawn_is_safe() is False
-    monkeypatch.setenv("CLRECON_METRICS_PROCESSES", "")
     monkeypatch.setattr(evaluate_mod.os, "cpu_count", lambda: 2)
     assert evaluate_mod.process_count(10 * evaluate_mod.PROCESS_MIN_BYTES) == 1
     cli = types.ModuleType("__main__")

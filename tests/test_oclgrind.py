@@ -65,7 +65,7 @@ def grind():
 @pytest.fixture(scope="module")
 def grind_memcheck_races():
     """Oclgrind with memcheck and the data-race plugin only. For the projector: Oclgrind
-    19.10's uninitialised-value plugin segfaults now and then on kernels/prepare.cl and, in
+    19.10's uninitialised-value plugin segfaults now and then on kernels/project_cull.cl and, in
     the one-row layout, flags the float64 records it writes (none with the same records made
     by the NumPy reference; results equal PoCL's), which looks like its 3-vector padding."""
     return _oclgrind_runtime(OCLGRIND_DATA_RACES="1", OCLGRIND_UNINITIALIZED="0")
@@ -126,6 +126,8 @@ def test_local_linear_weights(grind, clean, precision, K):
 
 
 def test_apply_weights(grind, clean):
+    """kernels/reference/interp_reference.cl's apply_weights (the tests' and benchmarks' reference)."""
+    from clrecon.bench import reference_kernels
     from clrecon.reconstruction.interpolation import weights as ip
 
     rng = np.random.default_rng(2)
@@ -134,7 +136,7 @@ def test_apply_weights(grind, clean):
     index = rng.integers(0, 4, (9, 3)).astype(np.int32)
     weight = rng.normal(size=(9, 3)).astype(np.float32)
     index[:, 2], weight[:, 2] = 4, 0.0
-    got = ip.apply_weights(rows, index, weight, rt=grind)
+    got = reference_kernels.apply_weights(rows, index, weight, rt=grind)
     ref = ip.apply_weights_reference(rows, index, weight)
     assert np.all(np.isfinite(got))
     assert np.abs(got - ref).max() < TOL["f32"] * np.abs(rows[:4]).max() * np.abs(weight).sum(1).max()
@@ -159,8 +161,9 @@ def test_ssrb_rows(grind, clean):
 
 
 # ---------------------------------------------------------------------------------------
-# kernels/backproject.cl
+# kernels/backproject.cl and its reference kernels/reference/backproject_single.cl
 def test_backprojection_kernels(grind, clean):
+    from clrecon.bench import reference_kernels
     from clrecon.core.runtime import get_runtime
     from clrecon.reconstruction import fbp
 
@@ -169,7 +172,7 @@ def test_backprojection_kernels(grind, clean):
     rng = np.random.default_rng(4)
     q = rng.standard_normal((17, geom.n_views, geom.n_cols)).astype(np.float32)   # 2 groups of 16, 1 partial
     batched = fbp.backproject(q, geom, runtime=grind)
-    single = fbp.backproject_single(q[:2], geom, runtime=grind)
+    single = reference_kernels.backproject_single(q[:2], geom, runtime=grind)
     pocl = fbp.backproject(q, geom, runtime=get_runtime())
     scale = np.abs(pocl).max()
     assert np.abs(batched - pocl).max() < TOL["f32"] * scale
@@ -181,7 +184,7 @@ def test_backprojection_kernels(grind, clean):
 
 
 # ---------------------------------------------------------------------------------------
-# kernels/parallel.cl (recon.backprojector = "parallel-rebin")
+# kernels/parallel_beam.cl (recon.backprojector = "parallel-rebin")
 def test_parallel_rebin_kernels(grind, clean):
     from clrecon.core.runtime import get_runtime
     from clrecon.reconstruction import fbp
@@ -306,6 +309,7 @@ def test_cylindrical_projector_kernels(grind_memcheck_races, clean):
 
 
 def test_cylindrical_ssrb_and_backprojection(grind, clean):
+    from clrecon.bench import reference_kernels
     from clrecon.config.scene import ScannerConfig
     from clrecon.core.detector import spot_shift_in_frame
     from clrecon.reconstruction import fbp, rebin
@@ -326,7 +330,7 @@ def test_cylindrical_ssrb_and_backprojection(grind, clean):
                                nx=11, ny=9, voxel_mm=4.0, beta0_rad=0.3, detector="cylindrical", central_col=6.25)
     q = rng.standard_normal((17, geom.n_views, geom.n_cols)).astype(np.float32)
     batched = fbp.backproject(q, geom, runtime=grind)
-    single = fbp.backproject_single(q[:2], geom, runtime=grind)
+    single = reference_kernels.backproject_single(q[:2], geom, runtime=grind)
     pocl = fbp.backproject(q, geom)
     scale = np.abs(pocl).max()
     assert np.abs(batched - pocl).max() < TOL["f32"] * scale

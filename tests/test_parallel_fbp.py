@@ -1,6 +1,6 @@
 """Fan-to-parallel rebinning and parallel-beam FBP (recon.backprojector = "parallel-rebin").
 
-Kernels of ``kernels/parallel.cl`` against plain float64 NumPy references written from the
+Kernels of ``kernels/parallel_beam.cl`` against plain float64 NumPy references written from the
 definitions in :mod:`clrecon.reconstruction.parallel_fbp` (not from its tables), on random and
 edge-case inputs; the geometry against exact parallel projections of disks (built from the
 line equation, not from the fan geometry); and the whole path against the direct fan-beam FBP.

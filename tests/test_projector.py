@@ -160,7 +160,7 @@ def test_reference_can_fail():
 
 
 # ---------------------------------------------------------------------------------------
-# the float64 record kernel (kernels/prepare.cl) against its NumPy reference
+# the float64 record kernel (kernels/project_cull.cl) against its NumPy reference
 @pytest.mark.parametrize("cull", [True, False])
 def test_record_kernel_matches_numpy_reference(cull):
     rng = np.random.default_rng(11)

@@ -229,7 +229,8 @@ def test_cv_tuned_with_knobs_equals_the_method_with_those_knobs(tmp_path):
 
 
 def test_bench_truth_free_cost_and_trust_study_run_on_tiny(tmp_path):
-    from clrecon.bench import suite, truth_free_trust
+    from benchmarks import truth_free_trust
+    from clrecon.bench import suite
 
     cost = suite.bench_truth_free_section(quick=True, scene="tiny")
     assert cost["truth_free_s"] > 0 and cost["reconstruction_s"] > 0 and cost["ratio"] > 0

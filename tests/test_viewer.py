@@ -20,7 +20,16 @@ from clrecon.cli import main
 from clrecon.core.errors import ClreconError
 
 pytest.importorskip("pyvista")
-from viewer.app import WINDOWS, RunData, Viewer, initial_state, nearest_index, parse_fraction, screenshot, window_clim
+from clrecon.viewer.app import (
+    WINDOWS,
+    RunData,
+    Viewer,
+    initial_state,
+    nearest_index,
+    parse_fraction,
+    screenshot,
+    window_clim,
+)
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ from clrecon.core import units, write_behind
 from clrecon.outputs.volumes import VolumeWriter
 from clrecon.pipeline import costs
 from clrecon.pipeline.run import run
+from clrecon.pipeline.stages import truth as truth_stage
 from clrecon.simulation import store as store_mod
 from clrecon.simulation.simulate import simulate
 
@@ -64,9 +65,8 @@ def test_an_error_in_the_thread_is_raised_at_the_next_submit_and_at_drain():
     wb.close()  # the clean-up of a failing run raises nothing of its own
 
 
-def test_foreground_mode_runs_each_call_at_once(monkeypatch):
-    monkeypatch.setenv("CLRECON_WRITE_BEHIND", "0")
-    wb = write_behind.WriteBehind()
+def test_foreground_mode_runs_each_call_at_once():
+    wb = write_behind.WriteBehind(background=False)
     seen = []
     wb.submit(lambda: seen.append(threading.current_thread() is threading.main_thread()))
     assert seen == [True] and not wb.background
@@ -75,26 +75,27 @@ def test_foreground_mode_runs_each_call_at_once(monkeypatch):
     wb.close()
 
 
-def test_memory_model_counts_the_held_slab(monkeypatch):
+def test_memory_model_counts_the_held_slab():
+    """An overlapping executor holds one finished slab while the writer thread writes it, and one
+    target's truth working set beside the reconstruction; the serial one neither."""
     sc = load_scene("paper-p010")
-    monkeypatch.setenv("CLRECON_WRITE_BEHIND", "1")
     on = costs.run_costs(sc)
-    monkeypatch.setenv("CLRECON_WRITE_BEHIND", "0")
-    off = costs.run_costs(sc)
+    off = costs.run_costs(sc, overlap=False)
     held = write_behind.extra_bytes(on["slab_slices"], on["n_targets"], sc.recon.ny, sc.recon.nx, 2)
     assert held == on["slab_slices"] * 50 * 512 * 512 * 8
-    # paper-p010: the reconstruction's peak is the larger (not the metrics'), so the held slab adds in full
-    assert on["peak_memory_bytes"] == off["peak_memory_bytes"] + held
+    rc, scn = sc.recon, sc.scanner
+    truths = truth_stage.working_bytes(rc.nz, scn.views_per_rotation, scn.n_cols, rc.ny, rc.nx)
+    # paper-p010: the reconstruction's peak is the larger (not the metrics'), so both add in full
+    assert on["peak_memory_bytes"] == off["peak_memory_bytes"] + held + truths
 
 
 @pytest.fixture(scope="module")
 def foreground(tmp_path_factory):
-    """tiny with every unit written in the run's thread (CLRECON_WRITE_BEHIND=0)."""
-    return reference_run(tmp_path_factory, {"CLRECON_WRITE_BEHIND": "0"})[:2]
+    """tiny with every unit written in the run's thread (the serial executor)."""
+    return reference_run(tmp_path_factory, {}, executor="serial")[:2]
 
 
 def test_units_written_behind_hold_the_same_values(tmp_path, foreground, monkeypatch):
-    monkeypatch.setenv("CLRECON_WRITE_BEHIND", "1")
     threads = []
     real = VolumeWriter.write
 
@@ -103,7 +104,7 @@ def test_units_written_behind_hold_the_same_values(tmp_path, foreground, monkeyp
         return real(self, *a, **k)
 
     monkeypatch.setattr(VolumeWriter, "write", spy)
-    res = run(load_scene("tiny"), tmp_path, cache_dir=tmp_path / "cache", **QUIET)
+    res = run(load_scene("tiny"), tmp_path, cache_dir=tmp_path / "cache", executor="local", **QUIET)
     assert_identical(tmp_path, foreground, ("metrics", "respiratory_only", "motion", "diagnostics", "sampling"))
     # every unit's values (LZF's bytes are not reproducible: h5py's liblzf leaves its hash table
     # uninitialised, so the units' BLAKE2b names may differ; the values may not)
@@ -119,8 +120,6 @@ def test_units_written_behind_hold_the_same_values(tmp_path, foreground, monkeyp
 
 
 def test_a_failing_write_fails_the_run_with_its_error(tmp_path, monkeypatch):
-    monkeypatch.setenv("CLRECON_WRITE_BEHIND", "1")
-
     def broken(self, *a, **k):
         raise OSError("no space left on device (test)")
 
@@ -143,10 +142,9 @@ def test_projection_units_written_behind_hold_the_same_projections(tmp_path, mon
 
     got = {}
     for mode in ("0", "1"):
-        monkeypatch.setenv("CLRECON_WRITE_BEHIND", mode)
         monkeypatch.setattr(store_mod.ProjectionStore, "write", spy)
         threads.clear()
-        st = simulate(sc, pitch, cache_dir=tmp_path / mode, chunk=8, progress=False)
+        st = simulate(sc, pitch, cache_dir=tmp_path / mode, chunk=8, progress=False, write_behind_thread=mode == "1")
         assert st.n_simulated == len(st) and st.complete
         got[mode] = (st.read(0, len(st)), list(threads))
         st.close()
@@ -156,8 +154,6 @@ def test_projection_units_written_behind_hold_the_same_projections(tmp_path, mon
 
 
 def test_a_failing_projection_write_fails_the_simulation(tmp_path, monkeypatch):
-    monkeypatch.setenv("CLRECON_WRITE_BEHIND", "1")
-
     def broken(self, *a, **k):
         raise OSError("store disk full (test)")
 

@@ -24,8 +24,9 @@ import time
 
 import numpy as np
 
+from clrecon.bench.reference_kernels import backproject_single
 from clrecon.core.runtime import get_runtime
-from clrecon.reconstruction.fbp import BATCH_LANES, FanBeamGeometry, backproject, backproject_single, interleave_batch
+from clrecon.reconstruction.fbp import BATCH_LANES, FanBeamGeometry, backproject, interleave_batch
 
 
 def _median_seconds(fn, repeats: int) -> float:

@@ -55,6 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clrecon.bench import reference_kernels
 from clrecon.bench.projector import bench_projector
 from clrecon.bench.timing import load1, median_time
 from clrecon.config.scene import load_scene
@@ -341,7 +342,7 @@ def bench_paper_fbp(scene="paper-p002", *, n_images: int = 64, reference_images:
         buf.release()
     n_ref = max(1, min(reference_images, B))
     t_single, all_single = median_time(
-        lambda: box.__setitem__("s", fbp.backproject_single(filtered[:n_ref], geom, runtime=rt)),
+        lambda: box.__setitem__("s", reference_kernels.backproject_single(filtered[:n_ref], geom, runtime=rt)),
         max(1, repeats - 1))
     ref_rows = rows[:V]
     t_np, _ = median_time(lambda: box.__setitem__("nf", filter_rows_numpy(ref_rows, geom, window)), 1,
@@ -432,7 +433,7 @@ def bench_groundtruth(scene="paper-p002", *, n_slices: int | None = None, cardia
     def ref_ct():
         s = projector.project_views(objs, src, centre, e_u, e_v, det.u_mm(), np.zeros(1), rt=rt, cull=False)
         f = fbp.filter_sinograms(s.reshape(1, V, det.n_cols), geom, cfg.filter)
-        box["ref"] = mu_to_hu(fbp.backproject_single(f, geom, runtime=rt)[0], cfg.mu_water_per_mm)
+        box["ref"] = mu_to_hu(reference_kernels.backproject_single(f, geom, runtime=rt)[0], cfg.mu_water_per_mm)
 
     t_ref, _ = median_time(ref_ct, 1)
     mask = geom.fov_mask()

@@ -14,7 +14,7 @@ Sections (``--only`` picks some):
     back; the reconstruction itself interleaves on the device and launches two groups of
     16 at a time, :func:`clrecon.reconstruction.fbp.groups_per_launch`)
     on ramp-filtered sinograms of analytic disk phantoms; references: the one-sinogram-per-
-    work-item kernel (:func:`clrecon.reconstruction.fbp.backproject_single`) and the ASTRA Toolbox CPU
+    work-item reference kernel (:func:`clrecon.bench.reference_kernels.backproject_single`) and the ASTRA Toolbox CPU
     fan-beam backprojector (``line_fanflat``, optional: ``pip install 'clrecon[bench]'``),
     with the agreement of the images after a least-squares scale. Goal: >= 4 G updates/s.
 ``projector``
@@ -56,23 +56,8 @@ Sections (``--only`` picks some):
     the one-sinogram kernel and a float64 NumPy filter), ground-truth and phantom-truth
     slice-targets/s at 110 slices per target (against the unculled projector + one-sinogram
     kernel, and float64 NumPy point samples).
-``backprojector``
-    :func:`clrecon.bench.backprojector.bench_backprojector`: images/s of every
-    ``recon.backprojector`` on the same 32 thorax sinograms of paper-p010 (512^2, 984 views x
-    900 columns, from the device as the reconstruction runs them), each option's ``speedup``
-    over ``direct`` in the same run (repeats alternating), and the pixel-wise difference (HU).
-``levers``
-    :func:`clrecon.bench.levers.bench_levers`: the demo run's speed levers against what each
-    replaced, in the same run: uncompressed against LZF volumes (write + assemble + read of
-    demo-sized datasets) and the phantom posed per simulation block against per chunk.
-``distributed`` (only with ``--only distributed``: needs ``clrecon[dask]``, a few minutes)
-    :func:`clrecon.bench.distributed.bench_distributed_section`: Dask task overhead, the speedup
-    of a small run from 1 to 2 local workers, and paper-p002's modelled wall time on 1, 10 and
-    100 nodes from unit costs measured here (module docstring: the model's assumptions).
 ``truth_free`` (only when named): the cost of ``recon.truth_free`` against the reconstruction it
     accompanies (demo, 4 middle slices; :func:`bench_truth_free_section`).
-``truth_free_trust`` (only when named, about an hour): Spearman of the cross-validated error against
-    the true MAE and the CV choice's gain (:mod:`clrecon.bench.truth_free_trust`, docs/truth-free.md).
 ``drivers`` (only when named, or ``--drivers``): :mod:`clrecon.bench.drivers`, every CPU driver that passes
     the probe side by side (projector, SSRB, interpolation, backprojection, noise, the demo cold).
 ``tradeoff`` (only with ``--only tradeoff``: not in the default set, about 20 minutes)
@@ -80,6 +65,10 @@ Sections (``--only`` picks some):
     error (local-linear neighbours, kappa, sigma; candidate turns; views; grid) swept on demo
     at pitch 0.02, small/large-FOV MAE against the method's seconds, each method's Pareto
     front; ``tradeoff.json`` and ``tradeoff.png`` in a kept temporary folder (the report says where).
+
+The A/B benchmarks of the code's own levers and options, and the studies (levers, backprojector
+options, detectors, Dask scaling, truth-free trust), live in a checkout's ``benchmarks/`` folder,
+outside the wheel (:data:`MOVED`; ``python -m benchmarks.levers`` and so on).
 
 ``--json FILE`` writes every number and the machine (CPU model, cores, load averages,
 OpenCL device). ``--quick`` shrinks every section (about a minute on an idle 2-core machine).
@@ -102,16 +91,10 @@ from pathlib import Path
 
 import numpy as np
 
-from clrecon.bench import detectors, paper, truth_free_trust
-from clrecon.bench.backprojector import bench_backprojector
-from clrecon.bench.backprojector import report_lines as backprojector_report_lines
-from clrecon.bench.distributed import bench_distributed_section
-from clrecon.bench.distributed import report_lines as distributed_report_lines
+from clrecon.bench import paper
 from clrecon.bench.drivers import bench_drivers
 from clrecon.bench.drivers import report_lines as drivers_report_lines
 from clrecon.bench.fbp import bench_backprojection
-from clrecon.bench.levers import bench_levers
-from clrecon.bench.levers import report_lines as levers_report_lines
 from clrecon.bench.measured import bench_measured_section
 from clrecon.bench.measured import report_lines as measured_report_lines
 from clrecon.bench.projector import bench_projector
@@ -132,11 +115,15 @@ from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate
 
 SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "end-to-end", "memory", "scaling",
-            "detectors", "measured")
+            "measured")
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
-SECTIONS = SECTIONS + paper.SECTIONS + ("backprojector", "levers")
+SECTIONS = SECTIONS + paper.SECTIONS
 #: Sections run only when ``--only`` names them (long).
-EXTRA_SECTIONS = ("tradeoff", "distributed", "truth_free", "truth_free_trust", "drivers")
+EXTRA_SECTIONS = ("tradeoff", "truth_free", "drivers")
+#: Former sections, now A/B benchmarks of a checkout's ``benchmarks/`` folder (not in the wheel).
+MOVED = {"levers": "benchmarks.levers", "backprojector": "benchmarks.backprojector",
+         "detectors": "benchmarks.detectors", "distributed": "benchmarks.dask_scaling",
+         "truth_free_trust": "benchmarks.truth_free_trust"}
 
 #: Goals of the issue (bench output marks them).
 GOAL_BACKPROJECTION_GUPS = 4.0
@@ -731,19 +718,12 @@ def format_report(res: dict) -> str:
                        f"{r['simulate_s']:>7.2f} {r['reconstruct_s']:>7.2f} "
                        f"{1e3 * r['reconstruct_s'] / r['sinograms']:>8.1f}")
     out.extend(paper.format_report(res))
-    out.extend(backprojector_report_lines(res.get("backprojector")))
     tfc = res.get("truth_free")
     if tfc:
         out.append(f"truth-free CV ({tfc['scene']}, slices {tfc['slices'][0]}:{tfc['slices'][1]}, "
                    f"{', '.join(tfc['methods'])}; {', '.join(tfc['variants'])}): {tfc['truth_free_s']:.1f} s "
                    f"against {tfc['reconstruction_s']:.1f} s of reconstruction (x{tfc['ratio']:.2f}), "
                    f"load {tfc['load_average_1min_before']}")
-    tt = res.get("truth_free_trust")
-    if tt:
-        an = tt["analysis"]
-        out.append(f"truth-free trust ({', '.join(tt['cases'])}; {an['n_configurations']} configurations): Spearman "
-                   + ", ".join(f"{k} {v:.2f}" for k, v in an["spearman"].items() if not k.endswith("_raw"))
-                   + f"; files in {tt.get('out_dir', '')}")
     tr = res.get("tradeoff")
     if tr:
         ld = tr["load_average_1min"]
@@ -753,12 +733,9 @@ def format_report(res: dict) -> str:
                    f"(load {ld['min']:.2f}..{ld['max']:.2f}, median {ld['median']:.2f}); "
                    f"{tr['out_dir']}/tradeoff.png; * = on the method's Pareto front")
         out.extend("   " + line for line in tradeoff_table(tr).splitlines())
-    out.extend(distributed_report_lines(res.get("distributed")))
-    out.extend(levers_report_lines(res.get("levers")))
     if res.get("drivers"):
         out += ["", "drivers: each CPU driver that passes the probe, same inputs, same process (clrecon.bench.drivers)"]
         out.extend(drivers_report_lines(res["drivers"]))
-    out.extend(detectors.format_lines(res.get("detectors")))
     out.extend(measured_report_lines(res.get("measured")))
     return "\n".join(out)
 
@@ -766,6 +743,10 @@ def format_report(res: dict) -> str:
 def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=print) -> dict:
     """Run the selected sections; returns every number (see the module docstring)."""
     only = tuple(only or SECTIONS)
+    moved = [s for s in only if s in MOVED]
+    if moved:
+        raise ClreconError(f"--only {moved[0]}: an A/B benchmark of the code itself, now in a checkout's benchmarks/ "
+                           f"folder (not installed with the package): python -m {MOVED[moved[0]]} from the checkout")
     bad = [s for s in only if s not in SECTIONS + EXTRA_SECTIONS]
     if bad:
         raise ClreconError(f"--only {bad[0]!r}: sections are {', '.join(SECTIONS + EXTRA_SECTIONS)}")
@@ -781,16 +762,10 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "end-to-end": lambda: bench_end_to_end_section(quick),
         "memory": lambda: bench_memory_section(quick),
         "scaling": lambda: bench_scaling_section(quick),
-        "detectors": lambda: detectors.bench_detectors_section(quick, repeats),
         "measured": lambda: bench_measured_section(quick, repeats),
         **{name: (lambda name=name: paper.run_section(name, quick, repeats)) for name in paper.SECTIONS},
-        "backprojector": lambda: bench_backprojector(n_images=16 if quick else 32, repeats=repeats),
-        "levers": lambda: bench_levers(quick, repeats),
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
-        "distributed": lambda: bench_distributed_section(quick, repeats),
         "truth_free": lambda: bench_truth_free_section(quick),
-        "truth_free_trust": lambda: truth_free_trust.bench_section(
-            quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
         "drivers": lambda: bench_drivers(quick, repeats),
     }
     for name in SECTIONS + EXTRA_SECTIONS:

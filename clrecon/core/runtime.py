@@ -281,7 +281,7 @@ def thread_runtime(rt: Runtime):
     """Within the block, :func:`get_runtime` (no device spec) in *this thread* returns ``rt``.
 
     For a background thread that runs OpenCL beside the main thread (the truths beside the
-    reconstruction, :mod:`clrecon.pipeline.truth_worker`): it gets its own context, queue and
+    reconstruction, :mod:`clrecon.pipeline.executors.local`): it gets its own context, queue and
     kernel objects, because a kernel object's arguments (``clSetKernelArg``) are not safe to set
     from two threads at once. Every call that falls back to the default runtime then uses ``rt``.
     """

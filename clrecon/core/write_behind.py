@@ -1,8 +1,8 @@
 """Unit files written behind the work that makes them, in one writer thread.
 
-Used for the volume units of the reconstruction (below) and for the projection units of the
-simulation (:func:`clrecon.simulation.simulate.simulate`: a block's units are written while the
-next block is projected; two blocks of at most ``BLOCK_BYTES`` are then held).
+Used by the local executor (:mod:`clrecon.pipeline.executors.local`) for the pieces a run's
+units make (a slab's volumes, below; a block's projections, two blocks of at most
+``BLOCK_BYTES`` then held), and by :func:`clrecon.simulation.simulate.simulate` on its own.
 
 Writing a finished (variant, method) slab is a single-core job: its float32 HU images are
 converted to ``recon.volume_dtype``, compressed (LZF + shuffle, one chunk per slice), hashed
@@ -24,22 +24,14 @@ h5py's LZF leaves liblzf's hash table uninitialised, so its output, though alway
 same values, can differ between two writes of the same array). An error in the thread is
 raised again in the run's thread at the next :meth:`submit` or at :meth:`drain`.
 
-``CLRECON_WRITE_BEHIND=0`` writes in the foreground as before (same files; for comparison).
+``WriteBehind(background=False)`` writes in the caller's thread (the same files; the serial
+executor, :mod:`clrecon.pipeline.executors.base`, and the A/B benchmarks use it).
 """
 
 from __future__ import annotations
 
-import os
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-
-#: The switch: ``0`` / ``false`` / ``no`` / ``off`` writes in the caller's thread.
-ENV = "CLRECON_WRITE_BEHIND"
-
-
-def enabled() -> bool:
-    """Whether volume units are written behind the reconstruction (``CLRECON_WRITE_BEHIND``, default on)."""
-    return os.environ.get(ENV, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
 def extra_bytes(slab_slices: int, n_targets: int, ny: int, nx: int, volume_itemsize: int) -> int:
@@ -58,8 +50,8 @@ class WriteBehind:
     runs at once in the caller's thread (both times then the call's).
     """
 
-    def __init__(self, background: bool | None = None):
-        self.background = enabled() if background is None else bool(background)
+    def __init__(self, background: bool = True):
+        self.background = bool(background)
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="clrecon-write") if self.background else None
         self._pending: Future | None = None
         self.wait_seconds = 0.0

@@ -36,7 +36,6 @@ import numpy as np
 from clrecon.core import atomic
 from clrecon.core.conventions import circular_difference
 from clrecon.core.errors import ClreconError
-from clrecon.core.resources import spawn_is_safe, spawned_pool
 from clrecon.evaluation.groundtruth import offers_lv_region
 from clrecon.outputs.rundir import RunDirectory
 from clrecon.reconstruction import interpolation as _methods
@@ -584,14 +583,6 @@ def fig_motion_metrics(results: dict, path: Path) -> str:
 #: The figures drawn from ``results`` alone (no volumes): name -> function(results, path, *args).
 _RESULTS_FIGURES = {"mae_per_target": fig_mae_per_target, "error_vs_time": fig_error_vs_time,
                     "motion_metrics": fig_motion_metrics}
-#: Draw the results-only figures in a second process while this one draws the volume figures
-#: (matplotlib is single-threaded; on demo the report took 7.6 s of an 80 s run, half of it the
-#: two MAE-grid figures). Unset: only where a spawned child cannot run the caller's script again
-#: (:func:`clrecon.core.resources.spawn_is_safe`); ``1`` forces it, ``0`` turns it off; off or
-#: unavailable: all in this process.
-FIGURE_PROCESS_ENV = "CLRECON_FIGURE_PROCESS"
-
-
 def _draw_results_figure(kind: str, results: dict, path: str, args: tuple) -> tuple[bool, str]:
     """(ok, caption or error) of one results-only figure; run in the figure process or here."""
     try:
@@ -600,31 +591,16 @@ def _draw_results_figure(kind: str, results: dict, path: str, args: tuple) -> tu
         return False, f"{type(e).__name__}: {e}"
 
 
-def _figure_pool(shared=None):
-    """A one-worker process pool for the results-only figures, or None (off / cannot start):
-    ``shared`` (the run's helper process) where given, else a new spawned one."""
-    import os
-
-    choice = os.environ.get(FIGURE_PROCESS_ENV, "")
-    if choice == "0":
-        return None
-    if shared is not None:
-        return shared
-    if (os.cpu_count() or 1) < 2 or (choice != "1" and not spawn_is_safe()):
-        return None
-    return spawned_pool(1)
-
-
 def write_figures(out_dir, results: dict, pool=None) -> list[str]:
     """Write every figure the run has inputs for into ``out_dir/figures``; markdown lines back.
 
     A figure whose inputs the run lacks is skipped with a line saying why; one that fails is
     reported as a line too, so that the report (and ``results.json`` after it) is still written.
-    The figures drawn from ``results`` alone go to a second process (:data:`FIGURE_PROCESS_ENV`)
-    while this one draws those that read the volumes; the lines keep the same order either way,
-    and each figure is the same (each is drawn by the same code from the same inputs).
-    ``pool``: the run's warm helper process (:mod:`clrecon.pipeline.helper_process`) to draw
-    them in instead of a new one; it is left running.
+    ``pool``: a process pool (the run's warm helper process, :mod:`clrecon.pipeline.executors.local`)
+    in which the figures drawn from ``results`` alone are drawn while this process draws those
+    that read the volumes (matplotlib is single-threaded; on demo the report took 7.6 s of an
+    80 s run, half of it the two MAE-grid figures); it is left running. None: all here. The lines
+    keep the same order either way, and each figure is the same (the same code, the same inputs).
     """
     out_dir = Path(out_dir)
     fig_dir = out_dir / FIGURE_DIR
@@ -670,7 +646,7 @@ def write_figures(out_dir, results: dict, pool=None) -> list[str]:
 
     has_metrics = any(results.get("metrics", {}).get(pk) for pk in results.get("metrics", {}))
     n_targets = len(run.c) * len(run.a)
-    fig_pool = _figure_pool(pool) if has_metrics and n_targets >= 2 else None
+    fig_pool = pool if has_metrics and n_targets >= 2 else None
     try:
         # queued first, so that the second process draws while this one draws the volume figures
         for fov in ("small", "large"):
@@ -704,8 +680,6 @@ def write_figures(out_dir, results: dict, pool=None) -> list[str]:
             lines.extend(e)
     finally:
         run.close()
-        if fig_pool is not None and fig_pool is not pool:
-            fig_pool.shutdown(wait=True, cancel_futures=True)
     return lines
 
 

@@ -1,6 +1,6 @@
 """The one reader of a run directory (``results.json`` + ``volumes.h5``).
 
-Used by the figures (:mod:`clrecon.outputs.figures`), the viewer (:mod:`viewer.app`), the
+Used by the figures (:mod:`clrecon.outputs.figures`), the viewer (:mod:`clrecon.viewer.app`), the
 export (:mod:`clrecon.outputs.export`) and the notebook API (:func:`clrecon.open_run`)::
 
     with RunDirectory("runs/tiny") as run:

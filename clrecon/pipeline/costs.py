@@ -6,7 +6,8 @@ from clrecon.config.scene import builtin_scene_names, load_scene
 from clrecon.core import write_behind
 from clrecon.core.errors import SceneError
 from clrecon.outputs.volumes import resolve_compression
-from clrecon.pipeline import evaluate, truth_worker
+from clrecon.pipeline import evaluate
+from clrecon.pipeline.stages import truth as truth_stage
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction.interpolation import METHODS
@@ -31,7 +32,8 @@ def scene_costs(scene) -> dict:
     return run_costs(scene)
 
 
-def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, pitches=None) -> dict:
+def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, pitches=None,
+              overlap: bool = True) -> dict:
     """:func:`scene_costs` of one run: the scene narrowed to ``methods``, targets, slices, ``pitches``.
 
     ``projections_needed`` models the projections the slices use (those within the SSRB slice
@@ -76,9 +78,10 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     # one launch's images twice: the device buffer (host memory on a CPU device) and its host copy
     launch_images = 2 * buffers["the images of one backprojection launch"]
     peak = chunk + slab * per_slice + plans + slab_sinos + 2 * nz * rc.ny * rc.nx * 4 + launch_images
-    if truth_worker.enabled():  # the truths beside the reconstruction: one target's working set on top
-        peak += truth_worker.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx)
-    if write_behind.enabled():  # one finished (variant, method) slab held while the thread writes it
+    # ``overlap``: an executor that overlaps the stages (local, dask; not serial)
+    if overlap:  # the truths beside the reconstruction: one target's working set on top
+        peak += truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx)
+    if overlap:  # one finished (variant, method) slab held while the writer thread writes it
         peak += write_behind.extra_bytes(slab, n_targets, rc.ny, rc.nx, item)
     # the metrics stage, after the reconstruction: in each of its processes the LV region masks of
     # every target (bool, when r4dct's respiratory-only study runs), one target's truth and volume in

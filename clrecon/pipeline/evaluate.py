@@ -6,13 +6,12 @@ one accumulator per (pitch, variant, method). At paper scale this stage reads ev
 on one core: h5py holds the GIL while it reads and decompresses, so threads do not overlap it.
 
 **Processes.** The accumulators are independent, so the keys are split into groups and each
-group beyond the first is accumulated in a spawned process that opens the same file read-only
-(:data:`PROCESSES_ENV`; automatic: 2 on a machine with >= 2 cores when the volumes read are at
-least :data:`PROCESS_MIN_BYTES` raw and :func:`spawn_is_safe`, else 1). Every accumulator still
-sees the same arrays in the same target order, so its float64 sums, and the results, are bit
-for bit those of one process
-(tests/test_metrics_processes.py). A process that cannot start makes its group run here, with
-the same numbers; an error inside one is raised as that error.
+group beyond the first is accumulated in another process that opens the same file read-only:
+the run's helper process (``pool``, lent by the executor, :mod:`clrecon.pipeline.executors.local`),
+or ``processes`` spawned here (the benchmarks, the tests). Every accumulator still sees the same
+arrays in the same target order, so its float64 sums, and the results, are bit for bit those of
+one process (tests/test_metrics_processes.py). A process that cannot start makes its group run
+here, with the same numbers; an error inside one is raised as that error.
 """
 
 from __future__ import annotations
@@ -35,25 +34,17 @@ from clrecon.simulation.phantom_sources import phantom_from_config
 #: cardiac-blind, respiratory-grid methods such as r4dct).
 FIVE_D_METHODS = interpolation.five_d_methods()
 RESP_ONLY_METHODS = FIVE_D_METHODS + interpolation.resp_grid_methods()
-#: Number of processes for the metrics (0 or 1: this process only; unset: automatic).
-PROCESSES_ENV = "CLRECON_METRICS_PROCESSES"
-#: Raw bytes of volumes read from which the automatic choice uses a second process. Spawning
-#: one and importing the package costs about 2 s of CPU; the demo reads 1.3 GB in about 4 s, so
-#: it stays in one process; paper-p010 reads 69 GB in 329 s.
+#: Raw bytes of volumes read from which a second process pays for its start-up when none is
+#: warm (the memory model's choice, :mod:`clrecon.pipeline.costs`). Spawning one and importing
+#: the package costs about 2 s of CPU; the demo reads 1.3 GB in about 4 s; paper-p010 reads
+#: 69 GB in 329 s. A run's warm helper process costs no start-up: used whatever the size.
 PROCESS_MIN_BYTES = 4 * 1024 ** 3
 
 
 def process_count(volume_bytes_read: int, warm: bool = False) -> int:
-    """Processes for a metrics stage that reads ``volume_bytes_read`` raw bytes (see module docstring).
-
-    ``warm``: the run's helper process is there, already started (:mod:`clrecon.pipeline.helper_process`):
-    a second group then costs no start-up, so it is used whatever the size."""
-    env = os.environ.get(PROCESSES_ENV, "").strip()
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError:
-            raise ValueError(f"{PROCESSES_ENV}={env!r}: expected a whole number of processes") from None
+    """Processes the metrics of ``volume_bytes_read`` raw bytes are modelled to use: 2 with a warm
+    helper (``warm``) or, on a machine with >= 2 cores where a child may be spawned, from
+    :data:`PROCESS_MIN_BYTES`; else 1."""
     if warm:
         return 2
     return 2 if ((os.cpu_count() or 1) >= 2 and volume_bytes_read >= PROCESS_MIN_BYTES
@@ -157,7 +148,7 @@ def _groups(keys: list, n: int) -> list[list]:
 
 
 def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, progress: bool = False,
-             info: dict | None = None, pool=None):
+             info: dict | None = None, pool=None, processes: int = 1):
     """Table-2 metrics, the respiratory-only comparison and the motion metrics per pitch/variant/method.
 
     Reads one target's volumes at a time from the (open) volume file ``f``. Returns
@@ -167,18 +158,13 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, p
     one that :func:`clrecon.evaluation.groundtruth.offers_lv_region`). ``progress``: a counter
     with an ETA over the volumes read. ``info``: a dictionary that receives ``processes``, the
     number of processes the accumulation ran in (module docstring). ``pool``: the run's warm
-    one-worker helper process (:mod:`clrecon.pipeline.helper_process`) for the second group,
-    instead of spawning one; it is left running.
+    one-worker helper process for a second group (it is left running); else ``processes``
+    groups, those beyond the first in processes spawned here.
     """
     ctx = _context(scene, targets, slices_z, methods, phantom)
     n_c, n_r = targets.shape
     keys = [(pitch_key(p), v, m) for p in pitches for v in variants for m in methods]
-    rc = scene.recon
-    item = 2 if rc.volume_dtype == "float16" else 4
-    n_proc = process_count(len(keys) * n_c * n_r * len(slices_z) * rc.ny * rc.nx * item, warm=pool is not None)
-    if pool is not None:
-        n_proc = min(n_proc, 2)  # the helper is one worker
-    groups = _groups(keys, n_proc)
+    groups = _groups(keys, 2 if pool is not None else max(1, int(processes)))  # the helper is one worker
     own_pool = pool is None
     if own_pool:
         pool = spawned_pool(len(groups) - 1) if len(groups) > 1 else None

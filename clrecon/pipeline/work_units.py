@@ -1,19 +1,21 @@
-"""The work units a Dask worker computes for a distributed run (:mod:`clrecon.pipeline.distributed`).
+"""The work units a Dask worker computes for a run (the ``remote`` form of the stages' units,
+:mod:`clrecon.pipeline.executors.dask`).
 
 Each function is top-level (importable by name on the worker), takes small picklable
-configs and paths, computes exactly what the single-process path
-computes for that unit (the same functions on the same inputs, so the numbers are
-bit-identical) and returns NumPy arrays; the client writes them as unit files
-(:mod:`clrecon.core.units`) with the run's own writers. Nothing is written here, so a worker
-killed mid-unit leaves nothing behind: the scheduler gives the unit to another worker.
+configs and paths, computes exactly what the same stage computes in one process (the same
+functions on the same inputs, so the numbers are bit-identical) and returns ``(pieces,
+seconds, counts)``: the pieces the stage's ``write`` takes (NumPy arrays, which the client
+writes as unit files, :mod:`clrecon.core.units`, with the run's own writers), the stage
+seconds and the work counts. Nothing is written here, so a worker killed mid-unit leaves
+nothing behind: the scheduler gives the unit to another worker.
 
 The units:
 
-- :func:`simulate_chunk`: one chunk of projections (the chunk ``simulate`` would project);
+- :func:`simulate_chunk`: one chunk of projections (one unit file of the store);
 - :func:`reconstruct_slab`: one slab of slices x every method x every noise variant of one
-  pitch (the slabs of :func:`clrecon.pipeline.slabs.plan_slabs`, as the single-process path
-  cuts them; every step is per slice, per row or per target, so another cut would give the
-  same bits too, but the same cut makes the same unit files);
+  pitch (the slabs of :func:`clrecon.pipeline.slabs.plan_slabs`, as in one process; every
+  step is per slice, per row or per target, so another cut would give the same bits too, but
+  the same cut makes the same unit files);
 - :func:`truth_target`: the ground truth and/or phantom truth of one target.
 
 ``CLRECON_FAULT=worker-unit:<n>`` (:mod:`clrecon.core.faults`) kills the worker process at the
@@ -68,24 +70,26 @@ def scan_table(scene, pitch: float):
     return table
 
 
-def simulate_chunk(scene, pitch: float, indices: np.ndarray) -> tuple[np.ndarray, float]:
-    """Line integrals of projections ``indices`` (increasing, (m,)) of the scan: ((m, R, C) float32, seconds)."""
+def simulate_chunk(scene, pitch: float, indices: np.ndarray) -> tuple[list, dict, dict]:
+    """Line integrals of projections ``indices`` (increasing, (m,)) of the scan: one piece
+    ``(indices, (m, R, C) float32)``."""
     faults.point("worker-unit")
     t0 = time.perf_counter()
     table = scan_table(scene, pitch)
     data = np.ascontiguousarray(project(scene, table.take(np.asarray(indices, np.int64))), np.float32)
-    return data, time.perf_counter() - t0
+    return [(indices, data)], {"simulate": time.perf_counter() - t0}, {}
 
 
 def reconstruct_slab(cfg, scene, pitch: float, cache_dir: str, plan, slices_z, targets, methods,
-                     variants) -> tuple[dict, dict]:
+                     variants, sel) -> tuple[list, dict, dict]:
     """One slab of every planned method and variant, read from the finished projection store.
 
-    ``plan`` is the client's plan of the slab's slices ``slices_z`` (mm), or None when the
-    client did not keep it (over its plan budget): the worker then makes it with the same
-    function (:func:`clrecon.reconstruction.reconstruct.plan`, deterministic). The store at
-    ``cache_dir`` must be finished and readable from this worker (a shared folder on a cluster).
-    Returns ``({(variant, method): (n_c', n_r', s, ny, nx) float32 HU}, stage seconds)``.
+    ``plan`` is the client's plan of the slab's slices ``slices_z`` (mm; ``sel``: their indices
+    in the run's slices), or None when the client did not keep it (over its plan budget): the
+    worker then makes it with the same function (:func:`clrecon.reconstruction.reconstruct.plan`,
+    deterministic). The store at ``cache_dir`` must be finished and readable from this worker (a
+    shared folder on a cluster). Pieces: ``(sel, {(variant, method): (n_c', n_r', s, ny, nx)
+    float32 HU})``, one per (variant, method) as in one process.
     """
     faults.point("worker-unit")
     times = StageTimes()
@@ -95,34 +99,36 @@ def reconstruct_slab(cfg, scene, pitch: float, cache_dir: str, plan, slices_z, t
         plan = reconstruct.plan(cfg, usable_table(scene, table)[0], np.asarray(slices_z), targets, methods)
         times.add("plan", time.perf_counter() - t0)
     store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table, create=False)
+    pieces: list = []
     try:
-        vols = reconstruct.reconstruct(cfg, store, plan, variants=variants, rt=get_runtime(), times=times,
-                                       slab_size=max(1, len(plan.slices_z)))
+        reconstruct.reconstruct(cfg, store, plan, variants=variants, rt=get_runtime(), times=times,
+                                on_slab=lambda zs, slab: pieces.append((sel[zs], slab)),
+                                slab_size=max(1, len(plan.slices_z)))
     finally:
         store.close()
-    return vols, times.seconds
+    return pieces, times.seconds, times.counts
 
 
-def truth_target(gt_cfg, slices_z: np.ndarray, targets, k: int, which: tuple) -> tuple[dict, dict]:
+def truth_target(gt_cfg, slices_z: np.ndarray, targets, k: int, which: tuple) -> tuple[list, dict, dict]:
     """The truths ``which`` (``"groundtruth"``, ``"phantom"``) of flat target ``k`` (cardiac-major).
 
-    Returns ``({name: (nz, ny, nx) float32 HU}, {"groundtruth"|"phantom_truth": seconds})``.
+    Pieces: ``(name, i, j, (nz, ny, nx) float32 HU)``; seconds: ``{"groundtruth"|"phantom_truth": s}``.
     """
     faults.point("worker-unit")
     rt = get_runtime()
     skip = set(range(len(targets.cardiac) * len(targets.resp))) - {k}
-    out, seconds = {}, {}
+    out, seconds = [], {}
     if "groundtruth" in which:
         t0 = time.perf_counter()
-        for _, _, vol in groundtruth.groundtruth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
-            out["groundtruth"] = vol
+        for i, j, vol in groundtruth.groundtruth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
+            out.append(("groundtruth", i, j, vol))
         seconds["groundtruth"] = time.perf_counter() - t0
     if "phantom" in which:
         t0 = time.perf_counter()
-        for _, _, vol in groundtruth.phantom_truth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
-            out["phantom"] = vol
+        for i, j, vol in groundtruth.phantom_truth_volumes(gt_cfg, slices_z, targets, rt=rt, skip=skip):
+            out.append(("phantom", i, j, vol))
         seconds["phantom_truth"] = time.perf_counter() - t0
-    return out, seconds
+    return out, seconds, {}
 
 
 def round_trip(x=None):

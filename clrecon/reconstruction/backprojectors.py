@@ -14,7 +14,7 @@ any resampling of the filtered sinogram before the backprojection (rebinning, ti
 in a hierarchical backprojection, gridding) smooths the band above the image grid's Nyquist
 that the direct path's interpolation folds into the pixels, and moves the noisy MAEs by 3 HU
 or more at any cost below the direct one (docs/algorithms.md, "A backprojection faster than
-`direct`"; the float64 study in ``docs/data/hierarchical/``).
+`direct`"; the float64 study in ``benchmarks/studies/hierarchical/``).
 
 The config layer (:mod:`clrecon.config.scene`) validates ``recon.backprojector`` against
 :data:`BACKPROJECTORS`; :mod:`clrecon.reconstruction.reconstruct` dispatches on it.

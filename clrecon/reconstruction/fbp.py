@@ -543,22 +543,6 @@ def backproject(filtered, geom: FanBeamGeometry, *, runtime=None) -> np.ndarray:
     return out
 
 
-def backproject_single(filtered, geom: FanBeamGeometry, *, runtime=None) -> np.ndarray:
-    """Same as :func:`backproject` with the straightforward one-sinogram-per-work-item kernel.
-
-    A reference for tests and benchmarks (about 20x slower on PoCL); shapes as there.
-    """
-    a = _check_sinograms(filtered, geom, "filtered")
-    rt = runtime or get_runtime()
-    kern = rt.kernel(_KERNEL_FILE, "backproject_single", _fast=True, **_defines(geom))
-    trig = rt.to_device(_trig_table(geom))
-    sino_buf = rt.to_device(a)
-    out_buf = rt.empty(a.shape[:1] + (geom.ny, geom.nx))
-    ev = kern(rt.queue, _global_size(geom, a.shape[0]), LOCAL_SIZE + (1,), sino_buf, trig, out_buf,
-              *_geometry_args(geom))
-    return rt.from_device(out_buf, (a.shape[0], geom.ny, geom.nx), wait_for=[ev])
-
-
 # ---------------------------------------------------------------------------------------
 def fbp(sino, geom: FanBeamGeometry, window: str = "ram-lak", *, runtime=None) -> np.ndarray:
     """Fan-beam FBP of line-integral sinograms.

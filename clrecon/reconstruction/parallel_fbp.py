@@ -8,7 +8,7 @@ distance weight (Kak & Slaney 1988, sec. 3.4.3 "re-sorting"; Herman 1980, ch. 10
 
 Steps, for a batch of fan sinograms (B, V, C) of line integrals on one geometry:
 
-1. **rebin** (OpenCL ``kernels/parallel.cl:rebin_parallel16``): parallel view i at
+1. **rebin** (OpenCL ``kernels/parallel_beam.cl:rebin_parallel16``): parallel view i at
    theta_i = beta0 + pi/2 + i dbeta (dbeta = 2 pi / V, i < V/2), sample k at
    s_k = (k - (n_s - 1)/2) ds; its value is the mean of the direct ray (fan angle
    gamma_k = asin(s_k / SID), fan view index i + gamma_k / dbeta) and the conjugate ray
@@ -51,7 +51,7 @@ from clrecon.core.runtime import get_runtime
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction.filters import FILTERS as _WINDOW_FUNCTIONS
 
-_KERNEL_FILE = "parallel.cl"
+_KERNEL_FILE = "parallel_beam.cl"
 LANES = fbp_mod.BATCH_LANES
 #: Work-group size and view chunk of the parallel backprojector (as the fan kernel's).
 LOCAL_SIZE = fbp_mod.LOCAL_SIZE

@@ -11,8 +11,8 @@ Stages 5-8 of the pipeline, for one scan (one pitch):
 2. **Stream**: projections are read from the store in index (= time = z) order, in chunks;
    each chunk is rebinned only for the pairs it owns (:func:`clrecon.reconstruction.rebin.ssrb_rows`).
    Noise, if asked for, is applied to the chunk once per read (seeded per projection).
-3. **Interpolate**: :func:`clrecon.reconstruction.interpolation.weights.apply_weights` turns rebinned rows into one
-   fan-beam sinogram per (slice, target).
+3. **Interpolate**: :func:`clrecon.reconstruction.interpolation.apply.apply_padded_interleaved` turns
+   rebinned rows into one fan-beam sinogram per (slice, target).
 4. **FBP**: :func:`clrecon.reconstruction.fbp.fbp_hu`, batched over slices and targets.
 
 Slices are processed in slabs in z order so that only one slab's rebinned rows are held.

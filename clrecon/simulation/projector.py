@@ -12,7 +12,7 @@ front of the source (always so in CT). The OpenCL kernel is ``kernels/project.cl
 
 Work split (measured on the PoCL CPU device, see :mod:`clrecon.bench.projector`):
 
-- per (view, object), in float64 (``kernels/prepare.cl``, one work-item per view; its NumPy
+- per (view, object), in float64 (``kernels/project_cull.cl``, one work-item per view; its NumPy
   reference :func:`prepare_records` is the fallback on devices without float64): culling
   of the object's bounding sphere against the pyramid of rays, the object's detector
   rectangle (projected corners of its bounding box), and a record of ray-independent
@@ -428,7 +428,7 @@ def has_fp64(rt) -> bool:
 
 
 def _prepare_on_device(rt, objs, broadcast, src, view_rec, lay, cull):
-    """Records of one chunk by kernels/prepare.cl: (record buffer, count buffer, n_obj, events)."""
+    """Records of one chunk by kernels/project_cull.cl: (record buffer, count buffer, n_obj, events)."""
     m, n_obj = objs.shape[0], objs.shape[1]
     # a posed batch (page-aligned by the phantom) is read in place by a CPU device: no copy of
     # its 64 KB per view into fresh pages (docs/algorithms.md "Rows read in place")
@@ -437,7 +437,7 @@ def _prepare_on_device(rt, objs, broadcast, src, view_rec, lay, cull):
     rec_buf = rt.empty((m, n_obj, REC))
     cnt_buf = rt.empty((m,), np.int32)
     views_buf = rt.to_device(views, np.float64)
-    kern = rt.kernel("prepare.cl", "prepare", CULL=int(cull))
+    kern = rt.kernel("project_cull.cl", "cull_records", CULL=int(cull))
     (ul, uh), (vl, vh) = lay.u_range, lay.v_range
     ev = kern(rt.queue, (m,), None, obj_buf, np.int64(0 if broadcast else n_obj * ph.STRIDE), np.int32(n_obj),
               views_buf, np.float64(ul), np.float64(uh), np.float64(vl), np.float64(vh),
@@ -447,7 +447,7 @@ def _prepare_on_device(rt, objs, broadcast, src, view_rec, lay, cull):
 
 
 def prepare_records_device(objects, src, det_centre, e_u, e_v, u_range, v_range, cull=True, rt=None):
-    """:func:`prepare_records` computed by ``kernels/prepare.cl`` (for tests): (rec (K, REC), view_index)."""
+    """:func:`prepare_records` computed by ``kernels/project_cull.cl`` (for tests): (rec (K, REC), view_index)."""
     rt = rt or get_runtime()
     objs = np.asarray(objects, dtype=np.float64)
     src = np.asarray(src, np.float64)

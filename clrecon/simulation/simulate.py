@@ -33,7 +33,7 @@ BLOCK_CHUNKS = 8
 
 
 def simulate(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, projector=None,
-             chunk: int = CHUNK, progress: bool = True) -> ProjectionStore:
+             chunk: int = CHUNK, progress: bool = True, write_behind_thread: bool = True) -> ProjectionStore:
     """Make sure the projections ``needed`` of ``(scene, pitch)`` are in the store.
 
     Parameters
@@ -55,6 +55,9 @@ def simulate(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, pr
     progress : bool
         Progress with an ETA on stderr (:mod:`clrecon.core.progress`: a tqdm bar on a terminal,
         a log line a minute otherwise; none with ``CLRECON_NO_PROGRESS=1``).
+    write_behind_thread : bool
+        Write each block's units in a thread while the next block is projected (the same files
+        either way).
 
     Returns
     -------
@@ -95,16 +98,15 @@ def simulate(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, pr
     with progress_counter(int(missing.size), f"simulate {scene.name} pitch {pitch:g}", progress, "proj") as bar:
         # A .partial with nothing missing still goes through writing() to be finished.
         with store.writing():
-            proj_bytes = 4 * scene.scanner.n_rows * scene.scanner.n_cols
-            per_block = chunk * (max(1, min(BLOCK_CHUNKS, BLOCK_BYTES // max(chunk * proj_bytes, 1))) if blocks else 1)
+            per_block = block_size(scene, chunk) if blocks else chunk
             # each block's units are written by a thread while the next block is projected
-            # (clrecon.core.write_behind; CLRECON_WRITE_BEHIND=0: in this thread, as before)
-            wb = write_behind.WriteBehind()
+            # (clrecon.core.write_behind; write_behind=False: in this thread)
+            wb = write_behind.WriteBehind(background=write_behind_thread)
             try:
                 for b0 in range(0, missing.size, per_block):
                     block = missing[b0:b0 + per_block]
                     data = projector(scene, table.take(block))
-                    wb.submit(_write_block, store, block, data, chunk, bar)
+                    wb.submit(write_block, store, block, data, chunk, bar)
                 wb.drain()
             finally:
                 wb.close()
@@ -112,10 +114,18 @@ def simulate(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, pr
     return store
 
 
-def _write_block(store: ProjectionStore, block: np.ndarray, data: np.ndarray, chunk: int, bar) -> None:
-    """Write one projected block into ``store``: one unit per ``chunk`` projections, as before."""
+def block_size(scene: SimulatedScan, chunk: int = CHUNK) -> int:
+    """Projections per call of the default projector: whole chunks, at most :data:`BLOCK_CHUNKS`
+    of them and within :data:`BLOCK_BYTES`."""
+    proj_bytes = 4 * scene.scanner.n_rows * scene.scanner.n_cols
+    return chunk * max(1, min(BLOCK_CHUNKS, BLOCK_BYTES // max(chunk * proj_bytes, 1)))
+
+
+def write_block(store: ProjectionStore, block: np.ndarray, data: np.ndarray, chunk: int = CHUNK, bar=None) -> None:
+    """Write one projected block into ``store``: one unit per ``chunk`` projections."""
     for lo in range(0, block.size, chunk):
         idx = block[lo:lo + chunk]
         store.write(idx, data[lo:lo + chunk])
         store.n_simulated += int(idx.size)
-        bar.update(int(idx.size))
+        if bar is not None:
+            bar.update(int(idx.size))

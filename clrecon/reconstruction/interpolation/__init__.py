@@ -22,7 +22,6 @@ from clrecon.reconstruction.interpolation import cv_tuned
 
 from clrecon.reconstruction.interpolation.apply import (
     DeviceRows,
-    apply_weights,
     apply_weights_interleaved,
     apply_weights_reference,
 )
@@ -41,7 +40,7 @@ from clrecon.reconstruction.interpolation.registry import (
 from clrecon.reconstruction.interpolation.weights import NoCandidatesError, Weights, batch_weights, method_weights
 
 __all__ = [
-    "METHODS", "DeviceRows", "Method", "NoCandidatesError", "Options", "Weights", "apply_weights",
+    "METHODS", "DeviceRows", "Method", "NoCandidatesError", "Options", "Weights",
     "apply_weights_interleaved", "apply_weights_reference", "barycentric", "batch_weights", "bin", "by_rank",
     "cv_tuned", "default_methods",
     "figure_order", "five_d_methods", "helical", "local_linear", "markers", "method_names", "method_weights",

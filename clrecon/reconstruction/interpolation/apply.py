@@ -1,9 +1,11 @@
 """Weighted sums of rebinned rows: the interpolation weights applied on the OpenCL device.
 
-:func:`apply_weights` (``apply_weights`` kernel, ``kernels/interp.cl``) and its float64
-reference :func:`apply_weights_reference`; :class:`DeviceRows` and
-:func:`apply_weights_interleaved` write whole sinograms straight into the batched
-backprojector's layout (:func:`clrecon.reconstruction.fbp.interleave_batch`).
+:class:`DeviceRows` and :func:`apply_weights_interleaved` (kernel ``apply_weights_interleaved16_cols8``,
+``kernels/interp.cl``) write whole sinograms straight into the batched backprojector's layout
+(:func:`clrecon.reconstruction.fbp.interleave_batch`); :func:`apply_weights_reference` is the float64
+NumPy reference of the weighted sum. The kernel's earlier versions, kept as references for the tests
+and the benchmarks, are in ``kernels/reference/`` with their launchers in
+:mod:`clrecon.bench.reference_kernels`.
 """
 
 from __future__ import annotations
@@ -11,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 from clrecon.core.runtime import get_runtime
-from clrecon.reconstruction.interpolation._common import LOCAL as _LOCAL
 
 
 def _check_apply(rows, index, weight):
@@ -34,7 +35,7 @@ def _check_apply(rows, index, weight):
 
 
 def apply_weights_reference(rows, index, weight) -> np.ndarray:
-    """Float64 NumPy reference of :func:`apply_weights`, shape (B, C)."""
+    """Float64 NumPy reference of the weighted sum ``out[b] = sum_k weight[b, k] * rows[index[b, k]]``, (B, C)."""
     rows, index, weight = _check_apply(rows, index, weight)
     r = rows.astype(np.float64)
     w = weight.astype(np.float64)
@@ -42,40 +43,6 @@ def apply_weights_reference(rows, index, weight) -> np.ndarray:
         return np.zeros((index.shape[0], r.shape[1]))
     # zero weights do not touch their row (a NaN there must not leak through 0 * NaN)
     return np.einsum("bk,bkc->bc", w, np.where((w != 0)[..., None], r[index], 0.0))
-
-
-def apply_weights(rows, index, weight, rt=None) -> np.ndarray:
-    """Weighted sums of rebinned rows on the OpenCL device (``apply_weights`` kernel).
-
-    Parameters
-    ----------
-    rows : array_like
-        (P, C) rebinned rows (converted to float32).
-    index : array_like of int
-        (B, K) row of ``rows`` for each slot; only slots with non-zero weight are read.
-    weight : array_like of float
-        (B, K) weights (converted to float32), e.g. ``Weights.weight.reshape(-1, K)``.
-    rt : Runtime, optional
-
-    Returns
-    -------
-    np.ndarray
-        float32 (B, C): ``out[b] = sum_k weight[b, k] * rows[index[b, k]]``.
-    """
-    rows, index, weight = _check_apply(rows, index, weight)
-    B, K = index.shape
-    C = rows.shape[1]
-    if B == 0 or C == 0:
-        return np.zeros((B, C), np.float32)
-    rt = rt or get_runtime()
-    knl = rt.kernel("interp.cl", "apply_weights")
-    d_rows = rt.to_device(rows, np.float32, "rows")
-    d_idx = rt.to_device(index, np.int32, "index")
-    d_w = rt.to_device(weight, np.float32, "weight")
-    d_out = rt.empty((B, C), np.float32)
-    ev = knl(rt.queue, (-(-C // _LOCAL) * _LOCAL, B), (_LOCAL, 1), d_rows, d_idx, d_w, d_out,
-             np.int32(B), np.int32(C), np.int32(K))
-    return rt.from_device(d_out, (B, C), np.float32, wait_for=[ev])
 
 
 class DeviceRows:
@@ -109,7 +76,7 @@ class DeviceRows:
 
 
 def apply_weights_interleaved(rows: DeviceRows, index, weight, rt=None):
-    """:func:`apply_weights` for whole sinograms, written in the batched backprojector's layout.
+    """Weighted sums of rebinned rows for whole sinograms, written in the batched backprojector's layout.
 
     Parameters
     ----------
@@ -190,19 +157,12 @@ def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray,
     memory: on the 2-core machine its first touch costs about 0.7 ms per MB, as much as the kernel).
 
     Kernel ``apply_weights_interleaved16_cols8`` (8 columns per work-item); the same bits as the
-    per-lane kernel :func:`apply_padded_interleaved_lanes`, the reconstruction's until 2026-12-05."""
+    per-lane reference kernel (:func:`clrecon.bench.reference_kernels.apply_padded_interleaved_lanes`),
+    the reconstruction's until 2026-12-05."""
     return _launch_padded(rows, idx, wgt, B, rt, out, "apply_weights_interleaved16_cols8", COLS_PER_ITEM, COLS8_LOCAL)
 
 
-def apply_padded_interleaved_lanes(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray, B: int, rt=None, out=None):
-    """:func:`apply_padded_interleaved` with the per-lane kernel ``apply_weights_interleaved16`` (one
-    padded column per work-item, 16 scalar gathers per slot): the reconstruction's kernel from
-    2026-12-03 to 2026-12-05, kept as ``bench --only levers``' same-run reference. Same output, bit
-    for bit."""
-    return _launch_padded(rows, idx, wgt, B, rt, out, "apply_weights_interleaved16", 1, _LOCAL)
-
-
-def _launch_padded(rows, idx, wgt, B, rt, out, kernel_name, cols_per_item, local):
+def _launch_padded(rows, idx, wgt, B, rt, out, kernel_name, cols_per_item, local, source="interp.cl"):
     P, C = rows.shape
     rt = rt or rows.rt
     V, K = idx.shape[1:3]
@@ -215,35 +175,13 @@ def _launch_padded(rows, idx, wgt, B, rt, out, kernel_name, cols_per_item, local
         rt.cl.enqueue_fill_buffer(rt.queue, d_out, np.float32(0), 0, G * V * (C + 2) * 16 * 4).wait()
         return d_out, G
     idx, wgt = idx[:G], wgt[:G]
-    knl = rt.kernel("interp.cl", kernel_name, APPLY_K=int(K))  # one build per slot count
+    knl = rt.kernel(source, kernel_name, APPLY_K=int(K))  # one build per slot count
     d_idx = rt.to_device(idx, np.int32, "index")
     d_w = rt.to_device(wgt, np.float32, "weight")
     items = -(-(C + 2) // cols_per_item)
     ev = knl(rt.queue, (-(-items // local) * local, V, G), (local, 1, 1), rows.buf, d_idx, d_w, d_out,
              np.int32(V), np.int32(C))
     ev.wait()
-    d_idx.release()
-    d_w.release()
-    return d_out, G
-
-
-def apply_interleaved_loop(rows: DeviceRows, index: np.ndarray, weight: np.ndarray, rt=None, out=None):
-    """The reconstruction's interpolation kernel until 2026-12-03 (``apply_weights_interleaved16_loop``):
-    :func:`apply_weights_interleaved`'s output, bit for bit, from lane-major (B, V, K) ``index`` /
-    ``weight`` with a run-time slot count. Kept as ``bench --only levers``' same-run reference;
-    the reconstruction does not use it. No validation (indices with non-zero weight in [0, P)).
-    Returns ``(buffer, n_groups)``; ``out`` as in :func:`apply_padded_interleaved`."""
-    P, C = rows.shape
-    rt = rt or rows.rt
-    _, V, K = index.shape
-    idx, wgt = _pad_lane_major(index, weight)
-    G = idx.shape[0] // 16
-    d_out = rt.empty((G, V, C + 2, 16), np.float32) if out is None else out
-    knl = rt.kernel("interp.cl", "apply_weights_interleaved16_loop")
-    d_idx = rt.to_device(idx, np.int32, "index")
-    d_w = rt.to_device(wgt, np.float32, "weight")
-    knl(rt.queue, (-(-(C + 2) // _LOCAL) * _LOCAL, V, G), (_LOCAL, 1, 1), rows.buf, d_idx, d_w, d_out,
-        np.int32(V), np.int32(C), np.int32(K)).wait()
     d_idx.release()
     d_w.release()
     return d_out, G

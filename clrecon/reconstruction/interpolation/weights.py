@@ -3,7 +3,7 @@
 For one (slice, view) the candidates are points (c_k, a_k) in the (cardiac phase,
 respiratory amplitude) plane, each carrying a rebinned row. For every target (c*, a*) a
 method gives a handful of weights; the target's row is the weighted sum of candidate rows
-(:func:`apply_weights`, OpenCL). This module is the dispatcher: validation, chunking of the
+(:func:`apply_weights_interleaved`, OpenCL). This module is the dispatcher: validation, chunking of the
 groups, the differences to the targets, then the method's ``weights`` function from the
 registry (:mod:`clrecon.reconstruction.interpolation.registry`), then flat indices and
 padding. The methods live one per module (docs/algorithms.md "Phase-space interpolation", 5DCT paper
@@ -42,8 +42,6 @@ from clrecon.reconstruction.interpolation._common import deltas as _deltas
 from clrecon.reconstruction.interpolation.apply import (  # noqa: F401
     DeviceRows,
     apply_padded_interleaved,
-    apply_padded_interleaved_lanes,
-    apply_weights,
     apply_weights_interleaved,
     apply_weights_reference,
     pad_interleaved,

@@ -1,0 +1,170 @@
+"""What every stage of a run sees: the resolved request, the open volume writer, the records.
+
+:func:`open_run` resolves and checks a request (methods, targets, slices, pitches; the
+pre-flight of memory and disk, :mod:`clrecon.pipeline.preflight`), opens the run's
+:class:`~clrecon.outputs.volumes.VolumeWriter` (resuming an interrupted run of the same
+request) and returns the :class:`RunContext` the stages of :mod:`clrecon.pipeline.graph` share.
+The stages put what ``results.json`` reports into ``records`` (its keys are results.json's)
+and their notes on a timed part into ``notes``; the executor sets ``clock``, ``pool`` and
+``fine_units``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from clrecon.config.scene import Scene
+from clrecon.core.errors import ClreconError
+from clrecon.outputs.volumes import VolumeWriter
+from clrecon.pipeline import costs as costs_mod
+from clrecon.pipeline import preflight
+from clrecon.pipeline.variants import noise_variants
+from clrecon.reconstruction import interpolation, reconstruct
+from clrecon.reconstruction.reconstruct import Targets
+from clrecon.simulation.store import default_cache_dir
+
+RESULTS_FORMAT = 1
+#: The self-tuning method: planned after the truth-free cross-validation chose its kernel.
+TUNED = "cv_tuned"
+#: recon keys added after run directories existed: left out of the run key at these defaults.
+_RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False, "volume_compression": "auto",
+                "cardiac_distance_scale": 1.0}
+
+
+@dataclass
+class RunContext:
+    """The run as the stages see it (module docstring); arrays in mm, targets cardiac-major."""
+
+    scene: Scene
+    out: Path
+    methods: tuple
+    pitches: tuple
+    targets: Targets
+    slices_z: np.ndarray          # (S,) mm
+    slice_range: tuple | None
+    variants: tuple               # noise variants: "noise-free", "noisy"
+    recon_cfg: Any                # reconstruct.ReconstructionConfig
+    cache_path: Path              # the projection store folder (and the truth cache's)
+    writer: VolumeWriter
+    rt: Any                       # the run's OpenCL runtime
+    need: dict                    # the pre-flight's modelled needs (bytes)
+    force: bool = False
+    report: bool = True
+    progress: bool = True
+    log: Callable[..., Any] = print
+    records: dict = field(default_factory=dict)
+    notes: dict = field(default_factory=dict)
+    clock: Any = None             # the executor's StageClock
+    pool: Any = None              # the executor's warm helper process, or None
+    fine_units: bool = False      # units are cut for workers elsewhere (Dask)
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def want_truth_free(self) -> bool:
+        """The truth-free cross-validation runs (``recon.truth_free``, or the cv_tuned method)."""
+        return bool(self.scene.recon.truth_free) or TUNED in self.methods
+
+    @property
+    def full_shape(self) -> tuple:
+        rc = self.scene.recon
+        return self.targets.shape + (len(self.slices_z), rc.ny, rc.nx)
+
+    @property
+    def n_targets(self) -> int:
+        return self.targets.shape[0] * self.targets.shape[1]
+
+    def note(self, part: str, **entries) -> None:
+        """Entries for ``results.json["stages"][part]`` beside its times."""
+        self.notes.setdefault(part, {}).update(entries)
+
+
+def resolve_targets(scene: Scene, cardiac: Sequence[float] | None = None,
+                    resp: Sequence[float] | None = None) -> Targets:
+    """Targets of the run: the scene's, narrowed by ``cardiac``/``resp`` lists if given."""
+    c = tuple(scene.cardiac_targets)
+    r = tuple(scene.resp_targets)
+    if cardiac:
+        if not scene.has_cardiac:
+            raise ClreconError("--targets: the scene has no cardiac motion, so there is no cardiac axis to select")
+        bad = [x for x in cardiac if not 0 <= x < 1]
+        if bad:
+            raise ClreconError(f"--targets: cardiac phase {bad[0]} outside [0, 1)")
+        c = tuple(float(x) for x in cardiac)
+    if resp:
+        if not scene.has_respiratory:
+            raise ClreconError("--targets: the scene has no breathing, so there is no respiratory axis to select")
+        bad = [x for x in resp if not 0 <= x <= 1]
+        if bad:
+            raise ClreconError(f"--targets: respiratory amplitude {bad[0]} outside [0, 1]")
+        r = tuple(float(x) for x in resp)
+    return Targets(cardiac=c, resp=r)
+
+
+def json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, tuple):
+        return list(o)
+    raise TypeError(type(o))
+
+
+def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitches, cache_dir, *, rt,
+             executor_kind: str, distributed: bool, force: bool, **opts) -> RunContext:
+    """Resolve and check the request, run the pre-flight and open the volume writer (module docstring)."""
+    methods = tuple(methods or scene.recon.methods)
+    known = interpolation.method_names()
+    unknown = [m for m in methods if m not in scene.recon.methods and m not in known]
+    if unknown:
+        raise ClreconError(f"--methods: unknown method {unknown[0]!r}; allowed: {', '.join(known)}")
+    pitches = tuple(pitches or scene.scan.pitches)
+    targets = resolve_targets(scene, cardiac, resp)
+    rc = scene.recon
+    if slice_range is not None and not (0 <= slice_range[0] < slice_range[1] <= rc.nz):
+        raise ClreconError(f"--slices {slice_range[0]}:{slice_range[1]}: must satisfy 0 <= start < stop <= "
+                           f"recon.nz = {rc.nz}")
+    if distributed and (rc.truth_free or TUNED in methods):
+        raise ClreconError("recon.truth_free and the cv_tuned method run in one process: drop --workers/--cluster")
+    if distributed and scene.measured:
+        raise ClreconError("a measured scan (scan.source = 'dicom-ct-pd') runs in one process: "
+                           "drop --workers/--cluster")
+    slices_z = reconstruct.slice_positions(scene, slice_range)
+    run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches,
+                                    overlap=executor_kind != "serial")
+    cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    need = (preflight.needs(scene, run_costs, cache_path, out) if force
+            else preflight.check(scene, run_costs, cache_path, out, rt=rt))
+    variants = noise_variants(scene)
+    axes = {"cardiac_phase": targets.cardiac, "resp_amplitude": targets.resp, "z_mm": slices_z,
+            "y_mm": reconstruct.voxel_coords(rc.ny, rc.voxel_mm), "x_mm": reconstruct.voxel_coords(rc.nx, rc.voxel_mm)}
+    scene_d = scene.to_dict()
+    for k, v in _RECON_LATER.items():  # keys added later hash only away from their defaults
+        if scene_d["recon"].get(k) == v:
+            scene_d["recon"].pop(k)
+    run_key = hashlib.sha256(json.dumps(
+        {"scene": scene_d, "methods": methods, "pitches": pitches, "variants": variants,
+         "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT,
+         **({"driver": rt.cache_tag} if rt.cache_tag else {})},  # no resumption across drivers
+        sort_keys=True, default=json_default).encode()).hexdigest()
+    writer = VolumeWriter(out / "volumes.h5", axes, keep_cardiac=scene.has_cardiac, keep_resp=scene.has_respiratory,
+                          run_key=run_key, dtype=rc.volume_dtype, compression=run_costs["volume_compression"])
+    run = RunContext(scene=scene, out=out, methods=methods, pitches=pitches, targets=targets, slices_z=slices_z,
+                     slice_range=slice_range, variants=variants,
+                     recon_cfg=reconstruct.ReconstructionConfig.from_scene(scene), cache_path=cache_path,
+                     writer=writer, rt=rt, need=need, force=force, **opts)
+    if writer.resumed:
+        run.log("resuming an interrupted run: finished slices and targets are kept")
+    for key in ("sim_info", "diagnostics", "sampling", "recorded_signals", "method_seconds", "method_plan_seconds",
+                "truth_free", "metrics", "respiratory_only", "motion"):
+        run.records[key] = {}
+    run.records["units_written"] = {"projections": 0}
+    run.records["counts"] = {}
+    return run

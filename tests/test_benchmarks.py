@@ -1,0 +1,88 @@
+"""The A/B benchmarks and studies of ``benchmarks/`` (outside the wheel) at tiny sizes: each row
+runs its lever and its reference on the same data and says whether they agree (no timed assertions)."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks import levers
+from benchmarks.backprojector import bench_backprojector, report_lines
+
+
+def test_backprojector_section_tiny():
+    """Every option runs on the same sinograms; speedup is over direct; the images are compared."""
+    res = bench_backprojector(scene="tiny", n_images=3, repeats=1)
+    assert set(res["options"]) == {"direct", "parallel-rebin"}
+    o = res["options"]
+    assert o["direct"]["speedup"] == 1.0
+    assert o["parallel-rebin"]["speedup"] == pytest.approx(
+        o["parallel-rebin"]["images_per_s"] / o["direct"]["images_per_s"])
+    pd = res["pixel_diff_hu"]
+    assert 0.0 < pd["rms"] <= pd["max"] < 1e4
+    text = "\n".join(report_lines(res))
+    assert "parallel-rebin" in text
+
+
+def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
+    """The volume row writes, assembles and reads both settings (the uncompressed one on more disk);
+    the posing row poses the same states both ways; speedups are the reference over the lever."""
+    small = levers._ct_like
+    monkeypatch.setattr(levers, "_ct_like", lambda shape, k: small((2, 1, 8, 32, 32), k))
+    res = levers.bench_levers(quick=True, repeats=1, metrics_scene="tiny", write_scene="tiny", simulate_scene="tiny",
+                              store_scene="tiny")
+    v, p = res["volumes"], res["posing"]
+    assert v["datasets"] == 2 and v["raw_bytes"] == 2 * 2 * 8 * 32 * 32 * 4
+    assert v["median"]["none"]["disk_bytes"] > v["median"]["lzf"]["disk_bytes"] > 0
+    assert v["speedup"] == pytest.approx(v["total_s"]["lzf"] / v["total_s"]["none"])
+    assert p["block"] == p["chunk"] * levers.simulate_mod.BLOCK_CHUNKS and p["repeats"] >= 2
+    assert p["speedup"] == pytest.approx(p["median_s"]["chunk"] / p["median_s"]["block"])
+    text = "\n".join(levers.report_lines(res))
+    assert "phantom posing" in text and "volumes" in text
+    m = res["metrics"]
+    assert m["identical"] is True and m["volumes"] == 2 and set(m["median_s"]) == {"1", "2"}
+    assert "metrics stage" in text and "bit-identical" in text
+    t2 = res["table2_kept"]  # kept arrays against the fresh-array formula: the same float64 sums
+    assert t2["identical"] is True and t2["shape"][0] == 8 and "Table-2 sums per volume" in text
+    a = res["assembly"]   # in place against format 2's copy, on the same units: the same values read back
+    assert a["identical"] is True and a["datasets"] == 2 and set(a["median"]) == {"copy", "in_place"}
+    assert a["speedup"] == pytest.approx(a["median"]["copy"]["assemble_s"] / a["median"]["in_place"]["assemble_s"])
+    assert "volume assembly" in text
+    wb = res["write_behind"]  # the same unit values written behind and in the foreground
+    assert wb["identical"] is True and wb["steps"] == 3 and set(wb["median_s"]) == {"behind", "foreground"}
+    assert wb["unit_shape"] == [2, 1, 8, 32, 32] and wb["write_step_s"] > 0 and wb["backproject_step_s"] > 0
+    assert wb["speedup"] == pytest.approx(wb["median_s"]["foreground"] / wb["median_s"]["behind"])
+    assert "write behind" in text
+    sb = res["simulate_behind"]  # the same projections stored either way
+    assert sb["identical"] is True and sb["scene"] == "tiny" and set(sb["median_s"]) == {"behind", "foreground"}
+    assert sb["speedup"] == pytest.approx(sb["median_s"]["foreground"] / sb["median_s"]["behind"])
+    assert "simulation written behind" in text
+    il = res["interp_launch"]  # now against before on the same launches: the same images
+    assert il["scene"] == "tiny" and set(il["by_k"]) == {"3", "8"}
+    for r in il["by_k"].values():
+        assert r["identical"] is True
+        assert set(r["median_s"]) == {"before", "fresh", "lanes", "now", "interp_lanes", "interp_now"}
+        assert r["speedup"] == pytest.approx(r["median_s"]["before"] / r["median_s"]["now"])
+        assert r["speedup"] == pytest.approx(r["kernel_speedup"] * r["scratch_speedup"] * r["cols8_speedup"])
+        assert r["cols8_interp_speedup"] == pytest.approx(r["median_s"]["interp_lanes"] / r["median_s"]["interp_now"])
+    assert "interpolation + backprojection launches" in text
+    rs = res["rows_shared"]  # rows read in place against copied: the same sinograms
+    assert rs["identical"] is True and rs["in_place"] is True and rs["scene"] == "tiny"
+    assert rs["rows_bytes"] >= 64 << 20 and set(rs["median_s"]) == {"shared", "copied"}
+    assert rs["speedup"] == pytest.approx(rs["median_s"]["copied"] / rs["median_s"]["shared"])
+    assert "a slab's rows to the device" in text
+    sr = res["store_rows"]  # rows chunked in blocks of 8 against whole projections: the same floats read
+    assert sr["identical"] is True and sr["scene"] == "tiny" and set(sr["speedup"]) == {"slab", "whole"}
+    assert sr["chunks"]["rows"][1] == min(8, sr["detector"][0]) and sr["chunks"]["projections"][1] == sr["detector"][0]
+    assert sr["speedup"]["slab"] == pytest.approx(sr["median_s"]["projections/slab"] / sr["median_s"]["rows/slab"])
+    assert "projection store read" in text
+    ob = res["objects_shared"]  # posed objects read in place against copied: the same projections
+    assert ob["identical"] is True and ob["scene"] == "tiny" and ob["projections"] > 0
+    assert ob["speedup"] == pytest.approx(ob["median_s"]["copied"] / ob["median_s"]["shared"])
+    assert "posed objects to the projector" in text
+
+
+def test_levers_rows_can_be_picked():
+    res = levers.bench_levers(quick=True, repeats=1, only=("posing",))
+    assert set(res) == {"posing"} and "phantom posing" in "\n".join(levers.report_lines(res))
+    with pytest.raises(SystemExit, match="rows are"):
+        levers.bench_levers(quick=True, only=("nope",))

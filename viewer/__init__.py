@@ -1,1 +1,0 @@
-"""pyvista viewer of a run directory's 5D volumes: ``python -m clrecon view RUN_DIR`` (see :mod:`viewer.app`)."""
