@@ -110,7 +110,10 @@ def value_ranges(cls) -> dict[str, tuple]:
 
 
 def _coerce(default: Any, value: Any) -> Any:
-    """What a TOML table or a Python caller gives -> the field's type (list -> tuple, int -> float)."""
+    """What a TOML table or a Python caller gives -> the field's type (list -> tuple, int -> float,
+    a table -> the nested section of a section-valued field, e.g. ``[recon.mc]``)."""
+    if isinstance(default, Section) and isinstance(value, dict):
+        return type(default).from_table(value)
     if isinstance(value, list):
         value = tuple(value)
     if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
@@ -141,6 +144,15 @@ class Section:
                 shown = list(value) if isinstance(value, tuple) else value  # as the TOML list it came from
                 raise SceneError(f"{self.SECTION}.{f.name} = {shown!r}: must be {f.metadata['allowed']}")
         self.check()
+
+    @classmethod
+    def from_table(cls, raw: dict):
+        """The section from a TOML table (a nested section's); an unknown key is refused in one line."""
+        names = [f.name for f in fields(cls)]
+        for key in raw:
+            if key not in names:
+                raise SceneError(f"{cls.SECTION}.{key}: unknown key; allowed: {', '.join(names)}")
+        return cls(**raw)
 
     def check(self) -> None:
         """Checks across this section's fields (override); raise :class:`SceneError`."""

@@ -13,6 +13,9 @@ The points (the only calls of :func:`point` in clrecon):
     In the middle of writing the ``n``-th unit file of projections, of a reconstruction
     (slab x variant x method), of a truth target (ground truth or phantom): half of the
     temporary file is written (:func:`clrecon.core.units.write_unit`).
+``mc-model``
+    In the middle of writing the ``n``-th motion model of the ``mc`` method (one per pitch and
+    noise variant, ``volumes.h5.units/mc/``).
 ``assemble-store``
     While the projection units are copied into the store under its ``.partial`` name, after
     the ``n``-th unit (a torn HDF5 file).

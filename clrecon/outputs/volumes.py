@@ -285,6 +285,45 @@ class VolumeWriter:
         self._unit(name, v, {"z": z.tolist()}, "recon", f"{name.replace('/', '~')}.z{z[0]:05d}-{z[-1]:05d}")
         self._done[name][z] = True
 
+    def read(self, name: str, z_index=None) -> np.ndarray:
+        """Slices ``z_index`` (default all) of dataset ``name`` read back from its finished unit files:
+        ``(n_c, n_r, s, ny, nx)`` float32, a ``broadcast`` axis at length 1 (as written).
+
+        For a stage that works on an earlier stage's volumes before ``volumes.h5`` exists (``mc``
+        on the barycentric first pass). Every slice asked for must be done (ValueError otherwise);
+        each unit's checksum is checked (a damaged one raises :class:`~clrecon.core.errors.StoreError`).
+        """
+        if self._blocks.get(name) != "slices":
+            raise ValueError(f"{name}: not a dataset of slabs of slices declared in this run")
+        shape, size = self._specs[name]
+        z = np.arange(size) if z_index is None else np.asarray(z_index, np.int64)
+        if not self._done[name][z].all():
+            raise ValueError(f"{name}: slices {z[~self._done[name][z]].tolist()} are not written yet")
+        full = tuple(1 if (not keep or d in self._broadcast[name]) else n
+                     for d, keep, n in zip(DIMS[:2], self.keep, (len(self.axes["cardiac_phase"]),
+                                                                  len(self.axes["resp_amplitude"])), strict=True))
+        out = np.empty(full + (z.size,) + tuple(shape[-2:]), np.float32)
+        pos = {int(k): i for i, k in enumerate(z)}
+        got = np.zeros(z.size, bool)
+        for p, m in self._units[name]:
+            want = [(i, pos[k]) for i, k in enumerate(m["z"]) if k in pos]
+            if not want:
+                continue
+            data = units.read_unit(p)[0]["data"].reshape(full + (len(m["z"]),) + tuple(shape[-2:]))
+            src, dst = zip(*want, strict=True)
+            out[:, :, list(dst)] = data[:, :, list(src)]
+            got[list(dst)] = True
+        old = self._old_files.get(name)
+        if not got.all() and old is not None:  # slices an earlier version's assembled dataset file holds
+            with h5py.File(old[0], "r") as f:
+                for i in np.flatnonzero(~got):
+                    out[:, :, i] = np.asarray(f["volume"][(slice(None),) * (len(shape) - 3) + (int(z[i]),)],
+                                              np.float32).reshape(full + tuple(shape[-2:]))
+            got[:] = True
+        if not got.all():
+            raise ValueError(f"{name}: slices {z[~got].tolist()} have no unit file")
+        return out
+
     @staticmethod
     def target_stem(name: str, k: int) -> str:
         """File-name stem of the unit of flattened target ``k`` of ``name``."""

@@ -11,6 +11,7 @@ and their notes on a timed part into ``notes``; the executor sets ``clock``, ``p
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from collections.abc import Callable, Sequence
@@ -27,6 +28,7 @@ from clrecon.pipeline import costs as costs_mod
 from clrecon.pipeline import preflight
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, reconstruct
+from clrecon.reconstruction.config import MotionCompensationConfig
 from clrecon.reconstruction.reconstruct import Targets
 from clrecon.simulation.store import default_cache_dir
 
@@ -35,7 +37,7 @@ RESULTS_FORMAT = 1
 TUNED = "cv_tuned"
 #: recon keys added after run directories existed: left out of the run key at these defaults.
 _RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False, "volume_compression": "auto",
-                "cardiac_distance_scale": 1.0}
+                "cardiac_distance_scale": 1.0, "mc": dataclasses.asdict(MotionCompensationConfig())}
 
 
 @dataclass
@@ -137,6 +139,13 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
         raise ClreconError("a measured scan (scan.source = 'dicom-ct-pd') runs in one process: "
                            "drop --workers/--cluster")
     slices_z = reconstruct.slice_positions(scene, slice_range)
+    for m in interpolation.second_pass_methods(methods):  # a method made from the barycentric first pass
+        if "barycentric" not in methods:
+            raise ClreconError(f"method {m!r} is made from the barycentric first pass: add 'barycentric' to "
+                               f"recon.methods (or --methods)")
+        if len(slices_z) < 2:
+            raise ClreconError(f"method {m!r} registers the volumes along z: it needs at least 2 slices, the run "
+                               f"has {len(slices_z)}")
     run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches,
                                     overlap=executor_kind != "serial")
     cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()

@@ -20,7 +20,18 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from clrecon.pipeline.stages import assemble, metrics, plan, reconstruct, report, results, simulate, truth, truth_free
+from clrecon.pipeline.stages import (
+    assemble,
+    mc_reconstruct,
+    metrics,
+    plan,
+    reconstruct,
+    report,
+    results,
+    simulate,
+    truth,
+    truth_free,
+)
 
 
 @dataclass(frozen=True)
@@ -64,6 +75,9 @@ GRAPH = (
           skip=truth_free.skip, optional=True),
     Stage("reconstruct", reconstruct.stage, ("plan", "store", "tuning"), ("recon", "volume_units"), True, _R,
           write_part="write_volumes", priority=10),
+    Stage("mc_reconstruct", mc_reconstruct.stage, ("plan", "store", "recon"), ("mc", "volume_units"), True,
+          ("registration", "plane_rows", "mc_backproject", "write_volumes"), "registration",
+          write_part="write_volumes", skip=mc_reconstruct.skip, optional=True, priority=5),
     Stage("truth", truth.stage, gives=("truths", "volume_units"), parts=("groundtruth", "phantom_truth"),
           skip=truth.skip, beside="simulate"),
     Stage("assemble", assemble.stage, ("volume_units",), ("volumes",), parts=("assemble_volumes",),

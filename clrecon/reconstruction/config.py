@@ -44,6 +44,46 @@ MAX_GRID_MM = 2000.0
 
 
 @dataclass(frozen=True, kw_only=True)
+class MotionCompensationConfig(Section):
+    """``[recon.mc]``: knobs of the ``mc`` method (motion-compensated FBP, docs/motion-model.md "Knobs").
+
+    Chosen once on ``demo``'s tuning slices (docs/motion-model.md "Tuning"); the ranges keep
+    every value the method can run with and refuse typos and unit slips.
+    """
+
+    SECTION = "recon.mc"
+
+    rounds: int = F(2, integer_in(1, 4, "round 2 gained 5-7 % on demo, round 3 1-2 %; each costs a "
+                                     "registration and a backprojection pass"),
+                    "registration rounds: 1 registers the barycentric first pass; each further round registers "
+                    "the previous round's motion-compensated images")
+    downsample: int = F(2, integer_in(1, 4, "the registration window must still hold the heart's walls"),
+                        "in-plane factor the registration (and the rounds before the last) works at: 1 = the "
+                        "reconstruction grid, 2 = half its voxels along x and y; the last round is always on the "
+                        "full grid")
+    flow_radius: int = F(4, integer_in(1, 30, "voxels of the registration grid; the window is 2 r + 1 wide"),
+                         "Lucas-Kanade window radius (voxels of the registration grid: 4 at downsample 2 is 7 at 1)")
+    flow_warps: int = F(10, integer_in(1, 50, "warps per pyramid level; 10 converged on demo"),
+                        "Lucas-Kanade warps per pyramid level")
+    resp_degree: int = F(1, integer_in(0, 3, "powers of the amplitude; the paper's targets are 10 amplitudes"),
+                         "powers a, .., a^P of the respiratory amplitude in the motion model")
+    cardiac_harmonics: int = F(2, integer_in(0, 4, "1 + 2 H coefficients need at least as many cardiac targets"),
+                               "harmonics of the cardiac phase in the motion model")
+    reference_cardiac_phase: float = F(0.8, number_in(0.0, 0.999, "", "a cardiac phase in [0, 1)"),
+                                       "the model's reference state: the cardiac target nearest this phase "
+                                       "(0.8: diastasis, the heart moves least)")
+    reference_amplitude: float = F(0.45, number_in(0.0, 1.0, "", "amplitude units"),
+                                   "the model's reference state: the respiratory target nearest this amplitude "
+                                   "(mid amplitude: the smallest largest displacement to any target)")
+    plane_dz_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "about the detector row pitch at the isocentre"),
+                           "spacing of the z planes the rows are rebinned onto")
+    taper_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "within the SSRB window"),
+                        "width of the row weight's fall to 0 at the end of its SSRB window")
+    margin_mm: float = F(20.0, number_in(0.0, 200.0, "mm", "beyond the largest displacement along z"),
+                         "planes kept beyond a slab's first and last slice (a voxel the model moves is read there)")
+
+
+@dataclass(frozen=True, kw_only=True)
 class ReconConfig(Section):
     """Reconstruction grid, targets, methods and filter."""
 
@@ -102,6 +142,9 @@ class ReconConfig(Section):
                                 "shuffle, 2-3.5x smaller, ~80 MB/s to write on one core), 'none', or 'auto' (lzf "
                                 "when the run's volumes are >= 4 GiB raw, as the paper scenes; none below: demo, "
                                 "tiny); the values stored are the same either way")
+    mc: MotionCompensationConfig = _f(MotionCompensationConfig(), "a [recon.mc] table",
+                                      lambda v: isinstance(v, MotionCompensationConfig),
+                                      "knobs of the mc method (docs/motion-model.md \"Knobs\")")
     small_fov_mm: tuple = _f((-70.0, 85.0, -100.0, 40.0), f"[x_min, x_max, y_min, y_max] with min < max, each in "
                              f"[{-MAX_GRID_MM:g}, {MAX_GRID_MM:g}] mm (a box in the patient)",
                              lambda v: isinstance(v, tuple) and len(v) == 4

@@ -18,7 +18,7 @@ from clrecon.outputs.volumes import pitch_key
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.context import TUNED
 from clrecon.pipeline.executors.base import Idle
-from clrecon.reconstruction import reconstruct
+from clrecon.reconstruction import interpolation, reconstruct
 
 
 @dataclass
@@ -34,7 +34,17 @@ class PitchWork:
 
     @property
     def fixed_methods(self) -> tuple:
-        return tuple(m for m in self.methods if m != TUNED)
+        """The methods ``reconstruct`` makes with the plan (not cv_tuned, planned apart; not a second-pass method)."""
+        return tuple(m for m in self.methods if m != TUNED and m not in interpolation.second_pass_methods())
+
+
+def planned_methods(methods) -> tuple:
+    """The methods a pitch's plan is made for: the fixed ones, and barycentric where a second-pass
+    method (``mc``) is still to do (its rows and weights, and the projections it reads)."""
+    fixed = tuple(m for m in methods if m != TUNED and m not in interpolation.second_pass_methods())
+    if interpolation.second_pass_methods(methods) and "barycentric" not in fixed:
+        fixed += ("barycentric",)
+    return fixed
 
 
 def todo(run, pitch: float) -> tuple[tuple, np.ndarray]:
@@ -53,7 +63,7 @@ def ahead(run, pitch: float):
     if run.scene.measured or run.want_truth_free:
         return None
     methods, slices = todo(run, pitch)
-    fixed = tuple(m for m in methods if m != TUNED)
+    fixed = planned_methods(methods)
     if not slices.size or not fixed:
         return None
     return slabs_mod.plan_pitch, (run.scene, run.recon_cfg, pitch, run.slices_z, slices, run.targets, fixed,
@@ -67,7 +77,7 @@ def stage(run, pitch: float, ahead=None) -> PitchWork | Idle:
         run.log(f"[{pk}] already reconstructed (resumed run)")
         return Idle(PitchWork(pitch, methods, slices, None))
     run.log(f"[{pk}] planning {slices.size} slices x {run.n_targets} targets x {len(methods)} methods")
-    fixed = tuple(m for m in methods if m != TUNED)
+    fixed = planned_methods(methods)
     pp = ahead
     if pp is None:
         pp = slabs_mod.plan_pitch(run.scene, run.recon_cfg, pitch, run.slices_z, slices, run.targets, fixed,

@@ -18,6 +18,7 @@ from clrecon.reconstruction.interpolation import nearest
 from clrecon.reconstruction.interpolation import bin
 from clrecon.reconstruction.interpolation import helical
 from clrecon.reconstruction.interpolation import cv_tuned
+from clrecon.reconstruction.interpolation import mc
 # isort: on
 
 from clrecon.reconstruction.interpolation.apply import (
@@ -36,6 +37,7 @@ from clrecon.reconstruction.interpolation.registry import (
     method_names,
     register_method,
     resp_grid_methods,
+    second_pass_methods,
 )
 from clrecon.reconstruction.interpolation.weights import NoCandidatesError, Weights, batch_weights, method_weights
 
@@ -43,6 +45,6 @@ __all__ = [
     "METHODS", "DeviceRows", "Method", "NoCandidatesError", "Options", "Weights",
     "apply_weights_interleaved", "apply_weights_reference", "barycentric", "batch_weights", "bin", "by_rank",
     "cv_tuned", "default_methods",
-    "figure_order", "five_d_methods", "helical", "local_linear", "markers", "method_names", "method_weights",
-    "nearest", "r4dct", "register_method", "resp_grid_methods",
+    "figure_order", "five_d_methods", "helical", "local_linear", "markers", "mc", "method_names", "method_weights",
+    "nearest", "r4dct", "register_method", "resp_grid_methods", "second_pass_methods",
 ]

@@ -111,6 +111,9 @@ class Method:
     opt_in : bool
         Not in the ``recon.methods`` default (:func:`~clrecon.reconstruction.interpolation.registry.default_methods`):
         run only when a scene or ``--methods`` names it (``cv_tuned``).
+    stage : str or None
+        The pipeline stage that makes its volumes from the first pass, when it is not the
+        ``reconstruct`` stage (``mc``: ``mc_reconstruct``); ``reconstruct`` plans and skips it.
     """
 
     name: str
@@ -123,6 +126,7 @@ class Method:
     rank: int
     weights: WeightsFn
     opt_in: bool = False
+    stage: str | None = None
 
     def __post_init__(self):
         if self.target_grid not in TARGET_GRIDS:

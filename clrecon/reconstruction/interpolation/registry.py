@@ -15,13 +15,14 @@ METHODS: Registry[Method] = Registry("interpolation method")
 
 
 def register_method(*, name: str, label: str, neighbours: int | None, target_grid: str, axes: tuple,
-                    five_d: bool, marker: str, rank: int, opt_in: bool = False):
+                    five_d: bool, marker: str, rank: int, opt_in: bool = False,
+                    stage: str | None = None):
     """Decorator registering a ``weights`` function as method ``name`` (see :class:`Method`)."""
 
     def add(fn):
         METHODS.register(name)(Method(name=name, label=label, neighbours=neighbours, target_grid=target_grid,
                                       axes=tuple(axes), five_d=five_d, marker=marker, rank=rank, weights=fn,
-                                      opt_in=opt_in))
+                                      opt_in=opt_in, stage=stage))
         return fn
 
     return add
@@ -35,6 +36,12 @@ def method_names() -> tuple[str, ...]:
 def default_methods() -> tuple[str, ...]:
     """The ``recon.methods`` default: every method but the opt-in ones (``Method.opt_in``), in registration order."""
     return tuple(n for n, m in METHODS.items() if not m.opt_in)
+
+
+def second_pass_methods(names=None) -> tuple[str, ...]:
+    """The methods (of ``names``, default all) whose volumes a later stage makes (``Method.stage``),
+    not ``reconstruct``."""
+    return tuple(n for n in (METHODS.names if names is None else names) if METHODS[n].stage is not None)
 
 
 def by_rank(names=None) -> tuple[str, ...]:

@@ -1,0 +1,143 @@
+"""The ``mc`` method's steps: first pass -> registered motion model -> motion-compensated FBP.
+
+docs/motion-model.md is the method's reference (what it assumes, its failure cases, its knobs);
+:mod:`clrecon.pipeline.stages.mc_reconstruct` wires these steps to a run. Per scan (pitch) and
+noise variant:
+
+1. :func:`fit_model` registers the barycentric first pass (:func:`estimate.separable_fields`,
+   Lucas-Kanade) on a grid ``downsample`` times coarser in-plane, fits the (c, a) motion model
+   (:func:`model.fit_motion_model`) and, for each further round, backprojects every target
+   with that model on the coarse grid (``backproject_slab``), registers those images and fits
+   again;
+2. :func:`refine` samples the model's basis fields onto the reconstruction grid;
+3. per slab, :func:`slab_rows` rebins and filters every projection the slab's barycentric plan
+   uses onto global z planes (:func:`backproject.plane_rows`: the pipeline's SSRB on every
+   detector and focal-spot mode) and :func:`backproject_slab` runs the kernel per target.
+
+Shapes: volumes (n_c, n_r, S, ny, nx) HU; fields (NB, 3, S, ny, nx) float32 mm; slots (T, S, V, K).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from clrecon.reconstruction import rebin
+from clrecon.reconstruction.fbp import FanBeamGeometry
+from clrecon.reconstruction.motion import backproject as mcb
+from clrecon.reconstruction.motion import estimate
+from clrecon.reconstruction.motion import slots as msl
+from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel, fit_motion_model, sample
+from clrecon.reconstruction.motion.registration import FlowConfig
+
+
+def reference_index(cardiac, resp, knobs) -> tuple[int, int]:
+    """(i, j): the targets nearest ``knobs.reference_cardiac_phase`` (circularly) and ``knobs.reference_amplitude``."""
+    c = np.asarray(cardiac, np.float64)
+    dc = np.abs((c - knobs.reference_cardiac_phase + 0.5) % 1.0 - 0.5)
+    return int(np.argmin(dc)), int(np.argmin(np.abs(np.asarray(resp, np.float64) - knobs.reference_amplitude)))
+
+
+def factor(geom: FanBeamGeometry, knobs) -> int:
+    """The in-plane factor the registration works at: the largest <= ``knobs.downsample`` dividing nx and ny."""
+    return max(f for f in range(1, knobs.downsample + 1) if geom.nx % f == 0 and geom.ny % f == 0)
+
+
+def coarse_geometry(geom: FanBeamGeometry, f: int) -> FanBeamGeometry:
+    """``geom`` with ``f`` times fewer, ``f`` times larger voxels in-plane (the same field of view)."""
+    return dataclasses.replace(geom, nx=geom.nx // f, ny=geom.ny // f, voxel_mm=geom.voxel_mm * f) if f > 1 else geom
+
+
+def downsample(volumes, f: int) -> np.ndarray:
+    """Block means of ``f x f`` voxels in-plane of (..., ny, nx): the voxel centres of :func:`coarse_geometry`."""
+    v = np.asarray(volumes, np.float32)
+    if f == 1:
+        return v
+    ny, nx = v.shape[-2:]
+    return v.reshape(v.shape[:-2] + (ny // f, f, nx // f, f)).mean(axis=(-3, -1), dtype=np.float64).astype(np.float32)
+
+
+def field_grid(geom: FanBeamGeometry, slices_z) -> FieldGrid:
+    return FieldGrid.of_slices(geom.nx, geom.ny, geom.voxel_mm, slices_z)
+
+
+def basis_of(knobs, n_cardiac: int, n_resp: int) -> MotionBasis:
+    """The model's basis: ``knobs``' degree and harmonics, at most what the targets determine (n_c
+    cardiac targets fix 1 + 2 H <= n_c periodic coefficients, n_r amplitudes a polynomial of degree < n_r)."""
+    return MotionBasis(resp_degree=min(knobs.resp_degree, n_resp - 1),
+                       cardiac_harmonics=min(knobs.cardiac_harmonics, (n_cardiac - 1) // 2))
+
+
+def flow_of(knobs) -> FlowConfig:
+    return FlowConfig(radius=knobs.flow_radius, num_warp=knobs.flow_warps)
+
+
+def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs) -> tuple[MotionModel, dict]:
+    """One round: the separable registration of ``volumes`` (n_c, n_r, nz, ny, nx) HU on ``grid`` and
+    the model fitted to it. Returns (model, info: seconds and the fit's RMS residual, mm)."""
+    t0 = time.perf_counter()
+    fields, _ = estimate.separable_fields(volumes, tuple(ref_ij), grid, flow_of(knobs))
+    t1 = time.perf_counter()
+    nr = volumes.shape[1]
+    ref = tuple(map(float, pairs[ref_ij[0] * nr + ref_ij[1]]))
+    model, rms = fit_motion_model(fields, pairs, basis_of(knobs, *volumes.shape[:2]), grid, ref)
+    return model, {"registration_seconds": t1 - t0, "fit_seconds": time.perf_counter() - t1,
+                   "fit_rms_mm": float(np.sqrt(np.mean(rms ** 2)))}
+
+
+def refine(model: MotionModel, geom: FanBeamGeometry) -> MotionModel:
+    """The model's basis fields sampled (trilinearly, edge-extended) onto ``geom``'s in-plane grid."""
+    g = model.grid
+    if (g.nx, g.ny) == (geom.nx, geom.ny):
+        return model
+    fine = FieldGrid(nx=geom.nx, ny=geom.ny, nz=g.nz, voxel_mm=geom.voxel_mm, z0_mm=g.z0_mm, dz_mm=g.dz_mm)
+    x, y, z = fine.coords()
+    Y, X = np.meshgrid(y, x, indexing="ij")
+    out = np.empty((model.basis.size, 3) + fine.shape, np.float32)
+    flat = model.fields.reshape((-1,) + g.shape)
+    for k, zk in enumerate(z):  # slice by slice: the points of a paper-scale grid would be GBs
+        pts = np.stack([X, Y, np.full_like(X, zk)], -1)
+        out[:, :, k] = sample(flat, g, pts).reshape(model.basis.size, 3, geom.ny, geom.nx)
+    return MotionModel(basis=model.basis, grid=fine, fields=out, reference=model.reference)
+
+
+def slab_projections(bary_plan) -> np.ndarray:
+    """The projections a slab's barycentric plan (``MethodPlan``) gives a non-zero weight, sorted."""
+    return np.unique(bary_plan.proj_index[bary_plan.weight != 0]).astype(np.int64)
+
+
+def slab_rows(store, table, scanner, cfg, variant: str, slab_z, proj_ids, knobs, rt=None) -> mcb.PlaneRows:
+    """Filtered SSRB rows of ``proj_ids`` on the global planes within ``knobs.margin_mm`` of the slab.
+
+    ``store``: the scan's projection store (``read_indices``; a noisy variant draws the run's
+    noise); ``table``: the scan's whole projection table; ``cfg``: the ReconstructionConfig.
+    """
+    w = rebin.slice_window_mm(scanner, cfg.object_radius_mm)
+    dz = knobs.plane_dz_mm
+    lo, hi = rebin.ssrb_row_range(np.array([-w - dz, w + dz]), scanner)
+    proj = store.read_indices(proj_ids, noisy=(variant == "noisy"), rows=(lo, hi))
+    z = np.asarray(slab_z, np.float64)
+    return mcb.plane_rows(proj, table, proj_ids, scanner, cfg.fbp, cfg.filter, plane_dz_mm=dz,
+                          z_lo_mm=float(z.min()) - knobs.margin_mm, z_hi_mm=float(z.max()) + knobs.margin_mm,
+                          object_radius_mm=cfg.object_radius_mm, first_row=lo, rt=rt)
+
+
+def backproject_slab(rows: mcb.PlaneRows, bary_plan, model: MotionModel, table, slab_z, geom: FanBeamGeometry,
+                     pairs, mu_water: float, knobs, rt=None) -> np.ndarray:
+    """Motion-compensated FBP of every target of one slab: HU (T, s, ny, nx) float32.
+
+    ``bary_plan``: the slab's barycentric ``MethodPlan`` (S, V, T, K) (the rows and weights each
+    target uses); ``model`` on ``geom``'s in-plane grid (a coarse ``geom`` for the rounds before
+    the last); ``pairs`` (T, 2) the targets (c, a).
+    """
+    sp, sw = msl.plan_slots(bary_plan.proj_index, bary_plan.weight, rows)
+    pb = model.basis.values(table.cardiac_phase[rows.projection], table.resp_amplitude[rows.projection])
+    out = np.empty((len(pairs), len(slab_z), geom.ny, geom.nx), np.float32)
+    cfg = mcb.MCConfig(taper_mm=knobs.taper_mm)
+    with mcb.MCBackprojector(rows, pb, model, slab_z, geom, cfg, runtime=rt) as bp:
+        for t, tgt in enumerate(pairs):
+            mu = bp(sp[t], sw[t], tuple(tgt))
+            out[t] = 1000.0 * (mu - mu_water) / mu_water
+    return out
