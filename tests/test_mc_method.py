@@ -140,3 +140,14 @@ def test_mc_on_a_cylindrical_detector_with_a_flying_focal_spot(tmp_path):
     for fov in ("large", "small"):
         assert m["mc"][fov]["mae_hu"] < 1.15 * m["barycentric"][fov]["mae_hu"], m
     json.dumps(res["stages"]["registration"]["mc"])  # the note is plain JSON
+
+
+def test_mc_on_two_dask_workers_is_bit_identical(tmp_path, reference):
+    pytest.importorskip("distributed")
+    from clrecon.pipeline import distributed
+
+    with distributed.connect(workers=2) as client:
+        res = run(load_scene("tiny"), tmp_path / "run", methods=METHODS.split(","), cache_dir=tmp_path / "cache",
+                  client=client, **QUIET)
+    assert_identical(tmp_path / "run", reference, ("metrics", "motion"))
+    assert res["distributed"]["units"]["mc_reconstruct"] == 2  # one slab x 2 variants, on the workers

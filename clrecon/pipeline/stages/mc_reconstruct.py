@@ -24,6 +24,7 @@ import numpy as np
 
 from clrecon.core import units
 from clrecon.core.errors import ClreconError
+from clrecon.core.progress import progress as progress_counter
 from clrecon.evaluation.motion_model import registration_error
 from clrecon.outputs.volumes import pitch_key
 from clrecon.pipeline import work_units
@@ -140,7 +141,10 @@ class _Pitch:
         first = np.broadcast_to(first, (nc, nr) + first.shape[2:])
         run.log(f"[{self.pk}] mc: registering {variant} (round 1 of {knobs.rounds}, "
                 f"{nc - 1 + nr - 1} registrations on {grid.nx} x {grid.ny} x {grid.nz})")
-        model, info = mcm.register(first, self.ref_ij, grid, self.pairs, knobs)
+        n_reg = (nc - 1) + (nr - 1)
+        bar = progress_counter(knobs.rounds * n_reg + (knobs.rounds - 1) * len(self.pairs),
+                               f"mc model {self.pk} {variant}", run.progress, "steps")
+        model, info = mcm.register(first, self.ref_ij, grid, self.pairs, knobs, progress=bar)
         rounds = [info]
         for r in range(2, knobs.rounds + 1):
             t0 = time.perf_counter()
@@ -149,13 +153,16 @@ class _Pitch:
                 bary = self.bary_plan(a, b)
                 rows = self.rows(k, variant, bary)
                 imgs[:, a:b] = mcm.backproject_slab(rows, bary, model, self.table, run.slices_z[a:b], self.coarse,
-                                                    self.pairs, self.cfg.mu_water_per_mm, knobs, rt=run.rt)
+                                                    self.pairs, self.cfg.mu_water_per_mm, knobs, rt=run.rt,
+                                                    progress=bar)
                 if len(self.slabs) == 1:
                     self.kept[(k, variant)] = rows  # the final pass's rows (one slab: no memory beyond it)
             t_bp = time.perf_counter() - t0
             run.log(f"[{self.pk}] mc: registering {variant} (round {r} of {knobs.rounds})")
-            model, info = mcm.register(imgs.reshape((nc, nr) + imgs.shape[1:]), self.ref_ij, grid, self.pairs, knobs)
+            model, info = mcm.register(imgs.reshape((nc, nr) + imgs.shape[1:]), self.ref_ij, grid, self.pairs, knobs,
+                                       progress=bar)
             rounds.append(dict(info, backproject_seconds=t_bp))
+        bar.close()
         info = {"rounds": [{k: round(v, 3) for k, v in x.items()} for x in rounds],
                 "reference": list(model.reference), "registration_grid": [grid.nz, grid.ny, grid.nx],
                 "basis": list(model.basis.names),

@@ -74,11 +74,12 @@ def flow_of(knobs) -> FlowConfig:
     return FlowConfig(radius=knobs.flow_radius, num_warp=knobs.flow_warps)
 
 
-def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs) -> tuple[MotionModel, dict]:
+def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs, progress=None) -> tuple[MotionModel, dict]:
     """One round: the separable registration of ``volumes`` (n_c, n_r, nz, ny, nx) HU on ``grid`` and
-    the model fitted to it. Returns (model, info: seconds and the fit's RMS residual, mm)."""
+    the model fitted to it. Returns (model, info: seconds and the fit's RMS residual, mm).
+    ``progress``: optional ``update(n)`` counter, one step per registration."""
     t0 = time.perf_counter()
-    fields, _ = estimate.separable_fields(volumes, tuple(ref_ij), grid, flow_of(knobs))
+    fields, _ = estimate.separable_fields(volumes, tuple(ref_ij), grid, flow_of(knobs), progress=progress)
     t1 = time.perf_counter()
     nr = volumes.shape[1]
     ref = tuple(map(float, pairs[ref_ij[0] * nr + ref_ij[1]]))
@@ -125,12 +126,12 @@ def slab_rows(store, table, scanner, cfg, variant: str, slab_z, proj_ids, knobs,
 
 
 def backproject_slab(rows: mcb.PlaneRows, bary_plan, model: MotionModel, table, slab_z, geom: FanBeamGeometry,
-                     pairs, mu_water: float, knobs, rt=None) -> np.ndarray:
+                     pairs, mu_water: float, knobs, rt=None, progress=None) -> np.ndarray:
     """Motion-compensated FBP of every target of one slab: HU (T, s, ny, nx) float32.
 
     ``bary_plan``: the slab's barycentric ``MethodPlan`` (S, V, T, K) (the rows and weights each
     target uses); ``model`` on ``geom``'s in-plane grid (a coarse ``geom`` for the rounds before
-    the last); ``pairs`` (T, 2) the targets (c, a).
+    the last); ``pairs`` (T, 2) the targets (c, a); ``progress``: optional ``update(n)``, one step per target.
     """
     sp, sw = msl.plan_slots(bary_plan.proj_index, bary_plan.weight, rows)
     pb = model.basis.values(table.cardiac_phase[rows.projection], table.resp_amplitude[rows.projection])
@@ -140,4 +141,6 @@ def backproject_slab(rows: mcb.PlaneRows, bary_plan, model: MotionModel, table, 
         for t, tgt in enumerate(pairs):
             mu = bp(sp[t], sw[t], tuple(tgt))
             out[t] = 1000.0 * (mu - mu_water) / mu_water
+            if progress is not None:
+                progress.update(1)
     return out
