@@ -155,8 +155,8 @@ class _Pitch:
                 imgs[:, a:b] = mcm.backproject_slab(rows, bary, model, self.table, run.slices_z[a:b], self.coarse,
                                                     self.pairs, self.cfg.mu_water_per_mm, knobs, rt=run.rt,
                                                     progress=bar)
-                if len(self.slabs) == 1:
-                    self.kept[(k, variant)] = rows  # the final pass's rows (one slab: no memory beyond it)
+                if len(self.slabs) == 1 and rows.rows.nbytes * len(run.variants) <= ROWS_BYTES:
+                    self.kept[(k, variant)] = rows  # the final pass's rows (one slab, every variant's within budget)
             t_bp = time.perf_counter() - t0
             run.log(f"[{self.pk}] mc: registering {variant} (round {r} of {knobs.rounds})")
             model, info = mcm.register(imgs.reshape((nc, nr) + imgs.shape[1:]), self.ref_ij, grid, self.pairs, knobs,
