@@ -169,7 +169,8 @@ class _Pitch:
                 "seconds": round(time.perf_counter() - t_start, 3)}
         if not run.scene.measured:
             t0 = time.perf_counter()
-            info["error_against_phantom_motion"] = registration_error(run.scene, model, self.pairs)
+            info["error_against_phantom_motion"] = registration_error(run.scene, model, self.pairs,
+                                                                      run.extra.setdefault("mc_truth", {}))
             info["error_seconds"] = round(time.perf_counter() - t0, 3)
         _save_model(run, self.pk, variant, model, info)
         clock.add("registration", time.perf_counter() - t_start)
