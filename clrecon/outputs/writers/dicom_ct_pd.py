@@ -340,5 +340,8 @@ def measured_toml(scene: Scene, sig: dict, results: dict, scan_keys: dict | None
     lines += ["", "[signals]"]
     lines += [f"{k} = {_toml_value(v)}" for k, v in sig.items()]
     lines += ["", "[noise]", "enabled = false", "", "[recon]"]
-    lines += [f"{k} = {_toml_value(v)}" for k, v in recon.items()]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in recon.items() if not isinstance(v, dict)]
+    for k, v in recon.items():  # nested tables ([recon.mc]) after the table's own keys
+        if isinstance(v, dict):
+            lines += ["", f"[recon.{k}]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in v.items()]
     return "\n".join(lines) + "\n"
