@@ -190,7 +190,7 @@ def test_results_key_present_when_on_absent_when_off(tiny_runs):
 
 def test_default_methods_exclude_cv_tuned():
     assert "cv_tuned" in ip.METHODS and "cv_tuned" not in clrecon.load_scene("demo").recon.methods
-    assert ip.default_methods() == tuple(m for m in ip.METHODS if m != "cv_tuned")
+    assert ip.default_methods() == tuple(m for m in ip.METHODS if not ip.METHODS[m].opt_in)  # cv_tuned, mc
 
 
 def test_cv_tuned_equals_the_chosen_kernel_bit_for_bit(tiny_runs):
