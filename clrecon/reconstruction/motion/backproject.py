@@ -29,8 +29,11 @@ from clrecon.reconstruction.fbp import FanBeamGeometry, filter_rows, view_table
 from clrecon.reconstruction.motion.model import MotionModel
 from clrecon.scan.table import ProjectionTable
 
-#: Fixed local size (x, y) of the kernel (PoCL specialises per local size).
-LOCAL_SIZE = (8, 8)
+#: Voxels along x per work-item: the float8 lanes of ``kernels/mc_backproject.cl``.
+LANES = 8
+#: Fixed local size (x, y) of the kernel in work-items (PoCL specialises per local size): a tile
+#: of LANES * LX x LY voxels.
+LOCAL_SIZE = (1, 8)
 #: Views per barrier-separated chunk (keeps a tile's rows in cache, as backproject.cl).
 VIEW_CHUNK = 8
 #: Fixed-point steps of the model's inversion x_r = x - u_t(x_r) (docs/motion-model.md).
@@ -304,9 +307,15 @@ class MCBackprojector:
         pb = np.asarray(proj_basis)
         if pb.shape != (rows.rows.shape[0], model.basis.size):
             raise ValueError(f"proj_basis: expected ({rows.rows.shape[0]}, {model.basis.size}), got {pb.shape}")
+        g = model.grid
+        if rows.rows.shape[1] * rows.rows.shape[2] >= 2 ** 31 or g.nz * g.ny * g.nx >= 2 ** 31:
+            raise ValueError(f"one projection's plane rows ({rows.rows.shape[1]} x {rows.rows.shape[2]}) and one "
+                             f"field component ({g.nz} x {g.ny} x {g.nx}) must each hold fewer than 2^31 values "
+                             "(the kernel's int offsets)")
         rt = self.rt
         margin = float(np.abs(model.fields[1:]).sum(axis=0).max()) * 2.0 if model.basis.size > 1 else 0.0
-        self._kernel = rt.kernel(_KERNEL_FILE, "mc_backproject", **_defines(geom, model.basis.size, self.cfg, margin))
+        self._defines = _defines(geom, model.basis.size, self.cfg, margin)
+        self._kernel = rt.kernel(_KERNEL_FILE, "mc_backproject", **self._defines)
         self._bufs = [rt.to_device(rows.rows, np.float32, "plane rows"),
                       rt.to_device(rows.plane_first, np.int32), rt.to_device(rows.plane_count, np.int32),
                       rt.to_device(rows.proj_z_mm, np.float32), rt.to_device(pb, np.float32, "proj_basis")]
@@ -318,6 +327,15 @@ class MCBackprojector:
 
     def __call__(self, slot_proj, slot_w, target) -> np.ndarray:
         """mu images (S, ny, nx) float32 of target (c, a) from its slots (S, V, K) (local indices, weights)."""
+        S = len(self.slices_z)
+        lx, ly = LOCAL_SIZE
+        blocks = -(-self.geom.nx // LANES)  # work-items along x, LANES voxels each
+        gsize = (-(-blocks // lx) * lx, -(-self.geom.ny // ly) * ly, S)
+        return self._launch(self._kernel, gsize, LOCAL_SIZE, slot_proj, slot_w, target)
+
+    def _launch(self, kernel, gsize, lsize, slot_proj, slot_w, target) -> np.ndarray:
+        """Run ``kernel`` (this kernel or the scalar reference, kernels/reference/, which take the
+        same arguments) on global size ``gsize``, local ``lsize`` (x, y); (S, ny, nx) float32."""
         geom, rt, g = self.geom, self.rt, self.model.grid
         _check(self.rows, slot_proj, slot_w, self.model, target, self.slices_z, geom)
         tb = self.model.basis.values(*target)[0].astype(np.float32)
@@ -327,19 +345,17 @@ class MCBackprojector:
         ut = rt.to_device(u_t, np.float32, "target field")
         tbd = rt.to_device(tb, np.float32)
         S, V, K = np.asarray(slot_proj).shape
-        lx, ly = LOCAL_SIZE
-        gsize = (-(-geom.nx // lx) * lx, -(-geom.ny // ly) * ly, S)
         col_centre = geom.centre_col if geom.curved else 0.5 * (geom.n_cols - 1)
         scale = 1.0 / geom.delta_gamma_rad if geom.curved else geom.sdd_mm / geom.col_pitch_mm
-        ev = self._kernel(rt.queue, gsize, LOCAL_SIZE + (1,), *self._bufs, sp, sw, self._fields, ut, tbd,
-                          self._trig, self._slices, self._out,
-                          np.int32(geom.nx), np.int32(geom.ny), np.int32(geom.n_views), np.int32(geom.n_cols),
-                          np.float32(geom.voxel_mm), np.float32(scale), np.float32(geom.fov_radius_mm ** 2),
-                          np.float32(geom.delta_beta_rad), np.float32(col_centre),
-                          np.int32(S), np.int32(K), np.int32(self.rows.rows.shape[1]),
-                          np.float32(1.0 / self.rows.plane_dz_mm), np.int32(g.nz), np.float32(g.z0_mm),
-                          np.float32(1.0 / g.dz_mm), np.float32(self.rows.window_mm),
-                          np.float32(1.0 / self.cfg.taper_mm))
+        ev = kernel(rt.queue, gsize, tuple(lsize) + (1,), *self._bufs, sp, sw, self._fields, ut, tbd,
+                    self._trig, self._slices, self._out,
+                    np.int32(geom.nx), np.int32(geom.ny), np.int32(geom.n_views), np.int32(geom.n_cols),
+                    np.float32(geom.voxel_mm), np.float32(scale), np.float32(geom.fov_radius_mm ** 2),
+                    np.float32(geom.delta_beta_rad), np.float32(col_centre),
+                    np.int32(S), np.int32(K), np.int32(self.rows.rows.shape[1]),
+                    np.float32(1.0 / self.rows.plane_dz_mm), np.int32(g.nz), np.float32(g.z0_mm),
+                    np.float32(1.0 / g.dz_mm), np.float32(self.rows.window_mm),
+                    np.float32(1.0 / self.cfg.taper_mm))
         res = rt.from_device(self._out, (S, geom.ny, geom.nx), wait_for=[ev])
         for b in (sp, sw, ut, tbd):
             b.release()
