@@ -26,23 +26,24 @@
 //
 // Vectorisation (docs/algorithms.md "Making kernels fast on PoCL"): neither PoCL nor Intel's CPU
 // runtime vectorises the scalar kernel's work-item loop around its view and slot loops (data-
-// dependent trip counts, a break), so a work-item here holds 8 voxels along x in the lanes of
-// float8 values (kernels/mc_lanes8.h). What depends on (view, slot) only -- the projection, its
-// weight, basis differences, plane range and z -- is read and computed once for the 8; each lane
-// does its voxel's operations in the scalar kernel's order (its float32 result equals the scalar
-// kernel's up to contraction into FMAs), and gathers its 4 row taps. Lanes past nx or outside
-// the FOV compute on the point (0, 0) (every index stays in range) and are not stored.
+// dependent trip counts, a break), so a work-item here holds LANES (8 or 16) voxels along x in
+// the lanes of vectors (kernels/mc_lanes.h). What depends on (view, slot) only -- the
+// projection, its weight, basis differences, plane range and z -- is read and computed once for
+// all lanes; each lane does its voxel's operations in the scalar kernel's order (its float32
+// result equals the scalar kernel's up to contraction into FMAs), and gathers its 4 row taps.
+// Lanes past nx or outside the FOV compute on the point (0, 0) (every index stays in range) and
+// are not stored.
 //
 // Layouts: rows (P, NPMAX, C) float, plane p of projection q at rows[(q NPMAX + p) C];
 // slot_proj, slot_w (S, V, K) (empty slots: proj -1, at the end of a list); proj_basis (P, NB);
 // fields (NB, 3, MZ, ny, nx); target_field (3, MZ, ny, nx); out (S, ny, nx). Offsets within
 // one projection's rows (NPMAX C) and within one field component (MZ ny nx) are int: the host
 // checks they are below 2^31.
-// Work-item (bx, iy, s): voxels ix = 8 bx .. 8 bx + 7 of row iy of slice s.
-// Compile-time: LX, LY (local size), VCHUNK (views per barrier chunk), NB (basis size, >= 1),
+// Work-item (bx, iy, s): voxels ix = LANES bx .. LANES bx + LANES - 1 of row iy of slice s.
+// Compile-time: LANES, LX, LY (local size), VCHUNK (views per barrier chunk), NB (basis size, >= 1),
 // NINV (inversion steps), CURVED (+ ATAN_TERMS, ATAN_C*: atan_poly.h's coefficients).
 
-#include "mc_lanes8.h"
+#include "mc_lanes.h"
 
 #if CURVED
 #define COL_CENTRE col_centre
@@ -76,65 +77,64 @@ void mc_backproject(__global const float *restrict rows,
                     const int mz, const float model_z0, const float inv_model_dz,
                     const float window_mm, const float inv_taper_mm)
 {
-    const int ix0 = 8 * get_global_id(0), iy = get_global_id(1), s = get_global_id(2);
-    const int8 ixv = ix0 + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    const int ix0 = LANES * get_global_id(0), iy = get_global_id(1), s = get_global_id(2);
+    const intL ixv = ix0 + LANE_IOTA_I;
     // ((float)ix - 0.5 (nx - 1)) voxel_mm per lane, as the scalar kernel (the sums are exact)
-    const float8 xv = (((float)ix0 - 0.5f * (float)(nx - 1)) + (float8)(0.0f, 1.0f, 2.0f, 3.0f, 4.0f, 5.0f, 6.0f, 7.0f))
-                      * voxel_mm;
+    const floatL xv = (((float)ix0 - 0.5f * (float)(nx - 1)) + LANE_IOTA_F) * voxel_mm;
     const float y = ((float)iy - 0.5f * (float)(ny - 1)) * voxel_mm;
     // no early return: every work-item of the group must reach the barriers
     const bool row_in = iy < ny && s < n_slices;
     // lanes in the image and the FOV (rows past the image, !row_in, do no work and store nothing;
     // and-ing a broadcast of row_in here made Oclgrind 21.10 compute masks of 1 instead of -1)
-    const int8 fov = (ixv < nx) & (xv * xv + y * y <= fov_r2);
+    const intL fov = (ixv < nx) & (xv * xv + y * y <= fov_r2);
     // does any lane lie in the FOV? Its lane nearest the centre column, tested on a radius 1e-4
     // larger (only a gate for the work: the stores test each lane). Not an OR of fov's lanes:
     // Oclgrind 21.10's uninitialised-value plugin crashes on that reduction's shuffles.
-    const int last = ix0 + 7 < nx ? ix0 + 7 : nx - 1;
+    const int last = ix0 + LANES - 1 < nx ? ix0 + LANES - 1 : nx - 1;
     const int ic = (nx - 1) / 2 < ix0 ? ix0 : ((nx - 1) / 2 > last ? last : (nx - 1) / 2);
     const float xc = ((float)ic - 0.5f * (float)(nx - 1)) * voxel_mm;
     const bool any_fov = row_in && ix0 < nx && xc * xc + y * y <= fov_r2 * 1.0002f;
-    const float8 x = fov ? xv : 0.0f;           // lanes outside: the point (0, 0)
-    const float8 yv = fov ? (float8)(y) : 0.0f;
+    const floatL x = fov ? xv : 0.0f;           // lanes outside: the point (0, 0)
+    const floatL yv = fov ? (floatL)(y) : 0.0f;
     const float z = row_in ? slice_z[s] : 0.0f;
     const float inv_voxel = 1.0f / voxel_mm;
     const size_t fstride = (size_t)mz * ny * nx;   // one component of one field
 
     // 1.-2. the voxels' reference positions and their basis displacements W_b (b >= 1)
-    float8 W[NB][3];
+    floatL W[NB][3];
     float tb[NB];
     for (int b = 0; b < NB; ++b)
         tb[b] = target_basis[b];
     {
-        float8 rx = x, ry = yv, rz = (float8)(z);
+        floatL rx = x, ry = yv, rz = (floatL)(z);
         for (int it = 0; it < NINV; ++it) {
-            GRID_CORNERS8(rx, ry, rz)
-            const float8 ux = TRILINEAR8(target_field);
-            const float8 uy = TRILINEAR8(target_field + fstride);
-            const float8 uz = TRILINEAR8(target_field + 2 * fstride);
+            GRID_CORNERS_L(rx, ry, rz)
+            const floatL ux = TRILINEAR_L(target_field);
+            const floatL uy = TRILINEAR_L(target_field + fstride);
+            const floatL uz = TRILINEAR_L(target_field + 2 * fstride);
             rx = x - ux;
             ry = yv - uy;
             rz = z - uz;
         }
-        GRID_CORNERS8(rx, ry, rz)
+        GRID_CORNERS_L(rx, ry, rz)
         for (int b = 0; b < NB; ++b) {
             __global const float *f = fields + (size_t)b * 3 * fstride;
-            W[b][0] = TRILINEAR8(f);
-            W[b][1] = TRILINEAR8(f + fstride);
-            W[b][2] = TRILINEAR8(f + 2 * fstride);
+            W[b][0] = TRILINEAR_L(f);
+            W[b][1] = TRILINEAR_L(f + fstride);
+            W[b][2] = TRILINEAR_L(f + 2 * fstride);
         }
     }
 
     const float last_col = (float)(n_cols - 1);
-    float8 acc = (float8)(0.0f);
+    floatL acc = (floatL)(0.0f);
     for (int j0 = 0; j0 < n_views; j0 += VCHUNK) {
         if (any_fov) {
             const int j1 = j0 + VCHUNK < n_views ? j0 + VCHUNK : n_views;
             for (int j = j0; j < j1; ++j) {
                 const float2 cs = trig[j];
                 const size_t base = ((size_t)s * n_views + j) * n_slots;
-                float8 num = (float8)(0.0f), den = (float8)(0.0f);
-                float8 best_tz = (float8)(3.0e38f), best_val = (float8)(0.0f);
+                floatL num = (floatL)(0.0f), den = (floatL)(0.0f);
+                floatL best_tz = (floatL)(3.0e38f), best_val = (floatL)(0.0f);
                 for (int k = 0; k < n_slots; ++k) {
                     const int p = slot_proj[base + k];
                     if (p < 0)
@@ -142,7 +142,7 @@ void mc_backproject(__global const float *restrict rows,
                     const float w0 = slot_w[base + k];
                     if (w0 == 0.0f)
                         continue;
-                    float8 dx = (float8)(0.0f), dy = (float8)(0.0f), dz = (float8)(0.0f);
+                    floatL dx = (floatL)(0.0f), dy = (floatL)(0.0f), dz = (floatL)(0.0f);
                     __global const float *pb = proj_basis + (size_t)p * NB;
                     for (int b = 1; b < NB; ++b) {
                         const float beta = pb[b] - tb[b];
@@ -150,34 +150,34 @@ void mc_backproject(__global const float *restrict rows,
                         dy += beta * W[b][1];
                         dz += beta * W[b][2];
                     }
-                    const float8 zm = z + dz;
-                    float8 wd;
-                    float8 c = fan_column8(x + dx, yv + dy, cs, sdd_over_pitch, COL_CENTRE, &wd);
-                    c = CLAMP0_8(c, last_col);
-                    int8 i0 = TO_INT8(c);
+                    const floatL zm = z + dz;
+                    floatL c, wd;
+                    FAN_COLUMN_L(c, wd, x + dx, yv + dy, cs, sdd_over_pitch, COL_CENTRE)
+                    c = CLAMP0_L(c, last_col);
+                    intL i0 = TO_INT_L(c);
                     i0 = i0 > n_cols - 2 ? n_cols - 2 : i0;
-                    const float8 tc = c - TO_FLOAT8(i0);
+                    const floatL tc = c - TO_FLOAT_L(i0);
                     const int cnt = plane_count[p];
-                    float8 g = zm * inv_plane_dz - (float)plane_first[p];
-                    g = CLAMP0_8(g, (float)(cnt - 1));
-                    int8 g0 = TO_INT8(g);
+                    floatL g = zm * inv_plane_dz - (float)plane_first[p];
+                    g = CLAMP0_L(g, (float)(cnt - 1));
+                    intL g0 = TO_INT_L(g);
                     g0 = g0 > cnt - 2 ? cnt - 2 : g0;
                     g0 = g0 < 0 ? 0 : g0;
-                    const float8 tg = g - TO_FLOAT8(g0);
+                    const floatL tg = g - TO_FLOAT_L(g0);
                     // plane g0 + 1, or g0 itself where the projection has one plane
                     __global const float *r0 = rows + (size_t)p * np_max * n_cols;
                     __global const float *r1 = r0 + (cnt > 1 ? n_cols : 0);
-                    const int8 off = g0 * n_cols + i0;
-                    const float8 val = (1.0f - tg) * ((1.0f - tc) * GATHER8(r0, off) + tc * GATHER8(r0 + 1, off))
-                                       + tg * ((1.0f - tc) * GATHER8(r1, off) + tc * GATHER8(r1 + 1, off));
-                    float8 dzp = zm - proj_z[p];
+                    const intL off = g0 * n_cols + i0;
+                    const floatL val = (1.0f - tg) * ((1.0f - tc) * GATHER_L(r0, off) + tc * GATHER_L(r0 + 1, off))
+                                       + tg * ((1.0f - tc) * GATHER_L(r1, off) + tc * GATHER_L(r1 + 1, off));
+                    floatL dzp = zm - proj_z[p];
                     dzp = dzp < 0.0f ? -dzp : dzp;
-                    float8 taper = (window_mm - dzp) * inv_taper_mm;
+                    floatL taper = (window_mm - dzp) * inv_taper_mm;
                     taper = taper < 0.0f ? 0.0f : (taper > 1.0f ? 1.0f : taper);
-                    const float8 w = w0 * taper;
+                    const floatL w = w0 * taper;
                     num += w * wd * val;
                     den += w;
-                    const int8 closer = dzp < best_tz;
+                    const intL closer = dzp < best_tz;
                     best_tz = closer ? dzp : best_tz;
                     best_val = closer ? wd * val : best_val;
                 }
@@ -188,14 +188,7 @@ void mc_backproject(__global const float *restrict rows,
     }
     if (!row_in || ix0 >= nx)
         return;
-    const float8 res = fov ? acc * dbeta : 0.0f;
+    const floatL res = fov ? acc * dbeta : 0.0f;
     __global float *o = out + ((size_t)s * ny + iy) * nx + ix0;
-    STORE_LANE(0, res.s0)
-    STORE_LANE(1, res.s1)
-    STORE_LANE(2, res.s2)
-    STORE_LANE(3, res.s3)
-    STORE_LANE(4, res.s4)
-    STORE_LANE(5, res.s5)
-    STORE_LANE(6, res.s6)
-    STORE_LANE(7, res.s7)
+    FOR_LANES(STORE_LANE, res)
 }

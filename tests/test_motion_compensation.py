@@ -137,6 +137,19 @@ def test_mc_backproject_lanes_match_scalar_kernel_and_reference(nx, detector):
     _assert_close(new, old, ref, geom)
 
 
+def test_mc_backproject_16_lanes(monkeypatch):
+    """The kernel's LANES = 16 build (measured no faster on the 2-core machine, kept as an option:
+    docs/motion-model.md "Cost") gives the 8-lane result up to contraction."""
+    import clrecon.reconstruction.motion.backproject as mcb
+
+    geom, model, rows, pb, sp, sw, zs = _random_case("cylindrical", nx=13)   # 3 lanes past nx
+    want, old, ref = _new_old_ref(geom, model, rows, pb, sp, sw, zs)
+    monkeypatch.setattr(mcb, "LANES", 16)
+    got, _, _ = _new_old_ref(geom, model, rows, pb, sp, sw, zs)
+    _assert_close(got, old, ref, geom)
+    assert np.abs(got - want).max() <= TOL["lanes_vs_scalar"] * np.abs(want).max()
+
+
 def test_mc_backproject_lanes_at_the_window_edge():
     """Rows whose moved SSRB distance crosses the taper and the window within one work-item's
     8 voxels: some lanes take the weighted mean, others the nearest slot's fallback."""

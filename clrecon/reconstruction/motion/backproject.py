@@ -29,7 +29,7 @@ from clrecon.reconstruction.fbp import FanBeamGeometry, filter_rows, view_table
 from clrecon.reconstruction.motion.model import MotionModel
 from clrecon.scan.table import ProjectionTable
 
-#: Voxels along x per work-item: the float8 lanes of ``kernels/mc_backproject.cl``.
+#: Voxels along x per work-item: the vector lanes of ``kernels/mc_backproject.cl`` (8 or 16).
 LANES = 8
 #: Fixed local size (x, y) of the kernel in work-items (PoCL specialises per local size): a tile
 #: of LANES * LX x LY voxels.
@@ -278,7 +278,7 @@ def _fan_column(x, y, cs, geom: FanBeamGeometry):
 
 
 def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float) -> dict:
-    d = {"LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK, "NB": int(nb),
+    d = {"LANES": LANES, "LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK, "NB": int(nb),
          "NINV": int(cfg.inversion_steps), "_fast": True}
     if geom.curved:
         # moved points may leave the FOV circle by the largest displacement: fit atan that far
