@@ -290,6 +290,13 @@ def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float) ->
     return d
 
 
+def _global_size(geom: FanBeamGeometry, n_slices: int, lanes: int) -> tuple:
+    """The kernel's global size for ``lanes`` voxels along x per work-item (LOCAL_SIZE multiples)."""
+    lx, ly = LOCAL_SIZE
+    blocks = -(-geom.nx // lanes)  # work-items along x
+    return (-(-blocks // lx) * lx, -(-geom.ny // ly) * ly, n_slices)
+
+
 class MCBackprojector:
     """The kernel with one set of rows, model and geometry on the device; one call per target.
 
@@ -327,10 +334,7 @@ class MCBackprojector:
 
     def __call__(self, slot_proj, slot_w, target) -> np.ndarray:
         """mu images (S, ny, nx) float32 of target (c, a) from its slots (S, V, K) (local indices, weights)."""
-        S = len(self.slices_z)
-        lx, ly = LOCAL_SIZE
-        blocks = -(-self.geom.nx // LANES)  # work-items along x, LANES voxels each
-        gsize = (-(-blocks // lx) * lx, -(-self.geom.ny // ly) * ly, S)
+        gsize = _global_size(self.geom, len(self.slices_z), LANES)
         return self._launch(self._kernel, gsize, LOCAL_SIZE, slot_proj, slot_w, target)
 
     def _launch(self, kernel, gsize, lsize, slot_proj, slot_w, target) -> np.ndarray:
