@@ -67,13 +67,14 @@ def synthetic_case(n_slices: int = 4, seed: int = 34, scene: str = "demo"):
     return geom, model, rows, pb, sp, sw, slices_z
 
 
-def bench_mc_backproject(quick: bool = False, repeats: int = 3, drivers=DRIVERS) -> dict:
-    """Updates/s of the new and the scalar kernel on each driver, same data, alternating repeats."""
-    geom, model, rows, pb, sp, sw, zs = synthetic_case(2 if quick else 4)
+def bench_mc_backproject(quick: bool = False, repeats: int = 3, drivers=DRIVERS, scene: str = "demo") -> dict:
+    """Updates/s of the new and the scalar kernel on each driver, same data, alternating repeats
+    (``scene``: whose geometry; the module docstring's case is `demo`'s)."""
+    geom, model, rows, pb, sp, sw, zs = synthetic_case(2 if quick else 4, scene=scene)
     target = (0.3, 0.6)
     fov = int(geom.fov_mask().sum())
     updates = fov * int(((sp >= 0) & (sw > 0)).sum())
-    res = {"scene": "demo geometry, synthetic rows and fields", "image": [geom.ny, geom.nx], "views": geom.n_views,
+    res = {"scene": f"{scene} geometry, synthetic rows and fields", "image": [geom.ny, geom.nx], "views": geom.n_views,
            "cols": geom.n_cols, "slices": len(zs), "slots": sp.shape[2], "basis": model.basis.size,
            "rows_mb": rows.rows.nbytes / 1e6, "updates": updates, "repeats": repeats, "drivers": {}}
     for name in drivers:

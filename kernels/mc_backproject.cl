@@ -35,7 +35,8 @@
 // are not stored.
 //
 // Layouts: rows (P, NPMAX, C) float, plane p of projection q at rows[(q NPMAX + p) C];
-// slot_proj, slot_w (S, V, K) (empty slots: proj -1, at the end of a list); proj_basis (P, NB);
+// slot_proj, slot_w (S, V, K) (empty slots: proj -1, at the end of a list); proj_dbasis (P, NB):
+// B_b(p) - B_b(t), formed on the host per target in float32 (the scalar kernel's subtraction);
 // fields (NB, 3, MZ, ny, nx); target_field (3, MZ, ny, nx); out (S, ny, nx). Offsets within
 // one projection's rows (NPMAX C) and within one field component (MZ ny nx) are int: the host
 // checks they are below 2^31.
@@ -61,12 +62,11 @@ void mc_backproject(__global const float *restrict rows,
                     __global const int *restrict plane_first,
                     __global const int *restrict plane_count,
                     __global const float *restrict proj_z,
-                    __global const float *restrict proj_basis,
+                    __global const float *restrict proj_dbasis,
                     __global const int *restrict slot_proj,
                     __global const float *restrict slot_w,
                     __global const float *restrict fields,
                     __global const float *restrict target_field,
-                    __global const float *restrict target_basis,
                     __global const float2 *restrict trig,
                     __global const float *restrict slice_z,
                     __global float *restrict out,
@@ -102,9 +102,6 @@ void mc_backproject(__global const float *restrict rows,
 
     // 1.-2. the voxels' reference positions and their basis displacements W_b (b >= 1)
     floatL W[NB][3];
-    float tb[NB];
-    for (int b = 0; b < NB; ++b)
-        tb[b] = target_basis[b];
     {
         floatL rx = x, ry = yv, rz = (floatL)(z);
         for (int it = 0; it < NINV; ++it) {
@@ -117,7 +114,7 @@ void mc_backproject(__global const float *restrict rows,
             rz = z - uz;
         }
         GRID_CORNERS_L(rx, ry, rz)
-        for (int b = 0; b < NB; ++b) {
+        for (int b = 1; b < NB; ++b) {
             __global const float *f = fields + (size_t)b * 3 * fstride;
             W[b][0] = TRILINEAR_L(f);
             W[b][1] = TRILINEAR_L(f + fstride);
@@ -143,9 +140,10 @@ void mc_backproject(__global const float *restrict rows,
                     if (w0 == 0.0f)
                         continue;
                     floatL dx = (floatL)(0.0f), dy = (floatL)(0.0f), dz = (floatL)(0.0f);
-                    __global const float *pb = proj_basis + (size_t)p * NB;
+                    __global const float *db = proj_dbasis + (size_t)p * NB;
+#pragma unroll
                     for (int b = 1; b < NB; ++b) {
-                        const float beta = pb[b] - tb[b];
+                        const float beta = db[b];
                         dx += beta * W[b][0];
                         dy += beta * W[b][1];
                         dz += beta * W[b][2];

@@ -109,4 +109,4 @@ def mc_backproject_scalar(bp, slot_proj, slot_w, target) -> np.ndarray:
     lx, ly = MC_SCALAR_LOCAL
     kern = bp.rt.kernel(MC_BACKPROJECT_SCALAR, "mc_backproject", **{**bp._defines, "LX": lx, "LY": ly})
     gsize = (-(-bp.geom.nx // lx) * lx, -(-bp.geom.ny // ly) * ly, len(bp.slices_z))
-    return bp._launch(kern, gsize, MC_SCALAR_LOCAL, slot_proj, slot_w, target)
+    return bp._launch(kern, gsize, MC_SCALAR_LOCAL, slot_proj, slot_w, target, scalar=True)

@@ -323,9 +323,10 @@ class MCBackprojector:
         margin = float(np.abs(model.fields[1:]).sum(axis=0).max()) * 2.0 if model.basis.size > 1 else 0.0
         self._defines = _defines(geom, model.basis.size, self.cfg, margin)
         self._kernel = rt.kernel(_KERNEL_FILE, "mc_backproject", **self._defines)
+        self._pb = pb.astype(np.float32)  # the per-call differences B_b(p) - B_b(t) start from it
         self._bufs = [rt.to_device(rows.rows, np.float32, "plane rows"),
                       rt.to_device(rows.plane_first, np.int32), rt.to_device(rows.plane_count, np.int32),
-                      rt.to_device(rows.proj_z_mm, np.float32), rt.to_device(pb, np.float32, "proj_basis")]
+                      rt.to_device(rows.proj_z_mm, np.float32)]
         self._fields = rt.to_device(model.fields, np.float32, "model fields")
         self._trig = rt.to_device(view_table(geom), np.float32)
         self._slices = rt.to_device(self.slices_z, np.float32)
@@ -337,9 +338,12 @@ class MCBackprojector:
         gsize = _global_size(self.geom, len(self.slices_z), LANES)
         return self._launch(self._kernel, gsize, LOCAL_SIZE, slot_proj, slot_w, target)
 
-    def _launch(self, kernel, gsize, lsize, slot_proj, slot_w, target) -> np.ndarray:
-        """Run ``kernel`` (this kernel or the scalar reference, kernels/reference/, which take the
-        same arguments) on global size ``gsize``, local ``lsize`` (x, y); (S, ny, nx) float32."""
+    def _launch(self, kernel, gsize, lsize, slot_proj, slot_w, target, scalar: bool = False) -> np.ndarray:
+        """Run ``kernel`` on global size ``gsize``, local ``lsize`` (x, y); (S, ny, nx) float32.
+
+        The kernel takes the basis differences B_b(p) - B_b(t) (P, NB) float32, formed here per
+        call; ``scalar``: the reference kernel of kernels/reference/, which takes B(p) (P, NB) and
+        B(t) (NB,) and subtracts them itself (the same float32 subtraction)."""
         geom, rt, g = self.geom, self.rt, self.model.grid
         _check(self.rows, slot_proj, slot_w, self.model, target, self.slices_z, geom)
         tb = self.model.basis.values(*target)[0].astype(np.float32)
@@ -347,11 +351,16 @@ class MCBackprojector:
         sp = rt.to_device(slot_proj, np.int32, "slot_proj")
         sw = rt.to_device(slot_w, np.float32, "slot_w")
         ut = rt.to_device(u_t, np.float32, "target field")
-        tbd = rt.to_device(tb, np.float32)
+        if scalar:
+            basis = [rt.to_device(self._pb, np.float32, "proj_basis"), rt.to_device(tb, np.float32)]
+            head, tail = basis[:1], basis[1:]
+        else:
+            basis = [rt.to_device(self._pb - tb, np.float32, "basis differences")]
+            head, tail = basis, []
         S, V, K = np.asarray(slot_proj).shape
         col_centre = geom.centre_col if geom.curved else 0.5 * (geom.n_cols - 1)
         scale = 1.0 / geom.delta_gamma_rad if geom.curved else geom.sdd_mm / geom.col_pitch_mm
-        ev = kernel(rt.queue, gsize, tuple(lsize) + (1,), *self._bufs, sp, sw, self._fields, ut, tbd,
+        ev = kernel(rt.queue, gsize, tuple(lsize) + (1,), *self._bufs, *head, sp, sw, self._fields, ut, *tail,
                     self._trig, self._slices, self._out,
                     np.int32(geom.nx), np.int32(geom.ny), np.int32(geom.n_views), np.int32(geom.n_cols),
                     np.float32(geom.voxel_mm), np.float32(scale), np.float32(geom.fov_radius_mm ** 2),
@@ -361,7 +370,7 @@ class MCBackprojector:
                     np.float32(1.0 / g.dz_mm), np.float32(self.rows.window_mm),
                     np.float32(1.0 / self.cfg.taper_mm))
         res = rt.from_device(self._out, (S, geom.ny, geom.nx), wait_for=[ev])
-        for b in (sp, sw, ut, tbd):
+        for b in [sp, sw, ut] + basis:
             b.release()
         return res
 
