@@ -137,17 +137,30 @@ def test_mc_backproject_lanes_match_scalar_kernel_and_reference(nx, detector):
     _assert_close(new, old, ref, geom)
 
 
-def test_mc_backproject_16_lanes(monkeypatch):
-    """The kernel's LANES = 16 build (measured no faster on the 2-core machine, kept as an option:
-    docs/motion-model.md "Cost") gives the 8-lane result up to contraction."""
+@pytest.mark.parametrize("lanes", [8, 16])
+def test_mc_backproject_either_lane_count(monkeypatch, lanes):
+    """Both builds of the kernel (LANES = 8 or 16; which one a device gets: ``lanes_for``) give the
+    scalar kernel's result up to contraction, and each other's."""
     import clrecon.reconstruction.motion.backproject as mcb
 
-    geom, model, rows, pb, sp, sw, zs = _random_case("cylindrical", nx=13)   # 3 lanes past nx
-    want, old, ref = _new_old_ref(geom, model, rows, pb, sp, sw, zs)
-    monkeypatch.setattr(mcb, "LANES", 16)
-    got, _, _ = _new_old_ref(geom, model, rows, pb, sp, sw, zs)
+    geom, model, rows, pb, sp, sw, zs = _random_case("cylindrical", nx=13)   # 3 or 5 lanes past nx
+    monkeypatch.setattr(mcb, "LANES", lanes)
+    got, old, ref = _new_old_ref(geom, model, rows, pb, sp, sw, zs)
     _assert_close(got, old, ref, geom)
-    assert np.abs(got - want).max() <= TOL["lanes_vs_scalar"] * np.abs(want).max()
+    monkeypatch.setattr(mcb, "LANES", 24 - lanes)
+    other, _, _ = _new_old_ref(geom, model, rows, pb, sp, sw, zs)
+    assert np.abs(got - other).max() <= TOL["lanes_vs_scalar"] * np.abs(other).max()
+
+
+def test_lanes_follow_the_device_vector_width():
+    from types import SimpleNamespace
+
+    import clrecon.reconstruction.motion.backproject as mcb
+
+    assert mcb.lanes_for(SimpleNamespace(native_vector_width_float=16)) == 16
+    assert mcb.lanes_for(SimpleNamespace(native_vector_width_float=8)) == 8
+    assert mcb.lanes_for(SimpleNamespace(native_vector_width_float=1)) == 8   # Oclgrind
+    assert mcb.lanes_for(object()) == 8
 
 
 def test_mc_backproject_lanes_at_the_window_edge():

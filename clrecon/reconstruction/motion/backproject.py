@@ -29,10 +29,11 @@ from clrecon.reconstruction.fbp import FanBeamGeometry, filter_rows, view_table
 from clrecon.reconstruction.motion.model import MotionModel
 from clrecon.scan.table import ProjectionTable
 
-#: Voxels along x per work-item: the vector lanes of ``kernels/mc_backproject.cl`` (8 or 16).
-LANES = 8
+#: Voxels along x per work-item, the vector lanes of ``kernels/mc_backproject.cl``: None = by the
+#: device (:func:`lanes_for`), or 8 or 16 for every device (tests and benchmarks set it).
+LANES: int | None = None
 #: Fixed local size (x, y) of the kernel in work-items (PoCL specialises per local size): a tile
-#: of LANES * LX x LY voxels.
+#: of lanes * LX x LY voxels.
 LOCAL_SIZE = (1, 8)
 #: Views per barrier-separated chunk (keeps a tile's rows in cache, as backproject.cl).
 VIEW_CHUNK = 8
@@ -277,8 +278,8 @@ def _fan_column(x, y, cs, geom: FanBeamGeometry):
     return geom.sdd_mm / geom.col_pitch_mm * (y * cs[0] - x * cs[1]) * r + 0.5 * (geom.n_cols - 1), r * r
 
 
-def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float) -> dict:
-    d = {"LANES": LANES, "LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK, "NB": int(nb),
+def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float, lanes: int) -> dict:
+    d = {"LANES": int(lanes), "LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK, "NB": int(nb),
          "NINV": int(cfg.inversion_steps), "_fast": True}
     if geom.curved:
         # moved points may leave the FOV circle by the largest displacement: fit atan that far
@@ -288,6 +289,20 @@ def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float) ->
         d["CURVED"] = 1
         d.update(atan_defines(t_max, 1.0 / geom.delta_gamma_rad))
     return d
+
+
+def lanes_for(device) -> int:
+    """The kernel's lanes on an OpenCL device: 16 where its native float vector holds 16 (AVX-512),
+    else 8. Measured on the 2-core Xeon with AVX-512 (docs/motion-model.md "Cost"): 16 lanes as
+    fast as 8 on Intel's CPU runtime, 1.1-1.3x on PoCL; on a CPU with 256-bit vectors a 16-float
+    vector is two registers and the kernel's 15 displacement vectors would not fit in 16."""
+    if LANES is not None:
+        return LANES
+    try:
+        width = int(device.native_vector_width_float)
+    except Exception:  # noqa: BLE001 - a device that does not say: the narrower choice
+        width = 0
+    return 16 if width >= 16 else 8
 
 
 def _global_size(geom: FanBeamGeometry, n_slices: int, lanes: int) -> tuple:
@@ -321,7 +336,8 @@ class MCBackprojector:
                              "(the kernel's int offsets)")
         rt = self.rt
         margin = float(np.abs(model.fields[1:]).sum(axis=0).max()) * 2.0 if model.basis.size > 1 else 0.0
-        self._defines = _defines(geom, model.basis.size, self.cfg, margin)
+        self.lanes = lanes_for(rt.device)
+        self._defines = _defines(geom, model.basis.size, self.cfg, margin, self.lanes)
         self._kernel = rt.kernel(_KERNEL_FILE, "mc_backproject", **self._defines)
         self._pb = pb.astype(np.float32)  # the per-call differences B_b(p) - B_b(t) start from it
         self._bufs = [rt.to_device(rows.rows, np.float32, "plane rows"),
@@ -335,7 +351,7 @@ class MCBackprojector:
 
     def __call__(self, slot_proj, slot_w, target) -> np.ndarray:
         """mu images (S, ny, nx) float32 of target (c, a) from its slots (S, V, K) (local indices, weights)."""
-        gsize = _global_size(self.geom, len(self.slices_z), LANES)
+        gsize = _global_size(self.geom, len(self.slices_z), self.lanes)
         return self._launch(self._kernel, gsize, LOCAL_SIZE, slot_proj, slot_w, target)
 
     def _launch(self, kernel, gsize, lsize, slot_proj, slot_w, target, scalar: bool = False) -> np.ndarray:
