@@ -32,7 +32,9 @@
 // all lanes; each lane does its voxel's operations in the scalar kernel's order (its float32
 // result equals the scalar kernel's up to contraction into FMAs), and gathers its 4 row taps.
 // Lanes past nx or outside the FOV compute on the point (0, 0) (every index stays in range) and
-// are not stored.
+// are not stored. The host builds 16 lanes where the device's native float vector holds 16
+// (AVX-512), else 8 (backproject.lanes_for); measured 3.2-3.5x the scalar kernel on both CPU
+// drivers (docs/motion-model.md "Cost", benchmarks/mc_backproject.py).
 //
 // Layouts: rows (P, NPMAX, C) float, plane p of projection q at rows[(q NPMAX + p) C];
 // slot_proj, slot_w (S, V, K) (empty slots: proj -1, at the end of a list); proj_dbasis (P, NB):
