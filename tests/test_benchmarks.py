@@ -23,6 +23,24 @@ def test_backprojector_section_tiny():
     assert "parallel-rebin" in text
 
 
+def test_mc_backproject_bench_tiny():
+    """The motion-compensated kernel, its other lane build and the scalar kernel on the same buffers
+    of each installed CPU driver; outputs agree to float32 rounding (tests/test_motion_compensation.py)."""
+    from benchmarks.mc_backproject import bench_mc_backproject
+    from benchmarks.mc_backproject import report_lines as mc_lines
+
+    res = bench_mc_backproject(quick=True, repeats=1, scene="tiny")
+    measured = {k: d for k, d in res["drivers"].items() if "error" not in d}
+    assert measured and res["updates"] > 0
+    for d in measured.values():
+        assert d["max_rel_diff"] < 2e-5 and d["max_rel_diff_other"] < 2e-5
+        assert {d["lanes"], d["other_lanes"]} == {8, 16}
+        assert d["speedup"] == pytest.approx(d["median_s"]["old"] / d["median_s"]["new"])
+        assert d["updates_per_s"]["new"] == pytest.approx(res["updates"] / d["median_s"]["new"])
+    text = "\n".join(mc_lines(res))
+    assert all(name in text for name in res["drivers"])
+
+
 def test_levers_section_reports_each_lever_against_its_reference(monkeypatch):
     """The volume row writes, assembles and reads both settings (the uncompressed one on more disk);
     the posing row poses the same states both ways; speedups are the reference over the lever."""

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import scipy.ndimage
 
+from clrecon.bench import reference_kernels
 from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
 from clrecon.reconstruction.motion import correction, estimate, registration, slots, warp
 from clrecon.reconstruction.motion.backproject import (
@@ -37,6 +38,11 @@ TOL = {
     "mc_f32": 2e-5,
     # the same for the warp: float32 fixed-point steps through random smooth fields
     "warp_f32": 2e-5,
+    # the kernel (8 voxels per work-item in float8 lanes) vs the scalar kernel it replaced
+    # (kernels/reference/), max |new - old| / max |old|: the same float32 operations per voxel in
+    # the same order, but the compilers contract different products into FMAs (measured 4e-6 on
+    # Intel's runtime, 9e-6 on PoCL, on demo's geometry: benchmarks/mc_backproject.py)
+    "lanes_vs_scalar": 2e-5,
     # no motion, one row per view at its own plane vs the fan-beam backprojector (same float32
     # geometry, different order of operations)
     "static_vs_fbp": 1e-5,
@@ -61,12 +67,12 @@ def _smooth_model(basis, grid, scale_mm, seed=0):
     return MotionModel(basis=basis, grid=grid, fields=f.astype(np.float32), reference=(0.5, 0.5))
 
 
-def _random_case(detector="flat", source_shifts=(), seed=1):
+def _random_case(detector="flat", source_shifts=(), seed=1, nx=13):
     rng = np.random.default_rng(seed)
-    geom = FanBeamGeometry(sid_mm=500.0, sdd_mm=900.0, n_cols=40, col_pitch_mm=4.0, n_views=12, nx=13, ny=11,
+    geom = FanBeamGeometry(sid_mm=500.0, sdd_mm=900.0, n_cols=40, col_pitch_mm=4.0, n_views=12, nx=nx, ny=11,
                            voxel_mm=6.0, detector=detector, source_shifts=source_shifts, beta0_rad=0.2)
     basis = MotionBasis(resp_degree=1, cardiac_harmonics=1)
-    grid = FieldGrid(nx=13, ny=11, nz=4, voxel_mm=6.0, z0_mm=-9.0, dz_mm=6.0)
+    grid = FieldGrid(nx=nx, ny=11, nz=4, voxel_mm=6.0, z0_mm=-9.0, dz_mm=6.0)
     model = MotionModel(basis=basis, grid=grid, fields=(rng.normal(size=(basis.size, 3) + grid.shape) * 2)
                         .astype(np.float32), reference=(0.5, 0.5))
     P, NP = 30, 9
@@ -97,6 +103,84 @@ def test_mc_backproject_matches_reference(detector, shifts):
     assert got.shape == (3, geom.ny, geom.nx) and got.dtype == np.float32
     assert np.abs(got - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
     assert np.all(got[:, ~geom.fov_mask()] == 0)
+
+
+def _new_old_ref(geom, model, rows, pb, sp, sw, zs, target=(0.3, 0.6), cfg=None):
+    """The kernel, the scalar reference kernel (same buffers) and the float64 reference."""
+    with MCBackprojector(rows, pb, model, zs, geom, cfg) as bp:
+        new = bp(sp, sw, target)
+        old = reference_kernels.mc_backproject_scalar(bp, sp, sw, target)
+    return new, old, mc_backproject_reference(rows, pb, sp, sw, model, target, zs, geom, cfg)
+
+
+def _assert_close(new, old, ref, geom):
+    scale = np.abs(ref).max()
+    assert scale > 0
+    assert np.abs(new - old).max() <= TOL["lanes_vs_scalar"] * np.abs(old).max()
+    assert np.abs(new - ref).max() < TOL["mc_f32"] * scale
+    assert np.abs(old - ref).max() < TOL["mc_f32"] * scale
+    outside = ~geom.fov_mask()
+    assert np.all(new[:, outside] == 0) and np.all(old[:, outside] == 0)
+
+
+@pytest.mark.parametrize("nx", [5, 8, 13, 17])
+@pytest.mark.parametrize("detector", ["flat", "cylindrical"])
+def test_mc_backproject_lanes_match_scalar_kernel_and_reference(nx, detector):
+    """nx below, at and not a multiple of the 8 lanes (the last work-item's lanes past nx are
+    not stored), voxels outside the FOV (0 in both kernels), empty slots, one-plane projections."""
+    geom, model, rows, pb, sp, sw, zs = _random_case(detector, nx=nx, seed=nx)
+    sw[2, 5] = 0.0            # a view whose weights are all 0: adds 0
+    sw[0, 3, 1] = 0.0         # a zero weight beside non-zero ones
+    new, old, ref = _new_old_ref(geom, model, rows, pb, sp, sw, zs, cfg=MCConfig(taper_mm=3.0))
+    assert new.shape == (3, geom.ny, nx) and new.dtype == np.float32
+    assert (~geom.fov_mask()).any() == (nx >= 13)   # the corners leave the FOV circle from nx = 13
+    _assert_close(new, old, ref, geom)
+
+
+@pytest.mark.parametrize("lanes", [8, 16])
+def test_mc_backproject_either_lane_count(monkeypatch, lanes):
+    """Both builds of the kernel (LANES = 8 or 16; which one a device gets: ``lanes_for``) give the
+    scalar kernel's result up to contraction, and each other's."""
+    import clrecon.reconstruction.motion.backproject as mcb
+
+    geom, model, rows, pb, sp, sw, zs = _random_case("cylindrical", nx=13)   # 3 or 5 lanes past nx
+    monkeypatch.setattr(mcb, "LANES", lanes)
+    got, old, ref = _new_old_ref(geom, model, rows, pb, sp, sw, zs)
+    _assert_close(got, old, ref, geom)
+    monkeypatch.setattr(mcb, "LANES", 24 - lanes)
+    other, _, _ = _new_old_ref(geom, model, rows, pb, sp, sw, zs)
+    assert np.abs(got - other).max() <= TOL["lanes_vs_scalar"] * np.abs(other).max()
+
+
+def test_lanes_follow_the_device_vector_width():
+    from types import SimpleNamespace
+
+    import clrecon.reconstruction.motion.backproject as mcb
+
+    assert mcb.lanes_for(SimpleNamespace(native_vector_width_float=16)) == 16
+    assert mcb.lanes_for(SimpleNamespace(native_vector_width_float=8)) == 8
+    assert mcb.lanes_for(SimpleNamespace(native_vector_width_float=1)) == 8   # Oclgrind
+    assert mcb.lanes_for(object()) == 8
+
+
+def test_mc_backproject_lanes_at_the_window_edge():
+    """Rows whose moved SSRB distance crosses the taper and the window within one work-item's
+    8 voxels: some lanes take the weighted mean, others the nearest slot's fallback."""
+    geom, model, rows, pb, sp, sw, zs = _random_case(nx=17, seed=5)
+    # a z field varying along x by +-1.5 mm and every row 0.5 mm inside the window from slice 1:
+    # the amplitude term's coefficient B_1(row) - B_1(target) lies in [-0.6, 0.4], so the moved
+    # distances span window - 1.4 .. window + 0.4 mm and the 1-mm taper is 1, partial and 0
+    f = np.zeros_like(model.fields)
+    x = np.linspace(-1.5, 1.5, geom.nx, dtype=np.float32)
+    f[1, 2] = x[None, None, :]
+    model = dataclasses.replace(model, fields=f)
+    edge = dataclasses.replace(rows, proj_z_mm=np.full(rows.proj_z_mm.shape, zs[1] + rows.window_mm - 0.5))
+    new, old, ref = _new_old_ref(geom, model, edge, pb, sp, sw, zs, target=(0.3, 0.6), cfg=MCConfig(taper_mm=1.0))
+    _assert_close(new, old, ref, geom)
+    # both branches were taken within a row of slice 1: compare with no displacement at all
+    still = dataclasses.replace(model, fields=np.zeros_like(f))
+    n0, _, _ = _new_old_ref(geom, still, edge, pb, sp, sw, zs, cfg=MCConfig(taper_mm=1.0))
+    assert np.abs(new[1] - n0[1]).max() > 0
 
 
 def test_mc_backproject_fallback_when_every_taper_is_zero():

@@ -9,7 +9,10 @@ benchmarks and as independent cross-checks for the tests; nothing in the pipelin
   (:func:`clrecon.reconstruction.interpolation.apply.apply_weights_reference`);
 - :func:`apply_padded_interleaved_lanes` and :func:`apply_interleaved_loop`: the reconstruction's
   interpolation kernels of 2026-12-03 to 2026-12-05 and before, the same sums bit for bit as
-  :func:`clrecon.reconstruction.interpolation.apply.apply_padded_interleaved` (8 columns per work-item).
+  :func:`clrecon.reconstruction.interpolation.apply.apply_padded_interleaved` (8 columns per work-item);
+- :func:`mc_backproject_scalar`: the motion-compensated backprojection one voxel per work-item
+  (``reference/mc_backproject_scalar.cl``, the pipeline's kernel until 2026-12-06), against
+  :class:`clrecon.reconstruction.motion.backproject.MCBackprojector`'s 8 voxels per work-item.
 
 The projector's unculled build (``CULL=0`` of ``kernels/project_cull.cl`` and ``project.cl``,
 ``project(..., cull=False)``) is a build option of the pipeline's own kernels, not a file here.
@@ -27,6 +30,9 @@ from clrecon.reconstruction.interpolation._common import LOCAL as _LOCAL
 #: The reference sources, relative to ``kernels/``.
 BACKPROJECT_SINGLE = "reference/backproject_single.cl"
 INTERP_REFERENCE = "reference/interp_reference.cl"
+MC_BACKPROJECT_SCALAR = "reference/mc_backproject_scalar.cl"
+#: Local size (x, y) of the scalar motion-compensated kernel (one voxel per work-item).
+MC_SCALAR_LOCAL = (8, 8)
 
 
 def backproject_single(filtered, geom: fbp.FanBeamGeometry, *, runtime=None) -> np.ndarray:
@@ -94,3 +100,13 @@ def apply_interleaved_loop(rows: apply_mod.DeviceRows, index: np.ndarray, weight
     d_idx.release()
     d_w.release()
     return d_out, G
+
+
+def mc_backproject_scalar(bp, slot_proj, slot_w, target) -> np.ndarray:
+    """What ``bp(slot_proj, slot_w, target)`` returns (``bp`` a
+    :class:`clrecon.reconstruction.motion.backproject.MCBackprojector`), computed by the scalar
+    reference kernel on the same device buffers: (S, ny, nx) float32."""
+    lx, ly = MC_SCALAR_LOCAL
+    kern = bp.rt.kernel(MC_BACKPROJECT_SCALAR, "mc_backproject", **{**bp._defines, "LX": lx, "LY": ly})
+    gsize = (-(-bp.geom.nx // lx) * lx, -(-bp.geom.ny // ly) * ly, len(bp.slices_z))
+    return bp._launch(kern, gsize, MC_SCALAR_LOCAL, slot_proj, slot_w, target, scalar=True)

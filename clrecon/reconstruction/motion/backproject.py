@@ -29,8 +29,12 @@ from clrecon.reconstruction.fbp import FanBeamGeometry, filter_rows, view_table
 from clrecon.reconstruction.motion.model import MotionModel
 from clrecon.scan.table import ProjectionTable
 
-#: Fixed local size (x, y) of the kernel (PoCL specialises per local size).
-LOCAL_SIZE = (8, 8)
+#: Voxels along x per work-item, the vector lanes of ``kernels/mc_backproject.cl``: None = by the
+#: device (:func:`lanes_for`), or 8 or 16 for every device (tests and benchmarks set it).
+LANES: int | None = None
+#: Fixed local size (x, y) of the kernel in work-items (PoCL specialises per local size): a tile
+#: of lanes * LX x LY voxels.
+LOCAL_SIZE = (1, 8)
 #: Views per barrier-separated chunk (keeps a tile's rows in cache, as backproject.cl).
 VIEW_CHUNK = 8
 #: Fixed-point steps of the model's inversion x_r = x - u_t(x_r) (docs/motion-model.md).
@@ -274,8 +278,8 @@ def _fan_column(x, y, cs, geom: FanBeamGeometry):
     return geom.sdd_mm / geom.col_pitch_mm * (y * cs[0] - x * cs[1]) * r + 0.5 * (geom.n_cols - 1), r * r
 
 
-def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float) -> dict:
-    d = {"LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK, "NB": int(nb),
+def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float, lanes: int) -> dict:
+    d = {"LANES": int(lanes), "LX": LOCAL_SIZE[0], "LY": LOCAL_SIZE[1], "VCHUNK": VIEW_CHUNK, "NB": int(nb),
          "NINV": int(cfg.inversion_steps), "_fast": True}
     if geom.curved:
         # moved points may leave the FOV circle by the largest displacement: fit atan that far
@@ -285,6 +289,27 @@ def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float) ->
         d["CURVED"] = 1
         d.update(atan_defines(t_max, 1.0 / geom.delta_gamma_rad))
     return d
+
+
+def lanes_for(device) -> int:
+    """The kernel's lanes on an OpenCL device: 16 where its native float vector holds 16 (AVX-512),
+    else 8. Measured on the 2-core Xeon with AVX-512 (docs/motion-model.md "Cost"): 16 lanes as
+    fast as 8 on Intel's CPU runtime, 1.1-1.3x on PoCL; on a CPU with 256-bit vectors a 16-float
+    vector is two registers and the kernel's 15 displacement vectors would not fit in 16."""
+    if LANES is not None:
+        return LANES
+    try:
+        width = int(device.native_vector_width_float)
+    except Exception:  # noqa: BLE001 - a device that does not say: the narrower choice
+        width = 0
+    return 16 if width >= 16 else 8
+
+
+def _global_size(geom: FanBeamGeometry, n_slices: int, lanes: int) -> tuple:
+    """The kernel's global size for ``lanes`` voxels along x per work-item (LOCAL_SIZE multiples)."""
+    lx, ly = LOCAL_SIZE
+    blocks = -(-geom.nx // lanes)  # work-items along x
+    return (-(-blocks // lx) * lx, -(-geom.ny // ly) * ly, n_slices)
 
 
 class MCBackprojector:
@@ -304,12 +329,20 @@ class MCBackprojector:
         pb = np.asarray(proj_basis)
         if pb.shape != (rows.rows.shape[0], model.basis.size):
             raise ValueError(f"proj_basis: expected ({rows.rows.shape[0]}, {model.basis.size}), got {pb.shape}")
+        g = model.grid
+        if rows.rows.shape[1] * rows.rows.shape[2] >= 2 ** 31 or g.nz * g.ny * g.nx >= 2 ** 31:
+            raise ValueError(f"one projection's plane rows ({rows.rows.shape[1]} x {rows.rows.shape[2]}) and one "
+                             f"field component ({g.nz} x {g.ny} x {g.nx}) must each hold fewer than 2^31 values "
+                             "(the kernel's int offsets)")
         rt = self.rt
         margin = float(np.abs(model.fields[1:]).sum(axis=0).max()) * 2.0 if model.basis.size > 1 else 0.0
-        self._kernel = rt.kernel(_KERNEL_FILE, "mc_backproject", **_defines(geom, model.basis.size, self.cfg, margin))
+        self.lanes = lanes_for(rt.device)
+        self._defines = _defines(geom, model.basis.size, self.cfg, margin, self.lanes)
+        self._kernel = rt.kernel(_KERNEL_FILE, "mc_backproject", **self._defines)
+        self._pb = pb.astype(np.float32)  # the per-call differences B_b(p) - B_b(t) start from it
         self._bufs = [rt.to_device(rows.rows, np.float32, "plane rows"),
                       rt.to_device(rows.plane_first, np.int32), rt.to_device(rows.plane_count, np.int32),
-                      rt.to_device(rows.proj_z_mm, np.float32), rt.to_device(pb, np.float32, "proj_basis")]
+                      rt.to_device(rows.proj_z_mm, np.float32)]
         self._fields = rt.to_device(model.fields, np.float32, "model fields")
         self._trig = rt.to_device(view_table(geom), np.float32)
         self._slices = rt.to_device(self.slices_z, np.float32)
@@ -318,6 +351,15 @@ class MCBackprojector:
 
     def __call__(self, slot_proj, slot_w, target) -> np.ndarray:
         """mu images (S, ny, nx) float32 of target (c, a) from its slots (S, V, K) (local indices, weights)."""
+        gsize = _global_size(self.geom, len(self.slices_z), self.lanes)
+        return self._launch(self._kernel, gsize, LOCAL_SIZE, slot_proj, slot_w, target)
+
+    def _launch(self, kernel, gsize, lsize, slot_proj, slot_w, target, scalar: bool = False) -> np.ndarray:
+        """Run ``kernel`` on global size ``gsize``, local ``lsize`` (x, y); (S, ny, nx) float32.
+
+        The kernel takes the basis differences B_b(p) - B_b(t) (P, NB) float32, formed here per
+        call; ``scalar``: the reference kernel of kernels/reference/, which takes B(p) (P, NB) and
+        B(t) (NB,) and subtracts them itself (the same float32 subtraction)."""
         geom, rt, g = self.geom, self.rt, self.model.grid
         _check(self.rows, slot_proj, slot_w, self.model, target, self.slices_z, geom)
         tb = self.model.basis.values(*target)[0].astype(np.float32)
@@ -325,23 +367,26 @@ class MCBackprojector:
         sp = rt.to_device(slot_proj, np.int32, "slot_proj")
         sw = rt.to_device(slot_w, np.float32, "slot_w")
         ut = rt.to_device(u_t, np.float32, "target field")
-        tbd = rt.to_device(tb, np.float32)
+        if scalar:
+            basis = [rt.to_device(self._pb, np.float32, "proj_basis"), rt.to_device(tb, np.float32)]
+            head, tail = basis[:1], basis[1:]
+        else:
+            basis = [rt.to_device(self._pb - tb, np.float32, "basis differences")]
+            head, tail = basis, []
         S, V, K = np.asarray(slot_proj).shape
-        lx, ly = LOCAL_SIZE
-        gsize = (-(-geom.nx // lx) * lx, -(-geom.ny // ly) * ly, S)
         col_centre = geom.centre_col if geom.curved else 0.5 * (geom.n_cols - 1)
         scale = 1.0 / geom.delta_gamma_rad if geom.curved else geom.sdd_mm / geom.col_pitch_mm
-        ev = self._kernel(rt.queue, gsize, LOCAL_SIZE + (1,), *self._bufs, sp, sw, self._fields, ut, tbd,
-                          self._trig, self._slices, self._out,
-                          np.int32(geom.nx), np.int32(geom.ny), np.int32(geom.n_views), np.int32(geom.n_cols),
-                          np.float32(geom.voxel_mm), np.float32(scale), np.float32(geom.fov_radius_mm ** 2),
-                          np.float32(geom.delta_beta_rad), np.float32(col_centre),
-                          np.int32(S), np.int32(K), np.int32(self.rows.rows.shape[1]),
-                          np.float32(1.0 / self.rows.plane_dz_mm), np.int32(g.nz), np.float32(g.z0_mm),
-                          np.float32(1.0 / g.dz_mm), np.float32(self.rows.window_mm),
-                          np.float32(1.0 / self.cfg.taper_mm))
+        ev = kernel(rt.queue, gsize, tuple(lsize) + (1,), *self._bufs, *head, sp, sw, self._fields, ut, *tail,
+                    self._trig, self._slices, self._out,
+                    np.int32(geom.nx), np.int32(geom.ny), np.int32(geom.n_views), np.int32(geom.n_cols),
+                    np.float32(geom.voxel_mm), np.float32(scale), np.float32(geom.fov_radius_mm ** 2),
+                    np.float32(geom.delta_beta_rad), np.float32(col_centre),
+                    np.int32(S), np.int32(K), np.int32(self.rows.rows.shape[1]),
+                    np.float32(1.0 / self.rows.plane_dz_mm), np.int32(g.nz), np.float32(g.z0_mm),
+                    np.float32(1.0 / g.dz_mm), np.float32(self.rows.window_mm),
+                    np.float32(1.0 / self.cfg.taper_mm))
         res = rt.from_device(self._out, (S, geom.ny, geom.nx), wait_for=[ev])
-        for b in (sp, sw, ut, tbd):
+        for b in [sp, sw, ut] + basis:
             b.release()
         return res
 
