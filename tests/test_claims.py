@@ -139,3 +139,24 @@ def test_respiratory_only_claims_give_the_runs_own_skip_reason():
     assert ro and all(c["holds"] is None and c["skipped"] == why for c in ro)
     generic = [c for c in claims.evaluate_claims({"metrics": _metrics(t)}) if c["claim"].startswith("respiratory-only")]
     assert all(c["skipped"] != why for c in generic)
+
+
+def test_second_pass_goals_at_each_pitch():
+    """mc's goals (issue 34): 0.75 x min(barycentric, local linear) at pitch >= 0.1 only, no worse
+    than that minimum and below r4DCT at every pitch; nothing about mc where it did not run."""
+    t = {"p0.100": {"noisy": {"barycentric": (40.0, 40.0), "local_linear": (42.0, 36.0), "r4dct": (30.0, 50.0),
+                              "mc": (29.0, 28.0)}},        # large 29 / 40 = 0.725; small 28 / 36 = 0.78
+         "p0.020": {"noisy": {"barycentric": (20.0, 20.0), "local_linear": (21.0, 22.0), "r4dct": (25.0, 30.0),
+                              "mc": (19.0, 20.5)}}}
+    cl = claims.evaluate_claims({"metrics": _metrics(t)})
+    (g_large,) = _by(cl, "mc at or below 0.75", fov="large")
+    (g_small,) = _by(cl, "mc at or below 0.75", fov="small")
+    assert g_large["holds"] is True and g_large["pitch"] == "p0.100" and g_large["numbers"]["ratio"] == 29.0 / 40.0
+    assert g_small["holds"] is False and "0.778 x 36.0 HU" in g_small["detail"]
+    no_worse = {c["pitch"] + c["fov"]: c["holds"] for c in _by(cl, "mc at or below min(")}
+    assert no_worse == {"p0.100large": True, "p0.100small": True, "p0.020large": True, "p0.020small": False}
+    r4 = {c["pitch"] + c["fov"]: c["holds"] for c in _by(cl, "mc below r4DCT")}
+    assert r4 == {"p0.100large": True, "p0.100small": True, "p0.020large": True, "p0.020small": True}
+    # the paper's claims stay about the paper's methods: mc is in none of them
+    assert not [c for c in cl if not c["claim"].startswith("mc ") and "mc" in c["numbers"]]
+    assert not [c for c in claims.evaluate_claims({"metrics": _metrics(ONE_PITCH)}) if c["claim"].startswith("mc ")]
