@@ -409,7 +409,7 @@ def test_sigkill_mid_import_then_resume(sim, measured_run, tmp_path):
     code = ("import sys; from clrecon.config.scene import load_scene; "
             "from clrecon.simulation.measured import import_series; "
             "s = load_scene(sys.argv[1]); import_series(s, 0.1, cache_dir=sys.argv[2], chunk=64, progress=False)")
-    env = dict(os.environ, CLRECON_FAULT="simulate:3", PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env = dict(os.environ, CLRECON_FAULT="simulate:3", PYTHONPATH=str(Path(__file__).resolve().parents[2]))
     proc = subprocess.run([sys.executable, "-c", code, str(sim["exp"] / "measured.toml"), str(cache)], env=env,
                           capture_output=True, timeout=300)
     assert proc.returncode == -9, proc.stderr.decode()[-500:]
