@@ -29,6 +29,7 @@ import numpy as np
 
 from clrecon.core import drivers
 from clrecon.core.cache import default_cache_dir
+from clrecon.core.cl_build import BuildFailed, build_from_source
 from clrecon.core.errors import OpenCLUnavailable, first_error_line
 from clrecon.core.kernel_sources import kernel_dir, load_source  # noqa: F401 - kernel_dir re-exported
 
@@ -179,17 +180,10 @@ class Runtime:
                 return cl.Program(raw)
             except (cl.Error, OSError):  # a binary of another driver build, or damaged: build from source
                 cached.unlink(missing_ok=True)
-        raw = cl._Program(self.context, src)  # the unwrapped program (pyopencl's public 1-argument form below)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # PyOpenCL's "build succeeded with warnings" chatter
-            try:
-                raw.build(" ".join(opts).encode())
-            except cl.Error as err:
-                try:
-                    log = raw.get_build_info(self.device, cl.program_build_info.LOG)
-                except cl.Error:
-                    log = ""
-                raise KernelBuildError(name, self, opts, err, log) from err
+        try:
+            raw = build_from_source(cl, self.context, self.device, src, opts)
+        except BuildFailed as failed:
+            raise KernelBuildError(name, self, opts, failed.error, failed.log) from failed.error
         if cached is not None:
             self._keep_binary(raw, cached)
         return cl.Program(raw)
