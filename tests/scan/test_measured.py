@@ -133,6 +133,10 @@ def test_measured_run_has_no_truth_and_no_identifiers(sim, measured_run):
     report = (out / "report.md").read_text()
     assert "error against truth is unavailable" in report
     assert "a measured scan has no ground truth, so no error" in report and (out / "figures" / "coronal.png").exists()
+    # the stage table says what "simulate" and "noise" mean for a measured scan, not the simulator's words
+    assert "own noise" in res["stages"]["noise"]["skipped_because"] and "noise.enabled" not in report
+    assert res["stages"]["simulate"]["does"] == "imports the measured projections into the projection store"
+    assert res["stages"]["simulate"]["ran"] is False or "| simulate | yes (imports the measured projections" in report
     for text in ((out / "results.json").read_text(), report, measured_run["log"]):
         assert "DOE^JANE" not in text and "PID-4711" not in text
     with h5py.File(out / "volumes.h5") as f:
