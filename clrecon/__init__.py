@@ -1,7 +1,7 @@
 """clrecon: simulate helical CT of a breathing, beating thorax and reconstruct 5DCT.
 
 The subpackages follow the pipeline; a package imports only those of an earlier level. The
-order is ``[tool.clrecon.layers]`` in ``pyproject.toml`` (checked by ``tests/test_import_graph.py``;
+order is ``[tool.clrecon.layers]`` in ``pyproject.toml`` (checked by ``tests/core/test_import_graph.py``;
 why this order: ``docs/data-flow.md`` "Layering").
 
 Notebook API: :func:`load_scene`, :func:`run`, :func:`open_run` (see ``docs/api.md``).

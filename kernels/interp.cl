@@ -166,7 +166,7 @@ __kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) s
 // columns (acc[lane], 8 columns), and written out transposed, one 16-lane store per column. Per
 // element the same operation as apply_weights_interleaved16 in the same slot order,
 // `acc = w != 0 ? acc + w * r : acc` (one fused multiply-add where the compiler contracts one
-// there, as it does there), so the output is the same bit for bit (tests/test_recon_fastpath.py).
+// there, as it does there), so the output is the same bit for bit (tests/reconstruction/test_recon_fastpath.py).
 // Blocks whose columns need the edge replicas (cp = 0, cp = n_cols + 1) or run past the row take
 // the element-wise path of apply_weights_interleaved16 instead, one column at a time.
 // Measured at paper-p010's shape: 2.5-2.6x the per-lane kernel at load 3, 1.6-1.8x (K = 8) and

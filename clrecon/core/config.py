@@ -94,7 +94,7 @@ def one_of(names):
 
 def field_of(default, allowed: str, check, doc: str = "", value_range: tuple | None = None):
     """A dataclass field carrying its check, the text of what is allowed, its doc and (for a number
-    in a range) the range ``(lo, hi)``, which the tests run at both ends (tests/hostile_scenes.py)."""
+    in a range) the range ``(lo, hi)``, which the tests run at both ends (tests/support/hostile_scenes.py)."""
     return field(default=default, metadata={"allowed": allowed, "check": check, "doc": doc, "range": value_range})
 
 

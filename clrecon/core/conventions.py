@@ -91,7 +91,7 @@ def circular_difference(c, c_ref):
     ``x - floor(x)`` with x = c - c_ref + 0.5, the same float64 values as ``x % 1.0`` (NumPy's
     remainder: an exact fmod, plus 1.0 for a negative one, one rounding either way; an exact
     +0.0 for whole x; NaN for NaN and inf) for every finite x below 2**52 in magnitude
-    (tests/test_conventions.py), and 7x faster: the planning calls it on every candidate of
+    (tests/core/test_conventions.py), and 7x faster: the planning calls it on every candidate of
     every slice (1.3 s of demo's 8.5 s planning of pitch 0.02 with ``%``).
     """
     d = np.asarray(c, dtype=np.float64) - np.asarray(c_ref, dtype=np.float64) + 0.5

@@ -19,10 +19,10 @@ import json
 import os
 import sys
 import time
-import warnings
 
 import numpy as np
 
+from clrecon.core.cl_build import BuildFailed, build_from_source
 from clrecon.core.errors import first_error_line
 from clrecon.core.kernel_sources import load_source
 
@@ -73,17 +73,10 @@ def probe_on(ctx, dev, force_fail: bool = False) -> dict:
 
     t0 = time.perf_counter()
     opts = list(PROBE_OPTIONS) + (["-DCLRECON_PROBE_FORCE_FAIL"] if force_fail else [])
-    raw = cl._Program(ctx, load_source("probe.cl"))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # PyOpenCL's "build succeeded with warnings" chatter
-        try:
-            raw.build(" ".join(opts).encode())
-        except cl.Error as err:
-            try:
-                log = raw.get_build_info(dev, cl.program_build_info.LOG)
-            except cl.Error:
-                log = ""
-            return {"ok": False, "reason": f"the kernel build failed: {first_error_line(log or err)}"}
+    try:
+        raw = build_from_source(cl, ctx, dev, load_source("probe.cl"), opts)
+    except BuildFailed as failed:
+        return {"ok": False, "reason": f"the kernel build failed: {first_error_line(failed.log or failed.error)}"}
     prog = cl.Program(raw)
     queue = cl.CommandQueue(ctx)
     x = probe_inputs()

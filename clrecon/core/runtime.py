@@ -23,12 +23,12 @@ import contextlib
 import hashlib
 import os
 import threading
-import warnings
 
 import numpy as np
 
 from clrecon.core import drivers
 from clrecon.core.cache import default_cache_dir
+from clrecon.core.cl_build import BuildFailed, build_from_source
 from clrecon.core.errors import OpenCLUnavailable, first_error_line
 from clrecon.core.kernel_sources import kernel_dir, load_source  # noqa: F401 - kernel_dir re-exported
 
@@ -173,23 +173,14 @@ class Runtime:
         if cached is not None and cached.is_file():
             try:
                 raw = cl._Program(self.context, [self.device], [cached.read_bytes()])
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    raw.build(" ".join(opts).encode())
+                raw.build(" ".join(opts).encode())  # the compiler-output warning: filtered in cl_build
                 return cl.Program(raw)
             except (cl.Error, OSError):  # a binary of another driver build, or damaged: build from source
                 cached.unlink(missing_ok=True)
-        raw = cl._Program(self.context, src)  # the unwrapped program (pyopencl's public 1-argument form below)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # PyOpenCL's "build succeeded with warnings" chatter
-            try:
-                raw.build(" ".join(opts).encode())
-            except cl.Error as err:
-                try:
-                    log = raw.get_build_info(self.device, cl.program_build_info.LOG)
-                except cl.Error:
-                    log = ""
-                raise KernelBuildError(name, self, opts, err, log) from err
+        try:
+            raw = build_from_source(cl, self.context, self.device, src, opts)
+        except BuildFailed as failed:
+            raise KernelBuildError(name, self, opts, failed.error, failed.log) from failed.error
         if cached is not None:
             self._keep_binary(raw, cached)
         return cl.Program(raw)

@@ -94,7 +94,7 @@ class Table2:
         of fresh ones. Fresh arrays of paper size are fresh pages (about 0.8 GB per volume here),
         whose first touch costs more than the arithmetic on a machine with dear page faults.
         Same values in arrays of the same shapes and layouts either way, so the same float64 sums,
-        bit for bit (tests/test_metrics.py)."""
+        bit for bit (tests/evaluation/test_metrics.py)."""
         if recon.shape != truth.shape:
             raise ValueError(f"recon shape {recon.shape} != truth shape {truth.shape}")
         sc = {} if scratch is None else scratch

@@ -159,7 +159,7 @@ def make_folds(c, a, offsets, dz=None, groups=None, scheme: str = "loto", nn_dis
     ``scheme``: ``"loto"``, ``"nndm"`` or ``"nndm_c"`` (need ``nn_distances``, the real task's
     target-to-nearest-candidate distances, :func:`target_nearest_distances`; for ``"nndm_c"``
     in cardiac phase alone). The held-out
-    candidate is never among its fold's members (tests/test_truth_free.py checks it). Folds
+    candidate is never among its fold's members (tests/evaluation/test_truth_free.py checks it). Folds
     with fewer than ``min_members`` members left are dropped.
     """
     if scheme not in SCHEMES or scheme == "interior":  # interior: interior_folds of the loto folds

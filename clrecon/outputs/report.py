@@ -283,7 +283,7 @@ def write_report(out_dir: Path, results: dict, pool=None) -> Path:
     lines += ["## Stages", "", "| stage | ran | seconds |", "|---|---|---|"]
     for name, st in results["stages"].items():
         why = f" ({st['skipped_because']})" if st.get("skipped_because") else ""
-        ran = "yes" if st["ran"] else "no" + why
+        ran = ("yes" + (f" ({st['does']})" if st.get("does") else "")) if st["ran"] else "no" + why
         if "beside_seconds" in st:  # computed in a thread beside the reconstruction; seconds = the wait
             ran += f", beside the reconstruction ({st['beside_seconds']:.2f} s there; the run waited the seconds)"
         lines.append(f"| {name} | {ran} | {st['seconds']:.2f} |")

@@ -10,7 +10,7 @@ group beyond the first is accumulated in another process that opens the same fil
 the run's helper process (``pool``, lent by the executor, :mod:`clrecon.pipeline.executors.local`),
 or ``processes`` spawned here (the benchmarks, the tests). Every accumulator still sees the same
 arrays in the same target order, so its float64 sums, and the results, are bit for bit those of
-one process (tests/test_metrics_processes.py). A process that cannot start makes its group run
+one process (tests/evaluation/test_metrics_processes.py). A process that cannot start makes its group run
 here, with the same numbers; an error inside one is raised as that error.
 """
 

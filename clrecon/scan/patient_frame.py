@@ -17,7 +17,7 @@ rotated in it, and the patient's LPS axes are the scanner axes with signs
 Head first / feet first turns the patient by 180 degrees about the vertical axis (y): left and
 superior swap sign; supine / prone by 180 degrees about the table axis (z): left and posterior
 swap sign. Both are rotations, so the image keeps its handedness: the sign of the determinant
-of ``diag(signs)`` is +1 for every position (``tests/test_measured_conventions.py`` checks the
+of ``diag(signs)`` is +1 for every position (``tests/scan/test_measured_conventions.py`` checks the
 table and the exported series). Decubitus positions are refused (not modelled).
 """
 

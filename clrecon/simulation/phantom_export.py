@@ -2,7 +2,7 @@
 
 The frames are what a user brings for ``[phantom] kind = "voxel"`` (docs/voxel-phantoms.md),
 made from the built-in thorax so the voxel path can be checked against the exact analytic
-path on the same scene (tests/test_voxel_phantom.py); no XCAT file can be shipped (XCAT is
+path on the same scene (tests/simulation/test_voxel_phantom.py); no XCAT file can be shipped (XCAT is
 licensed). What is written into ``OUT``:
 
 - ``--format xcat``: ``<name>_atn_<k>.bin`` (k = 1..N; float32 little-endian, slice x row x

@@ -2,7 +2,7 @@
 // the benchmarks' same-run references (the reconstruction runs kernels/interp.cl's
 // apply_weights_interleaved16_cols8): the plain one-work-item-per-element gather, the per-lane
 // interleaved kernel (the reconstruction's from 2026-12-03 to 2026-12-05) and the loop kernel
-// (until 2026-12-03). All give the cols8 kernel's sums bit for bit (tests/test_recon_fastpath.py).
+// (until 2026-12-03). All give the cols8 kernel's sums bit for bit (tests/reconstruction/test_recon_fastpath.py).
 
 // out[b, col] = sum_k weight[b, k] * rows[index[b, k], col].
 // One work-item per output element (gather, one owner), column fastest so neighbouring

@@ -1,6 +1,6 @@
 """The figures of docs/measured-data.md "Every convention, measured": rod and water per convention.
 
-The engine's simulator scans the rod phantom of ``tests/rod_phantom.py`` (water cylinder, bone rod at
+The engine's simulator scans the rod phantom of ``tests/support/rod_phantom.py`` (water cylinder, bone rod at
 (40, 24) mm, bone sphere; cylindrical detector with a quarter-channel offset), the DICOM-CT-PD writer
 writes it in each convention, and the measured reconstruction is measured: rod centre error (mm), water
 mean (HU), rod core (HU), and the orientation check's residuals for the reading and its mirrors.
@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parents[2] / "tests"))
+sys.path.insert(0, str(HERE.parents[2] / "tests" / "support"))
 import rod_phantom as rp
 
 from clrecon.config.scene import load_scene

@@ -2,7 +2,7 @@
 
 The same walk as the serial executor (:mod:`clrecon.pipeline.executors.base`), with four
 things done beside it; each computes the same functions on the same inputs, so the run is
-the same bit for bit (tests/test_executors.py):
+the same bit for bit (tests/pipeline/test_executors.py):
 
 - **a helper process** (one spawned worker for the whole run, its imports warm by the time
   they are needed): the nodes a stage offers to compute ahead (``Stage.ahead``: the later

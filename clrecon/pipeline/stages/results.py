@@ -68,7 +68,10 @@ def stage_table(run, skipped: set) -> dict:
             if clock.beside_seconds.get(part, 0.0) > 0:
                 out[part].update(beside_seconds=round(clock.beside_seconds[part], 3), waited_for=BESIDE)
     scene, rec = run.scene, run.records
-    if not scene.noise.enabled:
+    if scene.measured:  # a measured scan: "simulate" imports its projections, and they carry their own noise
+        out["noise"]["skipped_because"] = "a measured scan: the projections carry their own noise"
+        out["simulate"]["does"] = "imports the measured projections into the projection store"
+    elif not scene.noise.enabled:
         out["noise"]["skipped_because"] = "scene has noise.enabled = false"
     if sum(v["projections_simulated"] for v in rec["sim_info"].values()) == 0:
         out["simulate"].update(ran=False, skipped_because="every needed projection was already in the projection store")

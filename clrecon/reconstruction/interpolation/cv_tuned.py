@@ -5,7 +5,7 @@ Not a new estimator: the run cross-validates the fixed kernels on the scan's own
 error (by default the NNDM folds, heart channels) and hands it here as ``Options.tuned`` =
 ``(method, ((knob, value), ...))``; these weights are then exactly that method's weights with
 those knobs, so the reconstruction (same OpenCL kernels) is bit for bit the chosen method's
-(tests/test_truth_free.py). Without a choice (the interpolation API called directly) it is
+(tests/evaluation/test_truth_free.py). Without a choice (the interpolation API called directly) it is
 ``barycentric``. Opt-in: not in the ``recon.methods`` default.
 """
 

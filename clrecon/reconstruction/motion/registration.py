@@ -22,7 +22,7 @@ image. With the reference state's volume as ``fixed`` and a target's as ``moving
 motion-model field u(x_ref; target) of :mod:`clrecon.reconstruction.motion.model`.
 
 Determinism: neither registration samples at random; a repeated call gives the same bits
-(tests/test_motion_compensation.py). ITK's thread count is pinned (``DemonsConfig.threads``) so that
+(tests/reconstruction/test_motion_compensation.py). ITK's thread count is pinned (``DemonsConfig.threads``) so that
 a run does not depend on the machine's core count; that the demons' result is independent of the
 thread count itself has not been checked.
 """

@@ -19,7 +19,7 @@ The rule, per point p at state s0 mapped to state s1 (float64):
   cavity's own map takes it (the field is continuous there). From end-systole to end-diastole the
   outer ellipsoid's affine map carries 28 % of the wall's points into the cavity, this rule keeps
   99.9 % in the wall (the other way 95 %: the misses lie at the base, whose clip plane the rule
-  does not follow; tests/test_motion_compensation.py).
+  does not follow; tests/reconstruction/test_motion_compensation.py).
 - points in no object (air) do not move (:func:`displacement`; :func:`displacement_fields` fills them).
 
 What the rule cannot say: a uniform region's interior has no texture (the lungs, whose density

@@ -14,7 +14,7 @@ def test_builtins_load():
     for required in ("tiny", "demo", "paper-p002", "paper-p010"):
         assert required in names
     for n in names:
-        if n == "stress-high-pitch":  # invalid by design: tests/test_stress.py
+        if n == "stress-high-pitch":  # invalid by design: tests/scan/test_stress.py
             continue
         s = load_scene(n)
         assert s.name == n

@@ -3,7 +3,7 @@
 The engine's own simulator scans it (a static NIfTI voxel phantom, ``docs/voxel-phantoms.md``) on a
 cylindrical detector with a quarter-detector offset, as the issue-35 reference scan; the DICOM-CT-PD
 writer then writes the scan in each convention and the measured reconstruction must put the rod
-where it is (``tests/test_measured_conventions.py``). Lengths mm, LPS.
+where it is (``tests/scan/test_measured_conventions.py``). Lengths mm, LPS.
 """
 
 from __future__ import annotations

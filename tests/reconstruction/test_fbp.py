@@ -14,11 +14,12 @@ import math
 
 import numpy as np
 import pytest
+from fan_disks import disk_sinogram, radius_map, rel_max_err
 
 from clrecon.bench.fbp import bench_backprojection
 from clrecon.bench.reference_kernels import backproject_single
 from clrecon.config.scene import load_scene
-from clrecon.core.conventions import MU_WATER_PER_MM, detector_frames, mu_to_hu
+from clrecon.core.conventions import MU_WATER_PER_MM, mu_to_hu
 from clrecon.reconstruction.fbp import (
     WINDOWS,
     FanBeamGeometry,
@@ -98,35 +99,6 @@ def reference_filter(sino: np.ndarray, geom: FanBeamGeometry) -> np.ndarray:
     rows = np.asarray(sino, np.float64).reshape(-1, geom.n_cols) * cosine_weights(geom)
     out = np.array([np.convolve(r, h, mode="full")[geom.n_cols - 1:2 * geom.n_cols - 1] for r in rows])
     return (0.5 * tau * out).reshape(np.shape(sino))
-
-
-def rel_max_err(a, ref) -> float:
-    """max |a - ref| / max |ref| (absolute where ref is all zero)."""
-    err = float(np.max(np.abs(np.asarray(a, np.float64) - ref)))
-    scale = float(np.max(np.abs(ref)))
-    return err / scale if scale > 0 else err
-
-
-def disk_sinogram(geom: FanBeamGeometry, centre_mm, radius_mm: float, mu: float) -> np.ndarray:
-    """Exact line integrals (V, C) of a uniform disk: mu * chord 2 sqrt(r^2 - d^2).
-
-    d = perpendicular distance of the disk centre from the ray source -> detector cell,
-    built from ``detector_frames`` (the conventions module), not from the backprojector.
-    """
-    b = geom.view_angles_rad()
-    src, det, e_u, _ = detector_frames(b, np.zeros_like(b), geom.sid_mm, geom.sdd_mm)
-    u = geom.col_coords_mm()
-    cell = det[:, None, :2] + u[None, :, None] * e_u[:, None, :2]  # (V, C, 2)
-    d = cell - src[:, None, :2]
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    rel = np.asarray(centre_mm, np.float64) - src[:, None, :2]
-    dist = rel[..., 0] * d[..., 1] - rel[..., 1] * d[..., 0]
-    return mu * 2.0 * np.sqrt(np.clip(radius_mm ** 2 - dist ** 2, 0.0, None))
-
-
-def radius_map(geom: FanBeamGeometry, centre=(0.0, 0.0)) -> np.ndarray:
-    x, y = geom.pixel_coords_mm()
-    return np.hypot(x[None, :] - centre[0], y[:, None] - centre[1])
 
 
 # ---------------------------------------------------------------------------------------

@@ -197,7 +197,7 @@ def test_fuzzed_scene_dicts_are_refused_in_one_line_or_sane():
 
 
 # ---------------------------------------------------------------------------------------
-# the hostile grid: every key x VALUES (tests/hostile_scenes.py), on the tiny scene
+# the hostile grid: every key x VALUES (tests/support/hostile_scenes.py), on the tiny scene
 def _grid_outcomes():
     base = hostile.base_dict()
     for sec, key in hostile.grid_keys():
@@ -257,7 +257,7 @@ def test_docs_table_of_ranges_is_the_codes():
     from pathlib import Path
 
     from clrecon.simulation.phantoms.voxel import VoxelPhantomConfig
-    doc = (Path(__file__).resolve().parents[1] / "docs" / "hostile-inputs.md").read_text()
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "hostile-inputs.md").read_text()
     for sec, cls in list(SECTIONS.items()) + [("phantom", VoxelPhantomConfig)]:
         tag = " (voxel)" if cls is VoxelPhantomConfig else ""
         for f in fields(cls):
@@ -267,7 +267,7 @@ def test_docs_table_of_ranges_is_the_codes():
 
 
 #: Range ends and hostile values that reach the kernels, run end to end on the tiny scene (kept
-#: few: the full end-to-end grid is ``python tests/hostile_scenes.py --grids hostile,edge``).
+#: few: the full end-to-end grid is ``python tests/support/hostile_scenes.py --grids hostile,edge``).
 E2E_CASES = [
     ("scanner", "col_pitch_mm", "min", None),     # 1e-300 was a ZeroDivisionError in the ramp filter
     ("recon", "voxel_mm", "min", None),           # 1e-300 was a ZeroDivisionError in the motion metrics

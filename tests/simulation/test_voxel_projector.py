@@ -42,7 +42,7 @@ TOL = {
     "water_mean_h": (0.02, "the edge errors are unbiased: measured 0.005, ~5 standard errors"),
     # convergence to the analytic projector: partial-volume voxels and interpolation each move
     # an edge by O(h), so the line-integral error is first order in h (as measured for ray
-    # marching in tests/test_projector.py). The fitted order must exceed 0.75: 1 less a
+    # marching in tests/simulation/test_projector.py). The fitted order must exceed 0.75: 1 less a
     # quarter for pre-asymptotic behaviour at 4 mm, where voxels are as large as the smallest
     # structures (coronaries, 4.5 mm rib radius). Measured: 1.2.
     "order_min": (0.75, "first-order partial-volume error, less pre-asymptotic slack"),

@@ -126,7 +126,7 @@ def test_kill_mid_write_leaves_only_a_partial_file(tmp_path):
     finishes and replaces it."""
     out, cache = tmp_path / "run", tmp_path / "cache"
     env = dict(os.environ, CLRECON_FAULT="write:results.json:1", CLRECON_NO_PROGRESS="1",
-               PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+               PYTHONPATH=str(Path(__file__).resolve().parents[2]))
     cmd = [sys.executable, "-m", "clrecon"] + _argv(out, cache)
     p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert p.returncode == -9, p.stderr

@@ -1,7 +1,7 @@
 """Every convention a DICOM-CT-PD series can be written in, read right or refused (issue 35).
 
 The engine's simulator scans a water cylinder with an off-centre bone rod and a bone sphere
-(``tests/rod_phantom.py``) on a cylindrical detector with a quarter-detector offset; the DICOM-CT-PD
+(``tests/support/rod_phantom.py``) on a cylindrical detector with a quarter-detector offset; the DICOM-CT-PD
 writer writes the scan in one convention per test (pixel layout, channel and row numbering, gantry
 and table direction, flying focal spot, patient position); the measured reconstruction must put the
 rod within 0.5 mm of its true place and water within 1 HU, or refuse the series in one line, never

@@ -16,7 +16,7 @@ from clrecon.reconstruction.interpolation import weights as ip
 from clrecon.scan.table import projection_table
 
 # local_linear_weights kernel vs float64 reference, max |dl| / max(1, sum |l_ref|): the same
-# bounds as tests/test_interpolate.py (double: rounding; single: cond(C) <= 1/LL_RCOND x eps)
+# bounds as tests/reconstruction/test_interpolate.py (double: rounding; single: cond(C) <= 1/LL_RCOND x eps)
 TOL = {"ll_kernel_double": 1e-9, "ll_kernel_single": 1e-3, "weights_f64": 1e-9}
 
 TARGETS = np.array([[c, a] for c in (0.0, 0.2, 0.4, 0.6, 0.8) for a in np.arange(0.05, 1.0, 0.1)])

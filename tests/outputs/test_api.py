@@ -20,7 +20,7 @@ from clrecon.outputs.volumes import open_volumes, read_volume
 
 pytest.importorskip("xarray")
 
-DOC = Path(__file__).resolve().parents[1] / "docs" / "api.md"
+DOC = Path(__file__).resolve().parents[2] / "docs" / "api.md"
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ pytestmark = pytest.mark.oclgrind
 TOL = {
     "f64": 1e-9,     # double kernels vs float64 references: rounding
     "f32": 1e-5,     # float32 kernels vs float64 references, relative to the data scale
-    "ll_f32": 1e-3,  # single-precision local-linear solve (see tests/test_stiff.py)
+    "ll_f32": 1e-3,  # single-precision local-linear solve (see tests/reconstruction/test_stiff.py)
     "mc_f32": 2e-5,  # motion-compensated kernels: float32 fixed-point steps and moved coordinates
 }
 

@@ -3,7 +3,7 @@
 The projector's line integrals to curved cells are checked against an independent float64
 computation: the cell centres are built here from the definition (an arc of radius SDD centred
 on the focal centre, gamma_c = (c - central_col) col_pitch / SDD, rows at
-(r - central_row) row_pitch), and the chords through the quadrics by ``tests/ref_projector.py``
+(r - central_row) row_pitch), and the chords through the quadrics by ``tests/support/ref_projector.py``
 (textbook formulas), never through the flat-equivalent cells the projector uses.
 """
 
@@ -11,8 +11,9 @@ import dataclasses
 
 import numpy as np
 import pytest
+from projector_tolerances import tol
+from random_objects import random_objects
 from ref_projector import line_integrals
-from test_projector import random_objects, tol
 
 import clrecon.config.scene as scene_mod
 from clrecon.core.detector import CylindricalDetector, spot_shift_in_frame
@@ -131,7 +132,7 @@ TOL_SSRB = {
     # also interpolates columns at a float32 atan2 (~1e-7 rad = 4e-5 columns on random data)
     "kernel": 1e-5,
     "kernel_phi": 1e-4,
-    # SSRB of static ellipsoids vs the exact in-plane equiangular row (as tests/test_rebin.py)
+    # SSRB of static ellipsoids vs the exact in-plane equiangular row (as tests/reconstruction/test_rebin.py)
     "vs_exact_rms": 3e-3,
     "vs_exact_max": 1.5e-2,
 }
@@ -303,7 +304,7 @@ from clrecon.core.conventions import MU_WATER_PER_MM  # noqa: E402
 from clrecon.reconstruction import fbp as F  # noqa: E402
 
 TOL_FBP = {
-    # float32 kernel vs float64 reference, max |cl - ref| / max |ref| (as tests/test_fbp.py;
+    # float32 kernel vs float64 reference, max |cl - ref| / max |ref| (as tests/reconstruction/test_fbp.py;
     # the kernel's atan polynomial adds <= 1e-7 rad = 4e-5 columns at dgamma = 2.5 mrad)
     "backproject_f32": 3e-5,
     "filter_f32": 2e-6,
@@ -538,7 +539,7 @@ def test_motionless_scene_reaches_the_same_ground_truth_floor_on_both_detectors(
 
 # ---------------------------------------------------------------------------------------
 # z-FFS measured: the axial edge response of the SSRB + FBP chain, with and without
-from test_projector import make_object  # noqa: E402
+from random_objects import make_object  # noqa: E402
 
 
 def z_edge_profile(scene, z_slices, pitch):

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 import pytest
-from test_fbp import disk_sinogram, radius_map, rel_max_err
+from fan_disks import disk_sinogram, radius_map, rel_max_err
 
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import SceneError

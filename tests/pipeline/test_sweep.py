@@ -1,5 +1,5 @@
 """Study files of ``clrecon sweep`` (clrecon.pipeline.sweep): parsing, the grid, point names, errors.
-A sweep that runs (on a 2-worker cluster, and resumes) is in tests/test_distributed.py."""
+A sweep that runs (on a 2-worker cluster, and resumes) is in tests/pipeline/test_distributed.py."""
 
 import pytest
 

@@ -133,6 +133,10 @@ def test_measured_run_has_no_truth_and_no_identifiers(sim, measured_run):
     report = (out / "report.md").read_text()
     assert "error against truth is unavailable" in report
     assert "a measured scan has no ground truth, so no error" in report and (out / "figures" / "coronal.png").exists()
+    # the stage table says what "simulate" and "noise" mean for a measured scan, not the simulator's words
+    assert "own noise" in res["stages"]["noise"]["skipped_because"] and "noise.enabled" not in report
+    assert res["stages"]["simulate"]["does"] == "imports the measured projections into the projection store"
+    assert res["stages"]["simulate"]["ran"] is False or "| simulate | yes (imports the measured projections" in report
     for text in ((out / "results.json").read_text(), report, measured_run["log"]):
         assert "DOE^JANE" not in text and "PID-4711" not in text
     with h5py.File(out / "volumes.h5") as f:
@@ -409,7 +413,7 @@ def test_sigkill_mid_import_then_resume(sim, measured_run, tmp_path):
     code = ("import sys; from clrecon.config.scene import load_scene; "
             "from clrecon.simulation.measured import import_series; "
             "s = load_scene(sys.argv[1]); import_series(s, 0.1, cache_dir=sys.argv[2], chunk=64, progress=False)")
-    env = dict(os.environ, CLRECON_FAULT="simulate:3", PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env = dict(os.environ, CLRECON_FAULT="simulate:3", PYTHONPATH=str(Path(__file__).resolve().parents[2]))
     proc = subprocess.run([sys.executable, "-c", code, str(sim["exp"] / "measured.toml"), str(cache)], env=env,
                           capture_output=True, timeout=300)
     assert proc.returncode == -9, proc.stderr.decode()[-500:]

@@ -2,11 +2,11 @@
 
 Used twice:
 
-- ``tests/test_fuzz.py`` validates the whole grid (fast, no kernels) and asserts: no exception
+- ``tests/config/test_fuzz.py`` validates the whole grid (fast, no kernels) and asserts: no exception
   but a one-line :class:`~clrecon.core.errors.SceneError` naming the key and the value; a refusal
   for every case not in :data:`ACCEPTED`; acceptance for every case in it. A few accepted edge
   cases also run end to end there.
-- ``python tests/hostile_scenes.py --out FILE.jsonl`` measures the grid end to end (each accepted
+- ``python tests/support/hostile_scenes.py --out FILE.jsonl`` measures the grid end to end (each accepted
   scene run in its own process, with a time and memory limit): refusals, runs that finish, and
   what a user would see otherwise (a traceback, non-finite voxels, non-strict JSON). It imports
   only clrecon's public entry points, so it measures any version of clrecon on the path

@@ -64,7 +64,7 @@ def patient(tmp_path_factory):
     home = root / "home"
     home.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("CLRECON_CACHE",)}
-    env.update(HOME=str(home), PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env.update(HOME=str(home), PYTHONPATH=str(Path(__file__).resolve().parents[2]))
     proc = subprocess.run([sys.executable, "-m", "clrecon", "run", "--scene", str(pdir / "Doe_Jane.toml"),
                            "--out", str(out / "run"), "--methods", "nearest", "--no-progress"],
                           env=env, capture_output=True, text=True, timeout=900)

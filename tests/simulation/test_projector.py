@@ -1,11 +1,13 @@
 """Projector and voxeliser kernels against float64 references, exact cases and the phantom.
 
-Tolerances live in ``TOL`` below, each with its reason; nothing else in this file is a
-tolerance.
+Tolerances live in ``TOL`` (tests/support/projector_tolerances.py), each with its reason;
+nothing else in this file is a tolerance.
 """
 
 import numpy as np
 import pytest
+from projector_tolerances import EPS32, tol
+from random_objects import make_object, random_objects
 from ref_projector import project_views_ref
 from scipy.ndimage import map_coordinates
 
@@ -16,92 +18,6 @@ from clrecon.simulation import projector, voxelise
 from clrecon.simulation.phantoms import analytic as ph
 
 SID, SDD = 595.0, 1085.6
-EPS32 = float(np.finfo(np.float32).eps)
-
-#: The one tolerance table: name -> (value, reason).
-TOL = {
-    # |p - p_ref| <= atol + rtol |p_ref| per ray. rtol: float32 rounding of the record and
-    # the sums (a few eps per object). atol: a ray that grazes an object of radius r has a
-    # chord 2 r sqrt(1 - rho^2); float32 rho^2 costs ~ r eps / sqrt(1 - rho^2) of chord, at
-    # most ~ r sqrt(eps) exactly at tangency ("tangent_atol"). On sampled detectors the
-    # measured maximum over 12 random scenes of 10 objects (r <= 60 mm, |mu| <= 0.03) is
-    # 1.3e-5; 3e-5 leaves a factor 2.4.
-    "kernel_rtol": (2e-5, "float32 records and sums, a few eps per object"),
-    "kernel_atol": (3e-5, "grazing rays, measured max 1.3e-5 over 12 random scenes"),
-    "tangent_atol": (60.0 * np.sqrt(EPS32) * 0.03 * 2, "worst case at exact tangency: r sqrt(eps) mu"),
-    # the phantom: grazing rays on the body outline (r = 160 mm): measured 7e-5; 2e-4 is
-    # still 1/10 of the quantum noise of a line integral at 2e5 photons (~2.2e-3)
-    "phantom_atol": (2e-4, "grazing rays on the 160 mm body outline"),
-    # typical (not worst-case) agreement: root-mean-square over all rays
-    "phantom_rms": (2e-6, "float32 accumulation over ~40 objects of line integrals <= 6"),
-    # exact chord of a water cylinder: far from its edge only float32 rounding
-    "water_rtol": (2e-6, "float32 rounding, rays away from the edge"),
-    # the record kernel and its NumPy reference evaluate the same float64 formulas in a
-    # different order, then round to float32: a couple of float32 ulps
-    "record_rtol": (4 * EPS32, "float64 -> float32 rounding of the same formulas"),
-    "record_atol": (1e-9, "o, W0, B0: zero up to float64 rounding (|o| ~ 1e-14, |dc| ~ 1e3)"),
-    # culling only removes exact zeros and keeps the summation order
-    "culling": (0.0, "culled objects add +0.0; the order of the sum is unchanged"),
-    # analytic vs ray marching through the voxelised phantom (3x3x3 supersampled pixels,
-    # bilinear, steps of h/4): measured relative RMS 0.71 %, 0.34 %, 0.14 %, 0.064 % at
-    # h = 2, 1, 0.5, 0.25 mm (first order in h, as partial-volume edges are)
-    "voxel_rel_rms": (0.003, "voxelisation + interpolation error at h = 0.5 mm (measured 0.14 %)"),
-    "voxel_convergence": (0.6, "halving h must shrink the error (measured ratio 0.41)"),
-    # voxeliser vs float64 point samples: decisions differ only for samples within float32
-    # rounding of a surface
-    "voxelise_mismatch_fraction": (2e-4, "float32 inside tests of samples on a surface"),
-}
-
-
-def tol(name):
-    return TOL[name][0]
-
-
-# ---------------------------------------------------------------------------------------
-def random_rotation(rng):
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q *= np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    return q
-
-
-def make_object(kind, mu, centre, axes, semi, planes=(), cuts=()):
-    o = np.zeros(ph.STRIDE)
-    o[ph.KIND], o[ph.MU] = kind, mu
-    o[ph.CENTRE], o[ph.AXES], o[ph.SEMI] = centre, np.asarray(axes).reshape(9), semi
-    o[20] = o[24] = 1.0
-    for k, (n, d) in enumerate(planes):
-        o[17 + 4 * k:20 + 4 * k], o[20 + 4 * k] = n, d
-    for k in range(ph.N_CUTS):
-        mi, cs, ca, cm = ph.cut_fields(k)
-        if k < len(cuts):
-            mode, cc, cax, csemi = cuts[k]
-            o[mi], o[cs], o[ca], o[cm] = mode, cc, np.asarray(cax).reshape(9), csemi
-        else:
-            o[ca], o[cm] = np.eye(3).reshape(9), 1.0
-    return o
-
-
-def random_objects(rng, n):
-    objs = []
-    for _ in range(n):
-        kind = rng.choice([ph.KIND_ELLIPSOID, ph.KIND_CYLINDER])
-        centre = rng.uniform(-80, 80, 3)
-        semi = rng.uniform(5, 60, 3)
-        planes = []
-        for _ in range(rng.integers(0, 3)):
-            nrm = rng.normal(size=3)
-            nrm /= np.linalg.norm(nrm)
-            planes.append((nrm, nrm @ centre + rng.uniform(-0.3, 0.8) * semi.min()))
-        cuts = []
-        for _ in range(rng.integers(0, 3)):
-            mode = rng.choice([ph.CUT_SUBTRACT, ph.CUT_INTERSECT])
-            size = rng.uniform(20, 70, 3) if mode == ph.CUT_INTERSECT else rng.uniform(5, 40, 3)
-            cuts.append((mode, centre + rng.uniform(-20, 20, 3), random_rotation(rng), size))
-        objs.append(make_object(kind, rng.uniform(-0.02, 0.03), centre, random_rotation(rng), semi, planes, cuts))
-    return np.array(objs)
-
 
 def views(rng, m, z_spread=40.0):
     beta = rng.uniform(0, 2 * np.pi, m)

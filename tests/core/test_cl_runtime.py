@@ -34,7 +34,7 @@ def test_include_expansion(tmp_path, monkeypatch):
 
 def test_default_device_is_a_cpu_driver_that_passed_the_probe():
     """Without CLRECON_DEVICE the runtime takes the first CPU driver in clrecon's order that passes the
-    probe (tests/test_drivers.py tests the order and the fallback); with it, exactly that platform."""
+    probe (tests/core/test_drivers.py tests the order and the fallback); with it, exactly that platform."""
     rt = cl_runtime.get_runtime()
     assert rt.is_cpu
     assert cl_runtime.get_runtime() is rt

@@ -1,6 +1,6 @@
 """Rewrite ``demo_metrics.json`` from a fresh run of the demo scene (on purpose, in review).
 
-    python tests/regression/update_demo_record.py [RUN_DIR]
+    python tests/evaluation/regression/update_demo_record.py [RUN_DIR]
 
 With RUN_DIR, the record is taken from that finished run of ``python -m clrecon run`` (the demo
 scene) instead of running it again. The diff of the JSON file is the review: every changed

@@ -25,7 +25,8 @@ def test_backprojector_section_tiny():
 
 def test_mc_backproject_bench_tiny():
     """The motion-compensated kernel, its other lane build and the scalar kernel on the same buffers
-    of each installed CPU driver; outputs agree to float32 rounding (tests/test_motion_compensation.py)."""
+    of each installed CPU driver; outputs agree to float32 rounding
+    (tests/reconstruction/test_motion_compensation.py)."""
     from benchmarks.mc_backproject import bench_mc_backproject
     from benchmarks.mc_backproject import report_lines as mc_lines
 
