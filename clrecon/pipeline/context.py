@@ -29,6 +29,7 @@ from clrecon.pipeline import preflight
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, reconstruct
 from clrecon.reconstruction.config import MotionCompensationConfig
+from clrecon.reconstruction.motion import registration
 from clrecon.reconstruction.reconstruct import Targets
 from clrecon.simulation.store import default_cache_dir
 
@@ -146,6 +147,7 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
         if len(slices_z) < 2:
             raise ClreconError(f"method {m!r} registers the volumes along z: it needs at least 2 slices, the run "
                                f"has {len(slices_z)}")
+        registration.require("skimage.registration")  # before any work: one line naming the extra
     run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches,
                                     overlap=executor_kind != "serial")
     cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()

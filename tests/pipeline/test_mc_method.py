@@ -129,6 +129,23 @@ def test_mc_needs_its_first_pass(tmp_path):
         run(load_scene("tiny"), tmp_path / "o", methods=["nearest", "mc"], cache_dir=tmp_path / "c", **QUIET)
 
 
+def test_without_the_motion_extra_clrecon_runs_and_mc_says_what_to_install(tmp_path):
+    """The registration libraries are an extra: importing the run pulls neither in, and asking for
+    mc without them is one line naming the extra, before any file is written."""
+    code = ("import sys; import clrecon.cli, clrecon.pipeline.run, clrecon.pipeline.graph; "
+            "print(sorted(m for m in ('skimage', 'SimpleITK') if m in sys.modules))")
+    got = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert got.returncode == 0 and got.stdout.strip() == "[]", got.stderr
+    hide = ("import sys; sys.modules['skimage'] = None; sys.modules['skimage.registration'] = None; "
+            "from clrecon.cli import main; sys.exit(main())")
+    cmd = [sys.executable, "-c", hide, "run", "--scene", "tiny", "--methods", METHODS, "--out", str(tmp_path / "o"),
+           "--cache", str(tmp_path / "c"), "--no-progress"]
+    got = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    lines = got.stderr.strip().splitlines()
+    assert got.returncode != 0 and len(lines) == 1 and "pip install 'clrecon[motion]'" in lines[0], got.stderr
+    assert "Traceback" not in got.stderr and not (tmp_path / "o").exists()
+
+
 def test_mc_on_a_cylindrical_detector_with_a_flying_focal_spot(tmp_path):
     """The plane rows are the pipeline's SSRB (equiangular columns, each spot's own fan): on the
     curved, z-FFS tiny scan mc stays within the range of the flat one (a geometry slip would not)."""

@@ -31,11 +31,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.ndimage
-import SimpleITK as sitk
-from skimage.registration import optical_flow_ilk
+
+from clrecon.core.errors import ClreconError
+
+if TYPE_CHECKING:
+    import SimpleITK as sitk
+
+#: The extra that installs the registration libraries (pyproject.toml ``[project.optional-dependencies]``).
+EXTRA = "pip install 'clrecon[motion]'"
+
+
+def require(module: str = "skimage"):
+    """The registration library ``module`` (``skimage`` for the optical flow, ``SimpleITK`` for the
+    demons), imported here so that the rest of clrecon runs without them; one line if missing."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as e:
+        raise ClreconError(f"the mc method registers its first pass with {module}, which is not installed "
+                           f"({e}): {EXTRA}") from None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,12 +131,13 @@ def _flow(f: np.ndarray, m: np.ndarray, spacing_mm: tuple, cfg: FlowConfig) -> n
         ims.append(a.astype(np.float32))
     # optical_flow_ilk(reference, moving) returns v (per axis z, y, x, voxels) with
     # moving(x + v(x)) ~ reference(x): the convention of register()
-    v = optical_flow_ilk(ims[0], ims[1], radius=cfg.radius, num_warp=cfg.num_warp, gaussian=cfg.gaussian,
-                         prefilter=False)
+    flow = require("skimage.registration").optical_flow_ilk
+    v = flow(ims[0], ims[1], radius=cfg.radius, num_warp=cfg.num_warp, gaussian=cfg.gaussian, prefilter=False)
     return np.stack([v[2] * spacing_mm[0], v[1] * spacing_mm[1], v[0] * spacing_mm[2]]).astype(np.float32)
 
 
 def _image(vol: np.ndarray, spacing: tuple, origin: tuple) -> sitk.Image:
+    sitk = require("SimpleITK")
     img = sitk.GetImageFromArray(np.ascontiguousarray(vol, np.float32))
     img.SetSpacing(tuple(float(s) for s in spacing))
     img.SetOrigin(tuple(float(o) for o in origin))
@@ -125,6 +145,7 @@ def _image(vol: np.ndarray, spacing: tuple, origin: tuple) -> sitk.Image:
 
 
 def _prepare(img: sitk.Image, cfg: DemonsConfig) -> sitk.Image:
+    sitk = require("SimpleITK")
     lo, hi = cfg.hu_window
     out = sitk.Clamp(img, sitk.sitkFloat32, float(lo), float(hi))
     if cfg.image_sigma_mm > 0:
@@ -167,6 +188,7 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
         return _flow(f, m, tuple(float(s) for s in spacing_mm), cfg)
     if not isinstance(cfg, DemonsConfig):
         raise TypeError(f"cfg: expected a DemonsConfig or FlowConfig, got {type(cfg).__name__}")
+    sitk = require("SimpleITK")
     if cfg.threads > 0:
         sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(cfg.threads))
     fi = _prepare(_image(f, spacing_mm, origin_mm), cfg)
