@@ -161,3 +161,26 @@ def test_slabs_are_sized_by_each_slices_candidates_not_the_first_slices():
     assert sizes[0] > max(sizes[len(sizes) // 2 - 1:len(sizes) // 2 + 2])  # the ends take more slices
     assert slab_ranges(np.array([9e6, 1.0]), budget=5e6) == [(0, 1), (1, 2)]  # one slice over budget: alone
     assert slab_ranges(np.zeros(0)) == []
+
+
+def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
+    """mc's second pass (plane rows, kept rows, volumes, fields) on top of the run's peak, sized at
+    the pitch whose slabs use the most projections; the knobs it depends on move it."""
+    from clrecon.pipeline.stages import mc_reconstruct
+    from clrecon.reconstruction.rebin import slice_window_mm
+
+    scene = load_scene("demo")
+    paper = ("barycentric", "local_linear", "r4dct", "nearest", "bin", "helical")
+    base = run_costs(scene, methods=paper)["peak_memory_bytes"]
+    with_mc = run_costs(scene, methods=(*paper, "mc"))["peak_memory_bytes"]
+    sc, rc = scene.scanner, scene.recon
+    w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
+    ext = (rc.nz - 1) * rc.slice_mm
+    per_pitch = {p: mc_reconstruct.working_bytes(sc, w, rc.mc, ext, scene.scan.feed_mm(sc, p), 2, 50, rc.nz, rc.ny,
+                                                 rc.nx) for p in scene.scan.pitches}
+    assert per_pitch[0.02] > per_pitch[0.1] > 0   # the lower pitch: more projections per slab
+    assert with_mc - base >= per_pitch[0.02]
+    # measured 2026-12-06: demo with mc peaked at 2.65 GB RSS; the model must not be below it by much
+    assert 2.4e9 < with_mc < 3.5e9
+    coarse = api.load_scene("demo", recon={"mc": {"downsample": 2}})
+    assert run_costs(coarse, methods=(*paper, "mc"))["peak_memory_bytes"] < with_mc

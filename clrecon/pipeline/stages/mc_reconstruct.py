@@ -65,6 +65,30 @@ def slab_ranges(table, scanner, cfg, slices_z, knobs, budget: float = ROWS_BYTES
     return out
 
 
+def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
+                  n_targets: int, nz: int, ny: int, nx: int) -> int:
+    """Modelled memory of the stage at one pitch (bytes), beside the process's baseline.
+
+    The plane rows of a slab ((planes, n_cols) float32 per projection it uses, the projections
+    within the SSRB window plus ``knobs.margin_mm`` of its slices: at most ``ROWS_BYTES``), kept for
+    the final pass for every noise variant (when they fit ``ROWS_BYTES``) plus one variant's copy on
+    the device (host memory on a CPU driver); the first pass of one variant, the previous round's
+    images and the slab's output, float32 (3 x targets x slices x ny x nx); the registration's
+    fields (13 registrations and the model's basis, 3 components each, at the registration's
+    grid). ``demo`` (pitch 0.02, 2 variants): 1.36 GB, on top of the run's 1.35 GB modelled before it
+    (:func:`clrecon.pipeline.costs.run_costs`): 2.72 GB against a peak RSS of 2.65 GB measured
+    (2026-12-06, the whole run, Intel's runtime; 1.25 GB without ``mc``)."""
+    w = window_mm  # the SSRB slice window (reconstruction.rebin.slice_window_mm)
+    per_proj = (int((2 * (w + knobs.plane_dz_mm)) / knobs.plane_dz_mm) + 2) * scanner.n_cols * 4
+    n_proj = (z_extent_mm + 2 * (w + knobs.margin_mm)) / feed_mm * scanner.views_per_rotation
+    rows = min(ROWS_BYTES, n_proj * per_proj)
+    kept = n_var * rows if n_var * rows <= ROWS_BYTES else 0.0
+    f = max(1, knobs.downsample)
+    volumes = 3 * n_targets * nz * ny * nx * 4
+    fields = (13 + 1 + 2 * knobs.resp_degree + 2 * knobs.cardiac_harmonics) * 3 * nz * (ny // f) * (nx // f) * 4
+    return int(kept + rows + volumes + fields)
+
+
 def _model_path(run, pk: str, variant: str):
     folder = run.writer.units_dir / "mc"
     hits = sorted(folder.glob(f"model~{pk}~{variant}.*{units.SUFFIX}")) if folder.is_dir() else []
