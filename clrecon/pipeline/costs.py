@@ -7,6 +7,7 @@ from clrecon.core import write_behind
 from clrecon.core.errors import SceneError
 from clrecon.outputs.volumes import resolve_compression
 from clrecon.pipeline import evaluate
+from clrecon.pipeline.stages import mc_reconstruct
 from clrecon.pipeline.stages import truth as truth_stage
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import fbp as fbp_mod
@@ -95,8 +96,6 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     if "mc" in methods:  # the motion-compensated second pass, at its worst pitch, on top: the process
         # does not give the reconstruction's memory back to the system before it (demo: peak RSS 1.25 GB
         # without mc, 2.65 GB with it, 2026-12-06)
-        from clrecon.pipeline.stages import mc_reconstruct
-
         peak += max(mc_reconstruct.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p), n_var,
                                                  n_targets, nz, rc.ny, rc.nx) for p in pitches)
     if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)

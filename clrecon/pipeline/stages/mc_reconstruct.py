@@ -75,8 +75,8 @@ def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     the device (host memory on a CPU driver); the first pass of one variant, the previous round's
     images and the slab's output, float32 (3 x targets x slices x ny x nx); the registration's
     fields (13 registrations and the model's basis, 3 components each, at the registration's
-    grid). ``demo`` (pitch 0.02, 2 variants): 1.36 GB, on top of the run's 1.35 GB modelled before it
-    (:func:`clrecon.pipeline.costs.run_costs`): 2.72 GB against a peak RSS of 2.65 GB measured
+    grid). ``demo`` (pitch 0.02, 2 variants): 1.36 GB, on top of the run's 1.44 GB modelled before it
+    (:func:`clrecon.pipeline.costs.run_costs`): 2.81 GB against a peak RSS of 2.65 GB measured
     (2026-12-06, the whole run, Intel's runtime; 1.25 GB without ``mc``)."""
     w = window_mm  # the SSRB slice window (reconstruction.rebin.slice_window_mm)
     per_proj = (int((2 * (w + knobs.plane_dz_mm)) / knobs.plane_dz_mm) + 2) * scanner.n_cols * 4
