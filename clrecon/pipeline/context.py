@@ -174,7 +174,7 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
     if writer.resumed:
         run.log("resuming an interrupted run: finished slices and targets are kept")
     for key in ("sim_info", "diagnostics", "sampling", "recorded_signals", "method_seconds", "method_plan_seconds",
-                "truth_free", "metrics", "respiratory_only", "motion"):
+                "truth_free", "consistency", "metrics", "respiratory_only", "motion"):
         run.records[key] = {}
     run.records["units_written"] = {"projections": 0}
     run.records["counts"] = {}

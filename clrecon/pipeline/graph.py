@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 from clrecon.pipeline.stages import (
     assemble,
+    consistency,
     mc_reconstruct,
     metrics,
     plan,
@@ -78,6 +79,9 @@ GRAPH = (
     Stage("mc_reconstruct", mc_reconstruct.stage, ("plan", "store", "recon"), ("mc", "volume_units"), True,
           ("registration", "plane_rows", "mc_backproject", "write_volumes"), "registration",
           write_part="write_volumes", skip=mc_reconstruct.skip, optional=True, priority=5),
+    # gives volume_units too: it reads the methods' unit files back, so assemble waits for it
+    Stage("consistency", consistency.stage, ("plan", "store", "mc"), ("consistency", "volume_units"), True,
+          ("consistency",), "consistency", skip=consistency.skip, optional=True),
     Stage("truth", truth.stage, gives=("truths", "volume_units"), parts=("groundtruth", "phantom_truth"),
           skip=truth.skip, beside="simulate"),
     Stage("assemble", assemble.stage, ("volume_units",), ("volumes",), parts=("assemble_volumes",),

@@ -69,6 +69,27 @@ def test_mc_volumes_land_in_volumes_h5_metrics_and_report(reference):
     assert "mc" in (out / "report.md").read_text()
 
 
+def test_the_consistency_check_judges_mc_against_its_first_pass(reference):
+    """Stage consistency (docs/motion-model.md "Did it help?"): every 5D method's residual against
+    the rows, per variant, and a verdict of mc against barycentric, in results.json and the report."""
+    out, res = reference
+    ent = res["consistency"]["p0.100"]
+    assert ent["n_rows"] > 0 and ent["config"]["methods"] == ["barycentric", "nearest", "mc"]
+    for v in ("noise-free", "noisy"):
+        r = ent["residual"][v]
+        assert set(r) == {"barycentric", "nearest", "mc"}
+        for e in r.values():
+            assert 0 < e["heart_rms_hu_mm"] and 0 < e["rms_hu_mm"] and e["heart_cells"] < e["cells"]
+        assert r["mc"]["rms_hu_mm"] != r["barycentric"]["rms_hu_mm"]
+        ver = ent["verdict"][v]
+        assert ver["helped"] in (True, False, None) and ver["against"] == "barycentric"
+        assert ver["regions"]["all"]["ratio"] == pytest.approx(r["mc"]["rms_hu_mm"] / r["barycentric"]["rms_hu_mm"])
+    assert "noise_floor_hu_mm" in ent["residual"]["noisy"]["mc"] and "noise_floor_hu_mm" not in \
+        ent["residual"]["noise-free"]["mc"]
+    assert res["stages"]["consistency"]["ran"]
+    assert "Did mc help?" in (out / "report.md").read_text()
+
+
 # fault -> (recon unit files the rerun writes, models it loads, variants it registers again); the
 # serial run writes barycentric and nearest of both variants (4 units), then the 2 models, then mc's 2
 MC_CASES = {
@@ -177,6 +198,13 @@ def test_mc_on_a_measured_scan_reconstructs_what_it_does_on_the_simulation(tmp_p
         bary = b["recon/p0.100/measured/barycentric"][()].astype(float)
     assert np.all(np.isfinite(meas)) and np.abs(meas - sim).max() < 0.25, np.abs(meas - sim).max()
     assert np.abs(meas - bary).max() > 10.0  # and it is mc's image, not the first pass
+    # the truth-free check runs on the measured rows (the noisy simulation's, so the same verdict)
+    cons = res["consistency"]["p0.100"]
+    assert set(cons["residual"]) == {"measured"} and "noise_floor_hu_mm" not in cons["residual"]["measured"]["mc"]
+    sim = reference[1]["consistency"]["p0.100"]
+    assert cons["verdict"]["measured"]["helped"] == sim["verdict"]["noisy"]["helped"]
+    assert cons["residual"]["measured"]["mc"]["rms_hu_mm"] == pytest.approx(
+        sim["residual"]["noisy"]["mc"]["rms_hu_mm"], rel=1e-3)
 
 
 def test_mc_on_two_dask_workers_is_bit_identical(tmp_path, reference):

@@ -106,6 +106,14 @@ def test_stage_times_name_the_whole_wall(tiny_run):
     assert abs(named + st["unaccounted"]["seconds"] - res["total_seconds"]) < 0.01
 
 
+def test_a_run_without_mc_does_not_pay_for_its_consistency_check(tiny_run):
+    """The truth-free check of mc (stage consistency) is skipped and left out when mc is not asked for."""
+    out, res = tiny_run
+    assert "mc" not in res["request"]["methods"]
+    assert "consistency" not in res and "consistency" not in res["stages"]
+    assert "Did mc help?" not in (out / "report.md").read_text()
+
+
 def test_second_run_reuses_the_store(tmp_path, cache, tiny_run):
     res = run(load_scene("tiny"), tmp_path, methods=["nearest"], cache_dir=cache, progress=False,
               log=lambda *a: None)

@@ -13,11 +13,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from clrecon.evaluation import truth_free
+from clrecon.evaluation import consistency, truth_free
 from clrecon.outputs.volumes import pitch_key
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.context import TUNED
 from clrecon.pipeline.executors.base import Idle
+from clrecon.pipeline.stages import consistency as consistency_stage
 from clrecon.reconstruction import interpolation, reconstruct
 
 
@@ -91,6 +92,11 @@ def stage(run, pitch: float, ahead=None) -> PitchWork | Idle:
         if TUNED in methods:
             needed[np.unique(reconstruct.candidate_groups_of(run.recon_cfg, pp.plan_table,
                                                              run.slices_z[slices]).projection)] = True
+        run.clock.add("plan", time.perf_counter() - t0)
+    if consistency_stage.METHOD in run.methods:  # the consistency check reads every candidate of its sampled slices
+        t0 = time.perf_counter()
+        needed = needed.copy()
+        needed[consistency.needed_projections(run.recon_cfg, pp.plan_table, run.slices_z)] = True
         run.clock.add("plan", time.perf_counter() - t0)
     run.records["diagnostics"][pk] = pp.diagnostics
     run.records["sampling"][pk] = pp.sampling

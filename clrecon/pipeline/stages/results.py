@@ -124,6 +124,8 @@ def stage(run, pitch=None, volumes=None, metrics=None) -> dict:
         measured_record.annotate_results(results, scene, run.log)
     if run.want_truth_free:
         results["truth_free"] = rec["truth_free"]
+    if "mc" in run.methods:  # the truth-free check of mc (stage consistency)
+        results["consistency"] = rec["consistency"]
     summary = run.extra["summary"]()
     if summary is not None:
         results["distributed"] = summary

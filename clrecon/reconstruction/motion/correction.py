@@ -56,7 +56,7 @@ def state_bins(cardiac_phase, resp_amplitude, n_cardiac: int, n_resp: int):
     return ic * n_resp + ia, np.stack([cc.ravel(), aa.ravel()], axis=1)
 
 
-def _inplane_frames(detector, geom: FanBeamGeometry, view, z_mm):
+def inplane_frames(detector, geom: FanBeamGeometry, view, z_mm):
     """Frames of in-plane rows (source in the row's plane) of the given views and plane z's, as the ground truth."""
     beta = geom.view_angles_rad()[view]
     (src, centre, eu, ev), (u, _, vs) = analytic_projector.spot_frames(detector, beta, z_mm, (0, 0, 0))
@@ -98,7 +98,7 @@ def model_rows(model_volume_mu, model: MotionModel, detector, geom: FanBeamGeome
     q = bi * len(zs) + zi
     g = model.grid
     origin = (-0.5 * (g.nx - 1) * g.voxel_mm, -0.5 * (g.ny - 1) * g.voxel_mm, 0.0)
-    (src, centre, eu, ev), u, vs = _inplane_frames(detector, geom, view, q * STACK_DZ_MM)
+    (src, centre, eu, ev), u, vs = inplane_frames(detector, geom, view, q * STACK_DZ_MM)
     out = project_volume(stack, origin, (g.voxel_mm, g.voxel_mm, STACK_DZ_MM), src, centre, eu, ev, u,
                          np.zeros(1), rt=rt, v_scale=vs)
     return out[:, 0, :]

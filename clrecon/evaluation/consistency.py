@@ -1,0 +1,343 @@
+"""Data consistency of a 5D method's volumes with the measured rows: a truth-free check of ``mc``.
+
+For sampled (slice, view) groups (the truth-free sampling: :func:`clrecon.evaluation.truth_free.sample_slices`,
+every ``view_step``-th view, every SSRB candidate row of :class:`clrecon.reconstruction.rebin.CandidateGroups`),
+each rebinned row y_k, recorded at state (c_k, a_k), is compared with what a method's volumes
+predict for it: the in-plane projection P_k of the method's image at (c_k, a_k),
+
+    e_k = y_k - P_k I(c_k, a_k),
+
+I(c, a) the method's target images interpolated to (c, a) over the target lattice (bilinear,
+periodic in c, the amplitude clipped to the lattice's range; :func:`lattice_weights`). Projection
+is linear, so each target image is projected and the projections are interpolated. P_k has the
+geometry of the ground truth's in-plane rows and of the motion model's correction step
+(:func:`clrecon.reconstruction.motion.correction.inplane_frames`: flat or cylindrical cells, a
+flying focal spot's source), by the voxel projector (:func:`clrecon.simulation.voxel_projector.project_volume`,
+Joseph's method). No ground truth is used: it runs on measured scans.
+
+Units: line integrals times 1000 / mu_water, "HU mm" (1000 HU mm = 1 mm of water path), as
+:mod:`clrecon.evaluation.truth_free`. Regions: ``all``, the channels whose ray passes through
+the reconstruction circle (``recon.object_radius_mm``); ``heart``, the channels whose ray crosses
+the heart box ``recon.small_fov_mm`` (:func:`clrecon.evaluation.truth_free.heart_channels`).
+
+What it can say and its biases (docs/motion-model.md "Did it help? A truth-free check"): the
+rows were used to make the volumes (for ``mc``'s variant A with the same barycentric weights as
+barycentric itself, so the leakage is comparable between the two); SSRB rows differ from ideal
+in-plane rows by 0.5-0.8 % of the row norm and the FBP's filter window smooths every image, the
+same for every method; noise adds var(y_k) to every method's mean square alike. A method is
+compared with another by the difference of their mean squared residuals, with a jackknife over
+blocks of (slice, consecutive sampled views) (:func:`compare`): it says whether the difference is
+consistent over the sampled geometry, not what another noise draw would give.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from clrecon.evaluation import truth_free
+from clrecon.reconstruction import reconstruct as rc_mod
+from clrecon.reconstruction.motion.correction import STACK_DZ_MM, inplane_frames
+from clrecon.simulation.voxel_projector import project_volume
+
+REGIONS = ("all", "heart")
+#: |z| of the jackknife's difference above which a comparison says "helped" / "worse".
+Z_DECIDES = 2.0
+
+
+@dataclass(frozen=True)
+class ConsistencyConfig:
+    """Sampling of the check: at most ``max_slices`` slices (evenly spread), every ``view_step``-th
+    view (the truth-free defaults, so the same projections serve both), ``block_views`` sampled
+    views per jackknife block."""
+
+    max_slices: int = 4
+    view_step: int = 4
+    block_views: int = 8
+
+    def truth_free_config(self) -> truth_free.TruthFreeConfig:
+        return truth_free.TruthFreeConfig(max_slices=self.max_slices, view_step=self.view_step)
+
+
+def lattice_weights(c, a, cardiac, resp):
+    """Bilinear weights of states (c, a) over a target lattice: ``(index (p, 4) int64, weight (p, 4) float64)``.
+
+    ``index`` is the flat target ``i * len(resp) + j`` (cardiac-major, as the volumes' first two
+    axes). Cardiac phase is periodic: between the largest target phase and the smallest + 1 the
+    weights wrap around. The amplitude is clipped to [min(resp), max(resp)]. An axis of one
+    target takes weight 1 on it. Targets need not be evenly spaced; they must be distinct.
+    """
+    c = np.mod(np.asarray(c, np.float64), 1.0)
+    a = np.asarray(a, np.float64)
+    if c.shape != a.shape or c.ndim != 1:
+        raise ValueError(f"c {c.shape} and a {a.shape}: expected two (p,) arrays")
+    ci, cw = _axis_weights(c, np.asarray(cardiac, np.float64), periodic=True)
+    ri, rw = _axis_weights(a, np.asarray(resp, np.float64), periodic=False)
+    nr = len(resp)
+    index = (ci[:, :, None] * nr + ri[:, None, :]).reshape(-1, 4)
+    weight = (cw[:, :, None] * rw[:, None, :]).reshape(-1, 4)
+    return index.astype(np.int64), weight
+
+
+def _axis_weights(x, lattice, periodic: bool):
+    """Linear weights of x (p,) between its two neighbours on ``lattice`` (n,): ((p, 2) int, (p, 2))."""
+    n = lattice.size
+    if n == 0 or np.unique(lattice).size != n:
+        raise ValueError(f"target lattice {lattice.tolist()}: must be non-empty and distinct")
+    p = x.size
+    if n == 1:
+        return np.zeros((p, 2), np.int64), np.column_stack([np.ones(p), np.zeros(p)])
+    order = np.argsort(lattice)
+    s = lattice[order]
+    if periodic:
+        s = np.mod(s, 1.0)
+        order = order[np.argsort(s)]
+        s = np.sort(s)
+        ext = np.concatenate([s, [s[0] + 1.0]])
+        xx = np.where(x < s[0], x + 1.0, x)
+        k = np.clip(np.searchsorted(ext, xx, side="right") - 1, 0, n - 1)
+        lo, hi = ext[k], ext[k + 1]
+        t = (xx - lo) / (hi - lo)
+        return np.column_stack([order[k], order[(k + 1) % n]]), np.column_stack([1.0 - t, t])
+    xx = np.clip(x, s[0], s[-1])
+    k = np.clip(np.searchsorted(s, xx, side="right") - 1, 0, n - 2)
+    t = (xx - s[k]) / (s[k + 1] - s[k])
+    return np.column_stack([order[k], order[k + 1]]), np.column_stack([1.0 - t, t])
+
+
+def inplane_projections(images_mu, voxel_mm: float, detector, geom, image, view, rt=None) -> np.ndarray:
+    """In-plane rows of images: row m is image ``image[m]`` projected at view ``view[m]``, (m, C) float32.
+
+    ``images_mu`` (Q, ny, nx) attenuation (1/mm) on the reconstruction grid (voxel centres
+    :func:`clrecon.core.conventions.voxel_coords`, ``[iy, ix]`` as the FBP writes them); ``geom``
+    the reconstruction's :class:`clrecon.reconstruction.fbp.FanBeamGeometry`; ``detector`` the
+    scanner's detector model. The images are stacked ``STACK_DZ_MM`` apart along z and each row's
+    rays lie in its image's plane (:mod:`clrecon.reconstruction.motion.correction`'s ``model_rows``).
+    """
+    imgs = np.ascontiguousarray(images_mu, np.float32)
+    image = np.asarray(image, np.int64)
+    view = np.asarray(view, np.int64)
+    if imgs.ndim != 3 or image.shape != view.shape or image.ndim != 1:
+        raise ValueError(f"images {imgs.shape}, image {image.shape}, view {view.shape}: expected (Q, ny, nx), "
+                         "(m,), (m,)")
+    if image.size == 0:
+        return np.zeros((0, geom.n_cols), np.float32)
+    _, ny, nx = imgs.shape
+    origin = (-0.5 * (nx - 1) * voxel_mm, -0.5 * (ny - 1) * voxel_mm, 0.0)
+    (src, centre, eu, ev), u, vs = inplane_frames(detector, geom, view, image * STACK_DZ_MM)
+    out = project_volume(imgs, origin, (voxel_mm, voxel_mm, STACK_DZ_MM), src, centre, eu, ev, u, np.zeros(1),
+                         rt=rt, v_scale=vs)
+    return out[:, 0, :]
+
+
+def predicted_rows(volumes_hu, cardiac, resp, row_slice, row_view, row_c, row_a, *, geom, detector,
+                   mu_water: float, rt=None) -> np.ndarray:
+    """A method's prediction P_k I(c_k, a_k) of every row, (p, C) float32 line integrals.
+
+    ``volumes_hu`` (n_c, n_r, S, ny, nx) the method's images (HU) at the target lattice
+    ``cardiac`` (n_c,) x ``resp`` (n_r,) on S slices (an axis of length 1: one image for every
+    target of it, as the writer stores a broadcast axis); ``row_slice`` (p,) index into S;
+    ``row_view`` (p,) view index of the reconstruction's geometry; ``row_c``, ``row_a`` (p,) the
+    row's recorded state. HU -> attenuation by mu = mu_water (1 + HU / 1000) (-1000 HU outside
+    the FOV projects to 0). Each (target, slice) image is projected once per view it is needed
+    at, then the projections are interpolated (:func:`lattice_weights`; linear, so the same as
+    projecting the interpolated image).
+    """
+    vol = np.asarray(volumes_hu)
+    nc, nr, S = vol.shape[:3]
+    # an axis written at length 1 (a method blind to it, a scene without it) holds one image for every target
+    cardiac = list(cardiac) if nc > 1 else [0.0]
+    resp = list(resp) if nr > 1 else [0.0]
+    if (nc, nr) != (len(cardiac), len(resp)):
+        raise ValueError(f"volumes {vol.shape[:2]} and the lattice ({len(cardiac)}, {len(resp)}) disagree")
+    sl = np.asarray(row_slice, np.int64)
+    vw = np.asarray(row_view, np.int64)
+    idx, w = lattice_weights(row_c, row_a, cardiac, resp)
+    live = w != 0
+    img = idx * S + sl[:, None]                                   # flat (target, slice) image of each corner
+    view_c = np.broadcast_to(vw[:, None], idx.shape)
+    key = img[live] * geom.n_views + view_c[live]
+    uniq, inv = np.unique(key, return_inverse=True)
+    used_img, img_pos = np.unique(uniq // geom.n_views, return_inverse=True)
+    flat = vol.reshape((nc * nr * S,) + vol.shape[3:])
+    mu = (mu_water * (1.0 + flat[used_img].astype(np.float64) / 1000.0)).astype(np.float32)
+    proj = inplane_projections(mu, geom.voxel_mm, detector, geom, img_pos, uniq % geom.n_views, rt=rt)
+    out = np.zeros((sl.size, proj.shape[1]), np.float64)
+    rows_of = np.broadcast_to(np.arange(sl.size)[:, None], idx.shape)[live]
+    np.add.at(out, rows_of, w[live][:, None] * proj[inv].astype(np.float64))
+    return out.astype(np.float32)
+
+
+def channels_through_circle(detector, geom, view, radius_mm: float) -> np.ndarray:
+    """(m, C) bool: the in-plane rays at views ``view`` (m,) that pass within ``radius_mm`` of the
+    rotation axis (the reconstruction circle), in :func:`inplane_projections`' geometry."""
+    view = np.asarray(view, np.int64)
+    (src, centre, eu, _), u, _ = inplane_frames(detector, geom, view, np.zeros(view.size))
+    s = src[:, None, :2]
+    d = centre[:, None, :2] + u[None, :, None] * eu[:, None, :2] - s
+    cross = s[..., 0] * d[..., 1] - s[..., 1] * d[..., 0]
+    return np.abs(cross) / np.linalg.norm(d, axis=-1) <= radius_mm
+
+
+@dataclass
+class Residual:
+    """Squared residuals of one method pooled per block and region: ``sq[region]`` and ``cells[region]``
+    (B,) over the B blocks, ``floor[region]`` (B,) the sum of the rows' noise variance (0 without a
+    noise model)."""
+
+    sq: dict
+    cells: dict
+    floor: dict
+
+    def rms(self, region: str) -> float:
+        n = self.cells[region].sum()
+        return float(np.sqrt(self.sq[region].sum() / n)) if n else float("nan")
+
+    def per_slice_rms(self, region: str, n_slices: int) -> np.ndarray:
+        """(n_slices,) RMS per slice (the blocks are slice-major, the same number per slice)."""
+        sq = self.sq[region].reshape(n_slices, -1).sum(axis=1)
+        n = self.cells[region].reshape(n_slices, -1).sum(axis=1)
+        return np.sqrt(sq / np.maximum(n, 1))
+
+    def floor_rms(self, region: str) -> float:
+        n = self.cells[region].sum()
+        return float(np.sqrt(self.floor[region].sum() / n)) if n else float("nan")
+
+
+def residual(rows, predicted, masks: dict, block, n_blocks: int, row_var=None, scale: float = 1.0) -> Residual:
+    """Pooled squared residuals ``(y - P) * scale`` of rows (p, C) against ``predicted`` (p, C).
+
+    ``masks`` ``{region: (p, C) bool}``; ``block`` (p,) the block of each row in [0, n_blocks);
+    ``row_var`` (p, C) the rows' noise variance (line integral^2) or None.
+    """
+    e = (np.asarray(rows, np.float64) - np.asarray(predicted, np.float64)) * scale
+    e2 = e * e
+    blk = np.asarray(block, np.int64)
+    sq, cells, floor = {}, {}, {}
+    for r, m in masks.items():
+        sq[r] = np.bincount(blk, (e2 * m).sum(axis=1), minlength=n_blocks)
+        cells[r] = np.bincount(blk, m.sum(axis=1), minlength=n_blocks).astype(np.int64)
+        floor[r] = (np.zeros(n_blocks) if row_var is None else
+                    np.bincount(blk, (np.asarray(row_var, np.float64) * m).sum(axis=1) * scale * scale,
+                                minlength=n_blocks))
+    return Residual(sq, cells, floor)
+
+
+def compare(a: Residual, b: Residual, region: str) -> dict:
+    """Method a against method b in ``region``: RMS ratio a / b, the difference of mean squares
+    (a - b, HU mm^2), its jackknife standard error over blocks, z = difference / SE, and what that
+    says: ``"lower"`` (z < -Z_DECIDES), ``"higher"`` (z > Z_DECIDES) or ``"no clear difference"``."""
+    d = a.sq[region] - b.sq[region]
+    n = a.cells[region].astype(np.float64)
+    keep = n > 0
+    d, n = d[keep], n[keep]
+    B = d.size
+    ra, rb = a.rms(region), b.rms(region)
+    out = {"ratio": ra / rb if rb > 0 else float("nan"), "difference_ms_hu_mm2": float(d.sum() / n.sum()) if B else
+           float("nan"), "blocks": int(B)}
+    if B < 2:
+        return dict(out, se_hu_mm2=float("nan"), z=float("nan"), says="no clear difference",
+                    null_because="fewer than 2 blocks with cells in this region")
+    loo = (d.sum() - d) / (n.sum() - n)
+    se = float(np.sqrt((B - 1) / B * ((loo - loo.mean()) ** 2).sum()))
+    z = out["difference_ms_hu_mm2"] / se if se > 0 else float(np.sign(out["difference_ms_hu_mm2"]) * np.inf)
+    says = "lower" if z < -Z_DECIDES else "higher" if z > Z_DECIDES else "no clear difference"
+    return dict(out, se_hu_mm2=se, z=float(z), says=says)
+
+
+def verdict(res: dict, method: str = "mc", reference: str = "barycentric") -> dict:
+    """Did ``method`` help against ``reference`` (its first pass)? From ``{method: Residual}`` of one
+    variant: per region the :func:`compare` entry, and ``helped``: True when the residual is lower
+    in both regions, False when it is higher in either, else None (no clear difference)."""
+    if method not in res or reference not in res:
+        return {"helped": None, "null_because": f"{method} or {reference} is not in this run"}
+    by = {r: compare(res[method], res[reference], r) for r in REGIONS}
+    says = [by[r]["says"] for r in REGIONS]
+    helped = False if "higher" in says else True if all(s == "lower" for s in says) else None
+    word = {True: "helped", False: "did not help", None: "no clear difference"}[helped]
+    text = (f"{method} {word}: residual x {by['all']['ratio']:.3f} of {reference}'s (z {by['all']['z']:+.1f}), "
+            f"heart x {by['heart']['ratio']:.3f} (z {by['heart']['z']:+.1f})")
+    return {"helped": helped, "against": reference, "regions": by, "text": text}
+
+
+def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, methods,
+          cfg: ConsistencyConfig = ConsistencyConfig(), rt=None) -> dict:
+    """The data-consistency residual of every method's volumes for one scan (pitch).
+
+    ``store`` holds every candidate projection of the sampled slices (:func:`needed_projections`);
+    ``table`` the projection table the plan used; ``slices_z`` (S,) the run's slices (mm);
+    ``recon_cfg`` :class:`clrecon.reconstruction.reconstruct.ReconstructionConfig`; ``targets``
+    its ``Targets``; ``box`` the heart box (x0, x1, y0, y1) mm; ``volumes(variant, method, slice
+    indices) -> (n_c, n_r, s, ny, nx)`` HU; ``methods`` the 5D methods to check. Returns the
+    ``results.json["consistency"][pitch]`` entry (docs/motion-model.md "Did it help?").
+    """
+    t0 = time.perf_counter()
+    sc = recon_cfg.scanner
+    geom = recon_cfg.fbp
+    zs = truth_free.sample_slices(slices_z, cfg.max_slices)
+    s_idx = np.array([int(np.argmin(np.abs(np.asarray(slices_z) - z))) for z in zs])
+    groups = rc_mod.candidate_groups_of(recon_cfg, table, zs)
+    nv = groups.views_per_rotation
+    step = max(cfg.view_step, 1)
+    gsel = np.flatnonzero((groups.group_view % step) == 0)
+    flat = np.concatenate([np.arange(groups.offsets[g], groups.offsets[g + 1]) for g in gsel]) if gsel.size else \
+        np.zeros(0, np.int64)
+    g_of = np.repeat(np.arange(groups.n_groups), np.diff(groups.offsets))[flat]
+    row_slice = g_of // nv
+    row_view = groups.group_view[g_of]
+    row_c = table.cardiac_phase[groups.row[flat]]
+    row_a = table.resp_amplitude[groups.row[flat]]
+    nvs = -(-nv // step)  # sampled views per slice: 0, step, 2 step, ...
+    per_slice_blocks = -(-nvs // max(cfg.block_views, 1))
+    block = row_slice * per_slice_blocks + (row_view // step) // max(cfg.block_views, 1)
+    n_blocks = len(zs) * per_slice_blocks
+    # masks: the reconstruction circle, the heart box (the truth-free's heart channels)
+    circle = channels_through_circle(sc.detector_model, geom, row_view, recon_cfg.object_radius_mm)
+    angle = table.angle_rad[groups.row[flat]]
+    masks = {"all": circle, "heart": truth_free.heart_channels(angle, sc, box) & circle}
+    t_plan = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    rows_by_v = truth_free.read_rows(store, groups, flat, sc, variants, recon_cfg.noise, rt=rt) if flat.size else {}
+    t_read = time.perf_counter() - t1
+    scale = 1000.0 / recon_cfg.mu_water_per_mm
+    out = {"config": {"slices_z_mm": [float(z) for z in zs], "view_step": step, "block_views": cfg.block_views,
+                      "blocks": int(n_blocks), "methods": list(methods),
+                      "units": "HU mm (line integral x 1000 / mu_water)",
+                      "regions": {"all": "channels whose ray passes through the reconstruction circle",
+                                  "heart": "... and crosses the heart box recon.small_fov_mm"},
+                      "z_decides": Z_DECIDES},
+           "n_rows": int(flat.size), "residual": {}, "verdict": {}}
+    t_pred = 0.0
+    for v in variants:
+        if flat.size == 0:
+            break
+        rows, var = rows_by_v[v]
+        res = {}
+        for m in methods:
+            t2 = time.perf_counter()
+            vol = volumes(v, m, s_idx)
+            pred = predicted_rows(vol, targets.cardiac, targets.resp, row_slice, row_view, row_c, row_a, geom=geom,
+                                  detector=sc.detector_model, mu_water=recon_cfg.mu_water_per_mm, rt=rt)
+            t_pred += time.perf_counter() - t2
+            res[m] = residual(rows, pred, masks, block, n_blocks, row_var=var, scale=scale)
+        ent = {}
+        for m, r in res.items():
+            e = {"rms_hu_mm": r.rms("all"), "heart_rms_hu_mm": r.rms("heart"), "n_rows": int(flat.size),
+                 "cells": int(r.cells["all"].sum()), "heart_cells": int(r.cells["heart"].sum()),
+                 "per_slice_rms_hu_mm": r.per_slice_rms("all", len(zs)).tolist()}
+            if var is not None:
+                e["noise_floor_hu_mm"] = r.floor_rms("all")
+                e["heart_noise_floor_hu_mm"] = r.floor_rms("heart")
+            ent[m] = e
+        out["residual"][v] = ent
+        out["verdict"][v] = verdict(res)
+    out["seconds"] = {"plan": round(t_plan, 3), "read_rebin": round(t_read, 3), "predict": round(t_pred, 3),
+                      "total": round(time.perf_counter() - t0, 3)}
+    return out
+
+
+def needed_projections(recon_cfg, table, slices_z, cfg: ConsistencyConfig = ConsistencyConfig()) -> np.ndarray:
+    """Projection numbers :func:`check` reads (every candidate of the sampled slices' sampled views)."""
+    return truth_free.needed_projections(recon_cfg, table, slices_z, cfg.truth_free_config())
