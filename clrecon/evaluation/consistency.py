@@ -39,10 +39,13 @@ import numpy as np
 
 from clrecon.evaluation import truth_free
 from clrecon.reconstruction import reconstruct as rc_mod
+from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.reconstruction.motion.correction import STACK_DZ_MM, inplane_frames
 from clrecon.simulation.voxel_projector import project_volume
 
 REGIONS = ("all", "heart")
+#: The method every other is compared with (``mc``'s first pass).
+REFERENCE = "barycentric"
 #: |z| of the jackknife's difference above which a comparison says "helped" / "worse".
 Z_DECIDES = 2.0
 
@@ -51,11 +54,15 @@ Z_DECIDES = 2.0
 class ConsistencyConfig:
     """Sampling of the check: at most ``max_slices`` slices (evenly spread), every ``view_step``-th
     view (the truth-free defaults, so the same projections serve both), ``block_views`` sampled
-    views per jackknife block."""
+    views per jackknife block. For studies (the run uses the defaults): ``max_dz_mm`` keeps only
+    the rows within that axial distance of their slice; ``unused_only`` only the rows barycentric
+    gave no weight at any target (:func:`unused_rows`; none at pitch 0.10 on ``demo``)."""
 
     max_slices: int = 4
     view_step: int = 4
     block_views: int = 8
+    max_dz_mm: float | None = None
+    unused_only: bool = False
 
     def truth_free_config(self) -> truth_free.TruthFreeConfig:
         return truth_free.TruthFreeConfig(max_slices=self.max_slices, view_step=self.view_step)
@@ -284,6 +291,10 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
     gsel = np.flatnonzero((groups.group_view % step) == 0)
     flat = np.concatenate([np.arange(groups.offsets[g], groups.offsets[g + 1]) for g in gsel]) if gsel.size else \
         np.zeros(0, np.int64)
+    if cfg.unused_only:  # before the |dz| cut: the weights are those of whole groups
+        flat = flat[unused_rows(REFERENCE, groups, flat, table, recon_cfg, targets)]
+    if cfg.max_dz_mm is not None:
+        flat = flat[np.abs(groups.dz_mm[flat]) <= cfg.max_dz_mm]
     g_of = np.repeat(np.arange(groups.n_groups), np.diff(groups.offsets))[flat]
     row_slice = g_of // nv
     row_view = groups.group_view[g_of]
@@ -303,6 +314,8 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
     t_read = time.perf_counter() - t1
     scale = 1000.0 / recon_cfg.mu_water_per_mm
     out = {"config": {"slices_z_mm": [float(z) for z in zs], "view_step": step, "block_views": cfg.block_views,
+                      **({"max_dz_mm": cfg.max_dz_mm} if cfg.max_dz_mm is not None else {}),
+                      **({"unused_only": True} if cfg.unused_only else {}),
                       "blocks": int(n_blocks), "methods": list(methods),
                       "units": "HU mm (line integral x 1000 / mu_water)",
                       "regions": {"all": "channels whose ray passes through the reconstruction circle",
@@ -330,12 +343,35 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
             if var is not None:
                 e["noise_floor_hu_mm"] = r.floor_rms("all")
                 e["heart_noise_floor_hu_mm"] = r.floor_rms("heart")
+            if m != REFERENCE and REFERENCE in res:
+                e[f"against_{REFERENCE}"] = {g: {k: x[k] for k in ("ratio", "z", "says")}
+                                             for g, x in ((g, compare(r, res[REFERENCE], g)) for g in REGIONS)}
             ent[m] = e
         out["residual"][v] = ent
         out["verdict"][v] = verdict(res)
     out["seconds"] = {"plan": round(t_plan, 3), "read_rebin": round(t_read, 3), "predict": round(t_pred, 3),
                       "total": round(time.perf_counter() - t0, 3)}
     return out
+
+
+def unused_rows(method: str, groups, flat, table, recon_cfg, targets) -> np.ndarray:
+    """(n,) bool over the candidates ``flat`` (indices into ``groups``' flat arrays, whole groups):
+    True where ``method``'s weights are 0 at every target of its (slice, view), i.e. the row did not
+    enter that slice's images (the plan's own weights,
+    :func:`clrecon.reconstruction.interpolation.weights.batch_weights`)."""
+    flat = np.asarray(flat, np.int64)
+    if flat.size == 0:
+        return np.zeros(0, bool)
+    g = np.repeat(np.arange(groups.n_groups), np.diff(groups.offsets))[flat]
+    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    off = np.r_[starts, flat.size]
+    c = table.cardiac_phase[groups.row[flat]]
+    a = table.resp_amplitude[groups.row[flat]]
+    w = interpolate.batch_weights(method, c, a, off, np.asarray(targets.pairs, float), dz=groups.dz_mm[flat],
+                                  allow_empty=True, **rc_mod.weight_options(recon_cfg, targets))
+    used = np.zeros(flat.size, bool)
+    used[w.index[w.weight != 0]] = True
+    return ~used
 
 
 def needed_projections(recon_cfg, table, slices_z, cfg: ConsistencyConfig = ConsistencyConfig()) -> np.ndarray:

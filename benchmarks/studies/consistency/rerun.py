@@ -1,0 +1,76 @@
+"""The consistency check (clrecon/evaluation/consistency.py) again on a finished run folder, with the
+ground truth's volumes as a pseudo-method beside the run's, and the study's variants: rows band-limited
+along the channels (``--sigma``, Gaussian, in channels), only rows near their slice (``--max-dz``), only
+rows barycentric did not use (``--unused``). Prints each method's residual beside its MAE.
+docs/motion-model.md "Did it help? A truth-free check".
+
+    python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused]
+"""
+
+import argparse
+import json
+import time
+
+import h5py
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from clrecon.config.scene import load_scene
+from clrecon.evaluation import consistency as cs
+from clrecon.reconstruction import reconstruct as rc
+from clrecon.scan import table as geometry
+from clrecon.simulation.store import ProjectionStore, default_cache_dir
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("run")
+    ap.add_argument("--scene", default="demo")
+    ap.add_argument("--sigma", type=float, default=0.0)
+    ap.add_argument("--max-dz", type=float, default=None)
+    ap.add_argument("--unused", action="store_true")
+    args = ap.parse_args()
+    scene = load_scene(args.scene)
+    res = json.load(open(f"{args.run}/results.json"))
+    cfg = rc.ReconstructionConfig.from_scene(scene)
+    req = res["request"]
+    targets = rc.Targets(cardiac=tuple(req["targets"]["cardiac"]), resp=tuple(req["targets"]["resp"]))
+    slices_z = np.array(req["slices_z_mm"])
+    if args.sigma > 0:  # the same Gaussian on the rows and on the predictions
+        plain = cs.residual
+
+        def residual(rows, pred, *a, **k):
+            smooth = lambda x: gaussian_filter1d(np.asarray(x, np.float64), args.sigma, axis=1, mode="nearest")  # noqa: E731
+            return plain(smooth(rows), smooth(pred), *a, **k)
+
+        cs.residual = residual
+    f = h5py.File(f"{args.run}/volumes.h5", "r")
+    methods = [m for m in req["methods"] if m in ("barycentric", "local_linear", "nearest", "mc")] + ["groundtruth"]
+    ccfg = cs.ConsistencyConfig(max_dz_mm=args.max_dz, unused_only=args.unused)
+    for pk in res["metrics"]:
+        pitch = float(pk[1:])
+        table = geometry.projection_table(scene, pitch)
+        store = ProjectionStore.open(scene, pitch, cache_dir=default_cache_dir(), table=table)
+
+        def volumes(v, m, s, pk=pk):
+            return np.asarray(f["groundtruth" if m == "groundtruth" else f"recon/{pk}/{v}/{m}"][:, :, list(s)],
+                              np.float32)
+
+        t = time.time()
+        ent = cs.check(store, geometry.usable_table(scene, table)[0], slices_z, cfg, targets, req["variants"],
+                       tuple(scene.recon.small_fov_mm), volumes, methods, ccfg)
+        print(f"== {pk} sigma {args.sigma} max_dz {args.max_dz} unused {args.unused}: {ent['n_rows']} rows, "
+              f"{time.time() - t:.0f} s")
+        for v, bym in ent["residual"].items():
+            met = res["metrics"][pk][v]
+            for m, e in bym.items():
+                ab = e.get("against_barycentric")
+                z = f"z {ab['all']['z']:+6.1f} / {ab['heart']['z']:+6.1f}" if ab else " " * 17
+                mae = f"{met[m]['large']['mae_hu']:.1f} / {met[m]['small']['mae_hu']:.1f}" if m in met else "--"
+                print(f"{v:10s} {m:13s} all {e['rms_hu_mm']:7.1f} heart {e['heart_rms_hu_mm']:7.1f} {z}  "
+                      f"noise floor {e.get('noise_floor_hu_mm', 0):5.1f}  MAE {mae}")
+            print("  ", ent["verdict"][v]["text"])
+
+
+if __name__ == "__main__":
+    main()
