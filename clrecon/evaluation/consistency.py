@@ -169,11 +169,15 @@ def predicted_rows(volumes_hu, cardiac, resp, row_slice, row_view, row_c, row_a,
     uniq, inv = np.unique(key, return_inverse=True)
     used_img, img_pos = np.unique(uniq // geom.n_views, return_inverse=True)
     flat = vol.reshape((nc * nr * S,) + vol.shape[3:])
-    mu = (mu_water * (1.0 + flat[used_img].astype(np.float64) / 1000.0)).astype(np.float32)
+    mu = np.float32(mu_water) * (np.float32(1.0) + flat[used_img].astype(np.float32) / np.float32(1000.0))
     proj = inplane_projections(mu, geom.voxel_mm, detector, geom, img_pos, uniq % geom.n_views, rt=rt)
+    del mu
+    pos = np.full(idx.shape, -1, np.int64)
+    pos[live] = inv
     out = np.zeros((sl.size, proj.shape[1]), np.float64)
-    rows_of = np.broadcast_to(np.arange(sl.size)[:, None], idx.shape)[live]
-    np.add.at(out, rows_of, w[live][:, None] * proj[inv].astype(np.float64))
+    for k in range(idx.shape[1]):  # one corner at a time: no (p, 4, C) temporary
+        r = np.flatnonzero(live[:, k])
+        out[r] += w[r, k, None] * proj[pos[r, k]]
     return out.astype(np.float32)
 
 
