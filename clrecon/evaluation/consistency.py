@@ -253,7 +253,8 @@ def compare(a: Residual, b: Residual, region: str) -> dict:
                     null_because="fewer than 2 blocks with cells in this region")
     loo = (d.sum() - d) / (n.sum() - n)
     se = float(np.sqrt((B - 1) / B * ((loo - loo.mean()) ** 2).sum()))
-    z = out["difference_ms_hu_mm2"] / se if se > 0 else float(np.sign(out["difference_ms_hu_mm2"]) * np.inf)
+    diff = out["difference_ms_hu_mm2"]
+    z = diff / se if se > 0 else 0.0 if diff == 0 else float(np.copysign(np.inf, diff))  # se 0: every block agrees
     says = "lower" if z < -Z_DECIDES else "higher" if z > Z_DECIDES else "no clear difference"
     return dict(out, se_hu_mm2=se, z=float(z), says=says)
 

@@ -159,3 +159,11 @@ def test_channels_through_the_circle_on_a_flat_detector(tiny_cfg):
     want = np.abs(u) * sc.sid_mm / np.sqrt(sc.sdd_mm ** 2 + u ** 2) <= 150.0
     assert 0 < want.sum() < u.size
     assert (m == want[None, :]).all()
+
+
+def test_identical_methods_compare_as_no_difference_without_warnings():
+    """A static scene gives every method the same volumes: z is 0, not NaN."""
+    base = _residual([100, 120, 90, 110])
+    with np.errstate(all="raise"):
+        c = cs.compare(base, base, "all")
+    assert c["z"] == 0.0 and c["says"] == "no clear difference" and c["ratio"] == 1.0

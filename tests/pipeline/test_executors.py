@@ -43,9 +43,9 @@ def test_the_graph_is_whole_and_in_order():
         given |= set(st.gives)
         assert st.rest is None or st.rest in st.parts, st.name
     order = [(st.name, p) for st, p in serial_order(graph.GRAPH, PITCHES)]
-    assert order[:5] == [("plan", 0.1), ("simulate", 0.1), ("truth_free", 0.1), ("reconstruct", 0.1),
-                         ("mc_reconstruct", 0.1)]
-    assert order[5][1] == 0.2 and [n for n, p in order if p is None][0] == "truth"
+    assert order[:6] == [("plan", 0.1), ("simulate", 0.1), ("truth_free", 0.1), ("reconstruct", 0.1),
+                         ("mc_reconstruct", 0.1), ("consistency", 0.1)]
+    assert order[6][1] == 0.2 and [n for n, p in order if p is None][0] == "truth"
     assert [n for n, _ in order[-5:]] == ["truth", "assemble", "metrics", "results", "report"]
 
 
