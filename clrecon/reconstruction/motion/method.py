@@ -74,12 +74,13 @@ def flow_of(knobs) -> FlowConfig:
     return FlowConfig(radius=knobs.flow_radius, num_warp=knobs.flow_warps)
 
 
-def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs, progress=None) -> tuple[MotionModel, dict]:
+def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs, progress=None, pool=None) -> tuple[MotionModel, dict]:
     """One round: the separable registration of ``volumes`` (n_c, n_r, nz, ny, nx) HU on ``grid`` and
     the model fitted to it. Returns (model, info: seconds and the fit's RMS residual, mm).
-    ``progress``: optional ``update(n)`` counter, one step per registration."""
+    ``progress``: optional ``update(n)`` counter, one step per registration; ``pool``: optional
+    process pool running each step's registrations at once (the same fields, bit for bit)."""
     t0 = time.perf_counter()
-    fields, _ = estimate.separable_fields(volumes, tuple(ref_ij), grid, flow_of(knobs), progress=progress)
+    fields, _ = estimate.separable_fields(volumes, tuple(ref_ij), grid, flow_of(knobs), progress=progress, pool=pool)
     t1 = time.perf_counter()
     nr = volumes.shape[1]
     ref = tuple(map(float, pairs[ref_ij[0] * nr + ref_ij[1]]))
