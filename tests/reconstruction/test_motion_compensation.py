@@ -457,6 +457,7 @@ def test_registration_workers_follow_cores_and_memory():
     assert registration.registration_workers(n_vox, cores=64, available_bytes=100 * per) == registration.MAX_WORKERS
     assert registration.registration_workers(n_vox, cores=8, available_bytes=5 * per) == 2  # half the memory
     assert registration.registration_workers(n_vox, cores=8, available_bytes=0) == 1
+    assert registration.registration_workers(registration.POOL_MIN_VOXELS - 1, cores=8, available_bytes=100 * per) == 1
 
 
 # ---------------------------------------------------------------------------------------
