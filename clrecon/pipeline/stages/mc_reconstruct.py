@@ -189,7 +189,7 @@ class _Pitch:
         run.log(f"[{self.pk}] mc: registering {variant} (round 1 of {knobs.rounds}, "
                 f"{nc - 1 + nr - 1} registrations on {grid.nx} x {grid.ny} x {grid.nz})")
         n_reg = (nc - 1) + (nr - 1)
-        bar = progress_counter(knobs.rounds * n_reg + (knobs.rounds - 1) * len(self.pairs),
+        bar = progress_counter(knobs.rounds * n_reg + (knobs.rounds - 1) * len(self.pairs) * len(self.slabs),
                                f"mc model {self.pk} {variant}", run.progress, "steps")
         pool = self.pool(grid)
         model, info = mcm.register(first, self.ref_ij, grid, self.pairs, knobs, progress=bar, pool=pool)
