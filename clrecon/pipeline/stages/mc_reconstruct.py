@@ -77,9 +77,11 @@ def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     the device (host memory on a CPU driver); the first pass of one variant, the previous round's
     images and the slab's output, float32 (3 x targets x slices x ny x nx); the registration's
     fields (13 registrations and the model's basis, 3 components each, at the registration's
-    grid); the registration processes' working sets (``FLOW_BYTES_PER_VOXEL`` per voxel each, one per
-    core up to ``MAX_WORKERS``: 2 x 79 MB on ``demo`` with 2 cores, in processes of their own). ``demo``
-    (pitch 0.02, 2 variants): 1.36 GB without those, on top of the run's 1.44 GB modelled before it
+    grid); the raw rows read for the plane rows (``method.READ_CHUNK_BYTES`` at a time, with their
+    covering range and SSRB rows: 3 chunks); the registration processes' working sets
+    (``FLOW_BYTES_PER_VOXEL`` per voxel each, one per core up to ``MAX_WORKERS``: 2 x 79 MB on
+    ``demo`` with 2 cores, in processes of their own). ``demo`` (pitch 0.02, 2 variants): 1.36 GB
+    without the last two, on top of the run's 1.44 GB modelled before it
     (:func:`clrecon.pipeline.costs.run_costs`): 2.81 GB against a peak RSS of 2.65 GB measured
     (2026-12-06, the whole run, Intel's runtime; 1.25 GB without ``mc``)."""
     w = window_mm  # the SSRB slice window (reconstruction.rebin.slice_window_mm)
@@ -93,7 +95,10 @@ def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     fields = (13 + 1 + 2 * knobs.resp_degree + 2 * knobs.cardiac_harmonics) * 3 * n_reg * 4
     # the registration processes (one per core, at most MAX_WORKERS: the most the run starts)
     flows = registration_workers(n_reg, available_bytes=1 << 62) * FLOW_BYTES_PER_VOXEL * n_reg
-    return int(kept + rows + volumes + fields + flows)
+    # the raw detector rows a slab's plane rows are made from, one chunk at a time, with the chunk's
+    # covering range of the store and its SSRB rows (measured on a paper-p010 slice: 2.9 chunks of 128 MiB)
+    read = 3 * min(mcm.READ_CHUNK_BYTES, n_proj * scanner.n_rows * scanner.n_cols * 4)
+    return int(kept + rows + volumes + fields + flows + read)
 
 
 def _model_path(run, pk: str, variant: str):
