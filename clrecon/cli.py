@@ -290,8 +290,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--only", help="comma list from backprojection,projector,voxel-projector,interpolation,"
                    "end-to-end,memory,scaling,measured and the paper-scale paper-projector,noise,paper-fbp,"
                    "groundtruth; also, only when named: tradeoff (error against run time, ~20 min), truth_free "
-                   "(cost of recon.truth_free against the reconstruction, ~2 min), drivers. The A/B benchmarks of "
-                   "the code's own levers are in a checkout's benchmarks/ folder (benchmarks/README.md)")
+                   "(cost of recon.truth_free against the reconstruction, ~2 min), drivers, mc (the mc method's cost "
+                   "against the paper methods' on demo at pitch 0.10, ~5 min; needs clrecon[motion]). The A/B "
+                   "benchmarks of the code's own levers are in a checkout's benchmarks/ folder (benchmarks/README.md)")
     b.add_argument("--drivers", action="store_true",
                    help="every CPU OpenCL driver that passes the probe side by side: projector, SSRB, interpolation, "
                         "backprojection, noise and the demo cold (docs/drivers.md); with --only, added to it")

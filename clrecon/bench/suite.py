@@ -58,6 +58,9 @@ Sections (``--only`` picks some):
     kernel, and float64 NumPy point samples).
 ``truth_free`` (only when named): the cost of ``recon.truth_free`` against the reconstruction it
     accompanies (demo, 4 middle slices; :func:`bench_truth_free_section`).
+``mc`` (only when named): :mod:`clrecon.bench.mc`, the cost of the ``mc`` method against the paper
+    methods' reconstruction of the same ``demo`` run at pitch 0.10 (``--quick``: 4 slices), its MAE
+    ratio, and one registration round one after the other against the run's process pool.
 ``drivers`` (only when named, or ``--drivers``): :mod:`clrecon.bench.drivers`, every CPU driver that passes
     the probe side by side (projector, SSRB, interpolation, backprojection, noise, the demo cold).
 ``tradeoff`` (only with ``--only tradeoff``: not in the default set, about 20 minutes)
@@ -95,6 +98,8 @@ from clrecon.bench import paper
 from clrecon.bench.drivers import bench_drivers
 from clrecon.bench.drivers import report_lines as drivers_report_lines
 from clrecon.bench.fbp import bench_backprojection
+from clrecon.bench.mc import bench_mc_section
+from clrecon.bench.mc import report_lines as mc_report_lines
 from clrecon.bench.measured import bench_measured_section
 from clrecon.bench.measured import report_lines as measured_report_lines
 from clrecon.bench.projector import bench_projector
@@ -119,7 +124,7 @@ SECTIONS = ("backprojection", "projector", "voxel-projector", "interpolation", "
 #: Paper-scale sections (:mod:`clrecon.bench.paper`): the paper-p002 job's stages at the job's sizes.
 SECTIONS = SECTIONS + paper.SECTIONS
 #: Sections run only when ``--only`` names them (long).
-EXTRA_SECTIONS = ("tradeoff", "truth_free", "drivers")
+EXTRA_SECTIONS = ("tradeoff", "truth_free", "drivers", "mc")
 #: Former sections, now A/B benchmarks of a checkout's ``benchmarks/`` folder (not in the wheel).
 MOVED = {"levers": "benchmarks.levers", "backprojector": "benchmarks.backprojector",
          "detectors": "benchmarks.detectors", "distributed": "benchmarks.dask_scaling",
@@ -737,6 +742,7 @@ def format_report(res: dict) -> str:
         out += ["", "drivers: each CPU driver that passes the probe, same inputs, same process (clrecon.bench.drivers)"]
         out.extend(drivers_report_lines(res["drivers"]))
     out.extend(measured_report_lines(res.get("measured")))
+    out.extend(mc_report_lines(res.get("mc")))
     return "\n".join(out)
 
 
@@ -767,6 +773,7 @@ def run_bench(quick: bool = False, only=None, repeats: int | None = None, log=pr
         "tradeoff": lambda: run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr)),
         "truth_free": lambda: bench_truth_free_section(quick),
         "drivers": lambda: bench_drivers(quick, repeats),
+        "mc": lambda: bench_mc_section(quick, repeats),
     }
     for name in SECTIONS + EXTRA_SECTIONS:
         if name in only:

@@ -26,12 +26,16 @@ def split_overrides(overrides: Mapping[str, Any]) -> dict:
         sep = "__" if "__" in key else ("." if "." in key else None)
         if sep is not None:
             sec, _, sub = key.partition(sep)
-            if sec not in sections or not sub or "__" in sub or "." in sub:
+            table, _, sub2 = sub.partition(sep) if sep in sub else ("", "", sub)
+            if sec not in sections or not sub2 or "__" in sub2 or "." in sub2 or (sep in sub and not table):
                 near = difflib.get_close_matches(sec, sections, n=1, cutoff=0.5)
                 hint = f"; did you mean {near[0]}__{sub}?" if near and sub else f"; sections: {', '.join(sections)}"
-                raise SceneError(f"override {key}: expected SECTION__KEY with SECTION one of the scene's "
-                                 f"sections{hint}")
-            out.setdefault(sec, {})[sub] = value
+                raise SceneError(f"override {key}: expected SECTION__KEY or SECTION__TABLE__KEY with SECTION one "
+                                 f"of the scene's sections{hint}")
+            if table:  # a table inside the section, e.g. recon__mc__rounds
+                out.setdefault(sec, {}).setdefault(table, {})[sub2] = value
+            else:
+                out.setdefault(sec, {})[sub] = value
         elif key in sections:
             if not isinstance(value, Mapping):
                 raise SceneError(f"override {key}={value!r}: expected a dict of [{key}] keys, e.g. "
@@ -52,7 +56,9 @@ def load_scene(name_or_path: PathLike | Scene, **overrides: Any) -> Scene:
     Overrides, any mix of (later ones win within a section):
 
     - a section as a dict: ``recon={"nz": 4, "nx": 64}``, ``noise={"enabled": False}``;
-    - one key as ``SECTION__KEY=VALUE``: ``recon__nz=4``, ``scan__pitches=[0.1]``;
+    - one key as ``SECTION__KEY=VALUE``: ``recon__nz=4``, ``scan__pitches=[0.1]``; a key of a table
+      inside a section as ``SECTION__TABLE__KEY``: ``recon__mc__rounds=1`` (the table's other keys
+      keep the scene's values);
     - the same with a dot through ``**``: ``**{"recon.nz": 4}``;
     - ``name=...`` / ``description=...``.
 

@@ -21,6 +21,7 @@ import difflib
 import hashlib
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -169,14 +170,19 @@ class Scene:
         """New scene with some sections' values replaced, e.g. ``replace(recon={"nz": 4})``.
 
         A ``phantom`` table with another ``kind`` replaces the whole section (the kinds have
-        different keys).
+        different keys). A table inside a section (``recon={"mc": {"rounds": 1}}``) is merged
+        into the scene's own, so its other keys keep the scene's values.
         """
         d = self.to_dict()
         for sec, vals in sections.items():
             if sec == "phantom" and vals.get("kind", d[sec]["kind"]) != d[sec]["kind"]:
                 d[sec] = dict(vals)
             elif sec in SECTIONS:
-                d[sec].update(vals)
+                for key, val in vals.items():
+                    if isinstance(val, Mapping) and isinstance(d[sec].get(key), dict):
+                        d[sec][key] = {**d[sec][key], **val}
+                    else:
+                        d[sec][key] = val
             else:
                 d[sec] = vals
         return scene_from_dict(d, source=self.source)

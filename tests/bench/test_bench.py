@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -120,6 +121,26 @@ def test_measured_section_tiny():
     r = bench_measured_section(quick=True, scene_name="tiny")
     assert r["views"] == 300 and r["views_per_s"] > 0 and r["read_bytes_views_per_s"] > r["views_per_s"]
     assert r["meets_goal"] == (r["views_per_s"] >= 200) and "DICOM-CT-PD import" in "\n".join(report_lines(r))
+
+
+def test_mc_section_tiny(monkeypatch):
+    """The mc section's run, its cost split and ratio, and the registration round in a pool (forced
+    on tiny's small volumes) giving the serial round's bits."""
+    from clrecon.bench.mc import bench_mc_section, report_lines
+    from clrecon.reconstruction.motion import registration
+
+    monkeypatch.setattr(registration, "POOL_MIN_VOXELS", 0)
+    r = bench_mc_section(quick=True, repeats=1, scene="tiny")
+    assert r["pitch"] == 0.1 and r["reconstruction_s"] > 0 and r["mc_s"] > 0
+    assert set(r["mc_parts_s"]) == {"registration", "plane_rows", "mc_backproject"}
+    assert r["ratio"] == pytest.approx(r["mc_s"] / r["reconstruction_s"])
+    assert set(r["mae"]) == {"noisy", "noise-free"} and all(m["mc"][0] > 0 for m in r["mae"].values())
+    g = r["registration_round"]
+    cores = len(os.sched_getaffinity(0))
+    assert g["workers"] == min(cores, registration.MAX_WORKERS)
+    if cores > 1:
+        assert g["same_bits"] is True and g["pool_s"] > 0
+    assert "registration round" in "\n".join(report_lines(r))
 
 
 def test_the_ab_benchmarks_are_not_sections_of_the_users_bench():

@@ -165,6 +165,20 @@ def test_load_scene_overrides():
         clrecon.load_scene("tiny", recon=4)
 
 
+def test_overrides_reach_a_table_inside_a_section():
+    """``recon__mc__rounds`` (a sweep's grid key) sets one key of ``[recon.mc]``; the table's other
+    keys keep the scene's values, also through a dict."""
+    base = clrecon.load_scene("tiny", recon__mc__margin_mm=30.0)
+    assert base.recon.mc.margin_mm == 30.0 and base.recon.mc.rounds == 2
+    s = clrecon.load_scene(base, recon__mc__rounds=1, **{"recon.mc.flow_radius": 5})
+    assert (s.recon.mc.rounds, s.recon.mc.flow_radius, s.recon.mc.margin_mm) == (1, 5, 30.0)
+    assert clrecon.load_scene(base, recon={"mc": {"rounds": 1}}).recon.mc.margin_mm == 30.0
+    with pytest.raises(SceneError, match="recon.mc.rounds = 9"):
+        clrecon.load_scene("tiny", recon__mc__rounds=9)
+    with pytest.raises(SceneError, match="SECTION__TABLE__KEY"):
+        clrecon.load_scene("tiny", recon__mc__rounds__x=1)
+
+
 def test_run_arguments():
     assert _targets(None) == (None, None)
     assert _targets(([0, 0.4], None)) == ([0.0, 0.4], None)

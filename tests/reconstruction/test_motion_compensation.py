@@ -16,6 +16,7 @@ import pytest
 import scipy.ndimage
 
 from clrecon.bench import reference_kernels
+from clrecon.core.resources import spawned_pool
 from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
 from clrecon.reconstruction.motion import correction, estimate, registration, slots, warp
 from clrecon.reconstruction.motion.backproject import (
@@ -429,6 +430,34 @@ def test_separable_fields_add_breathing_and_beat():
         for j, rz in enumerate(resp_z):
             med = [float(np.median(fields[i * 3 + j, k][core])) for k in range(3)]
             assert np.allclose(med, [cx, 0.0, rz], atol=TOL["flow_mm"]), (i, j, med)
+
+
+def test_registrations_in_a_process_pool_are_the_same_bits():
+    """The run registers each step's volumes at once in spawned processes: the same fields as one
+    after the other, bit for bit (the same call on the same arrays)."""
+    resp_z, card_x = [-3.0, 0.0, 3.0], [0.0, 3.0]
+    vols = np.stack([np.stack([_blob_volume((cx, 0.0, rz))[0] for rz in resp_z]) for cx in card_x])
+    grid = FieldGrid(nx=40, ny=40, nz=12, voxel_mm=3.0, z0_mm=-22.0, dz_mm=4.0)
+    cfg = registration.FlowConfig(radius=7)
+    serial, _ = estimate.separable_fields(vols, (0, 1), grid, cfg)
+    pool = spawned_pool(2)
+    assert pool is not None
+    try:
+        pooled, _ = estimate.separable_fields(vols, (0, 1), grid, cfg, pool=pool)
+    finally:
+        pool.shutdown()
+    assert np.array_equal(serial, pooled)
+    assert np.abs(serial).max() > 1.0  # the fields are not all zero
+
+
+def test_registration_workers_follow_cores_and_memory():
+    n_vox = 512 * 512 * 110
+    per = registration.FLOW_BYTES_PER_VOXEL * n_vox
+    assert registration.registration_workers(n_vox, cores=2, available_bytes=100 * per) == 2
+    assert registration.registration_workers(n_vox, cores=64, available_bytes=100 * per) == registration.MAX_WORKERS
+    assert registration.registration_workers(n_vox, cores=8, available_bytes=5 * per) == 2  # half the memory
+    assert registration.registration_workers(n_vox, cores=8, available_bytes=0) == 1
+    assert registration.registration_workers(registration.POOL_MIN_VOXELS - 1, cores=8, available_bytes=100 * per) == 1
 
 
 # ---------------------------------------------------------------------------------------

@@ -25,6 +25,7 @@ import numpy as np
 from clrecon.core import units
 from clrecon.core.errors import ClreconError
 from clrecon.core.progress import progress as progress_counter
+from clrecon.core.resources import spawn_is_safe, spawned_pool
 from clrecon.evaluation.motion_model import registration_error
 from clrecon.outputs.volumes import pitch_key
 from clrecon.pipeline import work_units
@@ -32,6 +33,7 @@ from clrecon.pipeline.executors.base import Idle, Unit, Work
 from clrecon.reconstruction import interpolation, rebin, reconstruct
 from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion.model import FieldGrid, MotionModel
+from clrecon.reconstruction.motion.registration import FLOW_BYTES_PER_VOXEL, registration_workers
 from clrecon.scan import table as geometry
 
 #: The method this stage makes.
@@ -75,7 +77,11 @@ def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     the device (host memory on a CPU driver); the first pass of one variant, the previous round's
     images and the slab's output, float32 (3 x targets x slices x ny x nx); the registration's
     fields (13 registrations and the model's basis, 3 components each, at the registration's
-    grid). ``demo`` (pitch 0.02, 2 variants): 1.36 GB, on top of the run's 1.44 GB modelled before it
+    grid); the raw rows read for the plane rows (``method.READ_CHUNK_BYTES`` at a time, with their
+    covering range and SSRB rows: 3 chunks); the registration processes' working sets
+    (``FLOW_BYTES_PER_VOXEL`` per voxel each, one per core up to ``MAX_WORKERS``: 2 x 79 MB on
+    ``demo`` with 2 cores, in processes of their own). ``demo`` (pitch 0.02, 2 variants): 1.36 GB
+    without the last two, on top of the run's 1.44 GB modelled before it
     (:func:`clrecon.pipeline.costs.run_costs`): 2.81 GB against a peak RSS of 2.65 GB measured
     (2026-12-06, the whole run, Intel's runtime; 1.25 GB without ``mc``)."""
     w = window_mm  # the SSRB slice window (reconstruction.rebin.slice_window_mm)
@@ -85,8 +91,14 @@ def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     kept = n_var * rows if n_var * rows <= ROWS_BYTES else 0.0
     f = max(1, knobs.downsample)
     volumes = 3 * n_targets * nz * ny * nx * 4
-    fields = (13 + 1 + 2 * knobs.resp_degree + 2 * knobs.cardiac_harmonics) * 3 * nz * (ny // f) * (nx // f) * 4
-    return int(kept + rows + volumes + fields)
+    n_reg = nz * (ny // f) * (nx // f)
+    fields = (13 + 1 + 2 * knobs.resp_degree + 2 * knobs.cardiac_harmonics) * 3 * n_reg * 4
+    # the registration processes (one per core, at most MAX_WORKERS: the most the run starts)
+    flows = registration_workers(n_reg, available_bytes=1 << 62) * FLOW_BYTES_PER_VOXEL * n_reg
+    # the raw detector rows a slab's plane rows are made from, one chunk at a time, with the chunk's
+    # covering range of the store and its SSRB rows (measured on a paper-p010 slice: 2.9 chunks of 128 MiB)
+    read = 3 * min(mcm.READ_CHUNK_BYTES, n_proj * scanner.n_rows * scanner.n_cols * 4)
+    return int(kept + rows + volumes + fields + flows + read)
 
 
 def _model_path(run, pk: str, variant: str):
@@ -137,6 +149,22 @@ class _Pitch:
         self.ref_ij = mcm.reference_index(run.targets.cardiac, run.targets.resp, self.knobs)
         self.kept: dict = {}  # (slab, variant) -> plane rows of the last round's slab, for the final pass
         self.seconds: dict = {}  # variant -> the model's seconds
+        self.workers = 1  # registrations at once (registration_workers), set when a model is registered
+        self._pool = None
+
+    def pool(self, grid: FieldGrid):
+        """The process pool the registrations run in (made once per pitch), or None: one core, a
+        script without a ``__main__`` guard (:func:`spawn_is_safe`), or memory for one only."""
+        if self._pool is None:
+            n = registration_workers(grid.nx * grid.ny * grid.nz)
+            self._pool = (spawned_pool(n) if n > 1 and spawn_is_safe() else None) or False
+            self.workers = n if self._pool else 1
+        return self._pool or None
+
+    def close(self) -> None:
+        if self._pool:
+            self._pool.shutdown()
+        self._pool = None
 
     def bary_plan(self, a: int, b: int):
         p = reconstruct.plan(self.cfg, self.ptab, self.run.slices_z[a:b], self.run.targets, ("barycentric",))
@@ -166,9 +194,10 @@ class _Pitch:
         run.log(f"[{self.pk}] mc: registering {variant} (round 1 of {knobs.rounds}, "
                 f"{nc - 1 + nr - 1} registrations on {grid.nx} x {grid.ny} x {grid.nz})")
         n_reg = (nc - 1) + (nr - 1)
-        bar = progress_counter(knobs.rounds * n_reg + (knobs.rounds - 1) * len(self.pairs),
+        bar = progress_counter(knobs.rounds * n_reg + (knobs.rounds - 1) * len(self.pairs) * len(self.slabs),
                                f"mc model {self.pk} {variant}", run.progress, "steps")
-        model, info = mcm.register(first, self.ref_ij, grid, self.pairs, knobs, progress=bar)
+        pool = self.pool(grid)
+        model, info = mcm.register(first, self.ref_ij, grid, self.pairs, knobs, progress=bar, pool=pool)
         rounds = [info]
         for r in range(2, knobs.rounds + 1):
             t0 = time.perf_counter()
@@ -184,11 +213,12 @@ class _Pitch:
             t_bp = time.perf_counter() - t0
             run.log(f"[{self.pk}] mc: registering {variant} (round {r} of {knobs.rounds})")
             model, info = mcm.register(imgs.reshape((nc, nr) + imgs.shape[1:]), self.ref_ij, grid, self.pairs, knobs,
-                                       progress=bar)
+                                       progress=bar, pool=pool)
             rounds.append(dict(info, backproject_seconds=t_bp))
         bar.close()
         info = {"rounds": [{k: round(v, 3) for k, v in x.items()} for x in rounds],
                 "reference": list(model.reference), "registration_grid": [grid.nz, grid.ny, grid.nx],
+                "registration_workers": self.workers,
                 "basis": list(model.basis.names),
                 "seconds": round(time.perf_counter() - t_start, 3)}
         if not run.scene.measured:
@@ -250,7 +280,10 @@ def stage(run, pitch: float, plan, store, recon):
     if interpolation.METHODS["barycentric"].target_grid != "5d":  # pragma: no cover - a registry invariant
         raise ClreconError("mc: the barycentric first pass must be a 5-D method")
     ctx = _Pitch(run, pitch, plan, store)
-    models = {v: ctx.model(v) for v in run.variants if todo[v].size}
+    try:
+        models = {v: ctx.model(v) for v in run.variants if todo[v].size}
+    finally:
+        ctx.close()
     units_ = [_slab_unit(ctx, k, v, models[v]) for v in run.variants if todo[v].size
               for k, (a, b) in enumerate(ctx.slabs) if (~run.writer.done(f"recon/{pk}/{v}/{NAME}")[a:b]).any()]
 

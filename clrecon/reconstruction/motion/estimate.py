@@ -36,7 +36,7 @@ def to_reference(volume, field, grid: FieldGrid) -> np.ndarray:
 
 
 def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: DemonsConfig | FlowConfig | None = None,
-                     progress=None) -> tuple[np.ndarray, dict]:
+                     progress=None, pool=None) -> tuple[np.ndarray, dict]:
     """Fields u(x_ref; c_i, a_j) of every target from the two registration steps (module docstring).
 
     Parameters
@@ -45,6 +45,8 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: DemonsConf
     reference : (i_ref, j_ref) indices of the reference target (cardiac, amplitude)
     grid : FieldGrid of the volumes (uniform slices)
     cfg : DemonsConfig or FlowConfig (:mod:`clrecon.reconstruction.motion.registration`)
+    progress : optional ``update(n)`` counter, one step per registration
+    pool : optional process pool running each step's registrations at once (same bits)
 
     Returns
     -------
@@ -59,12 +61,13 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: DemonsConf
     if not (0 <= i_ref < nc and 0 <= j_ref < nr):
         raise ValueError(f"reference = {reference!r}: must index the ({nc}, {nr}) targets")
     spacing = (grid.voxel_mm, grid.voxel_mm, grid.dz_mm)
-    resp = register_to_reference(v.mean(axis=0), j_ref, spacing, cfg=cfg, progress=progress)
+    resp = register_to_reference(v.mean(axis=0), j_ref, spacing, cfg=cfg, progress=progress, pool=pool)
     card_avg = np.zeros((nc,) + grid.shape, np.float64)
     for j in range(nr):
         for i in range(nc):
             card_avg[i] += to_reference(v[i, j], resp[j], grid) if j != j_ref else v[i, j]
     card_avg /= nr
-    card = register_to_reference(card_avg.astype(np.float32), i_ref, spacing, cfg=cfg, progress=progress)
+    card = register_to_reference(card_avg.astype(np.float32), i_ref, spacing, cfg=cfg, progress=progress,
+                                pool=pool)
     fields = (card[:, None] + resp[None, :]).reshape((nc * nr, 3) + grid.shape)
     return fields.astype(np.float32), {"resp": resp, "cardiac": card}
