@@ -245,3 +245,17 @@ def test_slab_rows_are_the_same_bits_for_any_read_chunk(tmp_path, monkeypatch):
         r = got[per_chunk]
         assert np.array_equal(r.rows, whole.rows) and np.array_equal(r.plane_first, whole.plane_first)
         assert np.array_equal(r.plane_count, whole.plane_count) and np.array_equal(r.projection, whole.projection)
+
+
+def test_a_run_too_thin_in_z_to_register_is_warned(reference):
+    """tiny's 10 mm of slices are below THIN_Z_MM: the model's info says so in one line; demo's 64 mm
+    and a 30 mm run are not warned."""
+    from clrecon.pipeline.stages import mc_reconstruct
+
+    _, res = reference
+    for per in res["stages"]["registration"]["mc"].values():
+        for info in per.values():
+            assert "cover 10 mm of z" in info["warning"] and "\n" not in info["warning"]
+    assert mc_reconstruct.thin_warning("p0.100", np.arange(16) * 4.0) is None
+    assert mc_reconstruct.thin_warning("p0.100", np.arange(30) * 1.0) is None
+    assert "cover 29 mm" in mc_reconstruct.thin_warning("p0.100", np.arange(29) * 1.0)

@@ -41,6 +41,27 @@ NAME = "mc"
 #: Plane rows of one slab stay within this many bytes (half the reconstruction's slab budget).
 ROWS_BYTES = reconstruct.SLAB_BYTES / 2
 FAULT = "mc-model"
+#: Runs whose slices span less z than this (mm) are warned: on ``demo`` the registration of a run
+#: of 16 mm erred by as much as the motion, of 32 mm by 0.66 of it in the heart, of 48-64 mm by
+#: 0.5-0.64 (docs/motion-model.md "Without retuning: a paper-p010 slab").
+THIN_Z_MM = 30.0
+
+
+def z_extent_mm(slices_z) -> float:
+    """The z the run's slices cover (mm): their span plus one slice spacing (0 for one slice)."""
+    z = np.sort(np.asarray(slices_z, np.float64))
+    return float(z[-1] - z[0] + np.median(np.diff(z))) if z.size > 1 else 0.0
+
+
+def thin_warning(pk: str, slices_z) -> str | None:
+    """One line for a run too thin in z to register its motion (:data:`THIN_Z_MM`), else None."""
+    ext = z_extent_mm(slices_z)
+    if ext >= THIN_Z_MM:
+        return None
+    return (f"[{pk}] mc: warning: the run's slices cover {ext:g} mm of z; below about {THIN_Z_MM:g} mm the "
+            f"registration does not recover the motion (its model errs by as much as the motion), so mc's "
+            f"volumes are not a measure of motion: run {THIN_Z_MM:g} mm or more of slices "
+            f"(docs/motion-model.md \"Slab ends\")")
 
 
 def skip(run) -> str | None:
@@ -191,6 +212,9 @@ class _Pitch:
         grid = mcm.field_grid(self.coarse, run.slices_z)
         first = mcm.downsample(run.writer.read(f"recon/{self.pk}/{variant}/barycentric"), self.f)
         first = np.broadcast_to(first, (nc, nr) + first.shape[2:])
+        warning = thin_warning(self.pk, run.slices_z)
+        if warning:
+            run.log(warning)
         run.log(f"[{self.pk}] mc: registering {variant} (round 1 of {knobs.rounds}, "
                 f"{nc - 1 + nr - 1} registrations on {grid.nx} x {grid.ny} x {grid.nz})")
         n_reg = (nc - 1) + (nr - 1)
@@ -221,6 +245,8 @@ class _Pitch:
                 "registration_workers": self.workers,
                 "basis": list(model.basis.names),
                 "seconds": round(time.perf_counter() - t_start, 3)}
+        if warning:
+            info["warning"] = warning
         if not run.scene.measured:
             t0 = time.perf_counter()
             info["error_against_phantom_motion"] = registration_error(run.scene, model, self.pairs,
