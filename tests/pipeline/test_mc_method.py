@@ -259,3 +259,40 @@ def test_a_run_too_thin_in_z_to_register_is_warned(reference):
     assert mc_reconstruct.thin_warning("p0.100", np.arange(16) * 4.0) is None
     assert mc_reconstruct.thin_warning("p0.100", np.arange(30) * 1.0) is None
     assert "cover 29 mm" in mc_reconstruct.thin_warning("p0.100", np.arange(29) * 1.0)
+
+
+def test_slabs_grow_past_the_budget_while_rows_stay_near_one_slices(monkeypatch, tmp_path, reference):
+    """Where one slice's plane rows already exceed the budget (paper-p010), a slab grows while its rows
+    stay within GROWTH x its first slice's, instead of one slice per slab; the volumes do not depend
+    on the cut (tiny cut one slice per slab against the reference's one slab: the same bits)."""
+    # GROWTH is monkeypatched to 0 below, so the run cuts tiny one slice per slab
+    from clrecon.pipeline.stages import mc_reconstruct
+    from clrecon.reconstruction import reconstruct
+    from clrecon.scan import table as geometry
+
+    sc = load_scene("demo")
+    cfg = reconstruct.ReconstructionConfig.from_scene(sc)
+    ptab = geometry.projection_table(sc, 0.1)
+    z = reconstruct.slice_positions(sc, (0, sc.recon.nz))
+    cut = mc_reconstruct.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0)
+    assert cut[0][0] == 0 and cut[-1][1] == len(z) and all(a[1] == b[0] for a, b in zip(cut, cut[1:]))
+    assert 1 < len(cut) < len(z)  # grown past the budget, not whole
+    assert mc_reconstruct.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1e18) == [(0, len(z))]
+    monkeypatch.setattr(mc_reconstruct, "GROWTH", 0.0)  # the budget alone: one slice per slab
+    assert mc_reconstruct.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0) == [
+        (i, i + 1) for i in range(len(z))]
+
+    tiny = load_scene("tiny")
+    tz = reconstruct.slice_positions(tiny, (0, tiny.recon.nz))
+    tcut = mc_reconstruct.slab_ranges(geometry.projection_table(tiny, 0.1), tiny.scanner,
+                                      reconstruct.ReconstructionConfig.from_scene(tiny), tz, tiny.recon.mc, budget=1.0)
+    assert len(tcut) == len(tz) > 1
+
+    real = mc_reconstruct.slab_ranges
+    monkeypatch.setattr(mc_reconstruct, "slab_ranges", lambda *a, **k: real(*a, **dict(k, budget=1.0)))
+    out = tmp_path / "cut"
+    run(tiny, out, methods=METHODS.split(","), cache_dir=tmp_path / "cache", executor="serial", **QUIET)
+    ref_out, ref_res = reference
+    with h5py.File(out / "volumes.h5", "r") as f, h5py.File(ref_out / "volumes.h5", "r") as g:
+        for v in ("noise-free", "noisy"):
+            assert np.array_equal(f[f"recon/p0.100/{v}/mc"][()], g[f"recon/p0.100/{v}/mc"][()])
