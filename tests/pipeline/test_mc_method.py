@@ -275,7 +275,7 @@ def test_slabs_grow_past_the_budget_while_rows_stay_near_one_slices(monkeypatch,
     ptab = geometry.projection_table(sc, 0.1)
     z = reconstruct.slice_positions(sc, (0, sc.recon.nz))
     cut = mc_reconstruct.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0)
-    assert cut[0][0] == 0 and cut[-1][1] == len(z) and all(a[1] == b[0] for a, b in zip(cut, cut[1:]))
+    assert cut[0][0] == 0 and cut[-1][1] == len(z) and all(a[1] == b[0] for a, b in zip(cut[:-1], cut[1:], strict=True))
     assert 1 < len(cut) < len(z)  # grown past the budget, not whole
     assert mc_reconstruct.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1e18) == [(0, len(z))]
     monkeypatch.setattr(mc_reconstruct, "GROWTH", 0.0)  # the budget alone: one slice per slab
