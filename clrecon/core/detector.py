@@ -9,7 +9,7 @@ field-of-view radius. A cylindrical detector is one new class here plus its kern
 
 Two models: the flat panel (``"flat"``, the paper's TIGRE geometry) and the cylindrical arc of
 clinical scanners (``"cylindrical"``, focused on the focal centre). Conventions
-(``docs/conventions.md`` "Detector models"): lengths in mm, columns along ``e_u`` (index
+(``docs/conventions.md`` "Flat detector", "Cylindrical detector"): lengths in mm, columns along ``e_u`` (index
 increasing with u, and with the fan angle gamma for the arc), rows along ``e_v = +z``.
 
 Both give the projector their cells as *flat-equivalent* coordinates (:meth:`ray_cells`): the

@@ -572,7 +572,7 @@ def fbp(sino, geom: FanBeamGeometry, window: str = "ram-lak", *, runtime=None) -
     stays at a few times V*C*128 bytes. The images are those of :func:`backproject` of
     :func:`filter_sinograms`, bit for bit (``0 + 1 * q`` is ``q``; a -0 becomes +0, which adds
     nothing different to a sum that starts at +0), without the host's interleaving copy and
-    upload (the ground truth's FBP, 5 500 images at paper-p010: docs/algorithms.md, "Fan-beam FBP").
+    upload (the ground truth's FBP, 5 500 images at paper-p010: docs/fbp.md, "Fan-beam FBP").
     """
     if window not in WINDOWS:
         raise ValueError(f"window = {window!r}: must be one of {', '.join(WINDOWS)}")

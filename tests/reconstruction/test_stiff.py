@@ -1,4 +1,4 @@
-"""Stiff and extreme interpolation cases (docs/choices.md "Stiff and degenerate cases"): every one has a defined,
+"""Stiff and extreme interpolation cases (docs/choices-engineering.md "Stiff and degenerate cases"): every one has a defined,
 finite result, and the float32 local-linear kernel agrees with the float64 reference.
 
 Local linear: collinear and duplicate phase points, all points at one amplitude, fewer than

@@ -11,10 +11,10 @@ mm with components (dx, dy, dz)). Two registrations, chosen by the config's type
   (``skimage.registration.optical_flow_ilk``; Le Besnerais & Champagnat, ICIP 2005): a
   least-squares flow in a window around each voxel, coarse to fine with warps. Its window
   averages out what demons' voxel-wise forces follow (streaks), and it converges on large
-  shifts in a few warps where demons creeps (measured: docs/motion-model.md "Registration").
+  shifts in a few warps where demons creeps (measured: docs/results/mc-study.md "Registration").
 
 Both see images clipped to a HU window and pre-smoothed (the streaks of a first-pass 5D image
-and the lung's density change then pull less). docs/motion-model.md "Registration".
+and the lung's density change then pull less). docs/results/mc-study.md "Registration".
 
 Convention: ``register(fixed, moving)`` returns u on the fixed grid with
 ``moving(x + u(x)) ~ fixed(x)``: u maps each fixed-image point to where it is in the moving
