@@ -158,7 +158,7 @@ def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray,
 
     Kernel ``apply_weights_interleaved16_cols8`` (8 columns per work-item); the same bits as the
     per-lane reference kernel (:func:`clrecon.bench.reference_kernels.apply_padded_interleaved_lanes`),
-    the reconstruction's until 2026-12-05."""
+    an earlier kernel of the reconstruction."""
     return _launch_padded(rows, idx, wgt, B, rt, out, "apply_weights_interleaved16_cols8", COLS_PER_ITEM, COLS8_LOCAL)
 
 
