@@ -142,7 +142,7 @@ def pad_interleaved(index: np.ndarray, weight: np.ndarray):
 
 #: Padded columns per work-item of ``apply_weights_interleaved16_cols8`` and its work-group width
 #: (work-items): 8 x 8 measured best at paper-p010's shape at load 3 (2.9x the per-lane kernel; 4 and
-#: 16 work-items 2.6x and 2.9x; idle, the kernel is 1.6-1.8x at K = 8: docs/algorithms.md).
+#: 16 work-items 2.6x and 2.9x; idle, the kernel is 1.6-1.8x at K = 8: docs/kernels.md).
 COLS_PER_ITEM = 8
 COLS8_LOCAL = 8
 
