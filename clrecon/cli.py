@@ -269,7 +269,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="measured scans: copy the input's patient attributes into the exported DICOM (default: none)")
     e.add_argument("--scene", help="measured scans: the scene file the run was made from, for an export that reads "
                                    "the input again (dicom-ct-pd, --keep-identifiers): results.json records the "
-                                   "series only by its digest (docs/measured-data.md 'Patient data')")
+                                   "series only by its digest (docs/patient-data.md 'Patient data')")
     e.set_defaults(func=cmd_export)
 
     ph = sub.add_parser("phantom", help="voxel phantoms: export the analytic phantom as XCAT or NIfTI frames")

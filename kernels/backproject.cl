@@ -6,7 +6,7 @@
 
 // Batched kernel: 16 filtered sinograms interleaved as [view][column][batch] and read as
 // one float16 per interpolation tap. The 16 lanes are the SIMD width; the geometry of a
-// (pixel, view) pair is computed once for all 16 (docs/algorithms.md "Fan-beam FBP": 3.9 vs 0.36 G
+// (pixel, view) pair is computed once for all 16 (docs/fbp.md "Fan-beam FBP": 3.9 vs 0.36 G
 // updates/s for one sinogram per work-item). Each work-item does this for TWO groups of 16
 // (g = 2 gp and 2 gp + 1, each in its own [view][column][16] plane, so the layout is that of
 // clrecon.reconstruction.fbp.interleave_batch), sharing the geometry over 32 sinograms: measured 1.2x

@@ -16,7 +16,7 @@
 //
 // Geometry comes in as kernel arguments, so one build serves every geometry; only the
 // local size LX x LY and the view chunk VCHUNK are compile-time constants (-D): PoCL
-// specialises its binaries per local size anyway (docs/algorithms.md, "Making kernels fast on PoCL").
+// specialises its binaries per local size anyway (docs/kernels.md, "Making kernels fast on PoCL").
 //
 // PoCL notes (PoCL 3.0, LLVM target znver3 = AVX2 on this machine, so a float16 is two
 // ymm registers):

@@ -156,7 +156,7 @@ __kernel void local_linear_weights(__global const real *dc,    // (K_SLOTS, n) s
 // 16 lanes go out in one 16-lane store. The host puts index 0 wherever the weight is 0, so the row read
 // there is in range, and the select keeps whatever it holds (a NaN too) out of the sum. Per lane the
 // slots are summed in k order exactly as the loop with a branch did (until 2026-12-03: a dynamic K,
-// `if (w != 0)`, lane-major index/weight; bit-identical sums, 1.6-2.2x slower: docs/algorithms.md).
+// `if (w != 0)`, lane-major index/weight; bit-identical sums, 1.6-2.2x slower: docs/kernels.md).
 #include "interp16.h"
 
 // apply_weights_interleaved16's sums (kernels/reference/interp_reference.cl), 8 padded columns per work-item (the reconstruction's kernel

@@ -2,7 +2,7 @@
 // IEEE TMI 28:1513, 2009, on rebinned helical data): each voxel x of a target state t is
 // followed, through a motion model, to where it was when each row was measured, and the row of
 // that projection rebinned to the plane through the moved point is read there.
-// docs/motion-model.md "Motion-compensated backprojection"; the NumPy float64 reference is
+// docs/motion-model.md "The method" (step 4); the NumPy float64 reference is
 // clrecon.reconstruction.motion.backproject.mc_backproject_reference, the one-voxel-per-work-item
 // kernel it replaced kernels/reference/mc_backproject_scalar.cl.
 //
@@ -24,7 +24,7 @@
 // Every output has one owner; the loops run in a fixed order: the result does not depend on
 // the launch size, the slab or the worker.
 //
-// Vectorisation (docs/algorithms.md "Making kernels fast on PoCL"): neither PoCL nor Intel's CPU
+// Vectorisation (docs/kernels.md "Making kernels fast on PoCL"): neither PoCL nor Intel's CPU
 // runtime vectorises the scalar kernel's work-item loop around its view and slot loops (data-
 // dependent trip counts, a break), so a work-item here holds LANES (8 or 16) voxels along x in
 // the lanes of vectors (kernels/mc_lanes.h). What depends on (view, slot) only -- the
@@ -34,7 +34,7 @@
 // Lanes past nx or outside the FOV compute on the point (0, 0) (every index stays in range) and
 // are not stored. The host builds 16 lanes where the device's native float vector holds 16
 // (AVX-512), else 8 (backproject.lanes_for); measured 3.2-3.5x the scalar kernel on both CPU
-// drivers (docs/motion-model.md "Cost", benchmarks/mc_backproject.py).
+// drivers (docs/results/mc-cost.md "Cost", benchmarks/mc_backproject.py).
 //
 // Layouts: rows (P, NPMAX, C) float, plane p of projection q at rows[(q NPMAX + p) C];
 // slot_proj, slot_w (S, V, K) (empty slots: proj -1, at the end of a list); proj_dbasis (P, NB):

@@ -13,7 +13,7 @@
 // with NumPy's log-gamma series, so the float64 reference can follow it step for step.
 // After MAX_ROUNDS rounds without acceptance (probability < 1e-100) the mean is returned.
 //
-// Two passes, so that PoCL can vectorise the common case (docs/algorithms.md, "Making kernels fast on
+// Two passes, so that PoCL can vectorise the common case (docs/kernels.md, "Making kernels fast on
 // PoCL"): add_noise does round 0 straight-line -- no loops, no early returns, and clang's
 // __builtin_ math (LLVM intrinsics, inlined; PoCL's OpenCL builtins such as sqrt, floor or
 // mul_hi are calls that stop the vectoriser) -- and resolves every cell that the fast test

@@ -1,6 +1,6 @@
 // The driver probe (clrecon/core/drivers.py): one small kernel that uses what the real kernels
 // lean on -- 16-float vectors read and written through float16 pointers (as interp.cl does; not
-// vload16/vstore16, which PoCL 3.0 aborts on when compiling for AVX-512: docs/algorithms.md
+// vload16/vstore16, which PoCL 3.0 aborts on when compiling for AVX-512: docs/kernels.md
 // "Kernel builds"), and the math builtins at full precision. A CPU driver that cannot build or run
 // this correctly is not offered (PoCL 3.0 on a CPU its LLVM 14 does not know fails here with
 // "unknown target CPU 'generic'").

@@ -1,5 +1,5 @@
 """``python -m clrecon bench --only mc``: the cost of the ``mc`` method against the paper methods'
-reconstruction of the same run (docs/motion-model.md "Cost").
+reconstruction of the same run (docs/results/mc-cost.md "Cost").
 
 One run of ``demo`` at pitch 0.10 (the clinical pitch ``mc`` is for; ``--quick``: its 4 middle
 slices) with barycentric (``mc``'s first pass), local linear, r4DCT and ``mc``, in a temporary

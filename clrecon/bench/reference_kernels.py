@@ -7,12 +7,13 @@ benchmarks and as independent cross-checks for the tests; nothing in the pipelin
 - :func:`apply_weights`: the interpolation's weighted sum, one work-item per output element
   (``reference/interp_reference.cl``), against its float64 NumPy reference
   (:func:`clrecon.reconstruction.interpolation.apply.apply_weights_reference`);
-- :func:`apply_padded_interleaved_lanes` and :func:`apply_interleaved_loop`: the reconstruction's
-  interpolation kernels of 2026-12-03 to 2026-12-05 and before, the same sums bit for bit as
+- :func:`apply_padded_interleaved_lanes` and :func:`apply_interleaved_loop`: earlier interpolation
+  kernels of the reconstruction, the same sums bit for bit as
   :func:`clrecon.reconstruction.interpolation.apply.apply_padded_interleaved` (8 columns per work-item);
 - :func:`mc_backproject_scalar`: the motion-compensated backprojection one voxel per work-item
-  (``reference/mc_backproject_scalar.cl``, the pipeline's kernel until 2026-12-06), against
+  (``reference/mc_backproject_scalar.cl``, the pipeline's earlier kernel), against
   :class:`clrecon.reconstruction.motion.backproject.MCBackprojector`'s 8 voxels per work-item.
+  Which kernel ran when: docs/results/code-history.md "Which kernel ran when".
 
 The projector's unculled build (``CULL=0`` of ``kernels/project_cull.cl`` and ``project.cl``,
 ``project(..., cull=False)``) is a build option of the pipeline's own kernels, not a file here.
@@ -76,13 +77,13 @@ def apply_padded_interleaved_lanes(rows: apply_mod.DeviceRows, idx: np.ndarray, 
                                    out=None):
     """:func:`clrecon.reconstruction.interpolation.apply.apply_padded_interleaved` with the per-lane
     kernel ``apply_weights_interleaved16`` (one padded column per work-item, 16 scalar gathers per
-    slot): the reconstruction's kernel from 2026-12-03 to 2026-12-05. Same output, bit for bit."""
+    slot): an earlier kernel of the reconstruction. Same output, bit for bit."""
     return apply_mod._launch_padded(rows, idx, wgt, B, rt, out, "apply_weights_interleaved16", 1, _LOCAL,
                                     source=INTERP_REFERENCE)
 
 
 def apply_interleaved_loop(rows: apply_mod.DeviceRows, index: np.ndarray, weight: np.ndarray, rt=None, out=None):
-    """The reconstruction's interpolation kernel until 2026-12-03 (``apply_weights_interleaved16_loop``):
+    """An earlier interpolation kernel of the reconstruction (``apply_weights_interleaved16_loop``):
     :func:`clrecon.reconstruction.interpolation.apply.apply_weights_interleaved`'s output, bit for bit,
     from lane-major (B, V, K) ``index`` / ``weight`` with a run-time slot count. No validation
     (indices with non-zero weight in [0, P)). Returns ``(buffer, n_groups)``."""

@@ -6,7 +6,7 @@ figures, sweep tables, export indexes -- goes through here. The bytes are writte
 ``fsync``-ed, then ``os.replace``-d onto the final name. A failure on the way (disk full, a
 signal, an exception in the code that makes the bytes) removes the temporary file and leaves
 the final name as it was: absent, or the previous complete version. A SIGKILL can leave only
-a ``.partial`` file, never a torn file under the final name (docs/data-flow.md "Resumability").
+a ``.partial`` file, never a torn file under the final name (docs/run-directory.md "Resumability").
 
 The fault point ``write:<file name>`` (:mod:`clrecon.core.faults`) sits half-way through the
 bytes of every write, so tests inject a full disk or a kill there.

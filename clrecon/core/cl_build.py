@@ -2,7 +2,7 @@
 
 Shared by the runtime's kernel builds (:mod:`clrecon.core.runtime`) and the driver probe
 (:mod:`clrecon.core.driver_probe`). Not ``pyopencl.Program.build``: that adds its own ``-I``
-option, which changes PoCL's cache key in every virtual environment (docs/algorithms.md, "Kernel
+option, which changes PoCL's cache key in every virtual environment (docs/kernels.md, "Kernel
 builds").
 """
 

@@ -9,7 +9,7 @@ field-of-view radius. A cylindrical detector is one new class here plus its kern
 
 Two models: the flat panel (``"flat"``, the paper's TIGRE geometry) and the cylindrical arc of
 clinical scanners (``"cylindrical"``, focused on the focal centre). Conventions
-(``docs/conventions.md`` "Detector models"): lengths in mm, columns along ``e_u`` (index
+(``docs/conventions.md`` "Flat detector", "Cylindrical detector"): lengths in mm, columns along ``e_u`` (index
 increasing with u, and with the fan angle gamma for the arc), rows along ``e_v = +z``.
 
 Both give the projector their cells as *flat-equivalent* coordinates (:meth:`ray_cells`): the
@@ -70,7 +70,7 @@ def atan_coefficients(t_max: float) -> np.ndarray:
     """Coefficients (n,) float64 of atan(t) ~ t sum_k a_k t^(2k) on [0, t_max] (least squares on 4000
     points), the fewest n <= 9 whose maximum error on a fine grid is <= :data:`ATAN_MAX_ERR` rad.
     ``t_max <= 1`` (fans of up to +-45 degrees). Used by the cylindrical kernels (``-D ATAN_C0..``),
-    since PoCL does not inline the ``atan`` builtin (docs/algorithms.md)."""
+    since PoCL does not inline the ``atan`` builtin (docs/fbp.md "Equiangular FBP")."""
     t = np.linspace(1e-6, t_max, 4000)
     tt = np.linspace(0.0, t_max, 20001)
     for n in range(3, 10):

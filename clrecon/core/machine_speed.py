@@ -10,8 +10,8 @@ records two:
   float64 data), the fastest of five tries after one untimed one, once before the run and
   once after it. The fastest, because a try that a context switch hit says nothing about
   the machine; what slows all five (a busier host, a lower clock) is what the probe is for.
-  Idle on 2026-12-03, single tries took 14–23 ms and the fastest of five 11.6–13.6 ms in six
-  calls, so only differences well beyond ~15 % mean a different machine. Single-threaded on
+  Only differences well beyond ~15 % mean a different machine (the spread measured idle:
+  docs/results/code-history.md "The machine-speed probe"). Single-threaded on
   purpose: it measures the speed of one core as the run would get it, not how many cores are
   free. A run whose probe took 1.3 × another's ran on a machine about that much slower.
 - **CPU time of the machine during the run** from ``/proc/stat`` (Linux): the whole machine's

@@ -165,7 +165,7 @@ class Runtime:
         Not ``pyopencl.Program.build``: that adds ``-I <site-packages>/pyopencl/cl`` (its own
         headers, which the kernels here do not include) to the options, and PoCL keys its kernel
         cache on the options, so every new virtual environment compiled every kernel again (a
-        fresh clone's first run; measured in docs/algorithms.md, "Kernel builds"). With the
+        fresh clone's first run; measured in docs/kernels.md, "Kernel builds"). With the
         options the sources' own, a build made once on a machine serves every checkout of the
         same sources."""
         cl = self.cl
@@ -238,7 +238,7 @@ class Runtime:
         On a CPU device (PoCL: device memory *is* host memory) a C-contiguous array of
         ``dtype`` aligned to the device's base address alignment becomes a
         ``CL_MEM_USE_HOST_PTR`` buffer: no copy, and no fresh pages to touch (a
-        ``COPY_HOST_PTR`` buffer of 1 GB costs 0.8-2.5 s to fill here, docs/algorithms.md
+        ``COPY_HOST_PTR`` buffer of 1 GB costs 0.8-2.5 s to fill here, docs/kernels.md
         "Rows read in place"). Anything else -- a GPU, another dtype, an unaligned or strided
         array -- gets the copy of :meth:`to_device`. The caller must neither write ``array``
         nor let it go while the buffer lives (the returned buffer keeps a reference to it)."""

@@ -6,12 +6,10 @@ units make (a slab's volumes, below; a block's projections, two blocks of at mos
 
 Writing a finished (variant, method) slab is a single-core job: its float32 HU images are
 converted to ``recon.volume_dtype``, compressed (LZF + shuffle, one chunk per slice), hashed
-(BLAKE2b) and written and fsync'd as one unit file (:mod:`clrecon.core.units`). On paper-p010's
-slabs (5 x 10 targets x 13 slices of 512^2, 341 MB in float16) that is about 3 s per unit and
-290 s of the run (11.6 %, docs/reproduction.md), during which the backprojector, which keeps
-both cores busy, had nothing to do. h5py releases the GIL while it compresses (measured: a
-Python thread beside a 3.1 s compression kept running, its longest stall 0.2 s), so the unit
-can be written while the next method's slab is interpolated and backprojected.
+(BLAKE2b) and written and fsync'd as one unit file (:mod:`clrecon.core.units`); written in line,
+the backprojector, which keeps both cores busy, would wait for it. h5py releases the GIL while
+it compresses, so the unit can be written while the next method's slab is interpolated and
+backprojected (the figures on paper-p010: docs/results/code-history.md "Writing volume units behind the work").
 
 One write is in flight at a time: :meth:`WriteBehind.submit` first waits for the previous
 one, so at most one finished slab (its float32 images and their converted, compressed copies)

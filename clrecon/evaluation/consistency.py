@@ -20,7 +20,7 @@ Units: line integrals times 1000 / mu_water, "HU mm" (1000 HU mm = 1 mm of water
 the reconstruction circle (``recon.object_radius_mm``); ``heart``, the channels whose ray crosses
 the heart box ``recon.small_fov_mm`` (:func:`clrecon.evaluation.truth_free.heart_channels`).
 
-What it can say and its biases (docs/motion-model.md "Did it help? A truth-free check"): the
+What it can say and its biases (docs/consistency.md "Did it help? A truth-free check"): the
 rows were used to make the volumes (for ``mc``'s variant A with the same barycentric weights as
 barycentric itself, so the leakage is comparable between the two); SSRB rows differ from ideal
 in-plane rows by 0.5-0.8 % of the row norm and the FBP's filter window smooths every image, the
@@ -283,7 +283,7 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
     ``recon_cfg`` :class:`clrecon.reconstruction.reconstruct.ReconstructionConfig`; ``targets``
     its ``Targets``; ``box`` the heart box (x0, x1, y0, y1) mm; ``volumes(variant, method, slice
     indices) -> (n_c, n_r, s, ny, nx)`` HU; ``methods`` the 5D methods to check. Returns the
-    ``results.json["consistency"][pitch]`` entry (docs/motion-model.md "Did it help?").
+    ``results.json["consistency"][pitch]`` entry (docs/consistency.md "Did it help?").
     """
     t0 = time.perf_counter()
     sc = recon_cfg.scanner

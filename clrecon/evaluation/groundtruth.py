@@ -1,6 +1,6 @@
 """Ground truth for each target (stage 9 of the pipeline, beside metrics).
 
-Two truths per target (c*, a*) (docs/algorithms.md "Ground truth and metrics"):
+Two truths per target (c*, a*) (docs/metrics.md "Ground truth and metrics"):
 
 - **ground truth CT** (what the metrics compare against): the phantom frozen at (c*, a*),
   exact *in-plane* fan-beam line integrals of each slice (a one-row detector whose source

@@ -30,7 +30,7 @@ ground-truth CT of the same target and the phantom's own geometry at (c*, a*):
 
 Everything here is NumPy on arrays; :func:`target_geometry` is the one function that asks the
 phantom (and the LV-region voxeliser) what is true at a target. Unmeasurable values are NaN
-here and ``None`` in ``results.json``. Definitions: docs/algorithms.md "Motion metrics".
+here and ``None`` in ``results.json``. Definitions: docs/metrics.md "Motion metrics".
 """
 
 from __future__ import annotations

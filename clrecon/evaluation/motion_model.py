@@ -3,7 +3,7 @@
 :func:`registration_error`: RMS and 95th percentile of |u_model(x; c, a) - u_true(x; c, a)| (mm)
 over the targets, in the heart (walls, cavities, atria, lesion, aortic root) and in the body
 outside the lungs, on the model's grid, beside the true motion's own RMS there. The true motion
-is :func:`clrecon.simulation.phantoms.motion_field.displacement_fields` (docs/motion-model.md
+is :func:`clrecon.simulation.phantoms.motion_field.displacement_fields` (docs/results/mc-study.md
 "True motion of the phantom"), defined for the analytic phantom only.
 """
 

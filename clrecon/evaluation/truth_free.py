@@ -26,7 +26,7 @@ Held-out folds (``scheme``):
 - ``"interior"``: the ``loto`` folds whose held-out point lies inside the remaining points, i.e.
   in a Delaunay triangle of them (periodic in c) whose vertices are all within 0.3 in c
   (barycentric's own triangle test, ``Weights.branch``). Removing one of ~9 turns often leaves
-  the point outside the others, which a target is less often (docs/truth-free.md "Where it
+  the point outside the others, which a target is less often (docs/results/truth-free.md "Where it
   fails"); these folds test interpolation, as the targets mostly need.
 
 How the per-group targets are made: ``batch_weights`` solves the same targets for every

@@ -86,7 +86,7 @@ def export(run_dir, fmt: str, method: str | None = None, pitch=None, variant: st
     The writer is ``WRITERS[fmt]`` (:class:`clrecon.outputs.writers.base.Writer`). ``scene`` (a scene
     file or :class:`~clrecon.config.scene.Scene`): a measured run's own scene, which ``results.json``
     records without the series' path (patient data): needed to re-export its projections or to copy
-    its identifiers (``docs/measured-data.md`` "Patient data").
+    its identifiers (``docs/patient-data.md`` "Patient data").
     """
     if fmt not in WRITERS:
         raise ClreconError(f"--format {fmt!r}: must be one of {', '.join(WRITERS.names)}")

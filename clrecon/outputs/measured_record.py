@@ -92,7 +92,7 @@ def annotate_results(results: dict, scene, log=None) -> None:
     results["measured_scan"] = summary
     warn = summary["orientation_check"].get("warning")
     if warn and log is not None:
-        log(f"WARNING orientation check: {warn} (docs/measured-data.md 'Orientation check')")
+        log(f"WARNING orientation check: {warn} (docs/measured-conventions.md 'Orientation check')")
 
 
 def for_disk(results: dict) -> dict:
@@ -122,7 +122,7 @@ def run_input_scene(run, scene=None):
         if not patient_data.is_redacted(proj):
             return run.scene
         raise ClreconError(f"{run.dir}: this measured run records its series only as {proj!r} (no path: patient "
-                           f"data, docs/measured-data.md 'Patient data'); give the scene it was made from: "
+                           f"data, docs/patient-data.md 'Patient data'); give the scene it was made from: "
                            f"export ... --scene FILE")
     given = scene if isinstance(scene, Scene) else load_scene(scene)
     if patient_data.is_redacted(proj):
@@ -149,7 +149,7 @@ def report_lines(results: dict) -> list[str]:
              f"gantry angle {r['rotation']}, table {r['table_direction']} in z.", ""]
     lines += ["### Orientation check (no ground truth: the data against their mirror images)", "",
               "Residual = RMS of the disagreement / RMS of the line integrals, lower is better "
-              "(docs/measured-data.md 'Orientation check').", "",
+              "(docs/measured-conventions.md 'Orientation check').", "",
               "| test | reading | residual | verdict |", "|---|---|---|---|"]
     for test, label in (("channels", "conjugate rays"), ("rows", "same-angle views across turns")):
         t = ck.get(test) or {}

@@ -215,7 +215,7 @@ def consistency_markdown(results: dict) -> list[str]:
              "data model every method shares; the comparison of mc with its first pass (barycentric: the same rows "
              "and weights) is the point: z is their difference of mean squares over its jackknife error across "
              "blocks of views. On demo it saw mc's gain at pitch 0.10, not at 0.02, and it does not order the "
-             "paper methods as the error against truth does (docs/motion-model.md \"Did it help? A truth-free "
+             "paper methods as the error against truth does (docs/consistency.md \"Did it help? A truth-free "
              "check\").", ""]
     for pk, ent in cons.items():
         if "residual" not in ent:

@@ -1,8 +1,8 @@
 """The reproduction tables: runs of the paper's scenes side by side with the paper's Table 2.
 
 ``python -m clrecon.outputs.reproduction RUN_DIR [RUN_DIR ...]`` prints Markdown for
-``docs/reproduction.md`` from the runs' ``results.json`` (typically ``paper-p002`` and
-``paper-p010``, one pitch each): Table 2 noise-free beside the paper's values, the noisy
+``docs/results/paper-p010.md`` and ``docs/results/paper-p002.md`` from the runs' ``results.json``
+(typically ``paper-p002`` and ``paper-p010``, one pitch each): Table 2 noise-free beside the paper's values, the noisy
 table, the claims measured over both pitches together, the respiratory-only comparison, the
 motion metrics, and per run the stage times, the peak memory and the disk it used. Nothing
 in it is typed by hand: rerun it on new runs.

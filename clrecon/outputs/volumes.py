@@ -22,7 +22,7 @@ full 5-axis grid (size-1 and broadcast axes restored).
 Half precision: 11 significant bits, so a value is stored within 2^-11 of itself relative
 (<= 0.25 HU for |HU| < 1024, <= 0.5 HU for |HU| < 2048, <= 1 HU up to 4096); the metrics are
 computed from the stored volumes, so they describe exactly what a user reads back. It halves
-the volumes of a paper-scale run (docs/reproduction.md gives the measured effect on Table 2).
+the volumes of a paper-scale run (docs/results/paper-scale.md gives the measured effect).
 """
 
 from __future__ import annotations

@@ -94,8 +94,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     metrics_peak = n_proc * (regions + 3 * target_vox * 4) + (n_proc - 1) * 0.4e9
     peak = max(peak, metrics_peak)
     if "mc" in methods:  # the motion-compensated second pass, at its worst pitch, on top: the process
-        # does not give the reconstruction's memory back to the system before it (demo: peak RSS 1.25 GB
-        # without mc, 2.65 GB with it, 2026-12-06)
+        # does not give the reconstruction's memory back to the system before it
+        # (docs/results/code-history.md "The mc working set against the measured peak")
         peak += max(mc_reconstruct.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p), n_var,
                                                  n_targets, nz, rc.ny, rc.nx) for p in pitches)
     if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)

@@ -4,7 +4,7 @@
 (a stage, per pitch or once per run) starts when every node giving what it needs is done.
 Serially, overlapped on this machine's cores, or with its units on Dask workers, it is the
 same graph and the same stage functions, so the volumes and the numbers are the same bit for
-bit. How to add a stage: docs/extending.md "A new pipeline stage".
+bit. How to add a stage: docs/adding-a-stage.md "A new pipeline stage".
 
 A stage function is ``fn(run, pitch, **needs)``: ``run`` is the run's
 :class:`~clrecon.pipeline.context.RunContext`, ``pitch`` the node's pitch (None for a stage

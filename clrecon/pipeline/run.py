@@ -3,7 +3,7 @@
 The run is the graph of stages of :mod:`clrecon.pipeline.graph`, run by an executor
 (:mod:`clrecon.pipeline.executors`: ``serial``, ``local`` (default: overlapped on this
 machine's cores) or ``dask``); whichever runs it, the volumes and numbers are the same bit
-for bit. The run directory holds ``results.json`` (schema: docs/data-flow.md "results.json"),
+for bit. The run directory holds ``results.json`` (schema: docs/run-directory.md "results.json"),
 ``volumes.h5`` (:mod:`clrecon.outputs.volumes`) and ``report.md`` with its figures. Outputs
 are written under temporary names and renamed when complete, so an interrupted run never
 leaves files that look finished; the next run of the same request resumes it.

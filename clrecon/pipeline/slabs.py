@@ -83,9 +83,8 @@ def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progres
     slice of a helical scan), scaled to every slice by its candidate count
     (:func:`candidates_per_slice`), and are cut so that each slab's working set stays within
     :data:`clrecon.reconstruction.reconstruct.SLAB_BYTES` (:func:`slab_ranges`); so a paper-scale
-    scan never holds the plan of every slice at once. (Until 2026-12-02 the first slice was the
-    probe: on paper-p002 it has 6 613 rows against 43 642 inside, so the interior slabs were
-    sized 6.6x over the budget and the run peaked at 8.49 GiB against the modelled 4.6.)
+    scan never holds the plan of every slice at once. (The first slice is no probe: at a scan's
+    end it has far fewer rows than inside; docs/results/code-history.md "Slabs sized from the densest slice".)
     Each slab is planned to find the projections the reconstruction needs (``needed``, (n,)
     bool) and its weight diagnostics; the plans are kept for the reconstruction while they
     fit in :data:`clrecon.reconstruction.reconstruct.KEEP_PLANS_BYTES` (``plans[k]`` is None

@@ -13,7 +13,7 @@ No faster option meets the accuracy goal of issue 20 (every MAE within 0.5 HU of
 any resampling of the filtered sinogram before the backprojection (rebinning, tile decimation as
 in a hierarchical backprojection, gridding) smooths the band above the image grid's Nyquist
 that the direct path's interpolation folds into the pixels, and moves the noisy MAEs by 3 HU
-or more at any cost below the direct one (docs/algorithms.md, "A backprojection faster than
+or more at any cost below the direct one (docs/results/backprojectors.md, "A backprojection faster than
 `direct`"; the float64 study in ``benchmarks/studies/hierarchical/``).
 
 The config layer (:mod:`clrecon.config.scene`) validates ``recon.backprojector`` against

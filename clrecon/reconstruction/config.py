@@ -47,7 +47,7 @@ MAX_GRID_MM = 2000.0
 class MotionCompensationConfig(Section):
     """``[recon.mc]``: knobs of the ``mc`` method (motion-compensated FBP, docs/motion-model.md "Knobs").
 
-    Chosen once on ``demo``'s tuning slices (docs/motion-model.md "Tuning"); the ranges keep
+    Chosen once on ``demo``'s tuning slices (docs/results/mc-study.md "Tuning"); the ranges keep
     every value the method can run with and refuse typos and unit slips.
     """
 

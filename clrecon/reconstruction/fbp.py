@@ -332,9 +332,8 @@ def filter_sinograms(sino, geom: FanBeamGeometry, window: str = "ram-lak", *, ro
     Each row is filtered alone (a real FFT of the zero-padded row, times the real, even
     response, inverse real FFT), so a row's result does not depend on the rows filtered with
     it: the reconstruction gives the same bits whatever its slab size or worker count.
-    (Until 2026-12-02 two rows shared one complex FFT, ``a + i b``; that made a row's last
-    bits depend on its partner, about 1e-3 HU, and was no faster than ``rfft`` here:
-    28.8 ms against 46.9 ms for 1001 rows of 2048.)
+    (Two rows in one complex FFT, ``a + i b``, would make a row's last bits depend on its
+    partner: docs/results/code-history.md "Ramp filter: one row per FFT".)
     """
     a = _check_sinograms(sino, geom, "sino")
     return filter_rows(a.reshape(-1, geom.n_cols), geom, window, rows_per_chunk=rows_per_chunk,
@@ -572,7 +571,7 @@ def fbp(sino, geom: FanBeamGeometry, window: str = "ram-lak", *, runtime=None) -
     stays at a few times V*C*128 bytes. The images are those of :func:`backproject` of
     :func:`filter_sinograms`, bit for bit (``0 + 1 * q`` is ``q``; a -0 becomes +0, which adds
     nothing different to a sum that starts at +0), without the host's interleaving copy and
-    upload (the ground truth's FBP, 5 500 images at paper-p010: docs/algorithms.md, "Fan-beam FBP").
+    upload (the ground truth's FBP, 5 500 images at paper-p010: docs/fbp.md, "Fan-beam FBP").
     """
     if window not in WINDOWS:
         raise ValueError(f"window = {window!r}: must be one of {', '.join(WINDOWS)}")

@@ -32,7 +32,7 @@ col_pitch SID/SDD: with ds = tau the two interpolations in s, rebinning and
 backprojection, blur the image visibly more than the direct path), and the s grid spans
 the FOV circle plus one sample on either side, so every pixel inside the FOV reads two
 samples in range. Accuracy and speed trade-offs (two interpolations instead of one: a
-slightly smoother image) are measured in ``docs/algorithms.md`` ("Parallel-rebin backprojector").
+slightly smoother image) are measured in ``docs/fbp.md`` ("Parallel-rebin backprojector").
 
 Shapes: fan sinograms (B, V, C) float32 view-major; parallel sinograms (B, V/2, n_s) float32;
 images (B, ny, nx) float32 mu in 1/mm, ``img[y, x]``.

@@ -515,7 +515,7 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, var
         # one launch's interleaved sinograms and images, allocated once per variant and reused by
         # every launch: fresh buffers of these sizes (paper-p010: 114 MB of sinograms, 2 x 34 MB of
         # images per launch) are new pages each time, and their first touch cost as much as the
-        # interpolation kernel itself (docs/algorithms.md, "Scratch buffers")
+        # interpolation kernel itself (docs/kernels.md, "Scratch buffers")
         n_launch = -(-step // fbp_mod.BATCH_LANES)
         d_sino = rt.empty((n_launch, geom.n_views, geom.n_cols + 2, fbp_mod.BATCH_LANES))
         d_img = rt.empty((step, geom.ny, geom.nx)) if par is None else None

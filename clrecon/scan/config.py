@@ -174,16 +174,16 @@ class ScanConfig(Section):
     projections: str = F("", STR, "dicom-ct-pd: the folder of projection files (relative: to the scene file)")
     timestamp_unit: str = F("ms", one_of(("ms", "s")), "dicom-ct-pd: unit of the Timestamp tag (7033,1067)")
     flip_channels: bool = F(False, BOOL, "dicom-ct-pd: the series numbers its channels opposite to the "
-                            "DICOM-CT-PD convention (docs/measured-data.md 'Channel and row numbering')")
+                            "DICOM-CT-PD convention (docs/measured-conventions.md 'Channel and row numbering')")
     flip_rows: bool = F(False, BOOL, "dicom-ct-pd: the series numbers its detector rows opposite to the "
                         "DICOM-CT-PD convention")
     pixel_layout: str = F("auto", one_of(PIXEL_LAYOUTS), "dicom-ct-pd: which detector axis the DICOM Rows run "
-                          "along; auto: decided from the tags (docs/measured-data.md 'Pixel layout')")
+                          "along; auto: decided from the tags (docs/measured-conventions.md 'Pixel layout')")
     orientation: str = F("tags", one_of(("tags", "auto")), "dicom-ct-pd: 'tags' reads the numbering the series "
                          "declares and refuses it when the data fit a mirror better; 'auto' takes the best fit "
-                         "(docs/measured-data.md 'Orientation check')")
+                         "(docs/measured-conventions.md 'Orientation check')")
     patient_position: str = F("", one_of(PATIENT_POSITIONS), "patient position (DICOM (0018,5100)); '': from the "
-                              "series (dicom-ct-pd), HFS for a simulated scan (docs/measured-data.md 'Patient "
+                              "series (dicom-ct-pd), HFS for a simulated scan (docs/measured-conventions.md 'Patient "
                               "position and the image frame')")
     rotation: str = F("increasing", one_of(("increasing", "decreasing")), "gantry angle from view to view "
                       "(a measured series gives it)")
@@ -242,7 +242,7 @@ class ScanConfig(Section):
 
 @dataclass(frozen=True, kw_only=True)
 class SignalsConfig(Section):
-    """Breathing and heart rhythm (docs/algorithms.md "Breathing and heart rhythm"; Lujan 1999 breathing model)."""
+    """Breathing and heart rhythm (docs/simulation.md "Breathing and heart rhythm"; Lujan 1999 breathing model)."""
 
     SECTION = "signals"
 

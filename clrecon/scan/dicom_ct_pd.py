@@ -7,11 +7,11 @@ hostile or inconsistent series in one line (file, tag, value, what is allowed), 
 geometry onto the scene's ``[scanner]`` and ``[scan]`` keys, so that every later stage sees a
 scene like a simulated one. The conventions (which tag gives what, the angle and table
 directions, the pixel layout, the channel and row numbering, the patient position) are in
-``docs/measured-data.md``; the pixels are read by :mod:`clrecon.scan.dicom_ct_pd_pixels`, the
+``docs/measured-conventions.md``; the pixels are read by :mod:`clrecon.scan.dicom_ct_pd_pixels`, the
 data's own check of the numbering is :mod:`clrecon.scan.orientation_check`, the per-view table
 :mod:`clrecon.scan.measured`, the import into the store :mod:`clrecon.simulation.measured`.
 
-Mapping (lengths mm, angles rad; frame D = the DICOM-CT-PD Cartesian frame, docs/measured-data.md):
+Mapping (lengths mm, angles rad; frame D = the DICOM-CT-PD Cartesian frame, docs/measured-conventions.md):
 
 - ``sid_mm`` = DetectorFocalCenterRadialDistance rho0 (7031,1003); ``sdd_mm`` =
   ConstantRadialDistance d0 (7031,1031);
@@ -393,7 +393,7 @@ def _ffs_keys(ix: SeriesIndex, mode: str, nv: int) -> dict:
 
 
 # ---------------------------------------------------------------------------------------
-# the reading: pixel layout, channel and row numbering (docs/measured-data.md)
+# the reading: pixel layout, channel and row numbering (docs/measured-conventions.md)
 LAYOUTS = ("rows-are-channels", "rows-are-detector-rows")
 
 

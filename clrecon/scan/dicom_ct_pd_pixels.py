@@ -4,7 +4,7 @@ The header pass (:mod:`clrecon.scan.dicom_ct_pd`) decides how a series is read (
 :class:`~clrecon.scan.dicom_ct_pd.Reading`: which axis the DICOM Rows run along, and whether the
 channel and row numbering run opposite to the store's); this applies it to one file. Used by the
 import into the store (:mod:`clrecon.simulation.measured`) and by the orientation check
-(:mod:`clrecon.scan.orientation_check`). Conventions: ``docs/measured-data.md``.
+(:mod:`clrecon.scan.orientation_check`). Conventions: ``docs/measured-conventions.md``.
 """
 
 from __future__ import annotations

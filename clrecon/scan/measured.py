@@ -1,7 +1,7 @@
 """The per-projection table of a measured DICOM-CT-PD scan (stage 2 of the pipeline, measured path).
 
 The geometry of every view comes from its file's header (:func:`clrecon.scan.dicom_ct_pd.series_views`:
-gantry angle, source z, time; conventions in ``docs/measured-data.md``); the cardiac phase and
+gantry angle, source z, time; conventions in ``docs/measured-conventions.md``); the cardiac phase and
 respiratory amplitude from the recorded traces (:mod:`clrecon.scan.recorded` via
 :func:`clrecon.scan.signals.physiology`). Row k of the table is the k-th file in InstanceNumber order,
 which is also row k of the projection store.

@@ -2,7 +2,7 @@
 
 A series read with its channels or rows numbered the wrong way reconstructs a point-reflected,
 distorted image, or the wrong slices, with nothing in the headers to say so. Two redundancies
-of a helical scan tell the right reading from its mirror images (``docs/measured-data.md``
+of a helical scan tell the right reading from its mirror images (``docs/measured-conventions.md``
 "Orientation check"):
 
 - **Conjugate rays** (channels, central element, angle direction). A full rotation measures
@@ -229,7 +229,7 @@ def decide(result: dict, folder: str, flip_channels: bool, flip_rows: bool, orie
         keys = ", ".join(f"scan.{k} = {str(v).lower()}" for _, k, v, _, _ in wrong)
         raise InputError(f"{folder}: the data contradict the numbering read from the tags ({what}); the image would "
                          f"be mirrored: set {keys} (the series numbers its {' and '.join(w for w, *_ in wrong)} the "
-                         f"other way) or scan.orientation = 'auto' (docs/measured-data.md 'Orientation check')")
+                         f"other way) or scan.orientation = 'auto' (docs/measured-conventions.md 'Orientation check')")
     for _, key, val, _, _ in wrong:  # auto: take the fit
         if key == "flip_channels":
             fc = val

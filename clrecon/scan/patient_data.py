@@ -3,7 +3,7 @@
 A measured scan's folder, its traces and the scene file are often named after the patient
 (``Doe_Jane_MRN-778899/``). Nothing clrecon writes by default (``results.json``, the report,
 the projection store's ``scene_json`` in the shared cache, exports) holds such a path: each
-input path of a measured scene is recorded by its content instead (``docs/measured-data.md``
+input path of a measured scene is recorded by its content instead (``docs/patient-data.md``
 "Patient data"):
 
 - ``scan.projections`` -> ``"dicom-ct-pd series <signature>"``, the folder listing's digest

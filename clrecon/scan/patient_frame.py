@@ -1,11 +1,11 @@
 """From the scanner's frame to the patient's: the patient position and the image's LPS axes.
 
 clrecon reconstructs in the scanner (gantry) frame: x, y in the axial plane, z along the table
-(for a measured scan, the DICOM-CT-PD frame of ``docs/measured-data.md``; for a simulated one,
+(for a measured scan, the DICOM-CT-PD frame of ``docs/measured-conventions.md``; for a simulated one,
 the phantom's frame). The frame is the patient's LPS frame for a patient lying head first and
 supine (HFS), as a CT scanner's image matrix is; for the other positions the patient lies
 rotated in it, and the patient's LPS axes are the scanner axes with signs
-(``docs/measured-data.md`` "Patient position and the image frame"):
+(``docs/measured-conventions.md`` "Patient position and the image frame"):
 
 | position | LPS x (left) | LPS y (posterior) | LPS z (superior) | ImageOrientationPatient |
 |---|---|---|---|---|

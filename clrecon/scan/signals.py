@@ -35,7 +35,7 @@ the whole trace (a 5 ms grid), clipped to [0, 1]: keeps the real depth variation
 Breath hold: ``a = breath_hold_amplitude`` everywhere and direction **0** (neither inhaling
 nor exhaling), so no caller mistakes a held breath for one half of a cycle.
 
-Heart rhythm (docs/algorithms.md "Breathing and heart rhythm")
+Heart rhythm (docs/simulation.md "Breathing and heart rhythm")
 --------------------------------------------------------------
 - ``periodic``: R-R = ``rr_s`` exactly.
 - ``hrv``: sinus variability at 0.1 Hz, ``RR_k = rr (1 + sqrt(2) cv sin(2 pi 0.1 R_k + psi))``

@@ -32,7 +32,7 @@ CHUNK = 256
 #: Header index per file: the decoded tag dictionary kept while the series is indexed, and the views' arrays.
 HEADER_BYTES_PER_FILE = 2500
 #: PoCL compiling the kernels into a cold kernel cache grows the process by about this much after
-#: the pre-flight has measured it (110 MiB on 2026-12-06; Intel's CPU runtime: none measured).
+#: the pre-flight has measured it (PoCL only; docs/results/code-history.md "PoCL's kernel build").
 KERNEL_BUILD_BYTES = 0.1 * 2**30
 
 

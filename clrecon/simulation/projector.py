@@ -4,7 +4,7 @@ Takes the packed quadric objects of :mod:`clrecon.simulation.phantoms.analytic` 
 canonical per-view detector frames of :func:`clrecon.core.conventions.detector_frames`, and
 returns ``proj[view, row, col]`` = integral of mu along the ray from the source through the
 centre of each flat-detector cell (dimensionless, float32). Line integrals through
-quadrics are closed-form (docs/algorithms.md "Analytic projector"), so the
+quadrics are closed-form (docs/simulation.md "Analytic projector"), so the
 projections are exact up to float32 rounding -- no voxel "inverse crime".
 
 The integral is over the whole line through source and cell; objects are assumed to lie in
@@ -431,7 +431,7 @@ def _prepare_on_device(rt, objs, broadcast, src, view_rec, lay, cull):
     """Records of one chunk by kernels/project_cull.cl: (record buffer, count buffer, n_obj, events)."""
     m, n_obj = objs.shape[0], objs.shape[1]
     # a posed batch (page-aligned by the phantom) is read in place by a CPU device: no copy of
-    # its 64 KB per view into fresh pages (docs/algorithms.md "Rows read in place")
+    # its 64 KB per view into fresh pages (docs/kernels.md "Rows read in place")
     obj_buf = rt.to_device(objs[0], np.float64) if broadcast else rt.share_with_device(objs, "objects", np.float64)
     views = np.concatenate([src, view_rec[:, 0:9]], axis=1)
     rec_buf = rt.empty((m, n_obj, REC))

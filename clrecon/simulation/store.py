@@ -11,13 +11,10 @@ Layout
 - ``projections`` (n, R, C) float32: line integrals, ``proj[k, row, col]``; chunked by blocks
   of projections and :data:`ROW_CHUNK` detector rows (about 2 MiB per chunk, a power of two
   projections) and compressed with LZF + byte shuffle. A slab reads only the rows its slices
-  use (:meth:`ProjectionStore.read_indices` ``rows=``), and HDF5 decompresses whole chunks: with
-  chunks of whole projections (until 2026-12-05) a slab of paper-p002 (5 slices, about 16 of 64
-  rows) decompressed 4x what it kept, and reading was 16 % of that run's wall (457 s). Row blocks
-  of 8 read the same floats about 3x faster there (docs/data-flow.md, stage 6). LZF was
-  measured against none and gzip-1 on thorax-like line integrals: 2.0-2.1x smaller at about
-  210 MB/s write and 450 MB/s read (gzip-1: 2.2-2.4x at 100 MB/s write), far faster than the
-  projector fills it, so the cheap compressor halves the disk use for free.
+  use (:meth:`ProjectionStore.read_indices` ``rows=``), and HDF5 decompresses whole chunks, so
+  chunks of row blocks keep a slab from decompressing rows it does not use (docs/stages-simulation.md
+  "6. Projection store"). LZF is much faster than the projector fills the store and about halves
+  the disk use (measured against none and gzip-1: docs/results/code-history.md "The projection store's chunks").
 - ``present`` (n,) bool: which projections have been simulated. A run may simulate only the
   projections its slices need; a later run simulates only what is still missing.
 - ``table/<column>`` (n,): the :class:`~clrecon.scan.table.ProjectionTable` columns.

@@ -47,7 +47,7 @@ __kernel void apply_weights_interleaved16(__global const float *rows,    // (P, 
 // The reconstruction's kernel until 2026-12-03, kept as the same-run reference of
 // `bench --only levers` ("interpolation launch"): apply_weights_interleaved16's sums with a run-time
 // slot count, a branch per zero weight and lane-major index/weight (16 G, n_views, k_slots); the
-// loops inside the work-item keep PoCL from vectorising it (docs/algorithms.md, "Making kernels
+// loops inside the work-item keep PoCL from vectorising it (docs/kernels.md, "Making kernels
 // fast on PoCL"). Same output, bit for bit.
 __kernel void apply_weights_interleaved16_loop(__global const float *rows,    // (P, n_cols)
                                                __global const int *index,     // (16 G, n_views, k_slots) into P

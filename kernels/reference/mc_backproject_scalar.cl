@@ -8,7 +8,7 @@
 // IEEE TMI 28:1513, 2009, on rebinned helical data): each voxel x of a target state t is
 // followed, through a motion model, to where it was when each row was measured, and the row of
 // that projection rebinned to the plane through the moved point is read there.
-// docs/motion-model.md "Motion-compensated backprojection"; the NumPy float64 reference is
+// docs/motion-model.md "The method" (step 4); the NumPy float64 reference is
 // clrecon.reconstruction.motion.backproject.mc_backproject_reference.
 //
 // Model (clrecon.reconstruction.motion.model): u(x_r; s) = sum_b B_b(s) U_b(x_r), fields U_b

@@ -64,7 +64,7 @@ def test_to_device_rejects_non_numeric():
 def test_programs_are_built_with_their_own_options_only():
     """PoCL keys its on-disk kernel cache on the build options: they must not carry a path of the
     virtual environment (pyopencl.Program.build adds -I <site-packages>/pyopencl/cl), or every new
-    venv compiles every kernel again (docs/algorithms.md, "Kernel builds")."""
+    venv compiles every kernel again (docs/kernels.md, "Kernel builds")."""
     rt = cl_runtime.get_runtime()
     prog = rt.program("ssrb.cl")
     opts = prog.get_build_info(rt.device, rt.cl.program_build_info.OPTIONS)

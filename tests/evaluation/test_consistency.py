@@ -1,4 +1,4 @@
-"""The data-consistency residual (clrecon/evaluation/consistency.py, docs/motion-model.md "Did it
+"""The data-consistency residual (clrecon/evaluation/consistency.py, docs/consistency.md "Did it
 help? A truth-free check"): its lattice weights against a brute-force reference, its projector's
 geometry against the FBP, zero for rows made from the volumes it is given, larger for wrong
 volumes, a rigid-motion negative control, and the comparison's verdict."""

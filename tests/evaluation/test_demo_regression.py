@@ -4,7 +4,7 @@
 pitch, noise variant, method and field of view of ``python -m clrecon run`` on the demo
 scene. Any change of the code that moves one of them by more than ``ATOL_HU`` fails here and
 must update the record on purpose (``python tests/evaluation/regression/update_demo_record.py``), so the
-change of numbers is visible in review. What the numbers mean is in docs/reproduction.md "demo" and
+change of numbers is visible in review. What the numbers mean is in docs/results/demo.md "demo" and
 in the run's ``claims``; this test only says they did not change by accident.
 """
 

@@ -70,7 +70,7 @@ def test_mc_volumes_land_in_volumes_h5_metrics_and_report(reference):
 
 
 def test_the_consistency_check_judges_mc_against_its_first_pass(reference):
-    """Stage consistency (docs/motion-model.md "Did it help?"): every 5D method's residual against
+    """Stage consistency (docs/consistency.md "Did it help?"): every 5D method's residual against
     the rows, per variant, and a verdict of mc against barycentric, in results.json and the report."""
     out, res = reference
     ent = res["consistency"]["p0.100"]

@@ -132,7 +132,7 @@ def test_bin_averages_the_bin_across_the_seam_and_falls_back_to_nearest():
 def _barycentric_reference(c, a, targets):
     """Paper algorithm written plainly: full copied Delaunay, else two nearest / nearest.
     A triangle with a vertex of non-zero coordinate (> 1e-9) farther than 0.3 from the target
-    in circular c is not used (the |dc| limit, docs/choices.md "Barycentric details")."""
+    in circular c is not used (the |dc| limit, docs/choices-reconstruction.md "Barycentric details")."""
     n = c.size
     P = np.concatenate([np.stack([c + s, a], axis=1) for s in (0.0, -1.0, 1.0)])
     tri = Delaunay(P)

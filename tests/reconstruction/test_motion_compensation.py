@@ -54,7 +54,7 @@ TOL = {
     # Lucas-Kanade flow on a (4, -3, 4) mm-shifted ellipsoid, median over its interior, mm
     "flow_mm": 0.5,
     # demons on the same: it creeps (measured 2.3-3.0 of 4 mm in x after 80 + 40 iterations,
-    # docs/motion-model.md "Registration"), so only the share of the shift it must recover
+    # docs/results/mc-study.md "Registration"), so only the share of the shift it must recover
     "demons_share": 0.5,
 }
 

@@ -1,5 +1,5 @@
-"""Stiff and extreme interpolation cases (docs/choices.md "Stiff and degenerate cases"): every one has a defined,
-finite result, and the float32 local-linear kernel agrees with the float64 reference.
+"""Stiff and extreme interpolation cases (docs/choices-engineering.md "Stiff and degenerate cases"): every one
+has a defined, finite result, and the float32 local-linear kernel agrees with the float64 reference.
 
 Local linear: collinear and duplicate phase points, all points at one amplitude, fewer than
 three points, kernels from the paper's (kappa 1, sigma 0.15) to kappa 100 / sigma 0.01

@@ -5,7 +5,7 @@ The engine's simulator scans a water cylinder with an off-centre bone rod and a 
 writer writes the scan in one convention per test (pixel layout, channel and row numbering, gantry
 and table direction, flying focal spot, patient position); the measured reconstruction must put the
 rod within 0.5 mm of its true place and water within 1 HU, or refuse the series in one line, never
-reconstruct it mirrored. Conventions: ``docs/measured-data.md``.
+reconstruct it mirrored. Conventions: ``docs/measured-conventions.md``.
 """
 
 from __future__ import annotations

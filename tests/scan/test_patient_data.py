@@ -1,5 +1,5 @@
 """Patient data: no identifier and no identifier-bearing path in any output or cache by default, and
-``--keep-identifiers`` doing in every writer what docs/measured-data.md says (issue 37, item 3).
+``--keep-identifiers`` doing in every writer what docs/patient-data.md says (issue 37, item 3).
 
 A measured series is planted with identifiers in every file and kept in a folder named after the
 patient, with its traces and scene file beside it; the whole command line runs on it (``run`` in a

@@ -591,7 +591,7 @@ def edge_width_10_90(z, prof):
 #: the 10-90 % width of linear row interpolation of a step sampled every row pitch at the
 #: isocentre is 0.8 p_iso; the test asks for the measured width within [0.5, 1.5] p_iso.
 #: Measured 2026-12-02 on demo-curved (p_iso = 1.754 mm), without / with z-FFS (+-0.97 mm):
-#: pitch 0.02: 2.07 / 2.19 mm; pitch 0.1: 1.83 / 1.94 mm (docs/choices.md: SSRB of each
+#: pitch 0.02: 2.07 / 2.19 mm; pitch 0.1: 1.83 / 1.94 mm (docs/results/cylindrical-detector.md: SSRB of each
 #: projection alone does not turn the pair's interleaved rows into a sharper edge)
 @pytest.mark.parametrize("pitch", [0.02, 0.1])
 def test_z_ffs_axial_edge_width_measured(pitch):

@@ -1,6 +1,6 @@
 """The analytic thorax: parameter table, anatomy constraints, motion, volume curve, HU.
 
-Tolerances live in ``TOL``; ranges quoted from the literature (docs/algorithms.md "Analytic phantom") are data,
+Tolerances live in ``TOL``; ranges quoted from the literature (docs/simulation.md "Analytic phantom") are data,
 not tolerances.
 """
 

@@ -10,7 +10,7 @@ Used twice:
   scene run in its own process, with a time and memory limit): refusals, runs that finish, and
   what a user would see otherwise (a traceback, non-finite voxels, non-strict JSON). It imports
   only clrecon's public entry points, so it measures any version of clrecon on the path
-  (``PYTHONPATH=/some/checkout``): the before/after figures of docs/hostile-inputs.md come from it.
+  (``PYTHONPATH=/some/checkout``): the before/after figures of docs/results/hostile-grid.md come from it.
 
 :data:`ACCEPTED` is the declaration of which hostile values are legitimate settings in this scene
 (a seed of 10^12, a table position of -1 mm, ``truth_free = true``); every other case is absurd or

@@ -1,7 +1,7 @@
 """How far the measured rows are from ideal in-plane rows of the phantom at the row's own state (the
 data model every reconstruction inherits and the ground truth does not): RMS of y_k - ideal_k in
 HU mm over the channels through the reconstruction circle, by the row's axial distance |dz|.
-docs/motion-model.md "Did it help? A truth-free check".
+docs/consistency.md "Did it help? A truth-free check".
 
     python benchmarks/studies/consistency/data_model.py /tmp/run --scene demo
 """

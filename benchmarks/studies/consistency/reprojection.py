@@ -1,6 +1,6 @@
 """With the truth: each method's image at a target reprojected against the ideal in-plane sinogram of
 the phantom at that target's state (the projection-domain error the truth-free check cannot see), on
-one slice and every 4th view. docs/motion-model.md "Did it help? A truth-free check".
+one slice and every 4th view. docs/consistency.md "Did it help? A truth-free check".
 
     python benchmarks/studies/consistency/reprojection.py /tmp/run --scene demo
 """

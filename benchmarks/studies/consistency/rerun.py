@@ -2,7 +2,7 @@
 ground truth's volumes as a pseudo-method beside the run's, and the study's variants: rows band-limited
 along the channels (``--sigma``, Gaussian, in channels), only rows near their slice (``--max-dz``), only
 rows barycentric did not use (``--unused``). Prints each method's residual beside its MAE.
-docs/motion-model.md "Did it help? A truth-free check".
+docs/consistency.md "Did it help? A truth-free check".
 
     python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused]
 """

@@ -1,4 +1,4 @@
-"""The figures of docs/measured-data.md "Every convention, measured": rod and water per convention.
+"""The figures of docs/results/measured-conventions.md "Every convention, measured": rod and water per convention.
 
 The engine's simulator scans the rod phantom of ``tests/support/rod_phantom.py`` (water cylinder, bone rod at
 (40, 24) mm, bone sphere; cylindrical detector with a quarter-channel offset), the DICOM-CT-PD writer

@@ -1,4 +1,4 @@
-"""Shared steps of the motion-model study (docs/motion-model.md): first pass, truth, model, MC-FBP.
+"""Shared steps of the motion-model study (docs/results/mc-study.md): first pass, truth, model, MC-FBP.
 
 Everything goes through the package (the run's own planning, SSRB, FBP, ground truth and
 metrics); only the glue lives here. Intermediate arrays are cached under ``$MOTION_STUDY_CACHE``

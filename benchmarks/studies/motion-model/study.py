@@ -1,4 +1,4 @@
-"""The motion-model study of issue 34, phase 1 (docs/motion-model.md): demo and demo-hrv, reported slices.
+"""The motion-model study of issue 34, phase 1 (docs/results/mc-study.md): demo and demo-hrv, reported slices.
 
     python benchmarks/studies/motion-model/study.py            -> benchmarks/studies/motion-model/study.json
 

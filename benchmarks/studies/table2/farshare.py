@@ -1,4 +1,4 @@
-"""Issue 19 item 6 (docs/reproduction.md "Table 2 at pitch 0.02"): share of each method's
+"""Issue 19 item 6 (docs/results/table2-pitch-0.02.md "Table 2 at pitch 0.02"): share of each method's
 interpolation weight (sum |w|) on turns beyond the SSRB-exact window, one slice (55) of paper-p002, pitch 0.02, candidate window 28 mm; all 50 targets."""
 import numpy as np
 

@@ -51,7 +51,7 @@ class DicomWriter(Writer):
 
     #: patient attributes to write in place of the phantom's (export() sets them for a measured run)
     patient: dict | None = None
-    #: patient position of the run's volumes (export() sets it; docs/measured-data.md)
+    #: patient position of the run's volumes (export() sets it; docs/measured-conventions.md "Patient position")
     position: str = "HFS"
 
     def begin(self, ident: str, src: Source, n_targets: int) -> _DicomContext:

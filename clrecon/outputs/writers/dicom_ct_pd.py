@@ -6,7 +6,7 @@
   the scene has noise: noise is drawn on read, :mod:`clrecon.simulation.noise`), uint16 with
   RescaleSlope/RescaleIntercept to line integrals (per file: slope = range / 65535, so the
   quantisation error is at most slope / 2), in the format's conventions (:class:`Convention`,
-  ``docs/measured-data.md``): DICOM Rows = detector channels (the TCIA layout), the channel index
+  ``docs/measured-conventions.md``): DICOM Rows = detector channels (the TCIA layout), the channel index
   towards decreasing phi0, row 1 at the +z0 end, the DetectorCentralElement reflected with them,
   with the DICOM-CT-PD private tags of :data:`clrecon.scan.dicom_ct_pd.TAGS`, the water coefficient
   and the patient position, and every attribute the CT Image IOD asks for (dciodvfy: no error);
@@ -90,7 +90,7 @@ def _private(ds, name: str, value) -> None:
 
 @dataclass(frozen=True)
 class Convention:
-    """How the exported files lay out and number the detector (docs/measured-data.md).
+    """How the exported files lay out and number the detector (docs/measured-conventions.md).
 
     ``layout``: ``rows-are-channels`` (DICOM Rows = detector channels, as the TCIA files) or
     ``rows-are-detector-rows``; ``flip_channels`` / ``flip_rows``: number that axis opposite to the

@@ -35,7 +35,7 @@ class NiftiWriter(Writer):
     frame = "RAS (NIfTI; LPS with x and y negated)"
     requires = "nibabel"
 
-    #: patient position of the run's volumes (export() sets it; docs/measured-data.md)
+    #: patient position of the run's volumes (export() sets it; docs/measured-conventions.md "Patient position")
     position: str = "HFS"
 
     def begin(self, ident, src, n_targets):

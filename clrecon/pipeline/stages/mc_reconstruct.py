@@ -43,7 +43,7 @@ ROWS_BYTES = reconstruct.SLAB_BYTES / 2
 FAULT = "mc-model"
 #: Runs whose slices span less z than this (mm) are warned: on ``demo`` the registration of a run
 #: of 16 mm erred by as much as the motion, of 32 mm by 0.66 of it in the heart, of 48-64 mm by
-#: 0.5-0.64 (docs/motion-model.md "Without retuning: a paper-p010 slab").
+#: 0.5-0.64 (docs/results/mc-run.md "Without retuning: a paper-p010 slab").
 THIN_Z_MM = 30.0
 
 
@@ -111,10 +111,8 @@ def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     grid); the raw rows read for the plane rows (``method.READ_CHUNK_BYTES`` at a time, with their
     covering range and SSRB rows: 3 chunks); the registration processes' working sets
     (``FLOW_BYTES_PER_VOXEL`` per voxel each, one per core up to ``MAX_WORKERS``: 2 x 79 MB on
-    ``demo`` with 2 cores, in processes of their own). ``demo`` (pitch 0.02, 2 variants): 1.36 GB
-    without the last two, on top of the run's 1.44 GB modelled before it
-    (:func:`clrecon.pipeline.costs.run_costs`): 2.81 GB against a peak RSS of 2.65 GB measured
-    (2026-12-06, the whole run, Intel's runtime; 1.25 GB without ``mc``)."""
+    ``demo`` with 2 cores, in processes of their own). Returns bytes. The model against a measured
+    peak: docs/results/code-history.md "The mc working set against the measured peak"."""
     w = window_mm  # the SSRB slice window (reconstruction.rebin.slice_window_mm)
     per_proj = (int((2 * (w + knobs.plane_dz_mm)) / knobs.plane_dz_mm) + 2) * scanner.n_cols * 4
     n_proj = (z_extent_mm + 2 * (w + knobs.margin_mm)) / feed_mm * scanner.views_per_rotation

@@ -1,6 +1,6 @@
 """Stage ``results`` (once per run, untimed): ``volumes.h5`` closed, the ``results.json``
 dictionary built from the stages' records and the executor's clock (schema:
-docs/data-flow.md "results.json"); :func:`finish` adds what is known only at the very end
+docs/run-directory.md "results.json"); :func:`finish` adds what is known only at the very end
 and :func:`write_json_atomic` writes it."""
 
 from __future__ import annotations

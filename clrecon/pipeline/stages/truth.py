@@ -33,8 +33,8 @@ def skip(run) -> str | None:
 def working_bytes(nz: int, views: int, cols: int, ny: int, nx: int) -> int:
     """Modelled memory of the truths beside the run at one target (bytes): per FBP batch of slices
     its in-plane sinograms, their filtered copy and the interleaved launch (3 x batch x V x C
-    floats), and the target's volume. Paper-p010 (110 slices, 984 x 900, 512^2): 0.80 GB
-    modelled, 0.66 GB measured (peak RSS over the run's, warm)."""
+    floats), and the target's volume. The model against a measured peak:
+    docs/results/code-history.md "The truths' working set"."""
     b = min(nz, groundtruth.BATCH_SLICES)
     return int(3 * b * views * cols * 4 + nz * ny * nx * 4)
 

@@ -142,7 +142,7 @@ def pad_interleaved(index: np.ndarray, weight: np.ndarray):
 
 #: Padded columns per work-item of ``apply_weights_interleaved16_cols8`` and its work-group width
 #: (work-items): 8 x 8 measured best at paper-p010's shape at load 3 (2.9x the per-lane kernel; 4 and
-#: 16 work-items 2.6x and 2.9x; idle, the kernel is 1.6-1.8x at K = 8: docs/algorithms.md).
+#: 16 work-items 2.6x and 2.9x; idle, the kernel is 1.6-1.8x at K = 8: docs/kernels.md).
 COLS_PER_ITEM = 8
 COLS8_LOCAL = 8
 
@@ -158,7 +158,7 @@ def apply_padded_interleaved(rows: DeviceRows, idx: np.ndarray, wgt: np.ndarray,
 
     Kernel ``apply_weights_interleaved16_cols8`` (8 columns per work-item); the same bits as the
     per-lane reference kernel (:func:`clrecon.bench.reference_kernels.apply_padded_interleaved_lanes`),
-    the reconstruction's until 2026-12-05."""
+    an earlier kernel of the reconstruction."""
     return _launch_padded(rows, idx, wgt, B, rt, out, "apply_weights_interleaved16_cols8", COLS_PER_ITEM, COLS8_LOCAL)
 
 

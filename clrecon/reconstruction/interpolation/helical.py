@@ -11,7 +11,7 @@ no phase axes; it reads the candidates' z distance ``ch.dz`` (mm), which
 :func:`clrecon.reconstruction.interpolation.weights.batch_weights` takes as ``dz`` and
 :func:`clrecon.reconstruction.reconstruct.plan` fills from the SSRB candidate groups. It is
 the "without phase-space interpolation" reconstruction of the paper's Figure 3 (choice:
-docs/choices.md "helical baseline").
+docs/choices-reconstruction.md "helical baseline").
 """
 
 from __future__ import annotations

@@ -7,8 +7,7 @@ are the helical scan's single-slice rebinned rows (docs/algorithms.md "SSRB"), s
 voxel means following it across slices: every projection a slab uses is rebinned onto a grid of
 z planes (:func:`plane_rows`, the pipeline's own SSRB on every detector and focal-spot mode, then
 its ramp filter), and the kernel (``kernels/mc_backproject.cl``) reads, for each voxel and row,
-the plane through the voxel's moved position. docs/motion-model.md "Motion-compensated
-backprojection".
+the plane through the voxel's moved position. docs/motion-model.md "The method" (step 4).
 
 Shapes: volumes (S, ny, nx); rows (P, NPMAX, C) float32; slots (S, V, K) per target; the model's
 fields (NB, 3, MZ, ny, nx) on the reconstruction's in-plane grid
@@ -293,7 +292,7 @@ def _defines(geom: FanBeamGeometry, nb: int, cfg: MCConfig, margin_mm: float, la
 
 def lanes_for(device) -> int:
     """The kernel's lanes on an OpenCL device: 16 where its native float vector holds 16 (AVX-512),
-    else 8. Measured on the 2-core Xeon with AVX-512 (docs/motion-model.md "Cost"): 16 lanes as
+    else 8. Measured on the 2-core Xeon with AVX-512 (docs/results/mc-cost.md "Cost"): 16 lanes as
     fast as 8 on Intel's CPU runtime, 1.1-1.3x on PoCL; on a CPU with 256-bit vectors a 16-float
     vector is two registers and the kernel's 15 displacement vectors would not fit in 16."""
     if LANES is not None:

@@ -10,7 +10,7 @@ w_k an interpolation method's weights (barycentric), y_k the SSRB rows. Equivale
 own image minus the error the model predicts for it, ``FBP(sum_k w_k P_k M(s_k)) - M(t)``: a model
 error that does not change with the state cancels to first order, and what the model cannot hold
 (the lungs' density change with breathing, sliding, anything the warp gets wrong) stays in the
-residual and is interpolated as before. docs/motion-model.md "Model-based correction".
+residual and is interpolated as before. docs/motion-model.md "The method" (step 6).
 
 The residual needs P_k M(s_k) for every row the weights use. Rows are grouped by state into a
 (cardiac x amplitude) grid of bins (``state_bins``); each bin's model volume is warped once at the

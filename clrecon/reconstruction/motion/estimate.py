@@ -3,7 +3,7 @@
 A first-pass 5D image at the clinical pitch carries streaks that differ from target to target
 (each target takes other rows), while its anatomy at a given cardiac phase or amplitude is the
 same; registering one streaked target to another follows the streaks as well as the anatomy
-(docs/motion-model.md "Registration"). So the volumes are averaged before they are registered:
+(docs/results/mc-study.md "Registration"). So the volumes are averaged before they are registered:
 
 1. **breathing**: the targets of each amplitude a_j averaged over the cardiac phases (the beat is
    blurred, the streaks of 5 targets averaged), each registered to the reference amplitude's

@@ -11,7 +11,7 @@ motion) are fitted voxel by voxel, in 3D, as
 not used: the phantom's motion depends on the amplitude only, docs/motion-model.md
 "Assumptions") plus a periodic cardiac term of H harmonics, additive in the two motions. The
 fit is linear least squares over the registered states with a small ridge (every voxel shares
-one design matrix). docs/motion-model.md "The motion model".
+one design matrix). docs/motion-model.md "The method" (step 3).
 
 Fields are float32 arrays (..., 3, nz, ny, nx): components (dx, dy, dz) in mm, LPS, on the grid
 of voxel centres of the reconstruction in-plane (``voxel_coords(nx, voxel_mm)``) and on

@@ -11,10 +11,10 @@ mm with components (dx, dy, dz)). Two registrations, chosen by the config's type
   (``skimage.registration.optical_flow_ilk``; Le Besnerais & Champagnat, ICIP 2005): a
   least-squares flow in a window around each voxel, coarse to fine with warps. Its window
   averages out what demons' voxel-wise forces follow (streaks), and it converges on large
-  shifts in a few warps where demons creeps (measured: docs/motion-model.md "Registration").
+  shifts in a few warps where demons creeps (measured: docs/results/mc-study.md "Registration").
 
 Both see images clipped to a HU window and pre-smoothed (the streaks of a first-pass 5D image
-and the lung's density change then pull less). docs/motion-model.md "Registration".
+and the lung's density change then pull less). docs/results/mc-study.md "Registration".
 
 Convention: ``register(fixed, moving)`` returns u on the fixed grid with
 ``moving(x + u(x)) ~ fixed(x)``: u maps each fixed-image point to where it is in the moving
@@ -228,8 +228,8 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
 
 
 #: Peak bytes of one Lucas-Kanade registration per voxel of its volumes: ``optical_flow_ilk``
-#: works in float64 with its pyramid and warps (measured: 77 MB for 128 x 128 x 16 voxels, 276 MB
-#: for 256 x 256 x 16, 2026-12-06), i.e. about 70 float32 volumes.
+#: works in float64 with its pyramid and warps: about 70 float32 volumes (measured:
+#: docs/results/code-history.md "One Lucas-Kanade registration's memory").
 FLOW_BYTES_PER_VOXEL = 300
 #: At most this many registration processes (each needs FLOW_BYTES_PER_VOXEL per voxel).
 MAX_WORKERS = 4

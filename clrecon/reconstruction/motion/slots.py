@@ -13,7 +13,7 @@ the slice, which the kernel's taper handles per voxel). Two ways to weight:
   only corrects the residual phase offset of the rows that method chose.
 
 Outputs are (T, S, V, K) arrays: local projection indices into :class:`PlaneRows` (-1 = empty,
-always after the filled slots) and float32 weights. docs/motion-model.md "Row weights".
+always after the filled slots) and float32 weights. docs/motion-model.md "The method" (step 4).
 """
 
 from __future__ import annotations

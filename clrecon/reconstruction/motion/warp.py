@@ -2,7 +2,7 @@
 
 ``out(x) = vol(x_r)`` with ``x_r + u(x_r; s) = x``: the volume as it would look at state s, on the
 reconstruction's in-plane grid at slices ``out_z``. The model-based correction step needs the
-model image at every row's state (docs/motion-model.md "Model-based correction"); states are
+model image at every row's state (docs/motion-model.md "The method" (step 6)); states are
 warped in batches so that a batch's fields fit :data:`BATCH_BYTES`.
 """
 

@@ -87,7 +87,7 @@ class PhantomConfig(Section):
 
 
 # ---------------------------------------------------------------------------------------
-#: Sources cited in the parameter table (docs/algorithms.md "Analytic phantom" summarises them).
+#: Sources cited in the parameter table (docs/simulation.md "Analytic phantom" summarises them).
 PARAMETER_SOURCES = MappingProxyType({
     "XCAT": "Segars et al., Med Phys 37:4902 (2010), XCAT sample-parameter defaults",
     "FORBILD": "FORBILD thorax phantom (Sourbelle, Erlangen): layout and proportions, scaled",

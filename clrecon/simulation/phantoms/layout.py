@@ -1,4 +1,4 @@
-"""Packed layout of one quadric object: one row of ``STRIDE`` float64 (``docs/algorithms.md``).
+"""Packed layout of one quadric object: one row of ``STRIDE`` float64 (``docs/simulation.md`` "Analytic projector").
 
 Shared by the phantoms that build objects (:mod:`clrecon.simulation.phantoms.analytic`), the
 projector (:mod:`clrecon.simulation.projector`) and the voxeliser

@@ -4,7 +4,7 @@ The thorax of :mod:`clrecon.simulation.phantoms.analytic` is a set of posed quad
 where each of its points goes: a point belongs to the innermost object that holds it (the one
 deepest in the ``parents`` tree), and moves with that object's pose. Used as the ground truth of
 motion estimation (the registration error of :mod:`clrecon.reconstruction.motion`, and the
-motion model fitted to the true fields; docs/motion-model.md "True motion of the phantom").
+motion model fitted to the true fields; docs/results/mc-study.md "True motion of the phantom").
 
 The rule, per point p at state s0 mapped to state s1 (float64):
 
