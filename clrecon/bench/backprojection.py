@@ -119,10 +119,9 @@ def _agreement(ours: np.ndarray, other: np.ndarray, mask: np.ndarray) -> dict:
             "correlation": float(np.corrcoef(o, a)[0, 1])}
 
 
-def bench_backprojection_section(quick: bool = False, repeats: int = 3, *, nx: int | None = None,
-                                 n_views: int | None = None, n_cols: int | None = None, batch: int = RECON_FBP_BATCH,
-                                 reference_batch: int = 4, astra: bool = True) -> dict:
-    """Batched backprojection vs the one-sinogram kernel and ASTRA, on filtered disk phantoms."""
+def run(quick: bool = False, repeats: int = 3, log=print, *, nx: int | None = None, n_views: int | None = None,
+        n_cols: int | None = None, batch: int = RECON_FBP_BATCH, reference_batch: int = 4, astra: bool = True) -> dict:
+    """Batched backprojection vs the one-sinogram kernel and ASTRA, on filtered disk phantoms (``log`` unused)."""
 
     nx = nx or (256 if quick else 512)
     n_views = n_views or (492 if quick else 984)
@@ -153,16 +152,9 @@ def bench_backprojection_section(quick: bool = False, repeats: int = 3, *, nx: i
     return res
 
 
-
-def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
-    """The bench's ``backprojection``: :func:`bench_backprojection_section` (``--quick``: smaller)."""
-    return bench_backprojection_section(quick, repeats)
-
-
 def report_lines(bp: dict) -> list[str]:
     """The section's lines of the bench report."""
-    out = []
-    out.append("")
+    out = [""]
     out.append(f"1. backprojection {bp['nx']}^2 from {bp['n_views']} views x {bp['n_cols']} columns, "
                f"{bp['batch']} sinograms per call ({bp['fov_fraction']:.0%} of voxels in the FOV), "
                f"load {bp['load_average_1min_before']}")

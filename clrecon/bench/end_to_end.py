@@ -16,8 +16,9 @@ from clrecon.config.scene import load_scene
 from clrecon.pipeline.run import run as run_pipeline
 
 
-def bench_end_to_end_section(quick: bool = False, scene="demo") -> dict:
-    """``run`` on a scene (demo; quick: its 4 middle slices) into a temp dir with a fresh cache."""
+def run(quick: bool = False, repeats: int = 3, log=print, *, scene="demo") -> dict:
+    """:func:`clrecon.pipeline.run.run` on a scene (demo; quick: its 4 middle slices) into a temp dir with a
+    fresh cache (one run: ``repeats`` and ``log`` unused)."""
 
     sc = load_scene(scene) if isinstance(scene, str) else scene
     slices = None
@@ -39,15 +40,9 @@ def bench_end_to_end_section(quick: bool = False, scene="demo") -> dict:
             "method_seconds": res.get("method_seconds", {})}
 
 
-def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
-    """The bench's ``end-to-end``: :func:`bench_end_to_end_section` on ``demo`` (one run)."""
-    return bench_end_to_end_section(quick)
-
-
 def report_lines(e2: dict) -> list[str]:
     """The section's lines of the bench report."""
-    out = []
-    out.append("")
+    out = [""]
     st = e2["stages"]
     out.append(f"4. end to end: run {e2['scene']} slices {e2['slices'][0]}:{e2['slices'][1]}, fresh cache: "
                f"{e2['total_seconds']:.1f} s wall ({e2['cpu_s']:.0f} s CPU of this process), "

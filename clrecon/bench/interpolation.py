@@ -19,9 +19,9 @@ from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.scan.table import projection_table
 
 
-def bench_interpolation_section(quick: bool = False, repeats: int = 3, scene="demo", pitch: float | None = None,
-                                n_slices: int | None = None, methods=None, reference_rows: int = 20000) -> dict:
-    """Rows/s of neighbour search + weights + ``apply_weights`` per method (see module doc)."""
+def run(quick: bool = False, repeats: int = 3, log=print, *, scene="demo", pitch: float | None = None,
+        n_slices: int | None = None, methods=None, reference_rows: int = 20000) -> dict:
+    """Rows/s of neighbour search + weights + ``apply_weights`` per method (see module doc; ``log`` unused)."""
 
     sc = load_scene(scene) if isinstance(scene, str) else scene
     rt = get_runtime()
@@ -90,15 +90,9 @@ def bench_interpolation_section(quick: bool = False, repeats: int = 3, scene="de
     return res
 
 
-def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
-    """The bench's ``interpolation``: :func:`bench_interpolation_section` on ``demo``."""
-    return bench_interpolation_section(quick, repeats)
-
-
 def report_lines(ip: dict) -> list[str]:
     """The section's lines of the bench report."""
-    out = []
-    out.append("")
+    out = [""]
     out.append(f"3. interpolation {ip['scene']} pitch {ip['pitch']}: {ip['slices']} slices x {ip['views']} views, "
                f"{ip['candidates']} candidate rows of {ip['n_cols']}; load {ip['load_average_1min_before']}")
     out.append(f"   {'method':13s} {'rows':>8s} {'K':>3s} {'rows/s':>10s} {'weights/s':>10s} {'apply/s':>10s} "

@@ -104,9 +104,10 @@ def slab_memory_model(scene, slab_slices: int, n_targets: int, n_variants: int, 
             "total_bytes": total, "total_gib": total / 2 ** 30}
 
 
-def bench_memory_section(quick: bool = False, scene: str = "paper-p002", method: str = "nearest",
-                         n_slices: int | None = None, cardiac=(0.4,), resp=None, cache_dir=None) -> dict:
-    """Peak RSS of one slab of ``scene`` in a child process, and its extrapolation to the full job."""
+def run(quick: bool = False, repeats: int = 3, log=print, *, scene: str = "paper-p002", method: str = "nearest",
+        n_slices: int | None = None, cardiac=(0.4,), resp=None, cache_dir=None) -> dict:
+    """Peak RSS of one slab of ``scene`` in a child process, and its extrapolation to the full job (one child:
+    ``repeats`` and ``log`` unused)."""
 
     sc = load_scene(scene)  # a name or file: the child loads it again
     n_slices = n_slices or (1 if quick else 2)
@@ -152,15 +153,9 @@ def bench_memory_section(quick: bool = False, scene: str = "paper-p002", method:
     return res
 
 
-def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
-    """The bench's ``memory``: :func:`bench_memory_section` on ``paper-p002`` (one child process)."""
-    return bench_memory_section(quick)
-
-
 def report_lines(mem: dict) -> list[str]:
     """The section's lines of the bench report."""
-    out = []
-    out.append("")
+    out = [""]
     if "error" in mem:
         out.append(f"   memory: child failed: {mem['error']}")
     else:

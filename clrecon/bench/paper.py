@@ -539,10 +539,9 @@ def paper_projector_lines(pj: dict) -> list[str]:
 
 def noise_lines(nz: dict) -> list[str]:
     """Report lines of the ``noise`` section (P2, the noise)."""
-    out = []
     ref, own = nz["reference"], nz["own_reference"]
     sh = nz["chunk_shape"]
-    out += ["", f"P2. noise {sh[0]} x {sh[1]} x {sh[2]} cells (I0 {nz['i0_photons']:g}, sigma_e "
+    return ["", f"P2. noise {sh[0]} x {sh[1]} x {sh[2]} cells (I0 {nz['i0_photons']:g}, sigma_e "
                 f"{nz['electronic_sigma']:g}); load {nz['load_average_1min_before']}",
             f"   {'':34s} {'M cells/s':>9s}  whole scan: " + ", ".join(nz["projected_whole_scan_s"]),
             f"   {'add_noise (OpenCL Philox)':34s} {nz['cells_per_s'] / 1e6:>9.1f}  "
@@ -552,14 +551,12 @@ def noise_lines(nz: dict) -> list[str]:
             + ", ".join(_min(v["numpy_reference_s"]) for v in nz["projected_whole_scan_s"].values())
             + f"  (ours {nz['speedup_vs_reference']:.1f}x; noise std {nz['noise_mean_std']['ours'][1]:.4f} "
               f"vs {nz['noise_mean_std']['numpy'][1]:.4f})"]
-    return out
 
 
 def paper_fbp_lines(fb: dict) -> list[str]:
     """Report lines of the ``paper-fbp`` section (P3, the FBP at paper scale)."""
-    out = []
     job, ref = fb["projected_full_job"], fb["reference"]
-    out += ["", f"P3. FBP {fb['image'][1]}^2 from {fb['views']} views x {fb['cols']} columns, {fb['images']} "
+    return ["", f"P3. FBP {fb['image'][1]}^2 from {fb['views']} views x {fb['cols']} columns, {fb['images']} "
                 f"images, {fb['images_per_launch']} per launch; load {fb['load_average_1min_before']}",
             f"   backprojection {fb['backproject_images_per_s']:.1f} images/s ({fb['backproject_gups']:.1f} G "
             f"upd/s); filter {fb['filter_rows_per_s'] / 1e3:.0f} k rows/s; an image with its own "
@@ -571,14 +568,12 @@ def paper_fbp_lines(fb: dict) -> list[str]:
             f"   full job ({job['images']} images, <= {job['rebinned_rows_upper_bound'] / 1e6:.1f} M rows): "
             f"{_min(job['fbp_s'])} (backprojection {_min(job['backproject_s'])}, filter {_min(job['filter_s'])}); "
             f"with the references {_min(job['reference_fbp_s'])}"]
-    return out
 
 
 def groundtruth_lines(gt: dict) -> list[str]:
     """Report lines of the ``groundtruth`` section (P4, the ground truth)."""
-    out = []
     job, ref, pref = gt["projected_full_job"], gt["reference"], gt["phantom_truth_reference"]
-    out += ["", f"P4. ground truth {gt['image'][1]}^2, {gt['slices']} slices x {gt['targets']} target(s); "
+    return ["", f"P4. ground truth {gt['image'][1]}^2, {gt['slices']} slices x {gt['targets']} target(s); "
                 f"load {gt['load_average_1min_before']}",
             f"   ground-truth CT {gt['groundtruth_slice_targets_per_s']:.1f} slice-targets/s "
             f"(sinograms {gt['sinograms_share']:.0%} of it); ref (unculled + one-sinogram kernel, 1 slice) "
@@ -591,7 +586,6 @@ def groundtruth_lines(gt: dict) -> list[str]:
             f"   full job ({job['slice_targets']} slice-targets): ground truth {_min(job['groundtruth_s'])}, "
             f"phantom truth {_min(job['phantom_truth_s'])}; with the references "
             f"{_min(job['reference_groundtruth_s'])} and {_min(job['reference_phantom_truth_s'])}"]
-    return out
 
 
 #: The report lines of each section, for the bench's registry (:data:`clrecon.bench.suite.REGISTRY`).

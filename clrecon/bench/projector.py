@@ -158,9 +158,8 @@ def run(quick: bool = False, repeats: int = 3, log=print, *, scene="paper-p002")
 
 def report_lines(pj: dict) -> list[str]:
     """The section's lines of the bench report."""
-    out = []
     ref = pj["reference"]
-    out.append("")
+    out = [""]
     out.append(f"2. projector {pj['scene']} ({pj['detector'][1]}x{pj['detector'][0]} cells, "
                f"{pj['n_objects']} objects), "
                f"{pj['projections']} projections over the scan, load {pj['load_average_1min_before']:.2f}")

@@ -18,8 +18,9 @@ from clrecon.scan.table import projection_table
 from clrecon.simulation import simulate
 
 
-def bench_scaling_section(quick: bool = False, scene="demo", method: str = "local_linear") -> dict:
-    """Plan / simulate / reconstruct seconds of demo-sized variants: slices, targets, projections."""
+def run(quick: bool = False, repeats: int = 3, log=print, *, scene="demo", method: str = "local_linear") -> dict:
+    """Plan / simulate / reconstruct seconds of demo-sized variants: slices, targets, projections (one run
+    per size: ``repeats`` and ``log`` unused)."""
 
     base = load_scene(scene) if isinstance(scene, str) else scene
     rt = get_runtime()
@@ -61,15 +62,9 @@ def bench_scaling_section(quick: bool = False, scene="demo", method: str = "loca
             "rows": rows}
 
 
-def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
-    """The bench's ``scaling``: :func:`bench_scaling_section` on ``demo`` (one run per size)."""
-    return bench_scaling_section(quick)
-
-
 def report_lines(scl: dict) -> list[str]:
     """The section's lines of the bench report."""
-    out = []
-    out.append("")
+    out = [""]
     out.append(f"5. scaling ({scl['scene']} variants, {scl['method']}, noise-free; "
                f"load {scl['load_average_1min_before']})")
     out.append(f"   {'axis':12s} {'slices':>6s} {'targets':>7s} {'pitch':>6s} {'proj':>6s} {'rows':>8s} "

@@ -437,9 +437,8 @@ def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
 
 def report_lines(tr: dict) -> list[str]:
     """The section's lines of the bench report."""
-    out = []
     ld = tr["load_average_1min"]
-    out.append("")
+    out = [""]
     out.append(f"6. error against run time: {tr['scene']} pitch {tr['pitch']:g}, slices "
                f"{tr['slices'][0]}:{tr['slices'][1]}, {len(tr['points'])} points in {tr['sweep_seconds']:.0f} s "
                f"(load {ld['min']:.2f}..{ld['max']:.2f}, median {ld['median']:.2f}); "

@@ -13,10 +13,11 @@ from clrecon.config.scene import load_scene
 from clrecon.pipeline.run import run as run_pipeline
 
 
-def bench_truth_free_section(quick: bool = False, scene="demo") -> dict:
-    """Cost of ``recon.truth_free`` against the reconstruction it accompanies: ``run`` on the scene's
-    4 middle slices (quick: 2) with it on, the truth_free stage's seconds next to the
-    reconstruction's (read + noise + rebin + interpolate + fbp), same run, same cache."""
+def run(quick: bool = False, repeats: int = 3, log=print, *, scene="demo") -> dict:
+    """Cost of ``recon.truth_free`` against the reconstruction it accompanies: :func:`clrecon.pipeline.run.run`
+    on the scene's 4 middle slices (quick: 2) with it on, the truth_free stage's seconds next to the
+    reconstruction's (read + noise + rebin + interpolate + fbp), same run, same cache (one run: ``repeats``
+    and ``log`` unused)."""
     sc = load_scene(scene) if isinstance(scene, str) else scene
     nz = sc.recon.nz
     half = 1 if quick else 2
@@ -33,11 +34,6 @@ def bench_truth_free_section(quick: bool = False, scene="demo") -> dict:
             "variants": list(res["request"]["variants"]), "load_average_1min_before": load,
             "truth_free_s": tf_s, "reconstruction_s": recon_s, "ratio": tf_s / recon_s if recon_s else None,
             "per_pitch": per_pitch, "folds": {pk: e["folds"] for pk, e in res["truth_free"].items()}}
-
-
-def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
-    """The bench's ``truth_free``: :func:`bench_truth_free_section` on ``demo`` (one run)."""
-    return bench_truth_free_section(quick)
 
 
 def report_lines(tfc: dict) -> list[str]:

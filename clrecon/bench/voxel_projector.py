@@ -140,8 +140,7 @@ def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
 
 def report_lines(vp: dict) -> list[str]:
     """The section's lines of the bench report."""
-    out = []
-    out.append("")
+    out = [""]
     nz = vp["volume"]
     out.append(f"2b. voxel projector (Joseph) {vp['scene']} ({vp['detector'][1]}x{vp['detector'][0]} cells, "
                f"{vp['views']} views), {nz[0]}^3 voxels of {vp['voxel_mm']:g} mm, "

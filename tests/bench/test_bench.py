@@ -29,8 +29,7 @@ def test_disk_phantom_sinograms_are_exact_chords():
 
 
 def test_backprojection_section_tiny():
-    res = backprojection.bench_backprojection_section(repeats=1, nx=32, n_views=40, n_cols=60, batch=17,
-                                                      reference_batch=2)
+    res = backprojection.run(repeats=1, nx=32, n_views=40, n_cols=60, batch=17, reference_batch=2)
     assert res["batched_gups"] > 0 and res["single_gups"] > 0
     assert res["max_rel_diff"] < 1e-4
     a = res["astra"]
@@ -41,8 +40,7 @@ def test_backprojection_section_tiny():
 
 
 def test_interpolation_section_tiny():
-    res = interpolation.bench_interpolation_section(repeats=1, scene="tiny", n_slices=1,
-                                                    methods=("nearest", "local_linear"))
+    res = interpolation.run(repeats=1, scene="tiny", n_slices=1, methods=("nearest", "local_linear"))
     for m in ("nearest", "local_linear"):
         r = res["methods"][m]
         assert r["output_rows"] > 0 and r["rows_per_s"] > 0
@@ -50,11 +48,11 @@ def test_interpolation_section_tiny():
 
 
 def test_scaling_and_memory_sections_tiny(tmp_path):
-    res = scaling.bench_scaling_section(quick=True, scene="tiny", method="nearest")
+    res = scaling.run(quick=True, scene="tiny", method="nearest")
     axes = {r["axis"] for r in res["rows"]}
     assert axes == {"slices", "targets", "projections"}
     assert all(r["reconstruct_s"] > 0 for r in res["rows"])
-    mem = memory.bench_memory_section(scene="tiny", n_slices=1, cardiac=(0.0,), resp=(0.25,), cache_dir=tmp_path)
+    mem = memory.run(scene="tiny", n_slices=1, cardiac=(0.0,), resp=(0.25,), cache_dir=tmp_path)
     assert "error" not in mem, mem
     assert 0 < mem["peak_rss_mib"] < 8 * 1024
     assert mem["full_job"]["total_bytes"] > 0
@@ -62,8 +60,7 @@ def test_scaling_and_memory_sections_tiny(tmp_path):
 
 def test_report_and_json(tmp_path):
     res = {"quick": True, "repeats": 1, "machine": bench.machine(),
-           "interpolation": interpolation.bench_interpolation_section(repeats=1, scene="tiny", n_slices=1,
-                                                                      methods=("nearest",))}
+           "interpolation": interpolation.run(repeats=1, scene="tiny", n_slices=1, methods=("nearest",))}
     text = bench.format_report(res)
     assert "interpolation" in text and "nearest" in text
     bench.write_json(res, tmp_path / "b.json")
