@@ -792,45 +792,46 @@ class _Thorax:
                  planes=[self.atrial_plane], cuts=[(CUT_INTERSECT,) + self.env])
 
     def coronaries(self):
-        """Coronary arteries (LAD, LCx on the LV, RCA on the RV): points just outside the
-        epicardium, mitred cylinder chains."""
-        xi, eta, zeta, col, hf = self.xi, self.eta, self.zeta, self.col, self.hf
-        a_cav, _, a_out, b_out = self.lv
-        lv_xi, base_xi, rv_centre, rv_out, H = self.lv_xi, self.base_xi, self.rv_centre, self.rv_out, self.H
+        """Coronary arteries, mitred cylinder chains through points just outside the epicardium:
+        LAD and LCx on the LV, RCA on the RV."""
+        a_cav, _, a_out, _ = self.lv
         rc = P["coronary_radius"]
-
-        def on_lv(s, phi, sag):
-            """Point off the LV epicardium at axial fraction s (-1 base .. 1 apex), azimuth phi."""
-            rad = b_out * np.sqrt(np.maximum(1.0 - s * s, 0.0))
-            pos = hf(lv_xi + a_out * s, rad * np.cos(phi), rad * np.sin(phi))
-            nrm = _unit(col(s / a_out) * xi + col(np.sqrt(np.maximum(1 - s * s, 0.0)) / b_out)
-                        * (np.cos(phi) * eta + np.sin(phi) * zeta))
-            return pos + (rc + P["coronary_clearance"] + sag) * nrm
-
         s_base = -P["lv_base_cut"] * a_cav / a_out
-        lad = [on_lv(s_base + (0.92 - s_base) * t,
-                     np.deg2rad(P["lad_azimuth_base"] + (P["lad_azimuth_apex"] - P["lad_azimuth_base"]) * t), 1.2)
+        lad = [self.on_lv(s_base + (0.92 - s_base) * t,
+                          np.deg2rad(P["lad_azimuth_base"] + (P["lad_azimuth_apex"] - P["lad_azimuth_base"]) * t), 1.2)
                for t in np.linspace(0.08, 1.0, 6)]
-        for s, seg in enumerate(mitred_chain(lad, rc)):
-            self.add(f"lad_{s}", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *seg)
-        lcx = [on_lv(s_base + 0.15, np.deg2rad(p), 1.5)
+        self.vessel("lad", lad, rc)
+        lcx = [self.on_lv(s_base + 0.15, np.deg2rad(p), 1.5)
                for p in np.linspace(P["lcx_azimuth"] + 20.0, P["lcx_azimuth"] - 20.0, 4)]
-        for s, seg in enumerate(mitred_chain(lcx, 0.85 * rc)):
-            self.add(f"lcx_{s}", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *seg)
+        self.vessel("lcx", lcx, 0.85 * rc)
+        rca = [self.on_rv(np.deg2rad(p), 6.0, 2.0) for p in np.linspace(75.0, -75.0, 6)]
+        self.vessel("rca", rca, rc)
 
-        def on_rv(psi, dxi, sag):
-            """Point off the RV epicardium in the cross-section dxi mm apical of the AV plane."""
-            rel = rv_centre - H
-            t = (base_xi + dxi - _dot(rel, xi)) / rv_out[:, 0]
-            sc = np.sqrt(np.maximum(1.0 - t * t, 0.0))
-            ey, ez = rv_out[:, 1] * sc, rv_out[:, 2] * sc
-            pos = hf(base_xi + dxi, _dot(rel, eta) + ey * np.cos(psi), ez * np.sin(psi))
-            nrm = _unit(col(np.cos(psi) / ey) * eta + col(np.sin(psi) / ez) * zeta)
-            return pos + (rc + P["coronary_clearance"] + sag) * nrm
+    def vessel(self, prefix: str, points: list, radius: float):
+        """A coronary artery: blood-filled cylinders ``{prefix}_{k}`` mitred through ``points`` (m, 3)."""
+        for s, seg in enumerate(mitred_chain(points, radius)):
+            self.add(f"{prefix}_{s}", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *seg)
 
-        rca = [on_rv(np.deg2rad(p), 6.0, 2.0) for p in np.linspace(75.0, -75.0, 6)]
-        for s, seg in enumerate(mitred_chain(rca, rc)):
-            self.add(f"rca_{s}", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *seg)
+    def on_lv(self, s, phi, sag):
+        """Point (m, 3) off the LV epicardium at axial fraction s (-1 base .. 1 apex), azimuth phi."""
+        xi, eta, zeta, col = self.xi, self.eta, self.zeta, self.col
+        _, _, a_out, b_out = self.lv
+        rad = b_out * np.sqrt(np.maximum(1.0 - s * s, 0.0))
+        pos = self.hf(self.lv_xi + a_out * s, rad * np.cos(phi), rad * np.sin(phi))
+        nrm = _unit(col(s / a_out) * xi + col(np.sqrt(np.maximum(1 - s * s, 0.0)) / b_out)
+                    * (np.cos(phi) * eta + np.sin(phi) * zeta))
+        return pos + (P["coronary_radius"] + P["coronary_clearance"] + sag) * nrm
+
+    def on_rv(self, psi, dxi, sag):
+        """Point (m, 3) off the RV epicardium in the cross-section dxi mm apical of the AV plane."""
+        xi, eta, zeta, col, rv_out = self.xi, self.eta, self.zeta, self.col, self.rv_out
+        rel = self.rv_centre - self.H
+        t = (self.base_xi + dxi - _dot(rel, xi)) / rv_out[:, 0]
+        sc = np.sqrt(np.maximum(1.0 - t * t, 0.0))
+        ey, ez = rv_out[:, 1] * sc, rv_out[:, 2] * sc
+        pos = self.hf(self.base_xi + dxi, _dot(rel, eta) + ey * np.cos(psi), ez * np.sin(psi))
+        nrm = _unit(col(np.cos(psi) / ey) * eta + col(np.sin(psi) / ez) * zeta)
+        return pos + (P["coronary_radius"] + P["coronary_clearance"] + sag) * nrm
 
     def liver(self):
         """The liver: the diaphragm dome less the diaphragm muscle, less the heart resting on it,
