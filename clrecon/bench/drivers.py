@@ -204,12 +204,18 @@ def bench_drivers(quick: bool = False, repeats: int = 3, demo: bool = True) -> d
     return res
 
 
+def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
+    """The bench's ``drivers``: :func:`bench_drivers`, the cold demo included."""
+    return bench_drivers(quick, repeats)
+
+
 def report_lines(res: dict) -> list[str]:
     """The section as text lines for the bench report."""
+    head = ["", "drivers: each CPU driver that passes the probe, same inputs, same process (clrecon.bench.drivers)"]
     keys = res.get("drivers", [])
     if not keys:
-        return [f"  drivers: skipped ({res.get('skipped_because', 'none')})"]
-    lines = [f"  drivers on {res['cpu']}: {', '.join(keys)} (median of {res['repeats']}, alternating)"]
+        return head + [f"  drivers: skipped ({res.get('skipped_because', 'none')})"]
+    lines = head + [f"  drivers on {res['cpu']}: {', '.join(keys)} (median of {res['repeats']}, alternating)"]
     ratio_key = f"ratio_{keys[0]}_over_{keys[1]}" if len(keys) >= 2 else None
     for name, row in res.get("kernels", {}).items():
         figs = ", ".join(f"{k} {row['throughput'][k]:.4g}" for k in keys)

@@ -61,7 +61,7 @@ def bench_backprojection(nx: int = 512, n_views: int = 984, n_cols: int = 900, b
         Also time the reference kernel (about 10x slower).
     filtered : ndarray, optional
         (batch, n_views, n_cols) filtered sinograms to backproject (default: standard normal
-        noise from ``seed``); ``clrecon.bench.suite`` passes filtered phantom sinograms.
+        noise from ``seed``); :mod:`clrecon.bench.backprojection` passes filtered phantom sinograms.
     reference_batch : int, optional
         Sinograms given to the reference kernel, the first ones (default: all ``batch``);
         its G updates/s count only those, and ``max_rel_diff`` compares only those.

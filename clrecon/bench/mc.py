@@ -25,7 +25,7 @@ from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
 from clrecon.core.resources import spawned_pool
 from clrecon.pipeline.context import resolve_targets
-from clrecon.pipeline.run import run
+from clrecon.pipeline.run import run as run_pipeline
 from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion.registration import registration_workers
@@ -87,8 +87,8 @@ def bench_mc_section(quick: bool = False, repeats: int = 3, scene="demo") -> dic
     with tempfile.TemporaryDirectory(prefix="clrecon-bench-mc-") as tmp:
         out = Path(tmp) / "run"
         t0 = time.perf_counter()
-        res = run(sc, out, slice_range=slices, methods=METHODS, cache_dir=Path(tmp) / "cache", progress=False,
-                  report=False, log=lambda *a, **k: None)
+        res = run_pipeline(sc, out, slice_range=slices, methods=METHODS, cache_dir=Path(tmp) / "cache",
+                           progress=False, report=False, log=lambda *a, **k: None)
         run_s = time.perf_counter() - t0
         pk = next(iter(res["metrics"]))
         variant = "noisy" if "noisy" in res["metrics"][pk] else next(iter(res["metrics"][pk]))
@@ -109,6 +109,11 @@ def bench_mc_section(quick: bool = False, repeats: int = 3, scene="demo") -> dic
             "variants": list(res["metrics"][pk]), "load_average_1min_before": load, "run_s": run_s,
             "reconstruction_s": recon_s, "mc_s": mc_s, "mc_parts_s": parts,
             "ratio": mc_s / recon_s if recon_s else None, "mae": mae, "registration_round": reg}
+
+
+def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
+    """The bench's ``mc``: :func:`bench_mc_section` on ``demo``."""
+    return bench_mc_section(quick, repeats)
 
 
 def report_lines(r: dict | None) -> list[str]:

@@ -85,6 +85,11 @@ def bench_measured_section(quick: bool = False, repeats: int = 1, scene_name: st
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
+    """The bench's ``measured``: :func:`bench_measured_section` on ``paper-p002``'s detector."""
+    return bench_measured_section(quick, repeats)
+
+
 def report_lines(r: dict | None) -> list[str]:
     if not r:
         return []

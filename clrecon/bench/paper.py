@@ -508,77 +508,94 @@ def _min(s: float) -> str:
     return f"{s / 60:.1f} min" if s < 3600 else f"{s / 3600:.1f} h"
 
 
-def format_report(res: dict) -> list:
-    """Report lines of the paper-scale sections present in a bench result."""
+def paper_projector_lines(pj: dict) -> list[str]:
+    """Report lines of the ``paper-projector`` section (P1, the simulation at paper scale)."""
     out = []
-    pj = res.get("paper-projector")
-    if pj:
-        pc, ref = pj["per_call"], pj["reference"]
-        out += ["", f"P1. simulation at paper scale: {pj['projections']} projections of {pj['scene']} "
-                    f"({pj['detector'][1]}x{pj['detector'][0]}) spread over the scan, {pj['chunks']} chunk(s) of "
-                    f"{pj['chunk']}; load {pj['load_average_1min_before']}",
-                f"   {'':34s} {'proj/s':>8s}  whole scan: " + ", ".join(pj["projected_whole_scan_s"]),
-                f"   {'simulate() end to end (store too)':34s} {pj['simulate_projections_per_s']:>8.1f}  "
-                + ", ".join(_min(v["simulate_s"]) for v in pj["projected_whole_scan_s"].values())
-                + f"  ({pj['simulate_projections']} in runs of {pj['chunk']}; marginal "
-                  f"{pj['simulate_marginal_projections_per_s']:.0f}/s, fixed {pj['simulate_one_projection_s']:.2f} s"
-                  f" per run; store ~{pj['store_share_estimate']:.0%})",
-                f"   {'projector, one call per chunk':34s} {pj['projector_projections_per_s']:>8.1f}  "
-                + ", ".join(_min(v["projector_only_s"]) for v in pj["projected_whole_scan_s"].values()),
-                f"   {'unculled kernel (ref, subset)':34s} {ref['projections_per_s']:>8.1f}  "
-                + ", ".join(_min(v["unculled_reference_s"]) for v in pj["projected_whole_scan_s"].values())
-                + f"  ({ref['projections']} projections; culled {pj['speedup_vs_reference']:.1f}x; "
-                  f"max abs diff {pj['max_abs_diff_vs_reference']:.1e})",
-                f"   per call: fixed {1e3 * pc['fixed_s']:.0f} ms + {1e3 * pc['per_projection_s']:.2f} ms/projection; "
-                f"first call at a new size +{pc['first_call_extra_s']:.2f} s"]
-        old = pj.get("old_16_projection_figure")
-        if old:
-            out.append(f"   old 16-projection figure, this run: {old['projections_per_s']:.0f} proj/s "
-                       f"({old['seconds']:.3f} s; the per-call fit predicts {old['predicted_by_per_call_fit_s']:.3f} s,"
-                       f" {pc['fixed_s'] / old['predicted_by_per_call_fit_s']:.0%} of it the fixed cost)")
-    nz = res.get("noise")
-    if nz:
-        ref, own = nz["reference"], nz["own_reference"]
-        sh = nz["chunk_shape"]
-        out += ["", f"P2. noise {sh[0]} x {sh[1]} x {sh[2]} cells (I0 {nz['i0_photons']:g}, sigma_e "
-                    f"{nz['electronic_sigma']:g}); load {nz['load_average_1min_before']}",
-                f"   {'':34s} {'M cells/s':>9s}  whole scan: " + ", ".join(nz["projected_whole_scan_s"]),
-                f"   {'add_noise (OpenCL Philox)':34s} {nz['cells_per_s'] / 1e6:>9.1f}  "
-                + ", ".join(_min(v["noise_s"]) for v in nz["projected_whole_scan_s"].values())
-                + f"  (bitwise vs own float64 reference: max diff {own['max_abs_diff']:.1e})",
-                f"   {'NumPy Generator(Philox) (ref)':34s} {ref['cells_per_s'] / 1e6:>9.1f}  "
-                + ", ".join(_min(v["numpy_reference_s"]) for v in nz["projected_whole_scan_s"].values())
-                + f"  (ours {nz['speedup_vs_reference']:.1f}x; noise std {nz['noise_mean_std']['ours'][1]:.4f} "
-                  f"vs {nz['noise_mean_std']['numpy'][1]:.4f})"]
-    fb = res.get("paper-fbp")
-    if fb:
-        job, ref = fb["projected_full_job"], fb["reference"]
-        out += ["", f"P3. FBP {fb['image'][1]}^2 from {fb['views']} views x {fb['cols']} columns, {fb['images']} "
-                    f"images, {fb['images_per_launch']} per launch; load {fb['load_average_1min_before']}",
-                f"   backprojection {fb['backproject_images_per_s']:.1f} images/s ({fb['backproject_gups']:.1f} G "
-                f"upd/s); filter {fb['filter_rows_per_s'] / 1e3:.0f} k rows/s; an image with its own "
-                f"{fb['views']} rows {fb['images_per_s_own_rows']:.1f} images/s",
-                f"   ref: one-sinogram kernel {ref['images_per_s']:.2f} images/s (ours "
-                f"{fb['speedup_vs_reference']:.1f}x, max rel diff {ref['max_rel_diff']:.0e}); float64 NumPy filter "
-                f"{fb['filter_reference']['rows_per_s'] / 1e3:.0f} k rows/s "
-                f"(ours {fb['filter_speedup_vs_reference']:.1f}x)",
-                f"   full job ({job['images']} images, <= {job['rebinned_rows_upper_bound'] / 1e6:.1f} M rows): "
-                f"{_min(job['fbp_s'])} (backprojection {_min(job['backproject_s'])}, filter {_min(job['filter_s'])}); "
-                f"with the references {_min(job['reference_fbp_s'])}"]
-    gt = res.get("groundtruth")
-    if gt:
-        job, ref, pref = gt["projected_full_job"], gt["reference"], gt["phantom_truth_reference"]
-        out += ["", f"P4. ground truth {gt['image'][1]}^2, {gt['slices']} slices x {gt['targets']} target(s); "
-                    f"load {gt['load_average_1min_before']}",
-                f"   ground-truth CT {gt['groundtruth_slice_targets_per_s']:.1f} slice-targets/s "
-                f"(sinograms {gt['sinograms_share']:.0%} of it); ref (unculled + one-sinogram kernel, 1 slice) "
-                f"{ref['slice_targets_per_s']:.2f} ({gt['speedup_vs_reference']:.1f}x, max diff "
-                f"{ref['max_abs_diff_hu_in_fov']:.1e} HU)",
-                f"   phantom truth {gt['phantom_truth_slice_targets_per_s']:.1f} slice-targets/s "
-                f"({gt['phantom_truth_samples_per_s'] / 1e6:.0f} M samples/s at {gt['supersample']}^3); ref float64 "
-                f"NumPy {pref['samples_per_s'] / 1e6:.2f} M samples/s ({gt['phantom_truth_speedup_vs_reference']:.0f}x;"
-                f" {pref['voxels_differing']} of {pref['voxels']} voxels differ at 1 sample)",
-                f"   full job ({job['slice_targets']} slice-targets): ground truth {_min(job['groundtruth_s'])}, "
-                f"phantom truth {_min(job['phantom_truth_s'])}; with the references "
-                f"{_min(job['reference_groundtruth_s'])} and {_min(job['reference_phantom_truth_s'])}"]
+    pc, ref = pj["per_call"], pj["reference"]
+    out += ["", f"P1. simulation at paper scale: {pj['projections']} projections of {pj['scene']} "
+                f"({pj['detector'][1]}x{pj['detector'][0]}) spread over the scan, {pj['chunks']} chunk(s) of "
+                f"{pj['chunk']}; load {pj['load_average_1min_before']}",
+            f"   {'':34s} {'proj/s':>8s}  whole scan: " + ", ".join(pj["projected_whole_scan_s"]),
+            f"   {'simulate() end to end (store too)':34s} {pj['simulate_projections_per_s']:>8.1f}  "
+            + ", ".join(_min(v["simulate_s"]) for v in pj["projected_whole_scan_s"].values())
+            + f"  ({pj['simulate_projections']} in runs of {pj['chunk']}; marginal "
+              f"{pj['simulate_marginal_projections_per_s']:.0f}/s, fixed {pj['simulate_one_projection_s']:.2f} s"
+              f" per run; store ~{pj['store_share_estimate']:.0%})",
+            f"   {'projector, one call per chunk':34s} {pj['projector_projections_per_s']:>8.1f}  "
+            + ", ".join(_min(v["projector_only_s"]) for v in pj["projected_whole_scan_s"].values()),
+            f"   {'unculled kernel (ref, subset)':34s} {ref['projections_per_s']:>8.1f}  "
+            + ", ".join(_min(v["unculled_reference_s"]) for v in pj["projected_whole_scan_s"].values())
+            + f"  ({ref['projections']} projections; culled {pj['speedup_vs_reference']:.1f}x; "
+              f"max abs diff {pj['max_abs_diff_vs_reference']:.1e})",
+            f"   per call: fixed {1e3 * pc['fixed_s']:.0f} ms + {1e3 * pc['per_projection_s']:.2f} ms/projection; "
+            f"first call at a new size +{pc['first_call_extra_s']:.2f} s"]
+    old = pj.get("old_16_projection_figure")
+    if old:
+        out.append(f"   old 16-projection figure, this run: {old['projections_per_s']:.0f} proj/s "
+                   f"({old['seconds']:.3f} s; the per-call fit predicts {old['predicted_by_per_call_fit_s']:.3f} s,"
+                   f" {pc['fixed_s'] / old['predicted_by_per_call_fit_s']:.0%} of it the fixed cost)")
     return out
+
+
+def noise_lines(nz: dict) -> list[str]:
+    """Report lines of the ``noise`` section (P2, the noise)."""
+    ref, own = nz["reference"], nz["own_reference"]
+    sh = nz["chunk_shape"]
+    return ["", f"P2. noise {sh[0]} x {sh[1]} x {sh[2]} cells (I0 {nz['i0_photons']:g}, sigma_e "
+                f"{nz['electronic_sigma']:g}); load {nz['load_average_1min_before']}",
+            f"   {'':34s} {'M cells/s':>9s}  whole scan: " + ", ".join(nz["projected_whole_scan_s"]),
+            f"   {'add_noise (OpenCL Philox)':34s} {nz['cells_per_s'] / 1e6:>9.1f}  "
+            + ", ".join(_min(v["noise_s"]) for v in nz["projected_whole_scan_s"].values())
+            + f"  (bitwise vs own float64 reference: max diff {own['max_abs_diff']:.1e})",
+            f"   {'NumPy Generator(Philox) (ref)':34s} {ref['cells_per_s'] / 1e6:>9.1f}  "
+            + ", ".join(_min(v["numpy_reference_s"]) for v in nz["projected_whole_scan_s"].values())
+            + f"  (ours {nz['speedup_vs_reference']:.1f}x; noise std {nz['noise_mean_std']['ours'][1]:.4f} "
+              f"vs {nz['noise_mean_std']['numpy'][1]:.4f})"]
+
+
+def paper_fbp_lines(fb: dict) -> list[str]:
+    """Report lines of the ``paper-fbp`` section (P3, the FBP at paper scale)."""
+    job, ref = fb["projected_full_job"], fb["reference"]
+    return ["", f"P3. FBP {fb['image'][1]}^2 from {fb['views']} views x {fb['cols']} columns, {fb['images']} "
+                f"images, {fb['images_per_launch']} per launch; load {fb['load_average_1min_before']}",
+            f"   backprojection {fb['backproject_images_per_s']:.1f} images/s ({fb['backproject_gups']:.1f} G "
+            f"upd/s); filter {fb['filter_rows_per_s'] / 1e3:.0f} k rows/s; an image with its own "
+            f"{fb['views']} rows {fb['images_per_s_own_rows']:.1f} images/s",
+            f"   ref: one-sinogram kernel {ref['images_per_s']:.2f} images/s (ours "
+            f"{fb['speedup_vs_reference']:.1f}x, max rel diff {ref['max_rel_diff']:.0e}); float64 NumPy filter "
+            f"{fb['filter_reference']['rows_per_s'] / 1e3:.0f} k rows/s "
+            f"(ours {fb['filter_speedup_vs_reference']:.1f}x)",
+            f"   full job ({job['images']} images, <= {job['rebinned_rows_upper_bound'] / 1e6:.1f} M rows): "
+            f"{_min(job['fbp_s'])} (backprojection {_min(job['backproject_s'])}, filter {_min(job['filter_s'])}); "
+            f"with the references {_min(job['reference_fbp_s'])}"]
+
+
+def groundtruth_lines(gt: dict) -> list[str]:
+    """Report lines of the ``groundtruth`` section (P4, the ground truth)."""
+    job, ref, pref = gt["projected_full_job"], gt["reference"], gt["phantom_truth_reference"]
+    return ["", f"P4. ground truth {gt['image'][1]}^2, {gt['slices']} slices x {gt['targets']} target(s); "
+                f"load {gt['load_average_1min_before']}",
+            f"   ground-truth CT {gt['groundtruth_slice_targets_per_s']:.1f} slice-targets/s "
+            f"(sinograms {gt['sinograms_share']:.0%} of it); ref (unculled + one-sinogram kernel, 1 slice) "
+            f"{ref['slice_targets_per_s']:.2f} ({gt['speedup_vs_reference']:.1f}x, max diff "
+            f"{ref['max_abs_diff_hu_in_fov']:.1e} HU)",
+            f"   phantom truth {gt['phantom_truth_slice_targets_per_s']:.1f} slice-targets/s "
+            f"({gt['phantom_truth_samples_per_s'] / 1e6:.0f} M samples/s at {gt['supersample']}^3); ref float64 "
+            f"NumPy {pref['samples_per_s'] / 1e6:.2f} M samples/s ({gt['phantom_truth_speedup_vs_reference']:.0f}x;"
+            f" {pref['voxels_differing']} of {pref['voxels']} voxels differ at 1 sample)",
+            f"   full job ({job['slice_targets']} slice-targets): ground truth {_min(job['groundtruth_s'])}, "
+            f"phantom truth {_min(job['phantom_truth_s'])}; with the references "
+            f"{_min(job['reference_groundtruth_s'])} and {_min(job['reference_phantom_truth_s'])}"]
+
+
+#: The report lines of each section, for the bench's registry (:data:`clrecon.bench.suite.REGISTRY`).
+REPORT_LINES = {"paper-projector": paper_projector_lines, "noise": noise_lines, "paper-fbp": paper_fbp_lines,
+                "groundtruth": groundtruth_lines}
+
+
+def section_run(name: str):
+    """The ``run(quick, repeats, log)`` of the paper section ``name`` (:func:`run_section` at the
+    scene's default sizes), for the bench's registry."""
+    def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
+        return run_section(name, quick, repeats)
+    return run

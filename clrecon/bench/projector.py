@@ -30,12 +30,16 @@ import time
 
 import numpy as np
 
+from clrecon.bench.timing import fmt
 from clrecon.config.scene import load_scene
 from clrecon.core.conventions import detector_coords, detector_frames
 from clrecon.core.runtime import get_runtime
 from clrecon.scan.table import projection_table
 from clrecon.simulation.phantoms.analytic import Phantom
 from clrecon.simulation.projector import R_RECT, prepare_records, project
+
+#: Goal of the issue (the bench report marks it): the whole simulation of ``paper-p002``, seconds.
+GOAL_SIMULATION_S = 600.0
 
 
 def _evaluated_pairs(scene, table) -> tuple:
@@ -142,6 +146,33 @@ def bench_projector(n_projections: int = 96, scene="paper-p002", *, reference_pr
     res["speedup"] = res["rays_per_s"] / res["reference"]["rays_per_s"]
     res["speedup_cpu"] = res["rays_per_cpu_s"] / res["reference"]["rays_per_cpu_s"]
     return res
+
+
+def run(quick: bool = False, repeats: int = 3, log=print, *, scene="paper-p002") -> dict:
+    """The bench's ``projector``: :func:`bench_projector` on 96 projections of ``scene``
+    (``--quick``: 16, one repeat), the fastest of ``repeats - 1``, with the goal."""
+    res = bench_projector(16 if quick else 96, scene, repeats=1 if quick else max(1, repeats - 1))
+    res["goal_total_s"] = GOAL_SIMULATION_S
+    return res
+
+
+def report_lines(pj: dict) -> list[str]:
+    """The section's lines of the bench report."""
+    ref = pj["reference"]
+    out = [""]
+    out.append(f"2. projector {pj['scene']} ({pj['detector'][1]}x{pj['detector'][0]} cells, "
+               f"{pj['n_objects']} objects), "
+               f"{pj['projections']} projections over the scan, load {pj['load_average_1min_before']:.2f}")
+    out.append(f"   {'':22s} {'proj/s':>8s} {'Mrays/s':>8s} {'M ray.obj/s':>12s} {'whole scan':>12s}")
+    ok = "met" if pj["projected_total_s"] < GOAL_SIMULATION_S else "NOT met"
+    out.append(f"   {'culled (clrecon)':22s} {fmt(pj['projections_per_s'], 1):>8s} {fmt(pj['rays_per_s'] / 1e6):>8s} "
+               f"{fmt(pj['intersections_per_s'] / 1e6, 1):>12s} {pj['projected_total_s'] / 60:>9.1f} min"
+               f"  goal < 10 min: {ok} (2 idle cores: {pj['projected_total_s_if_2_idle_cores'] / 60:.1f} min)")
+    out.append(f"   {'unculled (ref)':22s} {fmt(ref['projections'] / ref['seconds'], 1):>8s} "
+               f"{fmt(ref['rays_per_s'] / 1e6):>8s} {fmt(ref['intersections_per_s'] / 1e6, 1):>12s} "
+               f"{ref['projected_total_s'] / 60:>9.1f} min  culled {pj['speedup']:.1f}x; "
+               f"max abs diff {pj['max_abs_diff_vs_reference']:.1e}")
+    return out
 
 
 def main(argv=None) -> int:

@@ -1,7 +1,8 @@
-"""Timing helpers shared by the bench sections: the machine's load and medians of repeats."""
+"""Helpers shared by the bench sections: the machine's load, medians of repeats, numbers for the report."""
 
 from __future__ import annotations
 
+import math
 import os
 import time
 
@@ -26,3 +27,12 @@ def median_time(fn, repeats: int, warmup: bool = True) -> tuple[float, list]:
         fn()
     times = [timed(fn) for _ in range(max(1, repeats))]
     return float(np.median(times)), [round(t, 4) for t in times]
+
+
+def fmt(x, nd=2) -> str:
+    """A figure for the report: ``nd`` decimals, 3 significant digits from 1e6 up, "-" if None or not finite."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    if abs(x) >= 1e6:
+        return f"{x:.3g}"
+    return f"{x:.{nd}f}"

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 import tempfile
 import threading
 import time
@@ -42,7 +43,7 @@ from clrecon.config.scene import load_scene
 from clrecon.core import atomic
 from clrecon.outputs.figures import _plt
 from clrecon.outputs.volumes import pitch_key
-from clrecon.pipeline.run import run
+from clrecon.pipeline.run import run as run_pipeline
 from clrecon.reconstruction import interpolation as _methods
 from clrecon.reconstruction.reconstruct import slice_positions
 
@@ -195,17 +196,18 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
             s_i = sc.replace(**{sec: vals for sec, vals in (("recon", p.recon), ("scanner", p.scanner)) if vals})
             run_dir = out / "runs" / p.name
             if warmup:
-                run(s_i.replace(noise={"enabled": False}), out / "runs" / "warmup", methods=(p.method,),
-                    pitches=(pitch,), slice_range=(slices[0], slices[0] + 1), cardiac=sc.cardiac_targets[:1]
-                    if sc.has_cardiac else None, resp=sc.resp_targets[:1] if sc.has_respiratory else None,
-                    cache_dir=cache, progress=False, report=False, log=lambda *a, **kw: None)
+                run_pipeline(s_i.replace(noise={"enabled": False}), out / "runs" / "warmup", methods=(p.method,),
+                             pitches=(pitch,), slice_range=(slices[0], slices[0] + 1), cardiac=sc.cardiac_targets[:1]
+                             if sc.has_cardiac else None, resp=sc.resp_targets[:1] if sc.has_respiratory else None,
+                             cache_dir=cache, progress=False, report=False, log=lambda *a, **kw: None)
                 shutil.rmtree(out / "runs" / "warmup", ignore_errors=True)
             load0 = os.getloadavg()[0]
             reps = []
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                res = run(s_i, run_dir, methods=(p.method,), pitches=(pitch,), slice_range=slices, cardiac=cardiac,
-                          resp=resp, cache_dir=cache, progress=False, report=False, log=lambda *a, **kw: None)
+                res = run_pipeline(s_i, run_dir, methods=(p.method,), pitches=(pitch,), slice_range=slices,
+                                   cardiac=cardiac, resp=resp, cache_dir=cache, progress=False, report=False,
+                                   log=lambda *a, **kw: None)
                 reps.append((res, time.perf_counter() - t0))
                 shutil.rmtree(run_dir, ignore_errors=True)
             res, wall = reps[0]
@@ -425,3 +427,21 @@ def format_table(result: dict) -> str:
                      f"{(r['plan_seconds'] if r['plan_seconds'] is not None else float('nan')):>7.2f}  "
                      f"{'*' if on else ''}")
     return "\n".join(lines)
+
+
+def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
+    """The bench's ``tradeoff``: :func:`run_tradeoff` on ``demo``, its progress to stderr
+    (one run per point)."""
+    return run_tradeoff(quick, log=lambda *a, **k: log(*a, file=sys.stderr))
+
+
+def report_lines(tr: dict) -> list[str]:
+    """The section's lines of the bench report."""
+    ld = tr["load_average_1min"]
+    out = [""]
+    out.append(f"6. error against run time: {tr['scene']} pitch {tr['pitch']:g}, slices "
+               f"{tr['slices'][0]}:{tr['slices'][1]}, {len(tr['points'])} points in {tr['sweep_seconds']:.0f} s "
+               f"(load {ld['min']:.2f}..{ld['max']:.2f}, median {ld['median']:.2f}); "
+               f"{tr['out_dir']}/tradeoff.png; * = on the method's Pareto front")
+    out.extend("   " + line for line in format_table(tr).splitlines())
+    return out

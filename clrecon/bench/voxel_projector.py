@@ -27,6 +27,7 @@ import time
 
 import numpy as np
 
+from clrecon.bench.timing import fmt
 from clrecon.config.scene import load_scene
 from clrecon.core.conventions import detector_coords, detector_frames
 from clrecon.core.runtime import get_runtime
@@ -130,6 +131,30 @@ def bench_voxel_projector(repeats: int = 3, quick: bool = False, *, scene="demo"
     res["speedup_vs_reference"] = res["rays_per_s"] / res["reference_rays_per_s"]
     res["speed_vs_analytic"] = res["rays_per_s"] / res["analytic_rays_per_s"]
     return res
+
+
+def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
+    """The bench's ``voxel-projector``: :func:`bench_voxel_projector` on ``demo``."""
+    return bench_voxel_projector(repeats, quick)
+
+
+def report_lines(vp: dict) -> list[str]:
+    """The section's lines of the bench report."""
+    out = [""]
+    nz = vp["volume"]
+    out.append(f"2b. voxel projector (Joseph) {vp['scene']} ({vp['detector'][1]}x{vp['detector'][0]} cells, "
+               f"{vp['views']} views), {nz[0]}^3 voxels of {vp['voxel_mm']:g} mm, "
+               f"load {vp['load_average_1min']:.2f}")
+    out.append(f"   {'':22s} {'Mrays/s':>8s} {'Msamples/s':>11s}  notes")
+    out.append(f"   {'OpenCL (clrecon)':22s} {fmt(vp['rays_per_s'] / 1e6):>8s} "
+               f"{fmt(vp['samples_per_s'] / 1e6):>11s}  {vp['samples_per_ray']:.0f} samples/ray; "
+               f"max abs diff vs reference {vp['max_abs_diff_vs_reference']:.1e}")
+    out.append(f"   {'float64 NumPy (ref)':22s} {fmt(vp['reference_rays_per_s'] / 1e6, 3):>8s} {'':>11s}  "
+               f"OpenCL {vp['speedup_vs_reference']:.0f}x")
+    out.append(f"   {'analytic projector':22s} {fmt(vp['analytic_rays_per_s'] / 1e6):>8s} {'':>11s}  "
+               f"voxel/analytic speed {vp['speed_vs_analytic']:.2f}; rel RMS vs analytic "
+               f"{vp['rel_rms_vs_analytic']:.1%} (voxelisation at {vp['voxel_mm']:g} mm)")
+    return out
 
 
 def main(argv=None) -> int:

@@ -1,8 +1,9 @@
 """Figures of a run directory (after metrics, before/with the report): PNGs in ``RUN_DIR/figures/``.
 
 :func:`write_figures` is called by :func:`clrecon.outputs.report.write_report` and returns the
-markdown lines that link the figures (or say why one was skipped); :func:`write_html` turns
-the whole report into a self-contained ``report.html`` with the figures inline.
+markdown lines that link the figures (or say why one was skipped);
+:func:`clrecon.outputs.report_html.write_html` turns the whole report into a self-contained
+``report.html`` with the figures inline.
 
 The figures reproduce the paper's (Wang et al., 5DCT; ``docs/README.md`` "The paper"):
 
@@ -25,9 +26,6 @@ grey scales in HU with the window (W/L) in the title.
 
 from __future__ import annotations
 
-import base64
-import html
-import re
 import textwrap
 from pathlib import Path
 
@@ -39,7 +37,7 @@ from clrecon.core.errors import ClreconError
 from clrecon.evaluation.groundtruth import offers_lv_region
 from clrecon.outputs.rundir import RunDirectory
 from clrecon.reconstruction import interpolation as _methods
-from clrecon.reconstruction import rebin, reconstruct
+from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.interpolation import weights as interpolate
 from clrecon.scan import table as geometry
 from clrecon.simulation.phantom_sources import phantom_from_config
@@ -156,24 +154,23 @@ def phase_space_sample(scene, pitch: float, slice_z_mm: float, view: int, target
     Returns ``{"c", "a"}`` (n,) candidate phases/amplitudes, ``"index"`` (n,) their
     projection numbers, ``"target"`` (2,), and for each method ``"barycentric"`` /
     ``"local_linear"``: ``{"index": (k,) positions into the candidates, "weight": (k,)}``
-    with non-zero weights only. Uses :func:`clrecon.reconstruction.rebin.candidates` and
+    with non-zero weights only. Uses :func:`clrecon.reconstruction.reconstruct.candidate_groups_of`
+    (the candidate window, then ``recon.max_turns``) and
     :func:`clrecon.reconstruction.interpolation.weights.method_weights` exactly as the reconstruction plan does.
     """
     table = geometry.projection_table(scene, pitch)
-    cand = rebin.candidates(table, float(slice_z_mm), scene.scanner, reconstruct.object_radius_mm(scene))
-    sel = cand[table.view[cand] == view]
-    if sel.size == 0:
-        raise ValueError(f"slice z = {slice_z_mm:.1f} mm, view {view}: no candidate projection")
     cfg = reconstruct.ReconstructionConfig.from_scene(scene)
-    if cfg.max_turns > 0:  # recon.max_turns: the turns nearest in z, as reconstruct.limit_turns keeps them
-        near = np.lexsort((np.arange(sel.size), np.abs(float(slice_z_mm) - table.source_z_mm[sel])))
-        sel = sel[np.sort(near[:cfg.max_turns])]
-    c = table.cardiac_phase[sel]
-    a = table.resp_amplitude[sel]
+    groups = reconstruct.candidate_groups_of(cfg, table, [float(slice_z_mm)])  # one slice: group = view
+    rows = groups.row[groups.offsets[view]:groups.offsets[view + 1]]
+    if rows.size == 0:
+        raise ValueError(f"slice z = {slice_z_mm:.1f} mm, view {view}: no candidate projection")
+    c = table.cardiac_phase[rows]
+    a = table.resp_amplitude[rows]
     tg = np.asarray(target, float).reshape(1, 2)
     targets = reconstruct.Targets(tuple(scene.cardiac_targets), tuple(scene.resp_targets))
     opts = reconstruct.weight_options(cfg, targets)
-    out = {"c": c, "a": a, "index": sel, "target": tg[0]}
+    out = {"c": c, "a": a, "index": groups.projection[groups.offsets[view]:groups.offsets[view + 1]],
+           "target": tg[0]}
     for m in FIVE_D:
         w = interpolate.method_weights(m, c, a, tg, **opts)
         live = np.asarray(w.weight[0]) != 0
@@ -681,75 +678,3 @@ def write_figures(out_dir, results: dict, pool=None) -> list[str]:
     finally:
         run.close()
     return lines
-
-
-# ---------------------------------------------------------------------------------------------
-# report.html
-def _inline(text: str, base: Path) -> str:
-    t = html.escape(text, quote=False)
-    t = re.sub(r"`([^`]+)`", r"<code>\1</code>", t)
-    t = re.sub(r"\*\*([^*]+)\*\*", r"<b>\1</b>", t)
-    t = re.sub(r"(?<![\w*])\*([^*]+)\*(?![\w*])", r"<i>\1</i>", t)
-    return t
-
-
-def _img(alt: str, src: str, base: Path) -> str:
-    p = base / src
-    if p.exists():
-        data = base64.b64encode(p.read_bytes()).decode()
-        src = f"data:image/png;base64,{data}"
-    return f'<p><img alt="{html.escape(alt)}" src="{src}" style="max-width:100%"></p>'
-
-
-def markdown_to_html(lines: list[str], base: Path, title: str = "clrecon report") -> str:
-    """The small markdown subset the report uses (headings, tables, lists, images) -> HTML.
-
-    Images under ``base`` are embedded as base64 so the page is self-contained.
-    """
-    out = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
-           "<style>body{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}"
-           "table{border-collapse:collapse}td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}"
-           "</style></head><body>"]
-    i = 0
-    while i < len(lines):
-        line = lines[i].rstrip()
-        m = re.match(r"^(#{1,6})\s+(.*)$", line)
-        img = re.match(r"^!\[([^\]]*)\]\(([^)]+)\)$", line)
-        if m:
-            n = len(m.group(1))
-            out.append(f"<h{n}>{_inline(m.group(2), base)}</h{n}>")
-        elif img:
-            out.append(_img(img.group(1), img.group(2), base))
-        elif line.startswith("|"):
-            rows = []
-            while i < len(lines) and lines[i].startswith("|"):
-                rows.append(lines[i].strip().strip("|").split("|"))
-                i += 1
-            i -= 1
-            out.append("<table>")
-            for k, cells in enumerate(rows):
-                if all(re.fullmatch(r"\s*-+\s*", c) for c in cells):
-                    continue
-                tag = "th" if k == 0 else "td"
-                out.append("<tr>" + "".join(f"<{tag}>{_inline(c.strip(), base)}</{tag}>" for c in cells) + "</tr>")
-            out.append("</table>")
-        elif line.startswith("- "):
-            out.append("<ul>")
-            while i < len(lines) and lines[i].startswith("- "):
-                out.append(f"<li>{_inline(lines[i][2:], base)}</li>")
-                i += 1
-            i -= 1
-            out.append("</ul>")
-        elif line:
-            out.append(f"<p>{_inline(line, base)}</p>")
-        i += 1
-    out.append("</body></html>")
-    return "\n".join(out) + "\n"
-
-
-def write_html(out_dir, lines: list[str], title: str = "clrecon report") -> Path:
-    """Write ``out_dir/report.html`` from the report's markdown lines, figures inline."""
-    out_dir = Path(out_dir)
-    path = out_dir / "report.html"
-    atomic.write_text(path, markdown_to_html(lines, out_dir, title))
-    return path

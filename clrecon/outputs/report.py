@@ -10,7 +10,7 @@ from pathlib import Path
 from clrecon.core import atomic, machine_speed
 from clrecon.core.resources import folder_bytes, peak_rss_bytes
 from clrecon.evaluation import claims as claims_mod
-from clrecon.outputs import figures, measured_record
+from clrecon.outputs import figures, measured_record, report_html
 from clrecon.reconstruction.diagnostics import pooled as _pooled_diagnostics
 from clrecon.reconstruction.interpolation import by_rank
 
@@ -337,5 +337,5 @@ def write_report(out_dir: Path, results: dict, pool=None) -> Path:
     lines += figures.write_figures(out_dir, results, pool=pool)
     path = out_dir / "report.md"
     atomic.write_text(path, "\n".join(lines) + "\n")
-    figures.write_html(out_dir, lines, title=f"clrecon run: {s['name']}")
+    report_html.write_html(out_dir, lines, title=f"clrecon run: {s['name']}")
     return path

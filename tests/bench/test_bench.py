@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from clrecon.bench import paper
+from clrecon.bench import backprojection, interpolation, memory, paper, scaling
 from clrecon.bench import suite as bench
 from clrecon.cli import build_parser
 from clrecon.core.errors import ClreconError
@@ -18,7 +18,7 @@ from clrecon.reconstruction import fbp
 def test_disk_phantom_sinograms_are_exact_chords():
     g = fbp.FanBeamGeometry(sid_mm=595.0, sdd_mm=1085.6, n_cols=64, col_pitch_mm=8.0, n_views=36, nx=16, ny=16,
                             voxel_mm=10.0)
-    s = bench.disk_phantom_sinograms(g, 3, n_phantoms=2)
+    s = backprojection.disk_phantom_sinograms(g, 3, n_phantoms=2)
     assert s.shape == (3, 36, 64) and s.dtype == np.float32
     assert np.all(np.isfinite(s)) and s.max() > 0
     # the central ray of every view crosses the body disk (radius 0.9 R_fov) through its centre
@@ -29,7 +29,7 @@ def test_disk_phantom_sinograms_are_exact_chords():
 
 
 def test_backprojection_section_tiny():
-    res = bench.bench_backprojection_section(repeats=1, nx=32, n_views=40, n_cols=60, batch=17, reference_batch=2)
+    res = backprojection.run(repeats=1, nx=32, n_views=40, n_cols=60, batch=17, reference_batch=2)
     assert res["batched_gups"] > 0 and res["single_gups"] > 0
     assert res["max_rel_diff"] < 1e-4
     a = res["astra"]
@@ -40,7 +40,7 @@ def test_backprojection_section_tiny():
 
 
 def test_interpolation_section_tiny():
-    res = bench.bench_interpolation_section(repeats=1, scene="tiny", n_slices=1, methods=("nearest", "local_linear"))
+    res = interpolation.run(repeats=1, scene="tiny", n_slices=1, methods=("nearest", "local_linear"))
     for m in ("nearest", "local_linear"):
         r = res["methods"][m]
         assert r["output_rows"] > 0 and r["rows_per_s"] > 0
@@ -48,11 +48,11 @@ def test_interpolation_section_tiny():
 
 
 def test_scaling_and_memory_sections_tiny(tmp_path):
-    res = bench.bench_scaling_section(quick=True, scene="tiny", method="nearest")
+    res = scaling.run(quick=True, scene="tiny", method="nearest")
     axes = {r["axis"] for r in res["rows"]}
     assert axes == {"slices", "targets", "projections"}
     assert all(r["reconstruct_s"] > 0 for r in res["rows"])
-    mem = bench.bench_memory_section(scene="tiny", n_slices=1, cardiac=(0.0,), resp=(0.25,), cache_dir=tmp_path)
+    mem = memory.run(scene="tiny", n_slices=1, cardiac=(0.0,), resp=(0.25,), cache_dir=tmp_path)
     assert "error" not in mem, mem
     assert 0 < mem["peak_rss_mib"] < 8 * 1024
     assert mem["full_job"]["total_bytes"] > 0
@@ -60,13 +60,36 @@ def test_scaling_and_memory_sections_tiny(tmp_path):
 
 def test_report_and_json(tmp_path):
     res = {"quick": True, "repeats": 1, "machine": bench.machine(),
-           "interpolation": bench.bench_interpolation_section(repeats=1, scene="tiny", n_slices=1,
-                                                              methods=("nearest",))}
+           "interpolation": interpolation.run(repeats=1, scene="tiny", n_slices=1, methods=("nearest",))}
     text = bench.format_report(res)
     assert "interpolation" in text and "nearest" in text
     bench.write_json(res, tmp_path / "b.json")
     back = json.loads((tmp_path / "b.json").read_text())
     assert back["machine"]["logical_cores"] >= 1 and "device" in back["machine"]
+
+
+def test_the_suite_dispatches_over_its_registry(monkeypatch, capsys):
+    """Each section of the registry: one name, run and report_lines; the report is the machine lines
+    then each present section's lines in the registry's order; ``bench --help`` names every section."""
+    names = [s.name for s in bench.REGISTRY]
+    assert len(names) == len(set(names)) and set(names) == set(bench.SECTIONS + bench.EXTRA_SECTIONS)
+    assert all(callable(s.run) and callable(s.report_lines) for s in bench.REGISTRY)
+    order = []
+    fake = [bench.Section(s.name, s.run, lambda r, n=s.name: (order.append(n), [f"<{n} {r['x']}>"])[1], s.default)
+            for s in bench.REGISTRY]
+    monkeypatch.setattr(bench, "REGISTRY", tuple(fake))
+    picked = [names[-1], names[0], names[len(names) // 2]]
+    m = {"cpu_model": "cpu", "logical_cores": 2, "memory_gib": 1.0, "load_average": [0.0], "device": "dev"}
+    res = {"machine": m, **{n: {"x": i} for i, n in enumerate(picked)}, names[1]: {}}  # an empty result: no lines
+    text = bench.format_report(res)
+    assert order == [n for n in names if n in picked]
+    assert text.splitlines()[1:] == [f"<{n} {res[n]['x']}>" for n in order]
+    monkeypatch.setenv("COLUMNS", "100000")  # one line per option: argparse wraps at hyphens
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["bench", "--help"])
+    help_text = capsys.readouterr().out
+    for n in names:
+        assert n in help_text, n
 
 
 def test_cli_bench_arguments():

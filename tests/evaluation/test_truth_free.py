@@ -230,9 +230,9 @@ def test_cv_tuned_with_knobs_equals_the_method_with_those_knobs(tmp_path):
 
 def test_bench_truth_free_cost_and_trust_study_run_on_tiny(tmp_path):
     from benchmarks import truth_free_trust
-    from clrecon.bench import suite
+    from clrecon.bench import truth_free
 
-    cost = suite.bench_truth_free_section(quick=True, scene="tiny")
+    cost = truth_free.run(quick=True, scene="tiny")
     assert cost["truth_free_s"] > 0 and cost["reconstruction_s"] > 0 and cost["ratio"] > 0
     res = truth_free_trust.run_study(tmp_path, ("tiny",), log=lambda *a, **k: None)
     an = res["analysis"]

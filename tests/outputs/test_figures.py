@@ -43,6 +43,29 @@ def test_write_report_makes_every_figure_and_html(full_run):
     assert page.count("data:image/png;base64,") == len(expected) and "<table>" in page
 
 
+def test_phase_space_candidates_are_the_plans():
+    """The figure's candidates of one (slice, view) honour recon.candidate_window_mm and
+    recon.max_turns as the plan does: all projections of the view within the window, then the
+    max_turns nearest in z (ties: the earlier), in projection order."""
+    from clrecon.reconstruction import rebin, reconstruct
+    from clrecon.scan.table import projection_table
+
+    scene = fake_scene()
+    ssrb = rebin.slice_window_mm(scene.scanner, reconstruct.object_radius_mm(scene))
+    table = projection_table(scene, 0.02)
+    dz = np.abs(0.0 - table.source_z_mm)
+    counts = []
+    for window in (0.0, 0.5 * ssrb):
+        sc = scene.replace(recon={"candidate_window_mm": window})
+        want = table.index[(table.view == 0) & (dz <= (window or ssrb))]
+        s = figures.phase_space_sample(sc, 0.02, 0.0, 0, (0.4, 0.5))
+        assert np.array_equal(s["index"], want)
+        counts.append(len(want))
+        near = figures.phase_space_sample(sc.replace(recon={"max_turns": 3}), 0.02, 0.0, 0, (0.4, 0.5))
+        assert np.array_equal(near["index"], np.sort(want[np.lexsort((want, dz[want]))[:3]]))
+    assert 3 < counts[1] < counts[0]
+
+
 def test_phase_space_choices_follow_the_methods():
     pytest.importorskip("clrecon.reconstruction.interpolation.weights")
     scene = fake_scene()

@@ -579,59 +579,99 @@ class Phantom:
 
     def _build(self, c, a):
         """All objects posed at the states (c, a), each of shape (m,); a list of _Obj."""
-        cfg = self.cfg
-        m = len(c)
-        c = np.mod(c, 1.0) if cfg.cardiac_motion else np.zeros(m)
-        a = np.clip(a, 0.0, 1.0) if cfg.respiratory_motion else np.zeros(m)
-        objs: list = []
-        ones = np.ones(m)
+        return _Thorax(self.cfg, c, a).build()
 
-        def add(name, parent, kind, hu, centre, axes, semi, planes=(), cuts=()):
-            objs.append(_Obj(name, parent, kind, np.asarray(hu, dtype=np.float64), np.asarray(centre, float),
-                             np.asarray(axes, float), np.asarray(semi, float), list(planes), list(cuts)))
 
-        def col(v):  # (m,) or scalar -> (m, 1)
-            return np.broadcast_to(np.asarray(v, dtype=np.float64), (m,))[:, None]
+class _Thorax:
+    """The thorax posed at m states, built region by region (:meth:`Phantom._build`).
 
-        def vec(x, y, z):  # scalars or (m,) -> (m, 3)
-            return np.stack([np.broadcast_to(np.asarray(v, dtype=np.float64), (m,)) for v in (x, y, z)], -1)
+    ``c``, ``a`` (m,): cardiac phase and respiratory amplitude, frozen at 0 where the config
+    switches that motion off. Each region method appends its objects to ``objs``; :meth:`build`
+    calls them in the order of the object list (the parents of an object come before it).
+    Breathing is an affine map of the chest wall, y -> y_back - (y_back - y) k(a), a
+    diaphragm descent and a heart shift (a fraction of it, plus an AP shift).
+    """
 
-        # -- breathing: chest-wall affine map y -> y_back - (y_back - y) k(a) ------------------
+    def __init__(self, cfg: PhantomConfig, c, a):
+        self.cfg = cfg
+        self.m = m = len(c)
+        self.c = np.mod(c, 1.0) if cfg.cardiac_motion else np.zeros(m)
+        self.a = a = np.clip(a, 0.0, 1.0) if cfg.respiratory_motion else np.zeros(m)
+        self.objs: list = []
+        self.k_ap = 1.0 + cfg.chest_ap_mm * a / (2.0 * P["body_semi_ap"])
+        self.dz_diaphragm = -cfg.diaphragm_si_mm * a
+        self.heart_shift = self.vec(0.0, -P["heart_ap_per_si"] * cfg.diaphragm_si_mm * a,
+                                    cfg.heart_si_fraction * self.dz_diaphragm)
+
+    def build(self) -> list:
+        """All objects, in the object list's order."""
+        self.body()
+        self.spine()
+        self.chest_wall()
+        self.airway_and_descending_aorta()
+        self.heart()
+        self.liver()
+        self.lungs()
+        return self.objs
+
+    # -- helpers ---------------------------------------------------------------------------
+    def add(self, name, parent, kind, hu, centre, axes, semi, planes=(), cuts=()):
+        self.objs.append(_Obj(name, parent, kind, np.asarray(hu, dtype=np.float64), np.asarray(centre, float),
+                              np.asarray(axes, float), np.asarray(semi, float), list(planes), list(cuts)))
+
+    def col(self, v):
+        """(m,) or scalar -> (m, 1)."""
+        return np.broadcast_to(np.asarray(v, dtype=np.float64), (self.m,))[:, None]
+
+    def vec(self, x, y, z):
+        """Scalars or (m,) -> (m, 3)."""
+        return np.stack([np.broadcast_to(np.asarray(v, dtype=np.float64), (self.m,)) for v in (x, y, z)], -1)
+
+    def chest_y(self, y):
+        """The chest wall's breathing map of y (mm): y_back - (y_back - y) k(a), (m,)."""
         y_back = P["body_semi_ap"]
-        k_ap = 1.0 + cfg.chest_ap_mm * a / (2.0 * P["body_semi_ap"])
+        return y_back - (y_back - np.asarray(y, dtype=np.float64)) * self.k_ap
 
-        def chest_y(y):
-            return y_back - (y_back - np.asarray(y, dtype=np.float64)) * k_ap
+    def dome(self) -> tuple:
+        """(centre (m, 3), axes, semi (m, 3)) of the diaphragm dome, tilted, descending with breathing."""
+        tilt = np.deg2rad(P["dome_tilt"])
+        axes = _frame(np.array([np.cos(tilt), 0.0, np.sin(tilt)]), np.array([0.0, 1.0, 0.0]),
+                      np.array([-np.sin(tilt), 0.0, np.cos(tilt)]))
+        centre = self.vec(0.0, self.chest_y(0.0), P["dome_centre_z"] + self.dz_diaphragm)
+        semi = self.vec(P["dome_semi_lr"], P["dome_semi_ap"] * self.k_ap, P["dome_semi_si"])
+        return centre, axes, semi
 
-        dz_diaphragm = -cfg.diaphragm_si_mm * a
-        heart_shift = vec(0.0, -P["heart_ap_per_si"] * cfg.diaphragm_si_mm * a, cfg.heart_si_fraction * dz_diaphragm)
-
-        # -- body ------------------------------------------------------------------------------
+    # -- regions ---------------------------------------------------------------------------
+    def body(self):
+        """Body fat and the muscle inside it: elliptic cylinders that follow the AP expansion."""
         for name, parent, tissue, t in (("body_fat", "air", "hu_fat", 0.0),
                                         ("body_muscle", "body_fat", "hu_muscle", P["fat_thickness"])):
-            add(name, parent, KIND_CYLINDER, P[tissue], vec(0.0, chest_y(0.0), 0.0), _EYE,
-                vec(P["body_semi_lr"] - t, (P["body_semi_ap"] - t) * k_ap, P["body_half_length"]))
+            self.add(name, parent, KIND_CYLINDER, P[tissue], self.vec(0.0, self.chest_y(0.0), 0.0), _EYE,
+                     self.vec(P["body_semi_lr"] - t, (P["body_semi_ap"] - t) * self.k_ap, P["body_half_length"]))
 
-        # -- spine (static) --------------------------------------------------------------------
+    def spine(self):
+        """Vertebrae (cortex, marrow, neural arch; static) and the optional metal insert."""
         nv, ct = int(P["vertebra_count"]), P["cortex_thickness"]
         for k in range(nv):
             zc = (k - (nv - 1) / 2) * P["vertebra_pitch"]
             cen = np.array([0.0, P["vertebra_y"], zc])
-            add(f"vertebra_{k}", "body_muscle", KIND_CYLINDER, P["hu_cortical_bone"], cen, _EYE,
-                [P["vertebra_semi_lr"], P["vertebra_semi_ap"], P["vertebra_height"] / 2])
-            add(f"vertebra_{k}_marrow", f"vertebra_{k}", KIND_CYLINDER, P["hu_trabecular_bone"], cen, _EYE,
-                [P["vertebra_semi_lr"] - ct, P["vertebra_semi_ap"] - ct, P["vertebra_height"] / 2 - ct])
-            add(f"neural_arch_{k}", "body_muscle", KIND_CYLINDER, P["hu_neural_arch"], [0.0, P["arch_y"], zc],
-                _EYE, [P["arch_semi_lr"], P["arch_semi_ap"], P["arch_height"] / 2])
-            if cfg.metal_insert and abs(zc) < 1e-9:
-                add("metal_insert", f"vertebra_{k}_marrow", KIND_CYLINDER, P["hu_metal"],
-                    [P["metal_x"], P["vertebra_y"], zc], _axis_frame(np.array([0.0, 1.0, 0.0])),
-                    [P["metal_radius"], P["metal_radius"], P["metal_half_length"]])
+            self.add(f"vertebra_{k}", "body_muscle", KIND_CYLINDER, P["hu_cortical_bone"], cen, _EYE,
+                     [P["vertebra_semi_lr"], P["vertebra_semi_ap"], P["vertebra_height"] / 2])
+            self.add(f"vertebra_{k}_marrow", f"vertebra_{k}", KIND_CYLINDER, P["hu_trabecular_bone"], cen, _EYE,
+                     [P["vertebra_semi_lr"] - ct, P["vertebra_semi_ap"] - ct, P["vertebra_height"] / 2 - ct])
+            self.add(f"neural_arch_{k}", "body_muscle", KIND_CYLINDER, P["hu_neural_arch"], [0.0, P["arch_y"], zc],
+                     _EYE, [P["arch_semi_lr"], P["arch_semi_ap"], P["arch_height"] / 2])
+            if self.cfg.metal_insert and abs(zc) < 1e-9:
+                self.add("metal_insert", f"vertebra_{k}_marrow", KIND_CYLINDER, P["hu_metal"],
+                         [P["metal_x"], P["vertebra_y"], zc], _axis_frame(np.array([0.0, 1.0, 0.0])),
+                         [P["metal_radius"], P["metal_radius"], P["metal_half_length"]])
 
-        # -- sternum and ribs: chest wall, follow the AP expansion -------------------------------
-        add("sternum", "body_muscle", KIND_CYLINDER, P["hu_sternum"],
-            vec(0.0, chest_y(P["sternum_y"]), 0.5 * (P["sternum_z_top"] + P["sternum_z_bottom"])), _EYE,
-            [P["sternum_semi_lr"], P["sternum_semi_ap"], 0.5 * (P["sternum_z_top"] - P["sternum_z_bottom"])])
+    def chest_wall(self):
+        """Sternum and ribs (mitred cylinder chains): they follow the AP expansion."""
+        chest_y, vec = self.chest_y, self.vec
+        self.add("sternum", "body_muscle", KIND_CYLINDER, P["hu_sternum"],
+                 vec(0.0, chest_y(P["sternum_y"]), 0.5 * (P["sternum_z_top"] + P["sternum_z_bottom"])), _EYE,
+                 [P["sternum_semi_lr"], P["sternum_semi_ap"], 0.5 * (P["sternum_z_top"] - P["sternum_z_bottom"])])
         npairs, nseg = int(P["rib_pairs"]), int(P["rib_segments"])
         theta = np.deg2rad(np.linspace(P["rib_start"], P["rib_end"], nseg + 1))
         for k in range(npairs):
@@ -642,52 +682,51 @@ class Phantom:
                            z_post - dz)
                        for t, dz in zip(theta, drop, strict=True)]
                 for s, seg in enumerate(mitred_chain(pts, P["rib_radius"])):
-                    add(f"rib_{sname}_{k}_{s}", "body_muscle", KIND_CYLINDER, P["hu_rib"], *seg)
+                    self.add(f"rib_{sname}_{k}_{s}", "body_muscle", KIND_CYLINDER, P["hu_rib"], *seg)
 
-        # -- diaphragm dome and liver (the liver is the dome less the diaphragm muscle) ----------
-        tilt = np.deg2rad(P["dome_tilt"])
-        dome_axes = _frame(np.array([np.cos(tilt), 0.0, np.sin(tilt)]), np.array([0.0, 1.0, 0.0]),
-                           np.array([-np.sin(tilt), 0.0, np.cos(tilt)]))
-        dome_centre = vec(0.0, chest_y(0.0), P["dome_centre_z"] + dz_diaphragm)
-        dome_semi = vec(P["dome_semi_lr"], P["dome_semi_ap"] * k_ap, P["dome_semi_si"])
-        t = np.deg2rad(P["liver_spine_angle"])
-        n_sp = np.array([np.cos(t), np.sin(t), 0.0])  # towards the spine (posterior-left)
-        d_sp = min(-support(KIND_CYLINDER, np.array([0.0, P["vertebra_y"], 0.0]), _EYE,
-                            np.array([P["vertebra_semi_lr"], P["vertebra_semi_ap"], 1.0]), -n_sp),
-                   -support(KIND_CYLINDER, np.array([P["desc_aorta_x"], P["desc_aorta_y"], 0.0]), _EYE,
-                            np.array([P["desc_aorta_radius"], P["desc_aorta_radius"], 1.0]), -n_sp))
-
-        # -- airway and descending aorta (static) ------------------------------------------------
+    def airway_and_descending_aorta(self):
+        """Trachea and descending aorta (static cylinders)."""
         z_top = P["body_half_length"] - 10.0
-        add("trachea", "body_muscle", KIND_CYLINDER, P["hu_air"],
-            [0.0, P["trachea_y"], 0.5 * (P["trachea_z_bottom"] + z_top)], _EYE,
-            [P["trachea_radius"], P["trachea_radius"], 0.5 * (z_top - P["trachea_z_bottom"])])
-        add("descending_aorta", "body_muscle", KIND_CYLINDER, P["hu_blood_left"],
-            [P["desc_aorta_x"], P["desc_aorta_y"], 0.5 * (P["asc_aorta_top_z"] - z_top)], _EYE,
-            [P["desc_aorta_radius"], P["desc_aorta_radius"], 0.5 * (P["asc_aorta_top_z"] + z_top)])
+        self.add("trachea", "body_muscle", KIND_CYLINDER, P["hu_air"],
+                 [0.0, P["trachea_y"], 0.5 * (P["trachea_z_bottom"] + z_top)], _EYE,
+                 [P["trachea_radius"], P["trachea_radius"], 0.5 * (z_top - P["trachea_z_bottom"])])
+        self.add("descending_aorta", "body_muscle", KIND_CYLINDER, P["hu_blood_left"],
+                 [P["desc_aorta_x"], P["desc_aorta_y"], 0.5 * (P["asc_aorta_top_z"] - z_top)], _EYE,
+                 [P["desc_aorta_radius"], P["desc_aorta_radius"], 0.5 * (P["asc_aorta_top_z"] + z_top)])
 
-        # -- heart ------------------------------------------------------------------------------
-        xi, eta, zeta = heart_axes()
-        H = np.array([P["heart_x"], P["heart_y"], P["heart_z"]]) + heart_shift  # (m, 3)
-        h_axes = _frame(xi, eta, zeta)
+    def heart(self):
+        """The heart in its own frame (moved by breathing): fat envelope, ventricles, lesion, atria,
+        ascending aorta and coronary arteries."""
+        self.xi, self.eta, self.zeta = heart_axes()
+        self.H = np.array([P["heart_x"], P["heart_y"], P["heart_z"]]) + self.heart_shift  # (m, 3)
+        self.h_axes = _frame(self.xi, self.eta, self.zeta)
+        self.left_ventricle()
+        self.right_ventricle()
+        self.atria()
+        self.ascending_aorta()
+        self.coronaries()
 
-        def hf(px, py, pz):
-            """Heart-frame coordinates (scalars or (m,)) -> world (m, 3)."""
-            return H + col(px) * xi + col(py) * eta + col(pz) * zeta
+    def hf(self, px, py, pz):
+        """Heart-frame coordinates (scalars or (m,)) -> world (m, 3)."""
+        col = self.col
+        return self.H + col(px) * self.xi + col(py) * self.eta + col(pz) * self.zeta
 
-        a_cav, b_cav, a_out, b_out = lv_shape(c)
+    def left_ventricle(self):
+        """The epicardial fat envelope, the LV wall and cavity cut at the AV plane, the target lesion."""
+        xi, eta, zeta, h_axes, chest_y = self.xi, self.eta, self.zeta, self.h_axes, self.chest_y
+        a_cav, b_cav, a_out, b_out = self.lv = lv_shape(self.c)
         a_cav_ed, _, a_out_ed, _ = (float(v) for v in lv_shape(0.0))
-        lv_xi = a_out_ed - a_out                     # epicardial apex fixed: the centre moves
-        base_xi = lv_xi - P["lv_base_cut"] * a_cav   # AV (mitral/tricuspid) plane
-        base_xi_ed = -P["lv_base_cut"] * a_cav_ed
-        lv_centre, base_point = hf(lv_xi, 0.0, 0.0), hf(base_xi, 0.0, 0.0)
-        vent_plane = (-xi, -_dot(base_point, xi))    # ventricular side: xi . x >= xi . base
-        atrial_plane = (xi, _dot(base_point, xi))
+        self.lv_xi = a_out_ed - a_out                          # epicardial apex fixed: the centre moves
+        self.base_xi = self.lv_xi - P["lv_base_cut"] * a_cav   # AV (mitral/tricuspid) plane
+        self.base_xi_ed = -P["lv_base_cut"] * a_cav_ed
+        lv_centre, base_point = self.hf(self.lv_xi, 0.0, 0.0), self.hf(self.base_xi, 0.0, 0.0)
+        self.vent_plane = (-xi, -_dot(base_point, xi))         # ventricular side: xi . x >= xi . base
+        self.atrial_plane = (xi, _dot(base_point, xi))
         lv_out_semi = np.stack([a_out, b_out, b_out], -1)
-        lv_out_cut = (CUT_SUBTRACT, lv_centre, h_axes, lv_out_semi)
+        self.lv_out_cut = (CUT_SUBTRACT, lv_centre, h_axes, lv_out_semi)
 
-        env = (hf(P["env_xi"], P["env_eta"], P["env_zeta"]), h_axes,
-               np.array([P["env_semi_xi"], P["env_semi_eta"], P["env_semi_zeta"]]))
+        self.env = env = (self.hf(P["env_xi"], P["env_eta"], P["env_zeta"]), h_axes,
+                          np.array([P["env_semi_xi"], P["env_semi_eta"], P["env_semi_zeta"]]))
         # the envelope ellipsoid is trimmed behind the sternum, in front of the vertebral bodies
         # and around the descending aorta (a long ellipsoid = the aorta locally)
         gap = P["env_clearance"]
@@ -696,105 +735,130 @@ class Phantom:
         r_ao = P["desc_aorta_radius"] + gap
         aorta_cut = (CUT_SUBTRACT, np.array([P["desc_aorta_x"], P["desc_aorta_y"], 0.0]), _EYE,
                      np.array([r_ao, r_ao, 1000.0]))
-        add("epicardial_fat", "body_muscle", KIND_ELLIPSOID, P["hu_fat"], *env, planes=env_planes, cuts=[aorta_cut])
-        add("lv_myocardium", "epicardial_fat", KIND_ELLIPSOID, P["hu_myocardium"], lv_centre, h_axes,
-            lv_out_semi, planes=[vent_plane])
-        add("lv_blood", "lv_myocardium", KIND_ELLIPSOID, P["hu_blood_left"], lv_centre, h_axes,
-            np.stack([a_cav, b_cav, b_cav], -1), planes=[vent_plane])
+        self.add("epicardial_fat", "body_muscle", KIND_ELLIPSOID, P["hu_fat"], *env, planes=env_planes,
+                 cuts=[aorta_cut])
+        self.add("lv_myocardium", "epicardial_fat", KIND_ELLIPSOID, P["hu_myocardium"], lv_centre, h_axes,
+                 lv_out_semi, planes=[self.vent_plane])
+        self.add("lv_blood", "lv_myocardium", KIND_ELLIPSOID, P["hu_blood_left"], lv_centre, h_axes,
+                 np.stack([a_cav, b_cav, b_cav], -1), planes=[self.vent_plane])
         # target lesion: a sphere riding on the LV wall, at the LV equator (the cavity's centre
         # plane across the long axis), mid-wall: the wall's normal there is radial, so the sphere
         # keeps (b_out - b) / 2 - radius >= 0.5 mm from the cavity and the epicardium at every phase
         phi = np.deg2rad(P["lesion_azimuth"])
         r_les = P["lesion_radius"]
-        add("lesion", "lv_myocardium", KIND_ELLIPSOID, P["hu_lesion"],
-            lv_centre + col(0.5 * (b_cav + b_out)) * (np.cos(phi) * eta + np.sin(phi) * zeta), _EYE,
-            vec(r_les, r_les, r_les))
+        self.add("lesion", "lv_myocardium", KIND_ELLIPSOID, P["hu_lesion"],
+                 lv_centre + self.col(0.5 * (b_cav + b_out)) * (np.cos(phi) * eta + np.sin(phi) * zeta), _EYE,
+                 self.vec(r_les, r_les, r_les))
 
-        # RV crescent; its centre sits mid-ventricle and follows half of the base descent
-        # (free wall depth beyond the LV epicardium interpolated by the RV volume curve)
-        f = lv_ejected_fraction(c)
+    def right_ventricle(self):
+        """The RV crescent; its centre sits mid-ventricle and follows half of the base descent
+        (free wall depth beyond the LV epicardium interpolated by the RV volume curve)."""
+        b_out = self.lv[3]
+        f = lv_ejected_fraction(self.c)
         depth = P["rv_depth_es"] + (P["rv_depth_ed"] - P["rv_depth_es"]) * (1.0 - f)
         eta_lo, eta_hi = P["rv_septal_eta"], b_out + depth
-        rv_centre = hf(P["rv_xi"] + 0.5 * (base_xi - base_xi_ed), 0.5 * (eta_lo + eta_hi), 0.0)
+        self.rv_centre = self.hf(P["rv_xi"] + 0.5 * (self.base_xi - self.base_xi_ed), 0.5 * (eta_lo + eta_hi), 0.0)
         rv_in = np.stack([P["rv_semi_xi"] * (1.0 - 0.1 * f), 0.5 * (eta_hi - eta_lo),
                           P["rv_semi_zeta"] * (1.0 - 0.08 * f)], -1)
-        rv_out = rv_in + P["rv_wall"]
-        add("rv_myocardium", "epicardial_fat", KIND_ELLIPSOID, P["hu_myocardium"], rv_centre, h_axes, rv_out,
-            planes=[vent_plane], cuts=[lv_out_cut])
-        add("rv_blood", "rv_myocardium", KIND_ELLIPSOID, P["hu_blood_right"], rv_centre, h_axes, rv_in,
-            planes=[vent_plane], cuts=[lv_out_cut])
+        self.rv_out = rv_in + P["rv_wall"]
+        self.add("rv_myocardium", "epicardial_fat", KIND_ELLIPSOID, P["hu_myocardium"], self.rv_centre,
+                 self.h_axes, self.rv_out, planes=[self.vent_plane], cuts=[self.lv_out_cut])
+        self.add("rv_blood", "rv_myocardium", KIND_ELLIPSOID, P["hu_blood_right"], self.rv_centre, self.h_axes,
+                 rv_in, planes=[self.vent_plane], cuts=[self.lv_out_cut])
 
-        # atria beyond the AV plane, semi-axes shape * r with the volume of the atrial curve
+    def atria(self):
+        """Atria beyond the AV plane, semi-axes shape * r with the volume of the atrial curve."""
         shape = np.array([P["atrium_shape_xi"], P["atrium_shape_eta"], P["atrium_shape_zeta"]])
-        r_at = (atrial_volume_ml(c) * 1000.0 / (4.0 / 3.0 * np.pi * np.prod(shape))) ** (1.0 / 3.0)
+        r_at = (atrial_volume_ml(self.c) * 1000.0 / (4.0 / 3.0 * np.pi * np.prod(shape))) ** (1.0 / 3.0)
         for name, tissue, pe, pz in (("left_atrium", "hu_blood_left", P["la_eta"], P["la_zeta"]),
                                      ("right_atrium", "hu_blood_right", P["ra_eta"], P["ra_zeta"])):
-            add(name, "epicardial_fat", KIND_ELLIPSOID, P[tissue],
-                hf(base_xi - shape[0] * r_at - P["atrium_gap"], pe, pz), h_axes, col(r_at) * shape,
-                planes=[atrial_plane])
+            self.add(name, "epicardial_fat", KIND_ELLIPSOID, P[tissue],
+                     self.hf(self.base_xi - shape[0] * r_at - P["atrium_gap"], pe, pz), self.h_axes,
+                     self.col(r_at) * shape, planes=[self.atrial_plane])
 
-        # ascending aorta: root on the AV plane -> top (moves with the heart); split at the fat
-        # envelope so each piece carries the difference to its own parent
-        root = hf(base_xi, P["root_eta"], P["root_zeta"])
-        top = np.array([P["asc_aorta_top_x"], P["asc_aorta_top_y"], P["asc_aorta_top_z"]]) + heart_shift
+    def ascending_aorta(self):
+        """Ascending aorta: root on the AV plane -> top (moves with the heart); split at the fat
+        envelope so each piece carries the difference to its own parent."""
+        ones = np.ones(self.m)
+        root = self.hf(self.base_xi, P["root_eta"], P["root_zeta"])
+        top = np.array([P["asc_aorta_top_x"], P["asc_aorta_top_y"], P["asc_aorta_top_z"]]) + self.heart_shift
         ao_axes = _axis_frame(top - root)
         half = 0.5 * np.linalg.norm(top - root, axis=-1)
         ao = (0.5 * (top + root), ao_axes, np.stack([P["asc_aorta_radius"] * ones, P["asc_aorta_radius"] * ones,
                                                      half], -1))
-        add("ascending_aorta", "body_muscle", KIND_CYLINDER, P["hu_blood_left"], *ao,
-            planes=[atrial_plane], cuts=[(CUT_SUBTRACT,) + env])
-        add("aortic_root", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *ao,
-            planes=[atrial_plane], cuts=[(CUT_INTERSECT,) + env])
+        self.add("ascending_aorta", "body_muscle", KIND_CYLINDER, P["hu_blood_left"], *ao,
+                 planes=[self.atrial_plane], cuts=[(CUT_SUBTRACT,) + self.env])
+        self.add("aortic_root", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *ao,
+                 planes=[self.atrial_plane], cuts=[(CUT_INTERSECT,) + self.env])
 
-        # coronary arteries: points just outside the epicardium, mitred cylinder chains
+    def coronaries(self):
+        """Coronary arteries, mitred cylinder chains through points just outside the epicardium:
+        LAD and LCx on the LV, RCA on the RV."""
+        a_cav, _, a_out, _ = self.lv
         rc = P["coronary_radius"]
-
-        def on_lv(s, phi, sag):
-            """Point off the LV epicardium at axial fraction s (-1 base .. 1 apex), azimuth phi."""
-            rad = b_out * np.sqrt(np.maximum(1.0 - s * s, 0.0))
-            pos = hf(lv_xi + a_out * s, rad * np.cos(phi), rad * np.sin(phi))
-            nrm = _unit(col(s / a_out) * xi + col(np.sqrt(np.maximum(1 - s * s, 0.0)) / b_out)
-                        * (np.cos(phi) * eta + np.sin(phi) * zeta))
-            return pos + (rc + P["coronary_clearance"] + sag) * nrm
-
         s_base = -P["lv_base_cut"] * a_cav / a_out
-        lad = [on_lv(s_base + (0.92 - s_base) * t,
-                     np.deg2rad(P["lad_azimuth_base"] + (P["lad_azimuth_apex"] - P["lad_azimuth_base"]) * t), 1.2)
+        lad = [self.on_lv(s_base + (0.92 - s_base) * t,
+                          np.deg2rad(P["lad_azimuth_base"] + (P["lad_azimuth_apex"] - P["lad_azimuth_base"]) * t), 1.2)
                for t in np.linspace(0.08, 1.0, 6)]
-        for s, seg in enumerate(mitred_chain(lad, rc)):
-            add(f"lad_{s}", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *seg)
-        lcx = [on_lv(s_base + 0.15, np.deg2rad(p), 1.5)
+        self.vessel("lad", lad, rc)
+        lcx = [self.on_lv(s_base + 0.15, np.deg2rad(p), 1.5)
                for p in np.linspace(P["lcx_azimuth"] + 20.0, P["lcx_azimuth"] - 20.0, 4)]
-        for s, seg in enumerate(mitred_chain(lcx, 0.85 * rc)):
-            add(f"lcx_{s}", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *seg)
+        self.vessel("lcx", lcx, 0.85 * rc)
+        rca = [self.on_rv(np.deg2rad(p), 6.0, 2.0) for p in np.linspace(75.0, -75.0, 6)]
+        self.vessel("rca", rca, rc)
 
-        def on_rv(psi, dxi, sag):
-            """Point off the RV epicardium in the cross-section dxi mm apical of the AV plane."""
-            rel = rv_centre - H
-            t = (base_xi + dxi - _dot(rel, xi)) / rv_out[:, 0]
-            sc = np.sqrt(np.maximum(1.0 - t * t, 0.0))
-            ey, ez = rv_out[:, 1] * sc, rv_out[:, 2] * sc
-            pos = hf(base_xi + dxi, _dot(rel, eta) + ey * np.cos(psi), ez * np.sin(psi))
-            nrm = _unit(col(np.cos(psi) / ey) * eta + col(np.sin(psi) / ez) * zeta)
-            return pos + (rc + P["coronary_clearance"] + sag) * nrm
+    def vessel(self, prefix: str, points: list, radius: float):
+        """A coronary artery: blood-filled cylinders ``{prefix}_{k}`` mitred through ``points`` (m, 3)."""
+        for s, seg in enumerate(mitred_chain(points, radius)):
+            self.add(f"{prefix}_{s}", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *seg)
 
-        rca = [on_rv(np.deg2rad(p), 6.0, 2.0) for p in np.linspace(75.0, -75.0, 6)]
-        for s, seg in enumerate(mitred_chain(rca, rc)):
-            add(f"rca_{s}", "epicardial_fat", KIND_CYLINDER, P["hu_blood_left"], *seg)
+    def on_lv(self, s, phi, sag):
+        """Point (m, 3) off the LV epicardium at axial fraction s (-1 base .. 1 apex), azimuth phi."""
+        xi, eta, zeta, col = self.xi, self.eta, self.zeta, self.col
+        _, _, a_out, b_out = self.lv
+        rad = b_out * np.sqrt(np.maximum(1.0 - s * s, 0.0))
+        pos = self.hf(self.lv_xi + a_out * s, rad * np.cos(phi), rad * np.sin(phi))
+        nrm = _unit(col(s / a_out) * xi + col(np.sqrt(np.maximum(1 - s * s, 0.0)) / b_out)
+                    * (np.cos(phi) * eta + np.sin(phi) * zeta))
+        return pos + (P["coronary_radius"] + P["coronary_clearance"] + sag) * nrm
 
-        # -- liver: the dome less the diaphragm muscle, less the heart resting on it
-        add("liver", "body_muscle", KIND_ELLIPSOID, P["hu_liver"], dome_centre, dome_axes,
-            dome_semi - P["diaphragm_thickness"],
-            planes=[(np.array([1.0, 0.0, 0.0]), P["liver_medial_x"]), (n_sp, d_sp - P["lung_margin"])],
-            cuts=[(CUT_SUBTRACT, env[0], env[1], env[2] + P["diaphragm_thickness"])])
+    def on_rv(self, psi, dxi, sag):
+        """Point (m, 3) off the RV epicardium in the cross-section dxi mm apical of the AV plane."""
+        xi, eta, zeta, col, rv_out = self.xi, self.eta, self.zeta, self.col, self.rv_out
+        rel = self.rv_centre - self.H
+        t = (self.base_xi + dxi - _dot(rel, xi)) / rv_out[:, 0]
+        sc = np.sqrt(np.maximum(1.0 - t * t, 0.0))
+        ey, ez = rv_out[:, 1] * sc, rv_out[:, 2] * sc
+        pos = self.hf(self.base_xi + dxi, _dot(rel, eta) + ey * np.cos(psi), ez * np.sin(psi))
+        nrm = _unit(col(np.cos(psi) / ey) * eta + col(np.sin(psi) / ez) * zeta)
+        return pos + (P["coronary_radius"] + P["coronary_clearance"] + sag) * nrm
 
-        # -- lungs: pleural cavity, beyond a medial plane clear of the posterior mediastinum,
-        # minus the diaphragm dome and minus the fat envelope grown by the margin
+    def liver(self):
+        """The liver: the diaphragm dome less the diaphragm muscle, less the heart resting on it,
+        trimmed medially and clear of the spine and descending aorta."""
+        dome_centre, dome_axes, dome_semi = self.dome()
+        t = np.deg2rad(P["liver_spine_angle"])
+        n_sp = np.array([np.cos(t), np.sin(t), 0.0])  # towards the spine (posterior-left)
+        d_sp = min(-support(KIND_CYLINDER, np.array([0.0, P["vertebra_y"], 0.0]), _EYE,
+                            np.array([P["vertebra_semi_lr"], P["vertebra_semi_ap"], 1.0]), -n_sp),
+                   -support(KIND_CYLINDER, np.array([P["desc_aorta_x"], P["desc_aorta_y"], 0.0]), _EYE,
+                            np.array([P["desc_aorta_radius"], P["desc_aorta_radius"], 1.0]), -n_sp))
+        env = self.env
+        self.add("liver", "body_muscle", KIND_ELLIPSOID, P["hu_liver"], dome_centre, dome_axes,
+                 dome_semi - P["diaphragm_thickness"],
+                 planes=[(np.array([1.0, 0.0, 0.0]), P["liver_medial_x"]), (n_sp, d_sp - P["lung_margin"])],
+                 cuts=[(CUT_SUBTRACT, env[0], env[1], env[2] + P["diaphragm_thickness"])])
+
+    def lungs(self):
+        """Lungs: pleural cavity, beyond a medial plane clear of the posterior mediastinum, minus
+        the diaphragm dome and minus the fat envelope grown by the margin; density with breathing."""
+        m, a, env = self.m, self.a, self.env
+        dome_centre, dome_axes, dome_semi = self.dome()
         lung_hu = P["hu_lung_exhale"] + (P["hu_lung_inhale"] - P["hu_lung_exhale"]) * a
         zb, zt = P["cavity_z_bottom"], P["cavity_z_top"]
-        cav_centre = vec(0.0, chest_y(0.0), 0.5 * (zb + zt))
-        cav_semi = vec(P["cavity_semi_lr"], P["cavity_semi_ap"] * k_ap, 0.5 * (zt - zb))
-        by_name = {o.name: o for o in objs}
+        cav_centre = self.vec(0.0, self.chest_y(0.0), 0.5 * (zb + zt))
+        cav_semi = self.vec(P["cavity_semi_lr"], P["cavity_semi_ap"] * self.k_ap, 0.5 * (zt - zb))
+        by_name = {o.name: o for o in self.objs}
         obstacles = [by_name[n] for n in ("descending_aorta", "trachea", "ascending_aorta")]
         obstacles.append(_Obj("spine", "", KIND_CYLINDER, None, np.array([0.0, P["vertebra_y"], 0.0]), _EYE,
                               np.array([P["vertebra_semi_lr"], P["vertebra_semi_ap"], 1.0]), [], []))
@@ -807,9 +871,9 @@ class Phantom:
             n_out = np.array([side * np.cos(t), np.sin(t), 0.0])  # from the mediastinum into the lung
             d = np.max([support(o.kind, np.broadcast_to(o.centre, (m, 3)), np.broadcast_to(o.axes, (m, 3, 3)),
                                 np.broadcast_to(o.semi, (m, 3)), n_out) for o in obstacles], axis=0)
-            add(name, "body_muscle", KIND_CYLINDER, lung_hu, cav_centre, _EYE, cav_semi,
-                planes=[(-n_out, -(d + margin))], cuts=cuts)
-        return objs
+            self.add(name, "body_muscle", KIND_CYLINDER, lung_hu, cav_centre, _EYE, cav_semi,
+                     planes=[(-n_out, -(d + margin))], cuts=cuts)
+
 
 
 def mitred_chain(points, radius):
