@@ -325,3 +325,20 @@ def test_the_entry_point_makes_the_stages_volumes(tmp_path, reference):
             again, _, none = mc_fbp.reconstruct_mc(scan, None, v, model=model)  # a model given: not fitted again
             assert none == {} and np.array_equal(again, got)
 
+
+def test_on_a_static_scene_the_verdict_says_no_clear_difference(tmp_path):
+    """Motionless ``tiny`` (issue 41): mc takes barycentric's rows through its z planes and its
+    residual is within a fraction of a percent of barycentric's, consistently over the blocks (z -3
+    in the whole circle, once "lower"); the verdict gives no clear difference in both regions:
+    below the smallest effect it reports (consistency.MIN_EFFECT)."""
+    from clrecon.evaluation import consistency
+
+    s = load_scene("tiny").replace(noise={"enabled": False},
+                                   phantom={"cardiac_motion": False, "respiratory_motion": False})
+    res = run(s, tmp_path / "o", methods=["barycentric", "mc"], cache_dir=tmp_path / "c", report=False, **QUIET)
+    ver = res["consistency"]["p0.100"]["verdict"]["noise-free"]
+    assert ver["helped"] is None and "below the smallest effect" in ver["text"], ver
+    for region in ("all", "heart"):
+        e = ver["regions"][region]
+        assert abs(e["ratio"] - 1) <= consistency.MIN_EFFECT and e["says"] == "no clear difference", e
+    assert res["consistency"]["p0.100"]["config"]["min_effect"] == consistency.MIN_EFFECT
