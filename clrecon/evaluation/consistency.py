@@ -10,10 +10,10 @@ predict for it: the in-plane projection P_k of the method's image at (c_k, a_k),
 I(c, a) the method's target images interpolated to (c, a) over the target lattice (bilinear,
 periodic in c, the amplitude clipped to the lattice's range; :func:`lattice_weights`). Projection
 is linear, so each target image is projected and the projections are interpolated. P_k has the
-geometry of the ground truth's in-plane rows and of the motion model's correction step
-(:func:`clrecon.reconstruction.motion.correction.inplane_frames`: flat or cylindrical cells, a
-flying focal spot's source), by the voxel projector (:func:`clrecon.simulation.voxel_projector.project_volume`,
-Joseph's method). No ground truth is used: it runs on measured scans.
+geometry of the ground truth's in-plane rows (:func:`inplane_frames`: flat or cylindrical
+cells, a flying focal spot's source), by the voxel projector
+(:func:`clrecon.simulation.voxel_projector.project_volume`, Joseph's method). No ground truth
+is used: it runs on measured scans.
 
 Units: line integrals times 1000 / mu_water, "HU mm" (1000 HU mm = 1 mm of water path), as
 :mod:`clrecon.evaluation.truth_free`. Regions: ``all``, the channels whose ray passes through
@@ -37,11 +37,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clrecon.core.conventions import detector_frames
 from clrecon.evaluation import truth_free
 from clrecon.reconstruction import interpolation
 from clrecon.reconstruction import reconstruct as rc_mod
+from clrecon.reconstruction.fbp import FanBeamGeometry
 from clrecon.reconstruction.interpolation import weights as interpolate
-from clrecon.reconstruction.motion.correction import STACK_DZ_MM, inplane_frames
+from clrecon.simulation import projector as analytic_projector
 from clrecon.simulation.voxel_projector import project_volume
 
 REGIONS = ("all", "heart")
@@ -60,6 +62,18 @@ Z_DECIDES = 2.0
 #: method; module docstring), and well below the effect it exists to see (``mc`` against barycentric
 #: on ``demo`` at pitch 0.10: ratio 0.964-0.968, docs/motion-model.md "Did it help?").
 MIN_EFFECT = 0.005
+#: z spacing (mm) of stacked in-plane images projected at once: any value > 0 keeps in-plane rays in their plane.
+STACK_DZ_MM = 10.0
+
+
+def inplane_frames(detector, geom: FanBeamGeometry, view, z_mm):
+    """Frames of in-plane rows (source in the row's plane) of the given views and plane z's, as the ground truth."""
+    beta = geom.view_angles_rad()[view]
+    (src, centre, eu, ev), (u, _, vs) = analytic_projector.spot_frames(detector, beta, z_mm, (0, 0, 0))
+    if geom.source_shifts:
+        b_s, r_s = geom.source_angles_radii()
+        src, centre, eu, ev = detector_frames(b_s[view], z_mm, r_s[view], detector.sdd_mm)
+    return (src, centre, eu, ev), u, vs
 
 
 @dataclass(frozen=True)
@@ -133,7 +147,8 @@ def inplane_projections(images_mu, voxel_mm: float, detector, geom, image, view,
     :func:`clrecon.core.conventions.voxel_coords`, ``[iy, ix]`` as the FBP writes them); ``geom``
     the reconstruction's :class:`clrecon.reconstruction.fbp.FanBeamGeometry`; ``detector`` the
     scanner's detector model. The images are stacked ``STACK_DZ_MM`` apart along z and each row's
-    rays lie in its image's plane (:mod:`clrecon.reconstruction.motion.correction`'s ``model_rows``).
+    rays lie in its image's plane (as the motion-model study's correction step does,
+    ``benchmarks/studies/motion-model/correction.py``).
     """
     imgs = np.ascontiguousarray(images_mu, np.float32)
     image = np.asarray(image, np.int64)
