@@ -47,6 +47,24 @@ def test_mc_is_opt_in_and_made_by_its_own_stage():
     assert second_pass_methods() == ("mc",)
 
 
+def test_the_registry_says_once_what_a_second_pass_is_made_from():
+    """``Method.first_pass``: mc's is barycentric; a second-pass method must name a 5-D method
+    registered before it, and only a second-pass method names one."""
+    from clrecon.reconstruction.interpolation import METHODS, Method, first_pass, register_method
+
+    assert first_pass("mc") == METHODS["mc"].first_pass == "barycentric"
+    with pytest.raises(ValueError, match="no first pass"):
+        first_pass("nearest")
+    for fp in ("no_such_method", "r4dct"):  # unknown; not on the (cardiac, amplitude) lattice
+        with pytest.raises(ValueError, match="first_pass"):
+            register_method(name="x", label="x", neighbours=3, target_grid="5d", axes=("cardiac", "resp"),
+                            five_d=True, marker="o", rank=9, stage="s", first_pass=fp)
+    assert "x" not in METHODS
+    with pytest.raises(ValueError, match="first_pass"):
+        Method(name="x", label="x", neighbours=3, target_grid="5d", axes=("cardiac", "resp"), five_d=True,
+               marker="o", rank=9, weights=None, stage="s")
+
+
 def test_mc_volumes_land_in_volumes_h5_metrics_and_report(reference):
     out, res = reference
     with h5py.File(out / "volumes.h5", "r") as f:
