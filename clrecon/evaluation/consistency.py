@@ -56,11 +56,11 @@ Z_DECIDES = 2.0
 #: The smallest effect a comparison reports: an RMS ratio within this of 1 (|ratio - 1| <= 0.005,
 #: 0.5 %) says "no clear difference" whatever z says. The jackknife's z measures how consistent a
 #: difference is over the blocks, not how large: two methods that err alike (a static scene, where
-#: ``mc`` equals barycentric to float rounding) have a standard error as small as their difference,
-#: and rounding alone gave ratio 1.000 with z +8.9. 0.5 % is the size of the check's own model error
-#: (SSRB rows differ from ideal in-plane rows by 0.5-0.8 % of the row norm, the same for every
-#: method; module docstring), and well below the effect it exists to see (``mc`` against barycentric
-#: on ``demo`` at pitch 0.10: ratio 0.964-0.968, docs/motion-model.md "Did it help?").
+#: ``mc`` equals barycentric up to rounding) have a standard error as small as their difference, and
+#: without this a ratio of 1.000 was called significant (issue 41). 0.5 % is the size of the check's
+#: own model error (SSRB rows differ from ideal in-plane rows by 0.5-0.8 % of the row norm, the same
+#: for every method; module docstring), and several times below the effect the check exists to see
+#: (``mc`` against barycentric where it helped on ``demo``: docs/results/mc-consistency.md).
 MIN_EFFECT = 0.005
 #: z spacing (mm) of stacked in-plane images projected at once: any value > 0 keeps in-plane rays in their plane.
 STACK_DZ_MM = 10.0

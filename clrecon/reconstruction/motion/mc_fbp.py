@@ -37,7 +37,7 @@ NAME = "mc"
 FIRST_PASS = interpolation.first_pass(NAME)
 #: Runs whose slices span less z than this (mm) are warned: on ``demo`` the registration of a run
 #: of 16 mm erred by as much as the motion, of 32 mm by 0.66 of it in the heart, of 48-64 mm by
-#: 0.5-0.64 (docs/motion-model.md "Without retuning: a paper-p010 slab").
+#: 0.5-0.64 (docs/results/mc-run.md "Without retuning: a paper-p010 slab").
 THIN_Z_MM = 30.0
 
 

@@ -65,10 +65,8 @@ def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     grid); the raw rows read for the plane rows (``method.READ_CHUNK_BYTES`` at a time, with their
     covering range and SSRB rows: 3 chunks); the registration processes' working sets
     (``FLOW_BYTES_PER_VOXEL`` per voxel each, one per core up to ``MAX_WORKERS``: 2 x 79 MB on
-    ``demo`` with 2 cores, in processes of their own). ``demo`` (pitch 0.02, 2 variants): 1.36 GB
-    without the last two, on top of the run's 1.44 GB modelled before it
-    (:func:`clrecon.pipeline.costs.run_costs`): 2.81 GB against a peak RSS of 2.65 GB measured
-    (the whole run, Intel's runtime; 1.25 GB without ``mc``: docs/performance.md)."""
+    ``demo`` with 2 cores, in processes of their own). Returns bytes. The model against a measured
+    peak: docs/results/code-history.md "The mc working set against the measured peak"."""
     w = window_mm  # the SSRB slice window (reconstruction.rebin.slice_window_mm)
     per_proj = _bytes_per_projection(scanner, w, knobs)
     n_proj = (z_extent_mm + 2 * (w + knobs.margin_mm)) / feed_mm * scanner.views_per_rotation
