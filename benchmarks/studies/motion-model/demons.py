@@ -4,7 +4,7 @@ ITK's fast symmetric-forces demons (Vercauteren et al., NeuroImage 45:S61, 2009;
 ``SimpleITK.FastSymmetricForcesDemonsRegistrationFilter``) in a coarse-to-fine pyramid, with
 Gaussian regularisation of the displacement field (elastic-like), on images clipped to a HU
 window and pre-smoothed. The alternative the study measured against the shipped Lucas-Kanade
-registration (docs/motion-model.md "Registration": it creeps on larger shifts). It plugs into
+registration (docs/results/mc-study.md "Registration": it creeps on larger shifts). It plugs into
 the package's registration as a config with a ``register`` method
 (:func:`clrecon.reconstruction.motion.registration.register`,
 ``estimate.separable_fields(..., cfg=DemonsConfig(...))``), in the package's convention:

@@ -3,7 +3,7 @@
 // fixed-point steps x_r <- x - u(x_r) from x_r = x, as mc_backproject.cl; u trilinear on the
 // model grid (motion_grid.h), vol trilinear on its own z planes (vz planes from vol_z0, spacing
 // 1 / inv_vol_dz; the same in-plane grid): a model image needs finer z than the motion.
-// docs/motion-model.md "Model-based correction" (a study's kernel, outside the wheel: built from
+// docs/motion-model.md "The method" (step 6) (a study's kernel, outside the wheel: built from
 // this folder by warp.py, with the package's kernels/motion_grid.h). The NumPy float64 reference
 // is warp.py's warp_reference.
 //

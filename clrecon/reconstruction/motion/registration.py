@@ -8,7 +8,7 @@ Le Besnerais & Champagnat, ICIP 2005), a least-squares flow in a window around e
 coarse to fine with warps, on images clipped to a HU window (and optionally pre-smoothed: the
 streaks of a first-pass 5D image and the lung's density change then pull less). Its window
 averages out what the demons' voxel-wise forces follow (streaks), and it converges on large
-shifts in a few warps where the demons creep (measured: docs/motion-model.md "Registration").
+shifts in a few warps where the demons creep (measured: docs/results/mc-study.md "Registration").
 
 Another registration plugs in as a config object with a ``register(fixed, moving, spacing_mm,
 origin_mm, initial)`` method returning the field in this module's convention: the motion-model
