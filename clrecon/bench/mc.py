@@ -27,6 +27,7 @@ from clrecon.core.resources import spawned_pool
 from clrecon.pipeline.context import resolve_targets
 from clrecon.pipeline.run import run as run_pipeline
 from clrecon.reconstruction import reconstruct
+from clrecon.reconstruction.motion import mc_fbp
 from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion.registration import registration_workers
 
@@ -39,9 +40,9 @@ MC_STAGES = ("registration", "plane_rows", "mc_backproject")
 
 
 def _first_pass(run_dir: Path, pk: str, variant: str) -> np.ndarray:
-    """The run's barycentric volumes of ``variant``: (n_c, n_r, S, ny, nx) HU."""
+    """The run's volumes of ``mc``'s first pass (barycentric) of ``variant``: (n_c, n_r, S, ny, nx) HU."""
     with h5py.File(run_dir / "volumes.h5", "r") as f:
-        return np.asarray(f[f"recon/{pk}/{variant}/barycentric"], np.float32)
+        return np.asarray(f[f"recon/{pk}/{variant}/{mc_fbp.FIRST_PASS}"], np.float32)
 
 
 def _registration_round(first, sc, slices_z, repeats: int) -> dict:

@@ -24,10 +24,14 @@ def kernel_dir() -> Path:
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.M)
 
 
-def load_source(name: str, _seen: set | None = None) -> str:
-    """Source of ``kernels/name`` with local ``#include "..."`` expanded (each header once)."""
+def load_source(name: str, _seen: set | None = None, folder: Path | None = None) -> str:
+    """Source of ``kernels/name`` with local ``#include "..."`` expanded (each header once).
+
+    ``folder``: a folder of kernels kept outside the package (a study's, e.g.
+    ``benchmarks/studies/motion-model/``): ``name`` and its headers are looked up there first,
+    then in ``kernels/`` (so such a kernel can include the package's headers)."""
     seen = set() if _seen is None else _seen
-    path = kernel_dir() / name
+    path = Path(folder) / name if folder is not None and (Path(folder) / name).is_file() else kernel_dir() / name
     text = path.read_text()
 
     def sub(m):
@@ -35,6 +39,6 @@ def load_source(name: str, _seen: set | None = None) -> str:
         if inc in seen:
             return ""
         seen.add(inc)
-        return f"// ---- begin {inc}\n{load_source(inc, seen)}\n// ---- end {inc}\n"
+        return f"// ---- begin {inc}\n{load_source(inc, seen, folder)}\n// ---- end {inc}\n"
 
     return _INCLUDE.sub(sub, text)

@@ -148,14 +148,17 @@ class Runtime:
         return bool(self.device.type & self.cl.device_type.CPU)
 
     def program(self, name: str, **defines):
-        """Build ``kernels/name`` with ``-Dkey=value`` options, once per runtime."""
+        """Build ``kernels/name`` with ``-Dkey=value`` options, once per runtime. ``_fast``: relaxed
+        math; ``_folder``: a folder of kernels outside the package to look in first (a study's:
+        :func:`clrecon.core.kernel_sources.load_source`)."""
         key = (name, tuple(sorted(defines.items())))
         with self._lock:
             prog = self._programs.get(key)
             if prog is None:
                 opts = ["-cl-fast-relaxed-math", "-cl-mad-enable"] if defines.pop("_fast", False) else []
+                folder = defines.pop("_folder", None)
                 opts += [_format_define(k, v) for k, v in sorted(defines.items())]
-                prog = self._build(name, load_source(name), opts)
+                prog = self._build(name, load_source(name, folder=folder), opts)
                 self._programs[key] = prog
             return prog
 

@@ -140,9 +140,10 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
         raise ClreconError("a measured scan (scan.source = 'dicom-ct-pd') runs in one process: "
                            "drop --workers/--cluster")
     slices_z = reconstruct.slice_positions(scene, slice_range)
-    for m in interpolation.second_pass_methods(methods):  # a method made from the barycentric first pass
-        if "barycentric" not in methods:
-            raise ClreconError(f"method {m!r} is made from the barycentric first pass: add 'barycentric' to "
+    for m in interpolation.second_pass_methods(methods):  # a method made from another method's first pass
+        fp = interpolation.first_pass(m)
+        if fp not in methods:
+            raise ClreconError(f"method {m!r} is made from the {fp} first pass: add '{fp}' to "
                                f"recon.methods (or --methods)")
         if len(slices_z) < 2:
             raise ClreconError(f"method {m!r} registers the volumes along z: it needs at least 2 slices, the run "

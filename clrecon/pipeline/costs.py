@@ -7,11 +7,11 @@ from clrecon.core import write_behind
 from clrecon.core.errors import SceneError
 from clrecon.outputs.volumes import resolve_compression
 from clrecon.pipeline import evaluate
-from clrecon.pipeline.stages import mc_reconstruct
 from clrecon.pipeline.stages import truth as truth_stage
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction.interpolation import METHODS
+from clrecon.reconstruction.motion import memory as mc_memory
 from clrecon.reconstruction.rebin import slice_window_mm
 from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, slab_bytes_per_slice, slices_per_slab
 from clrecon.simulation.measured import memory_bytes as measured_memory_bytes
@@ -96,8 +96,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     if "mc" in methods:  # the motion-compensated second pass, at its worst pitch, on top: the process
         # does not give the reconstruction's memory back to the system before it
         # (docs/results/code-history.md "The mc working set against the measured peak")
-        peak += max(mc_reconstruct.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p), n_var,
-                                                 n_targets, nz, rc.ny, rc.nx) for p in pitches)
+        peak += max(mc_memory.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p), n_var,
+                                            n_targets, nz, rc.ny, rc.nx) for p in pitches)
     if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)
         peak += measured_memory_bytes(scene)
     out = {"projections": n_proj, "projections_needed": needed, "store_bytes": sum(n_proj.values()) * proj_bytes,

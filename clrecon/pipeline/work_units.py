@@ -16,7 +16,8 @@ The units:
   pitch (the slabs of :func:`clrecon.pipeline.slabs.plan_slabs`, as in one process; every
   step is per slice, per row or per target, so another cut would give the same bits too, but
   the same cut makes the same unit files);
-- :func:`truth_target`: the ground truth and/or phantom truth of one target.
+- :func:`truth_target`: the ground truth and/or phantom truth of one target;
+- :func:`mc_slab`: one slab of the ``mc`` method for one noise variant.
 
 ``CLRECON_FAULT=worker-unit:<n>`` (:mod:`clrecon.core.faults`) kills the worker process at the
 start of its ``n``-th unit (the test of a worker that dies mid-unit).
@@ -33,8 +34,7 @@ from clrecon.core import faults
 from clrecon.core.runtime import get_runtime
 from clrecon.evaluation import groundtruth
 from clrecon.reconstruction import reconstruct
-from clrecon.reconstruction.motion import method as mcm
-from clrecon.reconstruction.motion.model import FieldGrid, MotionModel
+from clrecon.reconstruction.motion import mc_fbp
 from clrecon.reconstruction.reconstruct import StageTimes
 from clrecon.scan.table import projection_table, usable_table
 from clrecon.simulation.projector import project
@@ -138,36 +138,21 @@ def round_trip(x=None):
     return x
 
 
-def mc_slab(cfg, scene, pitch: float, cache_dir: str, slices_z, a: int, b: int, targets, variant: str, fields,
-            grid: tuple, reference: tuple) -> tuple[list, dict, dict]:
-    """One slab (slices ``a .. b-1`` of ``slices_z``) of the ``mc`` method for one noise variant
-    (:mod:`clrecon.pipeline.stages.mc_reconstruct`): its barycentric plan, plane rows and the
-    motion-compensated backprojection with the model (``fields`` on ``grid`` = (nx, ny, nz,
-    voxel_mm, z0_mm, dz_mm), refined to the reconstruction grid here). Pieces: ``(slice
-    indices, variant, (n_c, n_r, s, ny, nx) HU)``."""
+def mc_slab(cfg, scene, pitch: float, cache_dir: str, slices_z, a: int, b: int, targets, variant: str,
+            model) -> tuple[list, dict, dict]:
+    """One slab (slices ``a .. b-1`` of ``slices_z``) of the ``mc`` method for one noise variant with
+    the fitted ``model`` (:class:`~clrecon.reconstruction.motion.model.MotionModel`): the body of the
+    stage's unit in the run's process, :func:`clrecon.reconstruction.motion.mc_fbp.reconstruct_slab`,
+    on the finished projection store at ``cache_dir``. Pieces: ``(slice indices, variant, (n_c,
+    n_r, s, ny, nx) HU)``."""
     faults.point("worker-unit")
     times = StageTimes()
-    knobs = scene.recon.mc
-    table = projection_table(scene, pitch)
-    t0 = time.perf_counter()
-    p = reconstruct.plan(cfg, usable_table(scene, table)[0], np.asarray(slices_z)[a:b], targets, ("barycentric",))
-    bary = p.methods["barycentric"]
+    table = scan_table(scene, pitch)
     store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table, create=False)
     try:
-        rows = mcm.slab_rows(store, table, scene.scanner, cfg, variant, np.asarray(slices_z)[a:b],
-                             mcm.slab_projections(bary), knobs)
+        scan = mc_fbp.MCScan(cfg, scene.recon.mc, scene.scanner, table, usable_table(scene, table)[0], store,
+                             slices_z, targets, rt=get_runtime(), slabs=[(a, b)])
+        hu = mc_fbp.reconstruct_slab(scan, a, b, variant, model, times)
     finally:
         store.close()
-    t1 = time.perf_counter()
-    nx, ny, nz, vox, z0, dz = grid
-    mgrid = FieldGrid(nx=nx, ny=ny, nz=nz, voxel_mm=vox, z0_mm=z0, dz_mm=dz)
-    model = MotionModel(basis=mcm.basis_of(knobs, *targets.shape), grid=mgrid,
-                        fields=np.asarray(fields, np.float32), reference=tuple(reference))
-    hu = mcm.backproject_slab(rows, bary, mcm.refine(model, cfg.fbp), table, np.asarray(slices_z)[a:b], cfg.fbp,
-                              targets.pairs, cfg.mu_water_per_mm, knobs, rt=get_runtime())
-    t2 = time.perf_counter()
-    times.add("plane_rows", t1 - t0)
-    times.add("mc_backproject", t2 - t1)
-    times.add(f"method:mc:{variant}", t2 - t0)
-    nc, nr = targets.shape
-    return [(np.arange(a, b), variant, hu.reshape((nc, nr) + hu.shape[1:]))], times.seconds, times.counts
+    return [(np.arange(a, b), variant, hu)], times.seconds, times.counts

@@ -339,13 +339,14 @@ def test_cylindrical_ssrb_and_backprojection(grind, clean):
 
 
 # ---------------------------------------------------------------------------------------
-# kernels/mc_backproject.cl and kernels/mc_warp.cl (the motion model, docs/motion-model.md)
+# kernels/mc_backproject.cl and the motion-model study's mc_warp.cl (docs/motion-model.md)
 @pytest.mark.parametrize("detector", ["flat", "cylindrical"])
 def test_motion_compensation_kernels(grind, clean, detector, monkeypatch):
+    from motion_study import warp
+
     from clrecon.bench import reference_kernels
     from clrecon.reconstruction.fbp import FanBeamGeometry
     from clrecon.reconstruction.motion import backproject as mcb
-    from clrecon.reconstruction.motion import warp
     from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel
 
     rng = np.random.default_rng(34)

@@ -149,6 +149,27 @@ def test_verdict_says_helped_only_when_the_difference_is_consistent_over_blocks(
     assert cs.verdict({"barycentric": base})["helped"] is None
 
 
+def test_a_difference_within_the_minimum_effect_is_no_clear_difference_whatever_z():
+    """The static case (issue 41): mc equal to barycentric up to rounding has a residual lower or
+    higher in every block by the same sliver, so the jackknife's SE is tiny and |z| large (z +8.9
+    was reported as "did not help"); within MIN_EFFECT of 1 the comparison says no clear difference.
+    Just outside it, a consistent difference still decides."""
+    base = _residual([100, 120, 90, 110, 105, 95])
+    for ratio in (1 + 1e-6, 1 - 1e-6, 1 + 0.9 * cs.MIN_EFFECT, 1 - 0.9 * cs.MIN_EFFECT):  # of the RMS
+        sliver = _residual(np.array([100, 120, 90, 110, 105, 95]) * ratio ** 2)
+        c = cs.compare(sliver, base, "all")
+        assert c["ratio"] == pytest.approx(ratio, abs=1e-12)
+        assert abs(c["z"]) > 10 * cs.Z_DECIDES  # consistent over the blocks: z alone would decide
+        assert c["says"] == "no clear difference" and c["below_min_effect"] is True, (ratio, c)
+        v = cs.verdict({"mc": sliver, "barycentric": base})
+        assert v["helped"] is None and "below the smallest effect" in v["text"], v
+    for ratio, says, helped in ((1 + 1.2 * cs.MIN_EFFECT, "higher", False), (1 - 1.2 * cs.MIN_EFFECT, "lower", True)):
+        outside = _residual(np.array([100, 120, 90, 110, 105, 95]) * ratio ** 2)
+        c = cs.compare(outside, base, "all")
+        assert c["says"] == says and "below_min_effect" not in c, (ratio, c)
+        assert cs.verdict({"mc": outside, "barycentric": base})["helped"] is helped
+
+
 def test_channels_through_the_circle_on_a_flat_detector(tiny_cfg):
     """On a centred flat detector channel u passes within R of the axis iff |u| SID / sqrt(SDD^2 + u^2) <= R."""
     sc = load_scene("tiny").scanner

@@ -47,6 +47,24 @@ def test_mc_is_opt_in_and_made_by_its_own_stage():
     assert second_pass_methods() == ("mc",)
 
 
+def test_the_registry_says_once_what_a_second_pass_is_made_from():
+    """``Method.first_pass``: mc's is barycentric; a second-pass method must name a 5-D method
+    registered before it, and only a second-pass method names one."""
+    from clrecon.reconstruction.interpolation import METHODS, Method, first_pass, register_method
+
+    assert first_pass("mc") == METHODS["mc"].first_pass == "barycentric"
+    with pytest.raises(ValueError, match="no first pass"):
+        first_pass("nearest")
+    for fp in ("no_such_method", "r4dct"):  # unknown; not on the (cardiac, amplitude) lattice
+        with pytest.raises(ValueError, match="first_pass"):
+            register_method(name="x", label="x", neighbours=3, target_grid="5d", axes=("cardiac", "resp"),
+                            five_d=True, marker="o", rank=9, stage="s", first_pass=fp)
+    assert "x" not in METHODS
+    with pytest.raises(ValueError, match="first_pass"):
+        Method(name="x", label="x", neighbours=3, target_grid="5d", axes=("cardiac", "resp"), five_d=True,
+               marker="o", rank=9, weights=None, stage="s")
+
+
 def test_mc_volumes_land_in_volumes_h5_metrics_and_report(reference):
     out, res = reference
     with h5py.File(out / "volumes.h5", "r") as f:
@@ -250,15 +268,15 @@ def test_slab_rows_are_the_same_bits_for_any_read_chunk(tmp_path, monkeypatch):
 def test_a_run_too_thin_in_z_to_register_is_warned(reference):
     """tiny's 10 mm of slices are below THIN_Z_MM: the model's info says so in one line; demo's 64 mm
     and a 30 mm run are not warned."""
-    from clrecon.pipeline.stages import mc_reconstruct
+    from clrecon.reconstruction.motion import mc_fbp
 
     _, res = reference
     for per in res["stages"]["registration"]["mc"].values():
         for info in per.values():
             assert "cover 10 mm of z" in info["warning"] and "\n" not in info["warning"]
-    assert mc_reconstruct.thin_warning("p0.100", np.arange(16) * 4.0) is None
-    assert mc_reconstruct.thin_warning("p0.100", np.arange(30) * 1.0) is None
-    assert "cover 29 mm" in mc_reconstruct.thin_warning("p0.100", np.arange(29) * 1.0)
+    assert mc_fbp.thin_warning("p0.100", np.arange(16) * 4.0) is None
+    assert mc_fbp.thin_warning("p0.100", np.arange(30) * 1.0) is None
+    assert "cover 29 mm" in mc_fbp.thin_warning("p0.100", np.arange(29) * 1.0)
 
 
 def test_slabs_grow_past_the_budget_while_rows_stay_near_one_slices(monkeypatch, tmp_path, reference):
@@ -266,33 +284,79 @@ def test_slabs_grow_past_the_budget_while_rows_stay_near_one_slices(monkeypatch,
     stay within GROWTH x its first slice's, instead of one slice per slab; the volumes do not depend
     on the cut (tiny cut one slice per slab against the reference's one slab: the same bits)."""
     # GROWTH is monkeypatched to 0 below, so the run cuts tiny one slice per slab
-    from clrecon.pipeline.stages import mc_reconstruct
     from clrecon.reconstruction import reconstruct
+    from clrecon.reconstruction.motion import memory
     from clrecon.scan import table as geometry
 
     sc = load_scene("demo")
     cfg = reconstruct.ReconstructionConfig.from_scene(sc)
     ptab = geometry.projection_table(sc, 0.1)
     z = reconstruct.slice_positions(sc, (0, sc.recon.nz))
-    cut = mc_reconstruct.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0)
+    cut = memory.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0)
     assert cut[0][0] == 0 and cut[-1][1] == len(z) and all(a[1] == b[0] for a, b in zip(cut[:-1], cut[1:], strict=True))
     assert 1 < len(cut) < len(z)  # grown past the budget, not whole
-    assert mc_reconstruct.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1e18) == [(0, len(z))]
-    monkeypatch.setattr(mc_reconstruct, "GROWTH", 0.0)  # the budget alone: one slice per slab
-    assert mc_reconstruct.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0) == [
+    assert memory.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1e18) == [(0, len(z))]
+    monkeypatch.setattr(memory, "GROWTH", 0.0)  # the budget alone: one slice per slab
+    assert memory.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0) == [
         (i, i + 1) for i in range(len(z))]
 
     tiny = load_scene("tiny")
     tz = reconstruct.slice_positions(tiny, (0, tiny.recon.nz))
-    tcut = mc_reconstruct.slab_ranges(geometry.projection_table(tiny, 0.1), tiny.scanner,
+    tcut = memory.slab_ranges(geometry.projection_table(tiny, 0.1), tiny.scanner,
                                       reconstruct.ReconstructionConfig.from_scene(tiny), tz, tiny.recon.mc, budget=1.0)
     assert len(tcut) == len(tz) > 1
 
-    real = mc_reconstruct.slab_ranges
-    monkeypatch.setattr(mc_reconstruct, "slab_ranges", lambda *a, **k: real(*a, **dict(k, budget=1.0)))
+    real = memory.slab_ranges
+    monkeypatch.setattr(memory, "slab_ranges", lambda *a, **k: real(*a, **dict(k, budget=1.0)))
     out = tmp_path / "cut"
     run(tiny, out, methods=METHODS.split(","), cache_dir=tmp_path / "cache", executor="serial", **QUIET)
     ref_out, ref_res = reference
     with h5py.File(out / "volumes.h5", "r") as f, h5py.File(ref_out / "volumes.h5", "r") as g:
         for v in ("noise-free", "noisy"):
             assert np.array_equal(f[f"recon/p0.100/{v}/mc"][()], g[f"recon/p0.100/{v}/mc"][()])
+
+
+def test_the_entry_point_makes_the_stages_volumes(tmp_path, reference):
+    """``mc_fbp.reconstruct_mc``, the method's one entry point, from the run's first pass on a fresh
+    projection store: the run's mc volumes bit for bit, for both variants (the stage runs the same
+    two halves, fit_model and reconstruct_slab, with the model saved between them)."""
+    from clrecon.pipeline.context import resolve_targets
+    from clrecon.reconstruction import interpolation, reconstruct
+    from clrecon.reconstruction.motion import mc_fbp
+    from clrecon.scan import table as geometry
+    from clrecon.simulation import simulate
+
+    out, _ = reference
+    sc = load_scene("tiny")
+    pitch = sc.scan.pitches[0]
+    table = geometry.projection_table(sc, pitch)
+    store = simulate.simulate(sc, pitch, cache_dir=tmp_path, progress=False)
+    scan = mc_fbp.MCScan(reconstruct.ReconstructionConfig.from_scene(sc), sc.recon.mc, sc.scanner, table,
+                         geometry.usable_table(sc, table)[0], store, reconstruct.slice_positions(sc, None),
+                         resolve_targets(sc), n_variants=2)
+    assert mc_fbp.FIRST_PASS == interpolation.first_pass("mc") == "barycentric"
+    with h5py.File(out / "volumes.h5", "r") as f:
+        for v in ("noise-free", "noisy"):
+            got, model, info = mc_fbp.reconstruct_mc(scan, f[f"recon/p0.100/{v}/{mc_fbp.FIRST_PASS}"][()], v)
+            assert np.array_equal(got, f[f"recon/p0.100/{v}/mc"][()]), v
+            assert len(info["rounds"]) == sc.recon.mc.rounds
+            again, _, none = mc_fbp.reconstruct_mc(scan, None, v, model=model)  # a model given: not fitted again
+            assert none == {} and np.array_equal(again, got)
+
+
+def test_on_a_static_scene_the_verdict_says_no_clear_difference(tmp_path):
+    """Motionless ``tiny`` (issue 41): mc takes barycentric's rows through its z planes and its
+    residual is within a fraction of a percent of barycentric's, consistently over the blocks (z -3
+    in the whole circle, once "lower"); the verdict gives no clear difference in both regions:
+    below the smallest effect it reports (consistency.MIN_EFFECT)."""
+    from clrecon.evaluation import consistency
+
+    s = load_scene("tiny").replace(noise={"enabled": False},
+                                   phantom={"cardiac_motion": False, "respiratory_motion": False})
+    res = run(s, tmp_path / "o", methods=["barycentric", "mc"], cache_dir=tmp_path / "c", report=False, **QUIET)
+    ver = res["consistency"]["p0.100"]["verdict"]["noise-free"]
+    assert ver["helped"] is None and "below the smallest effect" in ver["text"], ver
+    for region in ("all", "heart"):
+        e = ver["regions"][region]
+        assert abs(e["ratio"] - 1) <= consistency.MIN_EFFECT and e["says"] == "no clear difference", e
+    assert res["consistency"]["p0.100"]["config"]["min_effect"] == consistency.MIN_EFFECT

@@ -166,7 +166,7 @@ def test_slabs_are_sized_by_each_slices_candidates_not_the_first_slices():
 def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
     """mc's second pass (plane rows, kept rows, volumes, fields) on top of the run's peak, sized at
     the pitch whose slabs use the most projections; the knobs it depends on move it."""
-    from clrecon.pipeline.stages import mc_reconstruct
+    from clrecon.reconstruction.motion import memory
     from clrecon.reconstruction.rebin import slice_window_mm
 
     scene = load_scene("demo")
@@ -176,7 +176,7 @@ def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
     sc, rc = scene.scanner, scene.recon
     w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
     ext = (rc.nz - 1) * rc.slice_mm
-    per_pitch = {p: mc_reconstruct.working_bytes(sc, w, rc.mc, ext, scene.scan.feed_mm(sc, p), 2, 50, rc.nz, rc.ny,
+    per_pitch = {p: memory.working_bytes(sc, w, rc.mc, ext, scene.scan.feed_mm(sc, p), 2, 50, rc.nz, rc.ny,
                                                  rc.nx) for p in scene.scan.pitches}
     assert per_pitch[0.02] > per_pitch[0.1] > 0   # the lower pitch: more projections per slab
     assert with_mc - base >= per_pitch[0.02]

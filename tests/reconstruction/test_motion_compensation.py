@@ -1,10 +1,11 @@
 """Motion-model building blocks (clrecon.reconstruction.motion, docs/motion-model.md).
 
 Kernels against their float64 NumPy references on random and edge-case inputs
-(``kernels/mc_backproject.cl``, ``kernels/mc_warp.cl``); the motion-compensated backprojection
-with no motion against the fan-beam FBP's own backprojector; the model fit, its inversion, the
-row weights, the state bins, the registration wrapper (SimpleITK demons) on shifted blobs, the
-separable estimate, and the analytic phantom's true motion.
+(``kernels/mc_backproject.cl``; the study's ``benchmarks/studies/motion-model/mc_warp.cl``); the
+motion-compensated backprojection with no motion against the fan-beam FBP's own backprojector;
+the model fit, its inversion, the row weights, the study's state bins, the registration wrapper
+(Lucas-Kanade, and the study's SimpleITK demons plugged in) on shifted blobs, the separable
+estimate, and the analytic phantom's true motion.
 """
 
 from __future__ import annotations
@@ -14,11 +15,12 @@ import dataclasses
 import numpy as np
 import pytest
 import scipy.ndimage
+from motion_study import correction, demons, warp
 
 from clrecon.bench import reference_kernels
 from clrecon.core.resources import spawned_pool
 from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
-from clrecon.reconstruction.motion import correction, estimate, registration, slots, warp
+from clrecon.reconstruction.motion import estimate, registration, slots
 from clrecon.reconstruction.motion.backproject import (
     MCBackprojector,
     MCConfig,
@@ -383,8 +385,8 @@ def _blob_volume(shift):
 
 
 @pytest.mark.parametrize("cfg", [registration.FlowConfig(radius=7),
-                                 registration.DemonsConfig(iterations=(80, 40), shrink=(2, 1), field_sigma_mm=4.0,
-                                                           image_sigma_mm=1.0)], ids=["flow", "demons"])
+                                 demons.DemonsConfig(iterations=(80, 40), shrink=(2, 1), field_sigma_mm=4.0,
+                                                     image_sigma_mm=1.0)], ids=["flow", "demons"])
 def test_registration_recovers_a_shift_and_is_deterministic(cfg):
     fixed, (x, y, z) = _blob_volume((0.0, 0.0, 0.0))
     moving, _ = _blob_volume((4.0, -3.0, 4.0))
@@ -407,7 +409,9 @@ def test_registration_rejects_bad_inputs():
     with pytest.raises(ValueError, match="spacing"):
         registration.register(fixed, fixed, (3.0, 0.0, 4.0))
     with pytest.raises(ValueError, match="iterations"):
-        registration.DemonsConfig(iterations=(10,), shrink=(2, 1))
+        demons.DemonsConfig(iterations=(10,), shrink=(2, 1))
+    with pytest.raises(TypeError, match="register"):
+        registration.register(fixed, fixed, (3.0, 3.0, 4.0), cfg=object())
     with pytest.raises(ValueError, match="radius"):
         registration.FlowConfig(radius=0)
     with pytest.raises(ValueError, match="starts from zero"):

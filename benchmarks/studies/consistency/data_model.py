@@ -16,7 +16,6 @@ from clrecon.evaluation import consistency as cs
 from clrecon.evaluation import groundtruth as gt
 from clrecon.evaluation import truth_free
 from clrecon.reconstruction import reconstruct as rc
-from clrecon.reconstruction.motion.correction import inplane_frames
 from clrecon.scan import table as geometry
 from clrecon.simulation import projector
 from clrecon.simulation.store import ProjectionStore, default_cache_dir
@@ -47,7 +46,7 @@ def main():
         y = truth_free.read_rows(store, groups, flat, cfg.scanner, ("noise-free",), cfg.noise)["noise-free"][0]
         view, z = groups.group_view[gof], zs[gof // groups.views_per_rotation]
         c, a = tab.cardiac_phase[groups.row[flat]], tab.resp_amplitude[groups.row[flat]]
-        (src, centre, eu, ev), u, vs = inplane_frames(det, g, view, z)
+        (src, centre, eu, ev), u, vs = cs.inplane_frames(det, g, view, z)
         objs = np.stack([ph.objects(ck, ak) for ck, ak in zip(c, a, strict=True)])
         ideal = projector.project_views(objs, src, centre, eu, ev, u, np.zeros(1), v_scale=vs)[:, 0, :]
         circ = cs.channels_through_circle(det, g, view, cfg.object_radius_mm)

@@ -103,7 +103,7 @@ def field_grid(ctx: Context) -> mm.FieldGrid:
     return mm.FieldGrid.of_slices(ctx.geom.nx, ctx.geom.ny, ctx.geom.voxel_mm, ctx.report_z)
 
 
-def registered_fields(ctx: Context, variant: str, volumes, ref_index: int, dcfg: reg.DemonsConfig, tag: str):
+def registered_fields(ctx: Context, variant: str, volumes, ref_index: int, dcfg, tag: str):
     """u(x_ref; target) of every target's volume (T, 3, nz, ny, nx), registered to the reference's."""
     def run():
         v = np.asarray(volumes).reshape((-1,) + volumes.shape[2:])
@@ -206,10 +206,11 @@ def registered_average(ctx: Context, volumes, fields) -> np.ndarray:
 
 
 def correction_volumes(ctx: Context, variant: str, slices_z, model, ref_hu, ref_grid, bins=(20, 10), cand=None):
-    """Model-based correction step (package: motion.correction) of every target: HU (n_c, n_r, S, ny, nx)."""
+    """Model-based correction step (correction.py here) of every target: HU (n_c, n_r, S, ny, nx)."""
+    import correction as corr
+    import warp as mwarp
+
     from clrecon.reconstruction.fbp import fbp
-    from clrecon.reconstruction.motion import correction as corr
-    from clrecon.reconstruction.motion import warp as mwarp
     z = np.asarray(slices_z, np.float64)
     rows, proj, sl, plan = cand if cand is not None else candidate_rows(ctx, variant, z)
     mw = ctx.cfg.mu_water_per_mm

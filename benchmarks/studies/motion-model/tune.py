@@ -18,6 +18,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 import common as cm
+from demons import DemonsConfig
 
 from clrecon.reconstruction.motion import backproject as mcb
 from clrecon.reconstruction.motion import model as mm
@@ -68,7 +69,7 @@ def main():
     ref_ij = (4, 4)
     ref = tuple(ctx.pairs[ref_ij[0] * 10 + ref_ij[1]])
     basis = mm.MotionBasis(resp_degree=1, cardiac_harmonics=2)
-    dcfg = reg.DemonsConfig(iterations=(60, 30), shrink=(2, 1), max_step_mm=2.0, field_sigma_mm=4.0, image_sigma_mm=2.0)
+    dcfg = DemonsConfig(iterations=(60, 30), shrink=(2, 1), max_step_mm=2.0, field_sigma_mm=4.0, image_sigma_mm=2.0)
     margin, plane_dz, taper = 8.0, 2.0, 2.0
     models = {"true": cm.true_model(ctx, ref, basis)[0]}
     t0 = time.perf_counter()

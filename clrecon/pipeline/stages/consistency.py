@@ -16,8 +16,8 @@ from clrecon.outputs.volumes import pitch_key
 from clrecon.pipeline.executors.base import Idle
 from clrecon.reconstruction import interpolation
 
-#: The method whose help the stage judges, and its first pass.
-METHOD, REFERENCE = "mc", "barycentric"
+#: The method whose help the stage judges (against its first pass, ``consistency.REFERENCE``).
+METHOD = consistency.METHOD
 
 
 def skip(run) -> str | None:

@@ -40,11 +40,13 @@ class PitchWork:
 
 
 def planned_methods(methods) -> tuple:
-    """The methods a pitch's plan is made for: the fixed ones, and barycentric where a second-pass
-    method (``mc``) is still to do (its rows and weights, and the projections it reads)."""
+    """The methods a pitch's plan is made for: the fixed ones, and the first pass of a second-pass
+    method (``mc``: barycentric, ``Method.first_pass``) still to do (its rows and weights, and the
+    projections it reads)."""
     fixed = tuple(m for m in methods if m != TUNED and m not in interpolation.second_pass_methods())
-    if interpolation.second_pass_methods(methods) and "barycentric" not in fixed:
-        fixed += ("barycentric",)
+    for m in interpolation.second_pass_methods(methods):
+        if interpolation.first_pass(m) not in fixed:
+            fixed += (interpolation.first_pass(m),)
     return fixed
 
 

@@ -32,6 +32,7 @@ from clrecon.reconstruction.interpolation.registry import (
     by_rank,
     default_methods,
     figure_order,
+    first_pass,
     five_d_methods,
     markers,
     method_names,
@@ -44,7 +45,7 @@ from clrecon.reconstruction.interpolation.weights import NoCandidatesError, Weig
 __all__ = [
     "METHODS", "DeviceRows", "Method", "NoCandidatesError", "Options", "Weights",
     "apply_weights_interleaved", "apply_weights_reference", "barycentric", "batch_weights", "bin", "by_rank",
-    "cv_tuned", "default_methods",
+    "cv_tuned", "default_methods", "first_pass",
     "figure_order", "five_d_methods", "helical", "local_linear", "markers", "mc", "method_names", "method_weights",
     "nearest", "r4dct", "register_method", "resp_grid_methods", "second_pass_methods",
 ]

@@ -114,6 +114,12 @@ class Method:
     stage : str or None
         The pipeline stage that makes its volumes from the first pass, when it is not the
         ``reconstruct`` stage (``mc``: ``mc_reconstruct``); ``reconstruct`` plans and skips it.
+    first_pass : str or None
+        For a method with a ``stage``: the method whose volumes it is made from (``mc``:
+        ``barycentric``). A registered 5-D method, registered before it
+        (:func:`~clrecon.reconstruction.interpolation.registry.register_method` checks); every
+        place that needs the first pass (the run's request check, the plan, the ``mc`` stage,
+        the truth-free comparison) reads it here.
     """
 
     name: str
@@ -127,6 +133,7 @@ class Method:
     weights: WeightsFn
     opt_in: bool = False
     stage: str | None = None
+    first_pass: str | None = None
 
     def __post_init__(self):
         if self.target_grid not in TARGET_GRIDS:
@@ -135,3 +142,6 @@ class Method:
         if any(x not in AXES for x in self.axes) or (not self.axes) != (self.target_grid == "none"):
             raise ValueError(f"method {self.name!r}: axes = {self.axes!r}: a tuple from {', '.join(AXES)}, "
                              f"empty exactly when target_grid = 'none'")
+        if (self.first_pass is None) != (self.stage is None):
+            raise ValueError(f"method {self.name!r}: stage = {self.stage!r}, first_pass = {self.first_pass!r}: a "
+                             f"method made by a later stage names the first pass it is made from, and only such a one")

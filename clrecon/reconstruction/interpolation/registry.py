@@ -16,13 +16,19 @@ METHODS: Registry[Method] = Registry("interpolation method")
 
 def register_method(*, name: str, label: str, neighbours: int | None, target_grid: str, axes: tuple,
                     five_d: bool, marker: str, rank: int, opt_in: bool = False,
-                    stage: str | None = None):
-    """Decorator registering a ``weights`` function as method ``name`` (see :class:`Method`)."""
+                    stage: str | None = None, first_pass: str | None = None):
+    """Decorator registering a ``weights`` function as method ``name`` (see :class:`Method`).
+
+    A ``first_pass`` must be a 5-D method registered before ``name`` (its volumes are the
+    (cardiac, amplitude) images the later stage starts from); ValueError otherwise."""
+    if first_pass is not None and (first_pass not in METHODS.names or METHODS[first_pass].target_grid != "5d"):
+        raise ValueError(f"method {name!r}: first_pass = {first_pass!r}: must be a 5-D method registered before "
+                         f"it (registered: {', '.join(METHODS.names)})")
 
     def add(fn):
         METHODS.register(name)(Method(name=name, label=label, neighbours=neighbours, target_grid=target_grid,
                                       axes=tuple(axes), five_d=five_d, marker=marker, rank=rank, weights=fn,
-                                      opt_in=opt_in, stage=stage))
+                                      opt_in=opt_in, stage=stage, first_pass=first_pass))
         return fn
 
     return add
@@ -42,6 +48,15 @@ def second_pass_methods(names=None) -> tuple[str, ...]:
     """The methods (of ``names``, default all) whose volumes a later stage makes (``Method.stage``),
     not ``reconstruct``."""
     return tuple(n for n in (METHODS.names if names is None else names) if METHODS[n].stage is not None)
+
+
+def first_pass(name: str) -> str:
+    """The method whose volumes ``name`` (a method with a ``stage``: :func:`second_pass_methods`) is
+    made from (``Method.first_pass``); ValueError for a method the ``reconstruct`` stage makes."""
+    fp = METHODS[name].first_pass
+    if fp is None:
+        raise ValueError(f"method {name!r} is made by the reconstruct stage: it has no first pass")
+    return fp
 
 
 def by_rank(names=None) -> tuple[str, ...]:

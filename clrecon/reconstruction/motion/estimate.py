@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from clrecon.reconstruction.motion.model import FieldGrid, sample
-from clrecon.reconstruction.motion.registration import DemonsConfig, FlowConfig, register_to_reference
+from clrecon.reconstruction.motion.registration import FlowConfig, register_to_reference
 
 
 def to_reference(volume, field, grid: FieldGrid) -> np.ndarray:
@@ -35,7 +35,7 @@ def to_reference(volume, field, grid: FieldGrid) -> np.ndarray:
     return sample(volume, grid, pts).astype(np.float32)
 
 
-def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: DemonsConfig | FlowConfig | None = None,
+def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig | None = None,
                      progress=None, pool=None) -> tuple[np.ndarray, dict]:
     """Fields u(x_ref; c_i, a_j) of every target from the two registration steps (module docstring).
 
@@ -44,7 +44,7 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: DemonsConf
     volumes : (n_c, n_r, nz, ny, nx) first-pass HU volumes on ``grid``
     reference : (i_ref, j_ref) indices of the reference target (cardiac, amplitude)
     grid : FieldGrid of the volumes (uniform slices)
-    cfg : DemonsConfig or FlowConfig (:mod:`clrecon.reconstruction.motion.registration`)
+    cfg : FlowConfig, or a plugged-in registration's config (:mod:`clrecon.reconstruction.motion.registration`)
     progress : optional ``update(n)`` counter, one step per registration
     pool : optional process pool running each step's registrations at once (same bits)
 

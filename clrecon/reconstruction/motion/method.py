@@ -1,18 +1,21 @@
 """The ``mc`` method's steps: first pass -> registered motion model -> motion-compensated FBP.
 
 docs/motion-model.md is the method's reference (what it assumes, its failure cases, its knobs);
-:mod:`clrecon.pipeline.stages.mc_reconstruct` wires these steps to a run. Per scan (pitch) and
-noise variant:
+:mod:`clrecon.reconstruction.motion.mc_fbp` runs these steps on a scan (its one entry point,
+``reconstruct_mc``), :mod:`clrecon.pipeline.stages.mc_reconstruct` wires that to a run. Per
+scan (pitch) and noise variant:
 
-1. :func:`fit_model` registers the barycentric first pass (:func:`estimate.separable_fields`,
-   Lucas-Kanade) on a grid ``downsample`` times coarser in-plane, fits the (c, a) motion model
-   (:func:`model.fit_motion_model`) and, for each further round, backprojects every target
-   with that model on the coarse grid (``backproject_slab``), registers those images and fits
-   again;
-2. :func:`refine` samples the model's basis fields onto the reconstruction grid;
-3. per slab, :func:`slab_rows` rebins and filters every projection the slab's barycentric plan
-   uses onto global z planes (:func:`backproject.plane_rows`: the pipeline's SSRB on every
-   detector and focal-spot mode) and :func:`backproject_slab` runs the kernel per target.
+1. ``mc_fbp.fit_model``: :func:`register` registers the first pass (barycentric, the registry's
+   ``Method.first_pass``; :func:`estimate.separable_fields`, Lucas-Kanade) on a grid
+   ``downsample`` times coarser in-plane (:func:`factor`, :func:`downsample`) and fits the
+   (c, a) motion model (:func:`model.fit_motion_model`); for each further round it backprojects
+   every target with that model on the coarse grid (:func:`backproject_slab`), registers those
+   images and fits again;
+2. ``mc_fbp.reconstruct_slab``: :func:`refine` samples the model's basis fields onto the
+   reconstruction grid; per slab, :func:`slab_rows` rebins and filters every projection the
+   slab's first-pass plan uses onto global z planes (:func:`backproject.plane_rows`: the
+   pipeline's SSRB on every detector and focal-spot mode) and :func:`backproject_slab` runs the
+   kernel per target.
 
 Shapes: volumes (n_c, n_r, S, ny, nx) HU; fields (NB, 3, S, ny, nx) float32 mm; slots (T, S, V, K).
 """

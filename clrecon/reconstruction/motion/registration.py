@@ -1,30 +1,26 @@
-"""Deformable registration of reconstructed volumes, for the motion model (SimpleITK, scikit-image).
+"""Deformable registration of reconstructed volumes, for the motion model (scikit-image).
 
 A thin wrapper: NumPy volumes in, displacement fields out, in the package's conventions
 (volumes ``(nz, ny, nx)`` in HU on the reconstruction grid, fields ``(3, nz, ny, nx)`` float32
-mm with components (dx, dy, dz)). Two registrations, chosen by the config's type:
+mm with components (dx, dy, dz)). The registration of the ``mc`` method is :class:`FlowConfig`:
+scikit-image's iterative Lucas-Kanade optical flow (``skimage.registration.optical_flow_ilk``;
+Le Besnerais & Champagnat, ICIP 2005), a least-squares flow in a window around each voxel,
+coarse to fine with warps, on images clipped to a HU window (and optionally pre-smoothed: the
+streaks of a first-pass 5D image and the lung's density change then pull less). Its window
+averages out what the demons' voxel-wise forces follow (streaks), and it converges on large
+shifts in a few warps where the demons creep (measured: docs/results/mc-study.md "Registration").
 
-- :class:`DemonsConfig`: ITK's fast symmetric-forces demons (Vercauteren et al.;
-  ``SimpleITK.FastSymmetricForcesDemonsRegistrationFilter``) in a coarse-to-fine pyramid, with
-  Gaussian regularisation of the displacement field (elastic-like);
-- :class:`FlowConfig`: scikit-image's iterative Lucas-Kanade optical flow
-  (``skimage.registration.optical_flow_ilk``; Le Besnerais & Champagnat, ICIP 2005): a
-  least-squares flow in a window around each voxel, coarse to fine with warps. Its window
-  averages out what demons' voxel-wise forces follow (streaks), and it converges on large
-  shifts in a few warps where demons creeps (measured: docs/results/mc-study.md "Registration").
-
-Both see images clipped to a HU window and pre-smoothed (the streaks of a first-pass 5D image
-and the lung's density change then pull less). docs/results/mc-study.md "Registration".
+Another registration plugs in as a config object with a ``register(fixed, moving, spacing_mm,
+origin_mm, initial)`` method returning the field in this module's convention: the motion-model
+study's ITK demons (``benchmarks/studies/motion-model/demons.py``, outside the wheel) does.
 
 Convention: ``register(fixed, moving)`` returns u on the fixed grid with
 ``moving(x + u(x)) ~ fixed(x)``: u maps each fixed-image point to where it is in the moving
 image. With the reference state's volume as ``fixed`` and a target's as ``moving``, u is the
 motion-model field u(x_ref; target) of :mod:`clrecon.reconstruction.motion.model`.
 
-Determinism: neither registration samples at random; a repeated call gives the same bits
-(tests/reconstruction/test_motion_compensation.py). ITK's thread count is pinned (``DemonsConfig.threads``) so that
-a run does not depend on the machine's core count; that the demons' result is independent of the
-thread count itself has not been checked.
+Determinism: the registration does not sample at random; a repeated call gives the same bits
+(tests/reconstruction/test_motion_compensation.py).
 """
 
 from __future__ import annotations
@@ -33,23 +29,19 @@ import math
 import os
 from concurrent.futures import as_completed
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.ndimage
 
 from clrecon.core.errors import ClreconError
 
-if TYPE_CHECKING:
-    import SimpleITK as sitk
-
 #: The extra that installs the registration libraries (pyproject.toml ``[project.optional-dependencies]``).
 EXTRA = "pip install 'clrecon[motion]'"
 
 
 def require(module: str = "skimage"):
-    """The registration library ``module`` (``skimage`` for the optical flow, ``SimpleITK`` for the
-    demons), imported here so that the rest of clrecon runs without them; one line if missing."""
+    """The registration library ``module`` (``skimage`` for the optical flow), imported here so that
+    the rest of clrecon runs without it; one line if missing."""
     import importlib
 
     try:
@@ -57,41 +49,6 @@ def require(module: str = "skimage"):
     except ImportError as e:
         raise ClreconError(f"the mc method registers its first pass with {module}, which is not installed "
                            f"({e}): {EXTRA}") from None
-
-
-@dataclass(frozen=True, kw_only=True)
-class DemonsConfig:
-    """Knobs of :func:`register` (docs/motion-model.md "Knobs" for the values chosen on ``demo``).
-
-    iterations : demons iterations per pyramid level, coarse to fine (one entry per level).
-    shrink : in-plane shrink factor per level (z is never shrunk: slices are few and thick).
-    field_sigma_mm : Gaussian smoothing (std, mm) of the displacement field after each iteration.
-    image_sigma_mm : Gaussian pre-smoothing (std, mm) of both images (0: none).
-    hu_window : (lo, hi) HU the images are clipped to before registration.
-    max_step_mm : largest update per iteration (mm; 0: ITK's default, unbounded).
-    threads : ITK threads (0: ITK's default).
-    """
-
-    iterations: tuple = (60, 40)
-    shrink: tuple = (2, 1)
-    field_sigma_mm: float = 4.0
-    image_sigma_mm: float = 2.0
-    hu_window: tuple = (-900.0, 600.0)
-    max_step_mm: float = 1.0
-    threads: int = 2
-
-    def __post_init__(self):
-        if len(self.iterations) != len(self.shrink) or not self.iterations:
-            raise ValueError(f"iterations {self.iterations!r} and shrink {self.shrink!r}: one entry per level each")
-        if any(int(i) < 0 for i in self.iterations) or any(int(s) < 1 for s in self.shrink):
-            raise ValueError("iterations must be >= 0 and shrink factors >= 1")
-        for name in ("field_sigma_mm", "image_sigma_mm", "max_step_mm"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} = {v!r}: must be a finite number >= 0")
-        lo, hi = self.hu_window
-        if not lo < hi:
-            raise ValueError(f"hu_window = {self.hu_window!r}: must be (lo, hi) with lo < hi")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -138,25 +95,8 @@ def _flow(f: np.ndarray, m: np.ndarray, spacing_mm: tuple, cfg: FlowConfig) -> n
     return np.stack([v[2] * spacing_mm[0], v[1] * spacing_mm[1], v[0] * spacing_mm[2]]).astype(np.float32)
 
 
-def _image(vol: np.ndarray, spacing: tuple, origin: tuple) -> sitk.Image:
-    sitk = require("SimpleITK")
-    img = sitk.GetImageFromArray(np.ascontiguousarray(vol, np.float32))
-    img.SetSpacing(tuple(float(s) for s in spacing))
-    img.SetOrigin(tuple(float(o) for o in origin))
-    return img
-
-
-def _prepare(img: sitk.Image, cfg: DemonsConfig) -> sitk.Image:
-    sitk = require("SimpleITK")
-    lo, hi = cfg.hu_window
-    out = sitk.Clamp(img, sitk.sitkFloat32, float(lo), float(hi))
-    if cfg.image_sigma_mm > 0:
-        out = sitk.SmoothingRecursiveGaussian(out, float(cfg.image_sigma_mm))
-    return out
-
-
 def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0),
-             cfg: DemonsConfig | None = None, initial=None) -> np.ndarray:
+             cfg: FlowConfig | None = None, initial=None) -> np.ndarray:
     """Displacement field u with ``moving(x + u(x)) ~ fixed(x)``, on the fixed grid.
 
     Parameters
@@ -166,16 +106,16 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
     spacing_mm : (dx, dy, dz)
         Voxel spacing (mm) along x, y, z.
     origin_mm : (x0, y0, z0)
-        Centre of voxel (0, 0, 0) (mm); only shifts the ITK frame (fields are relative).
-    cfg : DemonsConfig or FlowConfig
+        Centre of voxel (0, 0, 0) (mm); handed to a plugged-in registration (fields are relative).
+    cfg : FlowConfig (default), or a config with a ``register`` method (module docstring)
     initial : (3, nz, ny, nx) array, optional
-        Starting field (mm), e.g. a neighbouring state's (demons only).
+        Starting field (mm), e.g. a neighbouring state's (a plugged-in registration only).
 
     Returns
     -------
     (3, nz, ny, nx) float32: (dx, dy, dz) mm.
     """
-    cfg = cfg or DemonsConfig()
+    cfg = cfg or FlowConfig()
     f = np.asarray(fixed)
     m = np.asarray(moving)
     if f.ndim != 3 or m.shape != f.shape:
@@ -188,48 +128,15 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
         if initial is not None:
             raise ValueError("initial: the Lucas-Kanade registration starts from zero")
         return _flow(f, m, tuple(float(s) for s in spacing_mm), cfg)
-    if not isinstance(cfg, DemonsConfig):
-        raise TypeError(f"cfg: expected a DemonsConfig or FlowConfig, got {type(cfg).__name__}")
-    sitk = require("SimpleITK")
-    if cfg.threads > 0:
-        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(cfg.threads))
-    fi = _prepare(_image(f, spacing_mm, origin_mm), cfg)
-    mi = _prepare(_image(m, spacing_mm, origin_mm), cfg)
-    field = None
-    if initial is not None:
-        u0 = np.asarray(initial, np.float64)
-        if u0.shape != (3,) + f.shape:
-            raise ValueError(f"initial: expected shape {(3,) + f.shape}, got {u0.shape}")
-        field = sitk.GetImageFromArray(np.moveaxis(u0, 0, -1), isVector=True)
-        field.CopyInformation(fi)
-    for iters, shrink in zip(cfg.iterations, cfg.shrink, strict=True):
-        factors = [int(shrink), int(shrink), 1]
-        fl = sitk.Shrink(fi, factors) if shrink > 1 else fi
-        ml = sitk.Shrink(mi, factors) if shrink > 1 else mi
-        if field is not None:  # carry the field to this level's grid
-            field = sitk.Resample(field, fl, sitk.Transform(), sitk.sitkLinear, 0.0, sitk.sitkVectorFloat64)
-        else:
-            field = sitk.Image(fl.GetSize(), sitk.sitkVectorFloat64, 3)
-            field.CopyInformation(fl)
-        if iters == 0:
-            continue
-        demons = sitk.FastSymmetricForcesDemonsRegistrationFilter()
-        demons.SetNumberOfIterations(int(iters))
-        demons.SetSmoothDisplacementField(True)
-        demons.SetStandardDeviations(float(cfg.field_sigma_mm))
-        demons.SetUseImageSpacing(True)
-        if cfg.max_step_mm > 0:
-            demons.SetMaximumUpdateStepLength(float(cfg.max_step_mm))
-        field = demons.Execute(fl, ml, field)
-    if field.GetSize() != fi.GetSize():
-        field = sitk.Resample(field, fi, sitk.Transform(), sitk.sitkLinear, 0.0, sitk.sitkVectorFloat64)
-    u = sitk.GetArrayFromImage(field)  # (nz, ny, nx, 3)
-    return np.ascontiguousarray(np.moveaxis(u, -1, 0), np.float32)
+    if not callable(getattr(cfg, "register", None)):
+        raise TypeError(f"cfg: expected a FlowConfig or a registration config with a register() method, got "
+                        f"{type(cfg).__name__}")
+    return cfg.register(f, m, tuple(float(s) for s in spacing_mm), tuple(float(o) for o in origin_mm), initial)
 
 
 #: Peak bytes of one Lucas-Kanade registration per voxel of its volumes: ``optical_flow_ilk``
-#: works in float64 with its pyramid and warps: about 70 float32 volumes (measured:
-#: docs/results/code-history.md "One Lucas-Kanade registration's memory").
+#: works in float64 with its pyramid and warps (measured: 77 MB for 128 x 128 x 16 voxels, 276 MB
+#: for 256 x 256 x 16, 2026-12-06), i.e. about 70 float32 volumes.
 FLOW_BYTES_PER_VOXEL = 300
 #: At most this many registration processes (each needs FLOW_BYTES_PER_VOXEL per voxel).
 MAX_WORKERS = 4
@@ -256,12 +163,13 @@ def registration_workers(n_voxels: int, cores: int | None = None, available_byte
     return max(1, min(int(cores), MAX_WORKERS, by_memory))
 
 
-def register_to_reference(volumes, reference: int, spacing_mm: tuple, cfg: DemonsConfig | FlowConfig | None = None,
+def register_to_reference(volumes, reference: int, spacing_mm: tuple, cfg: FlowConfig | None = None,
                           order=None, progress=None, pool=None) -> np.ndarray:
     """u(x_ref; s_i) of every volume (n, nz, ny, nx) against ``volumes[reference]``: (n, 3, nz, ny, nx).
 
     ``order``: a sequence of (i, j) pairs, each volume i started from volume j's field (j done
-    before, or -1 for a zero start; demons only); default every i from zero. The reference's own field is 0.
+    before, or -1 for a zero start; a plugged-in registration that takes a start only); default
+    every i from zero. The reference's own field is 0.
     ``progress``: optional ``update(n)`` counter. ``pool``: optional ``concurrent.futures``
     executor (spawned processes: :func:`clrecon.core.resources.spawned_pool`) that runs the
     registrations of a default ``order`` at once; each is the same call on the same arrays, so

@@ -1,7 +1,10 @@
 """Model-based correction step: the model at the target plus the interpolated residual of the rows.
 
+Study code, outside the wheel (the variant B of docs/motion-model.md; the shipped ``mc`` method
+is the motion-compensated backprojection, variant A). Imported by ``common.py`` here.
+
 For a target t, with M(s) the model image at state s (a reference-frame image warped by the motion
-model, :mod:`clrecon.reconstruction.motion.warp`) and P_k the in-plane projection of row k (its
+model, :mod:`warp` here) and P_k the in-plane projection of row k (its
 slice, its view):
 
     image_t = M(t) + FBP( sum_k w_k (y_k - P_k M(s_k)) )
@@ -26,16 +29,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from warp import warp
 
-from clrecon.core.conventions import detector_frames
+from clrecon.evaluation.consistency import STACK_DZ_MM, inplane_frames
 from clrecon.reconstruction.fbp import FanBeamGeometry
 from clrecon.reconstruction.motion.model import FieldGrid, MotionModel
-from clrecon.reconstruction.motion.warp import warp
-from clrecon.simulation import projector as analytic_projector
 from clrecon.simulation.voxel_projector import project_volume
-
-#: z spacing (mm) of the stacked (bin, slice) images: any value > 0 keeps in-plane rays in their plane.
-STACK_DZ_MM = 10.0
 
 
 def state_bins(cardiac_phase, resp_amplitude, n_cardiac: int, n_resp: int):
@@ -54,16 +53,6 @@ def state_bins(cardiac_phase, resp_amplitude, n_cardiac: int, n_resp: int):
     ia = np.clip(np.floor(np.clip(a, 0.0, 1.0) * n_resp), 0, n_resp - 1).astype(np.int64)
     cc, aa = np.meshgrid(np.arange(n_cardiac) / n_cardiac, (np.arange(n_resp) + 0.5) / n_resp, indexing="ij")
     return ic * n_resp + ia, np.stack([cc.ravel(), aa.ravel()], axis=1)
-
-
-def inplane_frames(detector, geom: FanBeamGeometry, view, z_mm):
-    """Frames of in-plane rows (source in the row's plane) of the given views and plane z's, as the ground truth."""
-    beta = geom.view_angles_rad()[view]
-    (src, centre, eu, ev), (u, _, vs) = analytic_projector.spot_frames(detector, beta, z_mm, (0, 0, 0))
-    if geom.source_shifts:
-        b_s, r_s = geom.source_angles_radii()
-        src, centre, eu, ev = detector_frames(b_s[view], z_mm, r_s[view], detector.sdd_mm)
-    return (src, centre, eu, ev), u, vs
 
 
 def model_rows(model_volume_mu, model: MotionModel, detector, geom: FanBeamGeometry, pair_view, pair_slice_z,

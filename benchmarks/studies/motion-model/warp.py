@@ -1,4 +1,8 @@
-"""A reference-frame volume warped by the motion model to other states (OpenCL, ``kernels/mc_warp.cl``).
+"""A reference-frame volume warped by the motion model to other states (OpenCL, ``mc_warp.cl`` here).
+
+Study code (the model-based correction variant, :mod:`correction`), outside the wheel: the
+shipped ``mc`` method does not warp volumes. The kernel is built from this folder
+(``Runtime.program``'s ``_folder``) and includes the package's ``kernels/motion_grid.h``.
 
 ``out(x) = vol(x_r)`` with ``x_r + u(x_r; s) = x``: the volume as it would look at state s, on the
 reconstruction's in-plane grid at slices ``out_z``. The model-based correction step needs the
@@ -8,12 +12,16 @@ warped in batches so that a batch's fields fit :data:`BATCH_BYTES`.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from clrecon.core.runtime import get_runtime
 from clrecon.reconstruction.motion.backproject import INVERSION_STEPS
 from clrecon.reconstruction.motion.model import FieldGrid, MotionModel, sample
 
+#: The folder of ``mc_warp.cl``.
+HERE = Path(__file__).resolve().parent
 #: Fixed local size (x, y) of the kernel.
 LOCAL_SIZE = (8, 8)
 #: Bytes of per-state fields uploaded per launch.
@@ -65,7 +73,7 @@ def warp(volume, model: MotionModel, states, out_z, iterations: int = INVERSION_
     rt = runtime or get_runtime()
     g = model.grid
     kern = rt.kernel("mc_warp.cl", "warp_volume", LX=LOCAL_SIZE[0], LY=LOCAL_SIZE[1], NINV=int(iterations),
-                     _fast=True)
+                     _fast=True, _folder=HERE)
     S = len(z)
     out = np.empty((len(s), S, g.ny, g.nx), np.float32)
     per_state = 3 * int(np.prod(g.shape)) * 4

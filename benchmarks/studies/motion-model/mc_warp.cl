@@ -2,8 +2,10 @@
 // with x_r + u(x_r; s) = x (the point of the reference that is at x at state s). x_r by NINV
 // fixed-point steps x_r <- x - u(x_r) from x_r = x, as mc_backproject.cl; u trilinear on the
 // model grid (motion_grid.h), vol trilinear on its own z planes (vz planes from vol_z0, spacing
-// 1 / inv_vol_dz; the same in-plane grid): a model image needs finer z than the motion. docs/motion-model.md "The method" (step 6). The NumPy
-// float64 reference is clrecon.reconstruction.motion.warp.warp_reference.
+// 1 / inv_vol_dz; the same in-plane grid): a model image needs finer z than the motion.
+// docs/motion-model.md "The method" (step 6) (a study's kernel, outside the wheel: built from
+// this folder by warp.py, with the package's kernels/motion_grid.h). The NumPy float64 reference
+// is warp.py's warp_reference.
 //
 // Work-item (ix, iy, q), q = b S + s: pixel (ix, iy) of output slice s (z = out_z[s]) of state b.
 //   vol (vz, ny, nx)   fields (B, 3, mz, ny, nx): u(.; s_b)   out_z (S,)   out (B, S, ny, nx)
