@@ -114,9 +114,8 @@ def slab_projections(bary_plan) -> np.ndarray:
 
 
 #: Bytes of raw detector rows read at once for a slab's plane rows: the read (with its noise) and
-#: its SSRB rows are made chunk by chunk into the slab's array. Without it a paper-p010 slab read
-#: 5.2 GB of raw rows at once (22 755 projections x 64 rows x 900 columns) beside its 1.3 GB of
-#: plane rows: 11.6 GB peak for an 8-slice slab (2026-12-06).
+#: its SSRB rows are made chunk by chunk into the slab's array, so the raw rows of a whole slab are
+#: never held at once (docs/results/code-history.md "Plane rows read in chunks").
 READ_CHUNK_BYTES = 128 << 20
 
 

@@ -135,8 +135,8 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
 
 
 #: Peak bytes of one Lucas-Kanade registration per voxel of its volumes: ``optical_flow_ilk``
-#: works in float64 with its pyramid and warps (measured: 77 MB for 128 x 128 x 16 voxels, 276 MB
-#: for 256 x 256 x 16, 2026-12-06), i.e. about 70 float32 volumes.
+#: works in float64 with its pyramid and warps: about 70 float32 volumes (measured:
+#: docs/results/code-history.md "One Lucas-Kanade registration's memory").
 FLOW_BYTES_PER_VOXEL = 300
 #: At most this many registration processes (each needs FLOW_BYTES_PER_VOXEL per voxel).
 MAX_WORKERS = 4
