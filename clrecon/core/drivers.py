@@ -252,26 +252,48 @@ def remember(path: Path, key: str, entry: dict) -> None:
         pass  # a read-only cache: the probe runs again next time, nothing else is lost
 
 
+#: The folder holding this ``clrecon`` package: first on a child's ``PYTHONPATH``, so that the child runs the
+#: same clrecon as its parent (a checkout beside an older installed copy included).
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]
+
+
+def child_environ() -> dict:
+    """This process's environment for a child that runs clrecon's modules: :data:`PACKAGE_ROOT` put first on
+    ``PYTHONPATH``."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(PACKAGE_ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep)
+                                                               if p])
+    return env
+
+
 def run_json_child(module: str, args: list[str], timeout_s: float, what: str = "the probe") -> dict:
-    """Run ``python -m module args...`` in a child process and return the last JSON line it prints.
+    """Run ``python -m module args...`` in a child process and return the JSON lines it prints, merged.
 
     A child that times out, cannot start, dies or prints no JSON gives ``{"ok": False, "reason": one line}``
-    (a driver that aborts the process while compiling costs a verdict, not the run)."""
+    (a driver that aborts the process while compiling costs a verdict, not the run; ``"no_output": True``
+    where it printed nothing); one that died after
+    printing a JSON line gives that line with ``"died": reason`` added."""
     cmd = [sys.executable, "-m", module, *args]
     try:
-        cp = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=dict(os.environ))
+        cp = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=child_environ())
     except subprocess.TimeoutExpired:
         return {"ok": False, "reason": f"{what} did not finish in {timeout_s:g} s"}
     except OSError as e:
         return {"ok": False, "reason": f"{what} could not start: {e}"}
-    last = [ln for ln in cp.stdout.splitlines() if ln.startswith("{")]
-    if cp.returncode != 0 or not last:
+    lines = [ln for ln in cp.stdout.splitlines() if ln.startswith("{")]
+    merged: dict = {}
+    for ln in lines:
+        merged.update(json.loads(ln))
+    if cp.returncode != 0 or not lines:
         sig = -cp.returncode if cp.returncode < 0 else None
         how = f"died on signal {sig}" if sig else f"exited with status {cp.returncode}"
         err = [ln.strip() for ln in cp.stderr.splitlines() if ln.strip()]
-        return {"ok": False, "reason": f"the probe process {how} while building or running the kernel"
-                                       + (f" ({err[-1][:200]})" if err else "")}
-    return json.loads(last[-1])
+        reason = f"the probe process {how} while building or running the kernel" + (f" ({err[-1][:200]})" if err
+                                                                                      else "")
+        if not lines:
+            return {"ok": False, "reason": reason, "no_output": True}
+        merged["died"] = reason
+    return merged
 
 
 def run_probe_child(platform_name: str, device_index: int) -> tuple[bool, str]:

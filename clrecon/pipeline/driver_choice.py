@@ -142,7 +142,9 @@ def time_driver(dev, index: int, cache_dir: Path | None = None, use_cache: bool 
     """The timings of ``dev`` (the ``index``-th device of its platform), from the cache or a child.
 
     A child also records the probe's verdict (:func:`clrecon.core.drivers.remember_verdict`), so the
-    runtime probes nothing after it. None where the device fails the probe."""
+    runtime probes nothing after it; a child that gives no verdict (it died before its probe's line)
+    leaves the verdict to the plain probe (:func:`clrecon.core.drivers.probe_device`). None where the
+    device fails the probe, or passes it and its timing failed (its verdict then says it works)."""
     p = dev.platform
     drv = drivers.driver_of(p.name)
     spec = f"{p.name}:{index}"
@@ -157,9 +159,14 @@ def time_driver(dev, index: int, cache_dir: Path | None = None, use_cache: bool 
         if verdict is not None and not verdict.ok:
             return None  # known to fail: not timed
     res = run_timing_child(p.name, index)
-    drivers.remember_verdict(dev, bool(res.get("ok")), str(res.get("reason", "")), cache_dir)
-    if not res.get("ok"):
-        return None
+    if res.get("no_output") or "reason" not in res:
+        # no verdict from the child (it died before its probe's line, or timed out): the plain probe decides
+        verdict = drivers.probe_device(dev, index, cache_dir, use_cache=False)
+        res = {"ok": verdict.ok, "reason": verdict.reason}
+    else:
+        drivers.remember_verdict(dev, bool(res.get("ok")), str(res.get("reason", "")), cache_dir)
+    if not res.get("ok") or "seconds_per_unit" not in res:
+        return None  # failed the probe; or passed it and the timing failed: working, untimed
     per_unit = {f: float(res["seconds_per_unit"][f]) for f in FAMILIES}
     drivers.remember(path, tkey, {"seconds_per_unit": per_unit, "platform": p.name,
                                   "driver_version": dev.driver_version, "cpu": drivers.cpu_line(),
@@ -210,8 +217,16 @@ def choose_for_run(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=No
         platforms = cl.get_platforms()
     except cl.Error:
         return None  # the runtime says what is missing, in its one line
-    timings = [t for dev, idx in working_cpu_devices(platforms, cache_dir)
-               if (t := time_driver(dev, idx, cache_dir)) is not None]
+    timings, untimed = [], []
+    for dev, idx in working_cpu_devices(platforms, cache_dir):
+        t = time_driver(dev, idx, cache_dir)
+        if t is not None:
+            timings.append(t)
+        elif (v := drivers.cached_verdict(dev, cache_dir)) is not None and v.ok:
+            untimed.append(drivers.driver_of(dev.platform.name).key)
+    if untimed:  # a working driver whose timing failed: nothing to compare with, the default order decides
+        return Decision(None, f"{', '.join(untimed)} passed the probe but could not be timed: clrecon's order",
+                        {}, tuple(timings))
     if len(timings) < 2:
         return Decision(timings[0].key if timings else None,
                         "the only CPU driver that passes the probe" if timings else "no CPU driver passes the probe",

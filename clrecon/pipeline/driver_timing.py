@@ -22,9 +22,10 @@ sizes of ``python -m clrecon bench --drivers``, which uses the same workloads).
 ``python -m clrecon.pipeline.driver_timing PLATFORM_NAME DEVICE_INDEX`` is the child the driver
 choice runs once per driver and machine: it probes the device as
 :mod:`clrecon.core.driver_probe` does (a driver that aborts costs a verdict, not the run), and
-when the probe passes it times every family (one warm-up call, which builds the kernels, then the
-median of :data:`REPEATS` calls) and prints one JSON line ``{"ok", "reason", "seconds_per_unit":
-{family: s}, "build_seconds", "seconds"}``.
+prints its verdict as a JSON line ``{"ok", "reason"}``; when the probe passes it times every family
+(one warm-up call, which builds the kernels, then the median of :data:`REPEATS` calls) and prints
+a second line ``{"seconds_per_unit": {family: s}, "build_seconds", "seconds"}`` (or
+``{"timing_error"}``): a timing that fails or dies leaves the probe's verdict standing.
 """
 
 from __future__ import annotations
@@ -151,30 +152,37 @@ def time_families(rt, size: str = "timing", repeats: int = REPEATS) -> dict:
 
 
 def probe_and_time(platform_name: str, device_index: int) -> dict:
-    """The probe's verdict on the device and, where it passes, :func:`time_families` on it."""
+    """The probe's verdict on the device and, where it passes, :func:`time_families` on it; each printed as a
+    JSON line as soon as it is known."""
     import pyopencl as cl
 
     t0 = time.perf_counter()
     plats = [p for p in cl.get_platforms() if p.name == platform_name]
     if not plats:
-        return {"ok": False, "reason": f"platform {platform_name!r} not found in the child process"}
+        verdict = {"ok": False, "reason": f"platform {platform_name!r} not found in the child process"}
+        print(json.dumps(verdict), flush=True)
+        return verdict
     dev = plats[0].get_devices()[device_index]
     verdict = driver_probe.probe_on(cl.Context([dev]), dev, force_fail=driver_probe.forced_failure(platform_name))
+    print(json.dumps(verdict), flush=True)  # the verdict stands even if the timing dies after it
     if not verdict["ok"]:
         return verdict
-    rt = Runtime(f"{platform_name}:{device_index}")
-    verdict.update(time_families(rt))
-    verdict["seconds"] = round(time.perf_counter() - t0, 3)
-    return verdict
+    try:
+        timing = time_families(Runtime(f"{platform_name}:{device_index}"))
+    except Exception as e:  # noqa: BLE001 - a timing that fails leaves the driver working, untimed
+        timing = {"timing_error": f"{type(e).__name__}: {first_error_line(e)}"}
+    timing["seconds"] = round(time.perf_counter() - t0, 3)
+    print(json.dumps(timing), flush=True)
+    return {**verdict, **timing}
 
 
 def main(argv=None) -> int:
+    """Print the probe's verdict as one JSON line, then (where it passes) the timings as another."""
     argv = sys.argv[1:] if argv is None else argv
     try:
-        result = probe_and_time(argv[0], int(argv[1]))
+        probe_and_time(argv[0], int(argv[1]))
     except Exception as e:  # noqa: BLE001 - any failure of a driver is a verdict, reported in one line
-        result = {"ok": False, "reason": f"{type(e).__name__}: {first_error_line(e)}"}
-    print(json.dumps(result), flush=True)
+        print(json.dumps({"ok": False, "reason": f"{type(e).__name__}: {first_error_line(e)}"}), flush=True)
     return 0
 
 
