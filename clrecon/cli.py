@@ -120,9 +120,17 @@ def cmd_devices(args) -> int:
     import json
 
     from clrecon.core.drivers import format_devices, list_devices
+    from clrecon.pipeline.driver_choice import format_timing_report, timing_report
 
     listing = list_devices(probe_again=args.probe_again)
-    print(json.dumps(listing, indent=1) if args.json else format_devices(listing))
+    if not listing["clrecon_device"]:
+        listing["timing"] = timing_report(time_again=args.probe_again)
+    if args.json:
+        print(json.dumps(listing, indent=1))
+    else:
+        print(format_devices(listing))
+        if "timing" in listing:
+            print("\n" + format_timing_report(listing["timing"]))
     return 0
 
 
@@ -241,7 +249,8 @@ def build_parser() -> argparse.ArgumentParser:
     dv = sub.add_parser("devices", help="every OpenCL platform and device, whether each builds and runs clrecon's "
                                         "probe kernel, and which one runs by default (docs/drivers.md)")
     dv.add_argument("--json", action="store_true", help="print the listing as JSON")
-    dv.add_argument("--probe-again", action="store_true", help="probe every device again (forget remembered verdicts)")
+    dv.add_argument("--probe-again", action="store_true",
+                    help="probe and time every device again (forget remembered verdicts and timings)")
     dv.set_defaults(func=cmd_devices)
 
     v = sub.add_parser("view", help="3D viewer of a run's 5D volumes (pyvista); --screenshot renders offscreen")

@@ -30,7 +30,6 @@ the output's range: where and by how much their last bits differ.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import resource
 import subprocess
@@ -45,11 +44,7 @@ from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
 from clrecon.core import drivers
 from clrecon.core.runtime import Runtime
-from clrecon.reconstruction import rebin
-from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
-from clrecon.reconstruction.interpolation.apply import DeviceRows, apply_weights_interleaved
-from clrecon.scan.table import projection_table
-from clrecon.simulation import noise, projector
+from clrecon.pipeline import driver_timing
 
 
 def working_cpu_drivers() -> list[tuple[str, str]]:
@@ -65,69 +60,14 @@ def working_cpu_drivers() -> list[tuple[str, str]]:
     return out
 
 
-def _rows(sc, quick: bool):
-    """Inputs shared by every driver: demo projections, SSRB pairs, weights, sinograms, noise chunk."""
-    rng = np.random.default_rng(0)
-    pitch = sc.scan.pitches[-1]
-    table = projection_table(sc, pitch)
-    n_proj = 16 if quick else 64
-    idx = np.linspace(0, len(table) - 1, n_proj).round().astype(np.int64)
-    sub = table.take(idx)
-    R, C = sc.scanner.n_rows, sc.scanner.n_cols
-    proj = rng.uniform(0, 4, (n_proj, R, C)).astype(np.float32)
-    n_pairs = 4096 if quick else 32768
-    slot = rng.integers(0, n_proj, n_pairs).astype(np.int32)
-    half = 0.4 * R * sc.scanner.row_pitch_mm * sc.scanner.sid_mm / sc.scanner.sdd_mm
-    dz = rng.uniform(-half, half, n_pairs).astype(np.float32)
-    n_sino, V, K = (4, 492, 8) if quick else (16, 984, 8)
-    rows = rng.standard_normal((4096, C)).astype(np.float32)
-    index = rng.integers(0, rows.shape[0], (n_sino * 4, V, K)).astype(np.int32)
-    weight = rng.uniform(0, 1, (n_sino * 4, V, K)).astype(np.float32)
-    weight /= weight.sum(-1, keepdims=True)
-    nx = 256 if quick else 512
-    geom = FanBeamGeometry(sid_mm=595.0, sdd_mm=1085.6, n_cols=900, col_pitch_mm=0.8, n_views=V, nx=nx, ny=nx,
-                           voxel_mm=1.0)
-    geom = dataclasses.replace(geom, voxel_mm=2.0 * geom.fov_radius_mm / nx)
-    sino = rng.standard_normal((n_sino, V, 900)).astype(np.float32)
-    line_integrals = rng.uniform(0, 6, (8 if quick else 32, R, C)).astype(np.float32)
-    return dict(table=sub, proj=proj, slot=slot, dz=dz, rows=rows, index=index, weight=weight, geom=geom,
-                sino=sino, line_integrals=line_integrals, noise_idx=idx[:line_integrals.shape[0]])
-
-
-def _kernel_rows(sc, inp) -> dict:
-    """name -> (function of a runtime returning the output array, units per call, unit name)."""
-    R, C = sc.scanner.n_rows, sc.scanner.n_cols
-    g = inp["geom"]
-
-    def interp(rt):
-        dr = DeviceRows(inp["rows"], rt=rt)
-        buf, n_groups = apply_weights_interleaved(dr, inp["index"], inp["weight"], rt=rt)
-        V = inp["index"].shape[1]
-        out = rt.from_device(buf, (n_groups, V, C + 2, 16))
-        buf.release()
-        dr.release()
-        return out
-
-    return {
-        "projector": (lambda rt: projector.project(sc, inp["table"], rt=rt), len(inp["table"]), "projections/s"),
-        "ssrb": (lambda rt: rebin.ssrb_rows(inp["proj"], inp["slot"], inp["dz"], sc.scanner, rt=rt),
-                 inp["slot"].size, "rows/s"),
-        "interpolation": (interp, int(np.prod(inp["index"].shape[:2])), "rows/s"),
-        "backprojection": (lambda rt: backproject(inp["sino"], g, runtime=rt),
-                           g.nx * g.ny * g.n_views * inp["sino"].shape[0] / 1e9, "G updates/s"),
-        "noise": (lambda rt: noise.add_noise(inp["line_integrals"], inp["noise_idx"], sc.noise, rt=rt),
-                  inp["line_integrals"].size, "cells/s"),
-    }, (R, C)
-
-
 def bench_kernels(keys_specs, quick: bool = False, repeats: int = 3) -> dict:
     """Median throughput of each kernel row on each driver (drivers alternating within a repeat)."""
     sc = load_scene("demo")
-    inp = _rows(sc, quick)
-    rows, _ = _kernel_rows(sc, inp)
+    work = driver_timing.workloads(sc, driver_timing.inputs(sc, "quick" if quick else "full"))
     rts = {key: Runtime(spec) for key, spec in keys_specs}
     out: dict = {}
-    for name, (fn, units, unit) in rows.items():
+    for name in ("projector", "ssrb", "interpolation", "backprojection", "noise"):
+        fn, units, unit = work[name].fn, work[name].display_units, work[name].display_unit
         results, times, cpu = {}, {k: [] for k in rts}, {k: [] for k in rts}
         for key, rt in rts.items():  # warm-up: kernel builds, first-touch buffers
             results[key] = np.asarray(fn(rt), np.float64)

@@ -230,7 +230,8 @@ def verdicts_path(cache_dir: Path | None = None) -> Path:
     return (cache_dir or default_cache_dir()) / "opencl-drivers.json"
 
 
-def _read_verdicts(path: Path) -> dict:
+def read_json_dict(path: Path) -> dict:
+    """The JSON object in ``path``; {} where it is missing, unreadable or not an object."""
     try:
         data = json.loads(path.read_text())
         return data if isinstance(data, dict) else {}
@@ -238,11 +239,11 @@ def _read_verdicts(path: Path) -> dict:
         return {}
 
 
-def _remember(path: Path, key: str, entry: dict) -> None:
-    """Add one verdict to the file (read, merge, write under a temporary name, rename)."""
+def remember(path: Path, key: str, entry: dict) -> None:
+    """Add one entry to the JSON object in ``path`` (read, merge, write under a temporary name, rename)."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        data = _read_verdicts(path)
+        data = read_json_dict(path)
         data[key] = entry
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
@@ -251,40 +252,81 @@ def _remember(path: Path, key: str, entry: dict) -> None:
         pass  # a read-only cache: the probe runs again next time, nothing else is lost
 
 
-def run_probe_child(platform_name: str, device_index: int) -> tuple[bool, str]:
-    """Run :mod:`clrecon.core.driver_probe` in a child process: (ok, one-line reason)."""
-    cmd = [sys.executable, "-m", "clrecon.core.driver_probe", platform_name, str(device_index)]
+#: The folder holding this ``clrecon`` package: first on a child's ``PYTHONPATH``, so that the child runs the
+#: same clrecon as its parent (a checkout beside an older installed copy included).
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]
+
+
+def child_environ() -> dict:
+    """This process's environment for a child that runs clrecon's modules: :data:`PACKAGE_ROOT` put first on
+    ``PYTHONPATH``."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(PACKAGE_ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep)
+                                                               if p])
+    return env
+
+
+def run_json_child(module: str, args: list[str], timeout_s: float, what: str = "the probe") -> dict:
+    """Run ``python -m module args...`` in a child process and return the JSON lines it prints, merged.
+
+    A child that times out, cannot start, dies or prints no JSON gives ``{"ok": False, "reason": one line}``
+    (a driver that aborts the process while compiling costs a verdict, not the run; ``"no_output": True``
+    where it printed nothing); one that died after
+    printing a JSON line gives that line with ``"died": reason`` added."""
+    cmd = [sys.executable, "-m", module, *args]
     try:
-        cp = subprocess.run(cmd, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S, env=dict(os.environ))
+        cp = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=child_environ())
     except subprocess.TimeoutExpired:
-        return False, f"the probe did not finish in {PROBE_TIMEOUT_S} s"
+        return {"ok": False, "reason": f"{what} did not finish in {timeout_s:g} s"}
     except OSError as e:
-        return False, f"the probe could not start: {e}"
-    last = [ln for ln in cp.stdout.splitlines() if ln.startswith("{")]
-    if cp.returncode != 0 or not last:
+        return {"ok": False, "reason": f"{what} could not start: {e}"}
+    lines = [ln for ln in cp.stdout.splitlines() if ln.startswith("{")]
+    merged: dict = {}
+    for ln in lines:
+        merged.update(json.loads(ln))
+    if cp.returncode != 0 or not lines:
         sig = -cp.returncode if cp.returncode < 0 else None
         how = f"died on signal {sig}" if sig else f"exited with status {cp.returncode}"
         err = [ln.strip() for ln in cp.stderr.splitlines() if ln.strip()]
-        return False, f"the probe process {how} while building or running the kernel" + (f" ({err[-1][:200]})"
-                                                                                         if err else "")
-    v = json.loads(last[-1])
+        reason = f"the probe process {how} while building or running the kernel" + (f" ({err[-1][:200]})" if err
+                                                                                      else "")
+        if not lines:
+            return {"ok": False, "reason": reason, "no_output": True}
+        merged["died"] = reason
+    return merged
+
+
+def run_probe_child(platform_name: str, device_index: int) -> tuple[bool, str]:
+    """Run :mod:`clrecon.core.driver_probe` in a child process: (ok, one-line reason)."""
+    v = run_json_child("clrecon.core.driver_probe", [platform_name, str(device_index)], PROBE_TIMEOUT_S)
     return bool(v.get("ok")), str(v.get("reason", ""))
+
+
+def cached_verdict(dev, cache_dir: Path | None = None) -> Verdict | None:
+    """The probe's kept verdict on ``dev``, or None where it was never probed (with this key)."""
+    p = dev.platform
+    hit = read_json_dict(verdicts_path(cache_dir)).get(verdict_key(dev))
+    if isinstance(hit, dict) and "ok" in hit:
+        return Verdict(p.name, p.version, dev.name, dev.driver_version, bool(hit["ok"]), str(hit["reason"]),
+                       cached=True)
+    return None
+
+
+def remember_verdict(dev, ok: bool, reason: str, cache_dir: Path | None = None) -> Verdict:
+    """Keep a verdict on ``dev`` (from :func:`run_probe_child` or a child that probes and times)."""
+    p = dev.platform
+    remember(verdicts_path(cache_dir), verdict_key(dev), {"ok": ok, "reason": reason, "platform": p.name,
+                                                          "driver_version": dev.driver_version, "device": dev.name,
+                                                          "cpu": cpu_line()})
+    return Verdict(p.name, p.version, dev.name, dev.driver_version, ok, reason)
 
 
 def probe_device(dev, index: int, cache_dir: Path | None = None, use_cache: bool = True) -> Verdict:
     """The probe's verdict on ``dev`` (the ``index``-th device of its platform), cached on disk."""
-    p = dev.platform
-    path = verdicts_path(cache_dir)
-    key = verdict_key(dev)
-    if use_cache:
-        hit = _read_verdicts(path).get(key)
-        if isinstance(hit, dict) and "ok" in hit:
-            return Verdict(p.name, p.version, dev.name, dev.driver_version, bool(hit["ok"]), str(hit["reason"]),
-                           cached=True)
-    ok, reason = run_probe_child(p.name, index)
-    _remember(path, key, {"ok": ok, "reason": reason, "platform": p.name, "driver_version": dev.driver_version,
-                          "device": dev.name, "cpu": cpu_line()})
-    return Verdict(p.name, p.version, dev.name, dev.driver_version, ok, reason)
+    if use_cache and (hit := cached_verdict(dev, cache_dir)) is not None:
+        return hit
+    ok, reason = run_probe_child(dev.platform.name, index)
+    return remember_verdict(dev, ok, reason, cache_dir)
 
 
 # -- choosing -----------------------------------------------------------------------------------
@@ -295,15 +337,42 @@ def _is_cpu(dev) -> bool:
     return dev.type == cl.device_type.CPU
 
 
+# -- the run's preference -------------------------------------------------------------------------
+
+#: Names the CPU driver (a :class:`CpuDriver` key) that this process and its children prefer: set by
+#: :func:`prefer` (the run's timed choice, :mod:`clrecon.pipeline.driver_choice`), inherited by the
+#: process pools and local Dask workers a run starts, so all of them use one driver.
+PREFERENCE_ENV = "CLRECON_DRIVER_PREFERENCE"
+_preference_reasons: dict[str, str] = {}
+
+
+def prefer(key: str, reason: str) -> None:
+    """Make driver ``key`` the first CPU driver in this process's (and its later children's) order."""
+    if key not in {d.key for d in CPU_DRIVERS}:
+        raise ValueError(f"unknown CPU driver {key!r}; known: {', '.join(d.key for d in CPU_DRIVERS)}")
+    os.environ[PREFERENCE_ENV] = key
+    _preference_reasons[key] = reason
+
+
+def preferred() -> str | None:
+    """The preferred driver's key (from :data:`PREFERENCE_ENV`), or None (an unknown value is ignored)."""
+    key = os.environ.get(PREFERENCE_ENV, "").strip().lower()
+    return key if key in {d.key for d in CPU_DRIVERS} else None
+
+
 def candidates(platforms) -> list[tuple[int, object, int]]:
     """CPU devices in the default order: (rank, device, index in its platform).
 
-    Known drivers in :data:`CPU_DRIVERS` order, then any other CPU platform (Oclgrind, a simulator
-    whose devices are not CPUs, is never a candidate)."""
+    The preferred driver (:func:`preferred`) first, then the known drivers in :data:`CPU_DRIVERS`
+    order, then any other CPU platform (Oclgrind, a simulator whose devices are not CPUs, is never
+    a candidate)."""
     out = []
+    pref = preferred()
     for p in platforms:
         drv = driver_of(p.name)
-        rank = CPU_DRIVERS.index(drv) if drv else len(CPU_DRIVERS)
+        rank = CPU_DRIVERS.index(drv) + 1 if drv else len(CPU_DRIVERS) + 1
+        if drv is not None and drv.key == pref:
+            rank = 0
         try:
             devs = p.get_devices()
         except Exception:  # noqa: BLE001 - a platform with no usable device is simply not a candidate
@@ -343,6 +412,8 @@ class Choice:
     chosen_by: str
     verdicts: list[Verdict]
     registration: dict
+    #: the run's timed choice among the working drivers (:mod:`clrecon.pipeline.driver_choice`), if any
+    timing: dict | None = None
 
     def as_dict(self) -> dict:
         d = self.device
@@ -352,7 +423,7 @@ class Choice:
                 "compute_units": int(d.max_compute_units), "chosen_by": self.chosen_by,
                 "probes": [{"platform": v.platform, "driver_version": v.driver_version, "ok": v.ok,
                             "reason": v.reason, "cached": v.cached} for v in self.verdicts],
-                "cpu": cpu_line()}
+                "cpu": cpu_line(), **({"timing": self.timing} if self.timing else {})}
 
 
 def choose_cpu_device(platforms, cache_dir: Path | None = None) -> Choice:
@@ -363,7 +434,11 @@ def choose_cpu_device(platforms, cache_dir: Path | None = None) -> Choice:
         v = probe_device(dev, idx, cache_dir)
         verdicts.append(v)
         if v.ok:
-            how = "the first CPU driver in clrecon's order that passes the probe"
+            drv = driver_of(dev.platform.name)
+            if drv is not None and drv.key == preferred():
+                how = _preference_reasons.get(drv.key, "the run's choice, made by timing in a parent process")
+            else:
+                how = "the first CPU driver in clrecon's order that passes the probe"
             return Choice(dev, how, verdicts, reg)
     raise NoWorkingDriver(no_driver_message(verdicts, missing_drivers(platforms)))
 
@@ -431,8 +506,9 @@ def format_devices(listing: dict) -> str:
     if listing["clrecon_device"]:
         out.append(f"CLRECON_DEVICE={listing['clrecon_device']} is set: runs use that platform.")
     elif any(r["default"] for r in listing["devices"]):
-        out.append("* = the device a run uses by default (the first CPU driver in clrecon's order that passes "
-                   "the probe); CLRECON_DEVICE=NAME[:INDEX] picks another.")
+        out.append("* = the first CPU driver in clrecon's order that passes the probe: the default where it is the "
+                   "only one; where several pass, each run takes the one its timings predict fastest for its own "
+                   "kernel work (below). CLRECON_DEVICE=NAME[:INDEX] picks another.")
     else:
         out.append(f"No CPU driver passes the probe. Remedy: {remedy()}")
     return "\n".join(out)

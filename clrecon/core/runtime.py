@@ -295,7 +295,7 @@ def get_runtime(device_spec: str | None = None) -> Runtime:
     local = getattr(_thread, "rt", None)
     if local is not None and device_spec is None:
         return local
-    key = (os.getpid(), device_spec or os.environ.get("CLRECON_DEVICE", ""))
+    key = (os.getpid(), device_spec or os.environ.get("CLRECON_DEVICE", ""), drivers.preferred())
     with _rt_lock:
         rt = _runtimes.get(key)
         if rt is None:

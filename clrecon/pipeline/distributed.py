@@ -30,6 +30,7 @@ import ssl
 from collections.abc import Iterator
 from typing import Any
 
+from clrecon.core import drivers
 from clrecon.core.errors import ClreconError
 from clrecon.pipeline import work_units
 
@@ -64,6 +65,22 @@ def runtime_plugin(device: str | None = None):
             worker.clrecon_device = work_units.prepare_worker(device)
 
     return ClreconRuntime()
+
+
+def preference_plugin(key: str, reason: str):
+    """A Dask worker plugin that makes CPU driver ``key`` each worker's preferred driver (:func:`clrecon.core.
+    drivers.prefer`): the run's timed choice (:mod:`clrecon.pipeline.driver_choice`), so that the units use the
+    driver the client chose and a run's outputs do not depend on where its units ran. Registered again by each
+    run (same name: it replaces the last run's)."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class ClreconDriverPreference(WorkerPlugin):
+        name = "clrecon-driver-preference"
+
+        def setup(self, worker):
+            drivers.prefer(key, reason)
+
+    return ClreconDriverPreference()
 
 
 #: The command line's certificate options, in the order of :func:`tls_security`'s arguments.

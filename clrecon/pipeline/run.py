@@ -24,12 +24,13 @@ from typing import Any
 
 from clrecon.config.scene import Scene
 from clrecon.core import machine_speed
+from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import get_runtime
-from clrecon.pipeline import executors
+from clrecon.pipeline import distributed, driver_choice, executors
 from clrecon.pipeline.context import RESULTS_FORMAT, TUNED, open_run, resolve_targets
 from clrecon.pipeline.graph import GRAPH
 from clrecon.pipeline.stages import results as results_mod
-from clrecon.reconstruction import interpolation
+from clrecon.reconstruction import interpolation, reconstruct
 
 __all__ = ["RESULTS_FORMAT", "TUNED", "reconstruct_methods", "resolve_targets", "run"]
 
@@ -55,8 +56,14 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     t_start = time.perf_counter()
     load_start = results_mod.load_average()
     out = Path(out_dir)  # made by the volume writer: a run refused before it leaves no folder behind
+    decision = _choose_driver(scene, methods, cardiac, resp, slice_range, pitches)
     rt = get_runtime()  # first: a machine with no working OpenCL driver gets its one line before any file
+    if decision is not None and decision.key and rt.choice.timing is None and decision.predicted:
+        rt.choice.timing = decision.as_dict()
+        log(f"OpenCL driver: {decision.key}, {decision.reason}")
     ex = executors.make(executor, client)
+    if client is not None and decision is not None and decision.key:  # the workers use the run's driver
+        client.register_plugin(distributed.preference_plugin(decision.key, decision.reason))
     ctx = open_run(scene, out, methods, cardiac, resp, slice_range, pitches, cache_dir, rt=rt,
                    executor_kind=ex.kind, distributed=ex.fine_units, force=force, report=report, progress=progress,
                    log=log)
@@ -69,6 +76,23 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     results = results_mod.finish(ctx, products[("results", None)], t_start, load_start)
     results_mod.write_json_atomic(out / "results.json", results)
     return results
+
+
+def _choose_driver(scene, methods, cardiac, resp, slice_range, pitches) -> driver_choice.Decision | None:
+    """The run's CPU driver, chosen by timing for its mix of kernel work and made this process's preference
+    (:mod:`clrecon.pipeline.driver_choice`); None with ``CLRECON_DEVICE`` or a request ``open_run`` refuses."""
+    try:
+        targets = resolve_targets(scene, cardiac, resp)
+        nz = scene.recon.nz
+        ok_range = slice_range is None or 0 <= slice_range[0] < slice_range[1] <= nz
+        slices_z = reconstruct.slice_positions(scene, slice_range if ok_range else None)
+    except ClreconError:
+        return None  # open_run says what is wrong, in its one line
+    known = [m for m in (methods or scene.recon.methods) if m in interpolation.METHODS]
+    decision = driver_choice.choose_for_run(scene, known or None, len(targets.cardiac), len(targets.resp),
+                                            slices_z, pitches)
+    driver_choice.apply(decision)
+    return decision
 
 
 def reconstruct_methods():
