@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import resource
 import sys
@@ -14,6 +15,25 @@ def peak_rss_bytes() -> int:
     """This process's peak resident set so far (bytes; ``ru_maxrss`` is KiB on Linux, bytes on macOS)."""
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return int(rss if sys.platform == "darwin" else rss * 1024)
+
+
+#: Binary units above bytes, for :func:`format_bytes`.
+BYTE_UNITS = ("KiB", "MiB", "GiB", "TiB", "PiB", "EiB")
+
+
+def format_bytes(n: float) -> str:
+    """``n`` bytes with the binary unit that shows it in 3 significant figures: ``0 B``, ``1000 B``,
+    ``1.50 KiB``, ``900 KiB``, ``64.0 GiB`` (1000-1023 of a unit keep their 4 digits: ``1023 KiB``)."""
+    v = float(n)
+    if not math.isfinite(v) or abs(v) < 1024:
+        return f"{v:.0f} B"
+    unit = BYTE_UNITS[0]
+    for unit in BYTE_UNITS:  # noqa: B007 - the unit the loop stops at is the one shown
+        v /= 1024
+        if abs(v) < 1024:
+            break
+    text = f"{v:.0f}" if abs(v) >= 999.5 else f"{v:#.3g}".rstrip(".")
+    return f"{text} {unit}"
 
 
 def folder_bytes(path) -> int:
