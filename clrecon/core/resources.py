@@ -62,20 +62,61 @@ def spawn_is_safe() -> bool:
 PARENT_CHECK_S = 0.5
 
 
-def _watch_parent(parent_pid: int) -> None:
+def _release_semaphores(names) -> None:
+    """Unlink the named semaphores ``names`` of a pool whose parent is gone and tell the resource tracker.
+
+    A spawned pool's queues hold named POSIX semaphores, registered with Python's resource tracker
+    (a process of its own). When the run is killed (kill -9, the OOM killer) nobody closes them: the
+    tracker unlinks them once the last worker has ended and prints "There appear to be N leaked
+    semaphore objects to clean up at shutdown", which was the terminal's last line after a kill. The
+    worker that unlinks a name first unregisters it (the others find it gone: a name unregistered
+    twice would make the tracker print a KeyError), so the tracker has nothing left to report."""
+    try:
+        from _multiprocessing import sem_unlink
+        from multiprocessing import resource_tracker
+    except ImportError:  # pragma: no cover - a platform without named semaphores
+        return
+    for name in names:
+        try:
+            sem_unlink(name)
+        except OSError:  # another worker was first, or the name was never made
+            continue
+        try:
+            resource_tracker.unregister(name, "semaphore")
+        except Exception:  # noqa: BLE001 - best effort on the way out; the tracker then unlinks nothing
+            pass
+
+
+def _watch_parent(parent_pid: int, semaphores=()) -> None:
     """Pool worker initializer: a daemon thread that ends this worker once its parent is gone.
 
     A worker blocks on its task queue and does not notice that the run which spawned it was
     killed (SIGKILL, or the OOM killer): it would live on, an orphan holding the run's stdout
     and stderr open, so that whatever waits for the run's output (a shell pipe, a batch
     system, a test) waited for ever. So each worker checks its parent's pid every
-    :data:`PARENT_CHECK_S` and exits when it has changed."""
+    :data:`PARENT_CHECK_S` and exits when it has changed, releasing the pool's named
+    ``semaphores`` first (:func:`_release_semaphores`)."""
     def watch():
         while os.getppid() == parent_pid:
             time.sleep(PARENT_CHECK_S)
+        _release_semaphores(semaphores)
         os._exit(0)
 
     threading.Thread(target=watch, name="clrecon-parent-watch", daemon=True).start()
+
+
+def pool_semaphore_names(pool) -> list[str]:
+    """The names of the named POSIX semaphores of ``pool``'s queues (a ``ProcessPoolExecutor`` of a
+    spawn context: its call queue's and result queue's locks), as the resource tracker knows them."""
+    from multiprocessing.synchronize import SemLock
+
+    names = []
+    for q in (getattr(pool, "_call_queue", None), getattr(pool, "_result_queue", None)):
+        for v in (vars(q).values() if q is not None else ()):
+            name = getattr(getattr(v, "_semlock", None), "name", None) if isinstance(v, SemLock) else None
+            if name:
+                names.append(name)
+    return names
 
 
 def spawned_pool(n: int):
@@ -84,13 +125,17 @@ def spawned_pool(n: int):
     Spawn, not fork: the caller holds OpenCL and HDF5 state and PoCL's threads. Used by the
     run's helper process (the plans made ahead, the metrics' second group, the figures);
     whether a child is safe to start at all is :func:`spawn_is_safe`'s question, asked by each
-    caller. Each worker ends itself when this process dies (:func:`_watch_parent`).
+    caller. Each worker ends itself when this process dies (:func:`_watch_parent`), and releases
+    the pool's named semaphores then, so that a kill -9 leaves none for the resource tracker.
     """
     try:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_watch_parent, initargs=(os.getpid(),))
+        names: list[str] = []  # filled below: the workers are spawned (and their arguments pickled) on submit
+        pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_watch_parent, initargs=(os.getpid(), names))
+        names.extend(pool_semaphore_names(pool))
+        return pool
     except (OSError, ValueError, ImportError):
         return None
