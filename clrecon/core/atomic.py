@@ -50,8 +50,11 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
-def write_bytes(path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` whole or not at all; returns ``path``."""
+def stage_bytes(path, data: bytes) -> Path:
+    """Write ``data`` whole under ``path``'s temporary name (:func:`partial_path`), flushed and
+    ``fsync``-ed, and leave it there for :func:`commit`: for a file that must not appear under its
+    name before another one is whole (a run's report before its ``results.json``). Returns the
+    temporary path; a failure on the way removes it."""
     path = Path(path)
     tmp = partial_path(path)
     try:
@@ -62,17 +65,42 @@ def write_bytes(path, data: bytes) -> Path:
             f.write(data[half:])
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def commit(path) -> Path:
+    """Rename the file :func:`stage_bytes` left for ``path`` onto ``path``; returns ``path``."""
+    path = Path(path)
+    os.replace(partial_path(path), path)
+    _fsync_dir(path.parent)
+    return path
+
+
+def discard(path) -> None:
+    """Remove what :func:`stage_bytes` left for ``path`` (nothing if there is none)."""
+    partial_path(Path(path)).unlink(missing_ok=True)
+
+
+def write_bytes(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` whole or not at all; returns ``path``."""
+    path = Path(path)
+    stage_bytes(path, data)
+    try:
+        os.replace(partial_path(path), path)
+    except BaseException:
+        discard(path)
         raise
     _fsync_dir(path.parent)
     return path
 
 
-def write_text(path, text: str) -> Path:
-    """:func:`write_bytes` of ``text`` in UTF-8."""
-    return write_bytes(path, text.encode("utf-8"))
+def write_text(path, text: str, staged: bool = False) -> Path:
+    """:func:`write_bytes` of ``text`` in UTF-8; ``staged``: :func:`stage_bytes` instead (returns the
+    temporary path, for :func:`commit`)."""
+    return (stage_bytes if staged else write_bytes)(path, text.encode("utf-8"))
 
 
 def write_json(path, obj: Any, **kw) -> Path:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import resource
 import sys
@@ -14,6 +15,25 @@ def peak_rss_bytes() -> int:
     """This process's peak resident set so far (bytes; ``ru_maxrss`` is KiB on Linux, bytes on macOS)."""
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return int(rss if sys.platform == "darwin" else rss * 1024)
+
+
+#: Binary units above bytes, for :func:`format_bytes`.
+BYTE_UNITS = ("KiB", "MiB", "GiB", "TiB", "PiB", "EiB")
+
+
+def format_bytes(n: float) -> str:
+    """``n`` bytes with the binary unit that shows it in 3 significant figures: ``0 B``, ``1000 B``,
+    ``1.50 KiB``, ``900 KiB``, ``64.0 GiB`` (1000-1023 of a unit keep their 4 digits: ``1023 KiB``)."""
+    v = float(n)
+    if not math.isfinite(v) or abs(v) < 1024:
+        return f"{v:.0f} B"
+    unit = BYTE_UNITS[0]
+    for unit in BYTE_UNITS:  # noqa: B007 - the unit the loop stops at is the one shown
+        v /= 1024
+        if abs(v) < 1024:
+            break
+    text = f"{v:.0f}" if abs(v) >= 999.5 else f"{v:#.3g}".rstrip(".")
+    return f"{text} {unit}"
 
 
 def folder_bytes(path) -> int:
@@ -42,20 +62,61 @@ def spawn_is_safe() -> bool:
 PARENT_CHECK_S = 0.5
 
 
-def _watch_parent(parent_pid: int) -> None:
+def _release_semaphores(names) -> None:
+    """Unlink the named semaphores ``names`` of a pool whose parent is gone and tell the resource tracker.
+
+    A spawned pool's queues hold named POSIX semaphores, registered with Python's resource tracker
+    (a process of its own). When the run is killed (kill -9, the OOM killer) nobody closes them: the
+    tracker unlinks them once the last worker has ended and prints "There appear to be N leaked
+    semaphore objects to clean up at shutdown", which was the terminal's last line after a kill. The
+    worker that unlinks a name first unregisters it (the others find it gone: a name unregistered
+    twice would make the tracker print a KeyError), so the tracker has nothing left to report."""
+    try:
+        from _multiprocessing import sem_unlink
+        from multiprocessing import resource_tracker
+    except ImportError:  # pragma: no cover - a platform without named semaphores
+        return
+    for name in names:
+        try:
+            sem_unlink(name)
+        except OSError:  # another worker was first, or the name was never made
+            continue
+        try:
+            resource_tracker.unregister(name, "semaphore")
+        except Exception:  # noqa: BLE001 - best effort on the way out; the tracker then unlinks nothing
+            pass
+
+
+def _watch_parent(parent_pid: int, semaphores=()) -> None:
     """Pool worker initializer: a daemon thread that ends this worker once its parent is gone.
 
     A worker blocks on its task queue and does not notice that the run which spawned it was
     killed (SIGKILL, or the OOM killer): it would live on, an orphan holding the run's stdout
     and stderr open, so that whatever waits for the run's output (a shell pipe, a batch
     system, a test) waited for ever. So each worker checks its parent's pid every
-    :data:`PARENT_CHECK_S` and exits when it has changed."""
+    :data:`PARENT_CHECK_S` and exits when it has changed, releasing the pool's named
+    ``semaphores`` first (:func:`_release_semaphores`)."""
     def watch():
         while os.getppid() == parent_pid:
             time.sleep(PARENT_CHECK_S)
+        _release_semaphores(semaphores)
         os._exit(0)
 
     threading.Thread(target=watch, name="clrecon-parent-watch", daemon=True).start()
+
+
+def pool_semaphore_names(pool) -> list[str]:
+    """The names of the named POSIX semaphores of ``pool``'s queues (a ``ProcessPoolExecutor`` of a
+    spawn context: its call queue's and result queue's locks), as the resource tracker knows them."""
+    from multiprocessing.synchronize import SemLock
+
+    names = []
+    for q in (getattr(pool, "_call_queue", None), getattr(pool, "_result_queue", None)):
+        for v in (vars(q).values() if q is not None else ()):
+            name = getattr(getattr(v, "_semlock", None), "name", None) if isinstance(v, SemLock) else None
+            if name:
+                names.append(name)
+    return names
 
 
 def spawned_pool(n: int):
@@ -64,13 +125,17 @@ def spawned_pool(n: int):
     Spawn, not fork: the caller holds OpenCL and HDF5 state and PoCL's threads. Used by the
     run's helper process (the plans made ahead, the metrics' second group, the figures);
     whether a child is safe to start at all is :func:`spawn_is_safe`'s question, asked by each
-    caller. Each worker ends itself when this process dies (:func:`_watch_parent`).
+    caller. Each worker ends itself when this process dies (:func:`_watch_parent`), and releases
+    the pool's named semaphores then, so that a kill -9 leaves none for the resource tracker.
     """
     try:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_watch_parent, initargs=(os.getpid(),))
+        names: list[str] = []  # filled below: the workers are spawned (and their arguments pickled) on submit
+        pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_watch_parent, initargs=(os.getpid(), names))
+        names.extend(pool_semaphore_names(pool))
+        return pool
     except (OSError, ValueError, ImportError):
         return None

@@ -275,9 +275,16 @@ def _driver_note(driver: dict | None) -> str:
     return text + (f"; passed over: {'; '.join(passed_over)}" if passed_over else "")
 
 
-def write_report(out_dir: Path, results: dict, pool=None) -> Path:
+#: The files of a run's report that :func:`write_report` stages and :func:`commit_report` renames.
+REPORT_FILES = ("report.md", "report.html")
+
+
+def write_report(out_dir: Path, results: dict, pool=None, staged: bool = False) -> Path:
     """``report.md`` and ``report.html`` of a run folder; ``pool``: a process pool for the
-    results-only figures (:func:`clrecon.outputs.figures.write_figures`)."""
+    results-only figures (:func:`clrecon.outputs.figures.write_figures`). Returns the path of
+    ``report.md``. ``staged``: both are left whole under their temporary names
+    (:func:`clrecon.core.atomic.stage_bytes`) until :func:`commit_report` (a run commits them once
+    its ``results.json`` is whole, so a report never appears beside a failed run's volumes)."""
     out_dir = Path(out_dir)
     s = results["scene"]
     lines = [f"# clrecon run: scene `{s['name']}`", "", s.get("description", ""), "",
@@ -336,6 +343,18 @@ def write_report(out_dir: Path, results: dict, pool=None) -> Path:
     lines += resources_markdown(results, out_dir)
     lines += figures.write_figures(out_dir, results, pool=pool)
     path = out_dir / "report.md"
-    atomic.write_text(path, "\n".join(lines) + "\n")
-    report_html.write_html(out_dir, lines, title=f"clrecon run: {s['name']}")
+    atomic.write_text(path, "\n".join(lines) + "\n", staged=staged)
+    report_html.write_html(out_dir, lines, title=f"clrecon run: {s['name']}", staged=staged)
     return path
+
+
+def commit_report(out_dir: Path) -> None:
+    """Put the report :func:`write_report` staged under its names (``report.md`` last)."""
+    for name in reversed(REPORT_FILES):
+        atomic.commit(Path(out_dir) / name)
+
+
+def discard_report(out_dir: Path) -> None:
+    """Remove a report :func:`write_report` staged and did not commit (a run that failed after it)."""
+    for name in REPORT_FILES:
+        atomic.discard(Path(out_dir) / name)

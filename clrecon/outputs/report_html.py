@@ -77,9 +77,10 @@ def markdown_to_html(lines: list[str], base: Path, title: str = "clrecon report"
     return "\n".join(out) + "\n"
 
 
-def write_html(out_dir, lines: list[str], title: str = "clrecon report") -> Path:
-    """Write ``out_dir/report.html`` from the report's markdown lines, figures inline."""
+def write_html(out_dir, lines: list[str], title: str = "clrecon report", staged: bool = False) -> Path:
+    """Write ``out_dir/report.html`` from the report's markdown lines, figures inline; ``staged``:
+    under its temporary name, for :func:`clrecon.core.atomic.commit` (returns the final name)."""
     out_dir = Path(out_dir)
     path = out_dir / "report.html"
-    atomic.write_text(path, markdown_to_html(lines, out_dir, title))
+    atomic.write_text(path, markdown_to_html(lines, out_dir, title), staged=staged)
     return path

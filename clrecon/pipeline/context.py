@@ -31,6 +31,7 @@ from clrecon.reconstruction import interpolation, reconstruct
 from clrecon.reconstruction.config import MotionCompensationConfig
 from clrecon.reconstruction.motion import registration
 from clrecon.reconstruction.reconstruct import Targets
+from clrecon.scan import dicom_ct_pd
 from clrecon.simulation.store import default_cache_dir
 
 RESULTS_FORMAT = 1
@@ -174,6 +175,9 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
                      writer=writer, rt=rt, need=need, force=force, **opts)
     if writer.resumed:
         run.log("resuming an interrupted run: finished slices and targets are kept")
+    if scene.measured:  # a DICOMDIR beside the projections (normal on media): one note each
+        for name, why in dicom_ct_pd.series_index(scene.scan.projections).skipped:
+            run.log(f"note: scan.projections: {name} skipped: {why}")
     for key in ("sim_info", "diagnostics", "sampling", "recorded_signals", "method_seconds", "method_plan_seconds",
                 "truth_free", "consistency", "metrics", "respiratory_only", "motion"):
         run.records[key] = {}

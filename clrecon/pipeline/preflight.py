@@ -30,11 +30,9 @@ import shutil
 from pathlib import Path
 
 from clrecon.core.errors import ClreconError
-from clrecon.core.resources import folder_bytes, peak_rss_bytes
+from clrecon.core.resources import folder_bytes, format_bytes, peak_rss_bytes
 from clrecon.core.runtime import get_runtime
 from clrecon.pipeline.costs import disk_model
-
-GiB = 1024 ** 3
 
 
 def free_disk_bytes(path: Path) -> int:
@@ -77,10 +75,6 @@ def _left_by_interrupted_run(out_dir: Path) -> int:
     return total
 
 
-def _gib(b: float) -> str:
-    return f"{b / GiB:.2f} GiB" if b < 1000 * GiB else f"{b / GiB:,.0f} GiB"
-
-
 def needs(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
     """Bytes this run needs: ``memory``, ``cache_disk``, ``out_disk``."""
     import h5py
@@ -109,8 +103,9 @@ def check_device(costs: dict, max_alloc_bytes: int, device: str = "the OpenCL de
     (:func:`clrecon.pipeline.costs.device_buffers`) is above the device's largest allocation."""
     for what, b in sorted(costs.get("device_buffers", {}).items(), key=lambda kv: -kv[1]):
         if b > max_alloc_bytes:
-            raise ClreconError(f"pre-flight: {what} need one device buffer of {_gib(b)}, above the largest "
-                               f"allocation of {device} ({_gib(max_alloc_bytes)}, CL_DEVICE_MAX_MEM_ALLOC_SIZE); "
+            raise ClreconError(f"pre-flight: {what} need one device buffer of {format_bytes(b)}, above the "
+                               f"largest allocation of {device} ({format_bytes(max_alloc_bytes)}, "
+                               f"CL_DEVICE_MAX_MEM_ALLOC_SIZE); "
                                f"use a smaller recon.nx/ny, fewer detector columns or views, or a device with a "
                                f"larger allocation limit (CLRECON_DEVICE)")
 
@@ -127,14 +122,15 @@ def check(scene, costs: dict, cache_dir: Path, out_dir: Path, rt=None) -> dict:
     force = "pass --force (clrecon run) or force=True (clrecon.api.run) to run anyway"
     mem = available_memory_bytes()
     if need["memory"] > mem:
-        raise ClreconError(f"pre-flight: the run needs about {_gib(need['memory'])} of memory (modelled peak), "
-                           f"the machine has {_gib(mem)} available; narrow --slices/--targets/--methods or {force}")
+        raise ClreconError(f"pre-flight: the run needs about {format_bytes(need['memory'])} of memory (modelled "
+                           f"peak), the machine has {format_bytes(mem)} available; narrow --slices/--targets/--methods "
+                           f"or {force}")
     disks = [("the projection store", cache_dir, need["cache_disk"]), ("the run directory", out_dir, need["out_disk"])]
     if _device(cache_dir) == _device(out_dir):
         disks = [(f"the projection store and the run directory ({cache_dir})", out_dir, need["disk_peak"])]
     for what, path, b in disks:
         free = free_disk_bytes(path)
         if b > free:
-            raise ClreconError(f"pre-flight: {what} needs about {_gib(b)} of disk, {path} has {_gib(free)} free; "
-                               f"free some space, narrow the run or {force}")
+            raise ClreconError(f"pre-flight: {what} needs about {format_bytes(b)} of disk, {path} has "
+                               f"{format_bytes(free)} free; free some space, narrow the run or {force}")
     return need

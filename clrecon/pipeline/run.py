@@ -6,7 +6,9 @@ machine's cores) or ``dask``); whichever runs it, the volumes and numbers are th
 for bit. The run directory holds ``results.json`` (schema: docs/run-directory.md "results.json"),
 ``volumes.h5`` (:mod:`clrecon.outputs.volumes`) and ``report.md`` with its figures. Outputs
 are written under temporary names and renamed when complete, so an interrupted run never
-leaves files that look finished; the next run of the same request resumes it.
+leaves files that look finished (``report.md``/``report.html`` are renamed last, once
+``results.json`` is whole: a run that fails at ``results.json`` leaves no report); the next run
+of the same request resumes it.
 
 Only what the scene and the request ask for is computed: no noise stage without noise, no
 cardiac axis without cardiac motion, no respiratory axis without breathing, only the
@@ -26,6 +28,7 @@ from clrecon.config.scene import Scene
 from clrecon.core import machine_speed
 from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import get_runtime
+from clrecon.outputs import report as report_mod
 from clrecon.pipeline import distributed, driver_choice, executors
 from clrecon.pipeline.context import RESULTS_FORMAT, TUNED, open_run, resolve_targets
 from clrecon.pipeline.graph import GRAPH
@@ -72,9 +75,16 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         products = ex.run(GRAPH, ctx)
     except BaseException:
         ctx.writer.abort()
+        report_mod.discard_report(out)  # a report staged for this run must not outlive its failure
         raise
-    results = results_mod.finish(ctx, products[("results", None)], t_start, load_start)
-    results_mod.write_json_atomic(out / "results.json", results)
+    try:
+        results = results_mod.finish(ctx, products[("results", None)], t_start, load_start)
+        results_mod.write_json_atomic(out / "results.json", results)
+    except BaseException:  # a full disk at results.json: no report that reads as a finished run
+        report_mod.discard_report(out)
+        raise
+    if products.get(("report", None)) is not None:  # the report appears once results.json is whole
+        report_mod.commit_report(out)
     return results
 
 

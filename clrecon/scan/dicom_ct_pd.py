@@ -164,7 +164,9 @@ class SeriesIndex:
 
     files (n,) paths; per view (n,) arrays: instance, phi_rad, z_mm, rho_mm, dphi_rad, dz_mm,
     drho_mm, timestamp (nan where absent), slope, intercept; ``const``: the CONSTANT tags'
-    values (equal in every file); ``photons``: PhotonStatistics of the first file or None.
+    values (equal in every file); ``photons``: PhotonStatistics of the first file or None;
+    ``skipped``: ``(file name, why)`` of the folder's files that are no projection and are
+    skipped (a DICOMDIR: :func:`is_dicomdir_name`, :data:`DICOMDIR_SOP_CLASS`).
     """
 
     folder: str
@@ -182,18 +184,32 @@ class SeriesIndex:
     const: dict
     photons: object
     rescale_in_files: bool = True
+    skipped: tuple = ()
 
     def __len__(self) -> int:
         return len(self.files)
 
 
+#: Media Storage SOP Class of a DICOMDIR (Media Storage Directory Storage), in its file meta.
+DICOMDIR_SOP_CLASS = "1.2.840.10008.1.3.10"
+#: Why a DICOMDIR is skipped (the note a run prints, ``SeriesIndex.skipped``).
+DICOMDIR_NOTE = ("a DICOMDIR (the media's directory of its files, Media Storage SOP Class "
+                 f"{DICOMDIR_SOP_CLASS}), not a projection")
+
+
+def is_dicomdir_name(p: Path) -> bool:
+    """Whether ``p`` is named as a DICOMDIR is on media (``DICOMDIR``, any case)."""
+    return Path(p).name.upper() == "DICOMDIR"
+
+
 def series_files(folder) -> list[Path]:
-    """The files of a series folder (every regular file not starting with '.'), sorted by name."""
+    """The files of a series folder (every regular file not starting with '.', but a file named
+    DICOMDIR), sorted by name."""
     d = Path(folder)
     if not d.is_dir():
         raise InputError(f"{d}: scan.projections is not a folder of DICOM-CT-PD files")
     files = sorted(p for p in d.iterdir() if p.is_file() and not p.name.startswith(".")
-                   and p.suffix.lower() in (".dcm", ".ima", ""))
+                   and p.suffix.lower() in (".dcm", ".ima", "") and not is_dicomdir_name(p))
     if not files:
         raise InputError(f"{d}: no projection files (*.dcm) in the folder")
     return files
@@ -241,6 +257,8 @@ def _check_value(p: Path, name: str, v) -> None:
 
 
 def _read_header(p: Path, pydicom, photons: bool = False):
+    """The tags of projection file ``p`` (one-line InputError on a bad one); None for a DICOMDIR
+    (by its file meta's Media Storage SOP Class: one renamed)."""
     try:
         ds = pydicom.dcmread(p, stop_before_pixels=True)
     except Exception as e:  # noqa: BLE001 - pydicom raises InvalidDicomError, EOFError, struct.error, ...
@@ -250,6 +268,9 @@ def _read_header(p: Path, pydicom, photons: bool = False):
                              f"({type(e).__name__}); expected a whole DICOM-CT-PD file") from None
         raise InputError(f"{p}: not a DICOM file ({type(e).__name__}, {size} bytes); expected one DICOM-CT-PD "
                          f"projection per file") from None
+    meta = getattr(ds, "file_meta", None)
+    if meta is not None and str(meta.get("MediaStorageSOPClassUID", "")) == DICOMDIR_SOP_CLASS:
+        return None
     out = {}
     try:
         # raw elements, decoded here: 3x faster than pydicom's per-element conversion, and the same
@@ -293,8 +314,17 @@ def _index_cached(folder: str, signature: str) -> SeriesIndex:
     except ImportError:  # pragma: no cover - an install without the extra
         raise InputError(f"{folder}: reading DICOM-CT-PD needs pydicom: pip install 'clrecon[measured]'") from None
 
-    files = series_files(folder)
-    heads = [_read_header(p, pydicom, photons=(i == 0)) for i, p in enumerate(files)]
+    skipped = [(p.name, DICOMDIR_NOTE) for p in sorted(Path(folder).iterdir()) if p.is_file() and is_dicomdir_name(p)]
+    files, heads = [], []
+    for p in series_files(folder):
+        h = _read_header(p, pydicom, photons=not heads)
+        if h is None:  # a DICOMDIR under another name
+            skipped.append((p.name, DICOMDIR_NOTE))
+            continue
+        files.append(p)
+        heads.append(h)
+    if not heads:
+        raise InputError(f"{folder}: no projection files in the folder (only a DICOMDIR)")
     first = heads[0]
     for p, h in zip(files[1:], heads[1:], strict=True):
         for name in SAME_SERIES:  # a file of another series (or study, or frame of reference) in the folder
@@ -342,7 +372,7 @@ def _index_cached(folder: str, signature: str) -> SeriesIndex:
                        slope=col("RescaleSlope", 1.0), intercept=col("RescaleIntercept", 0.0),
                        const={n: first[n] for n in CONSTANT}, photons=first["PhotonStatistics"],
                        rescale_in_files=all(h["RescaleSlope"] is not None and h["RescaleIntercept"] is not None
-                                            for h in heads))
+                                            for h in heads), skipped=tuple(skipped))
 
 
 def series_index(folder) -> SeriesIndex:

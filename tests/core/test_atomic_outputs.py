@@ -114,11 +114,34 @@ def test_a_report_file_that_hits_a_full_disk_is_absent_and_the_rerun_completes(t
     assert err.startswith("clrecon: error: disk full") and err.count("\n") == 1, err
     assert not (out / name).exists() and not _partials(out)
     assert not (out / "results.json").exists()  # nothing says the run is finished
+    assert not (out / "report.md").exists() and not (out / "report.html").exists()
     fresh_faults.delenv("CLRECON_FAULT")
     faults._counts.clear()
     assert main(_argv(out, cache)) == 0
     jsonio.loads_strictly((out / "results.json").read_text())
     assert (out / name).stat().st_size > 0 and not _partials(out)
+
+
+def test_a_full_disk_at_results_json_leaves_no_report_that_reads_as_finished(tmp_path, monkeypatch, capsys):
+    """results.json hits a full disk (as at 900-1700 KiB free): the run exits 2 and leaves no report.md or
+    report.html (it left a complete report, full metric tables, beside volumes.h5 and no results.json);
+    the rerun writes all three."""
+    from clrecon.pipeline.stages import results as results_mod
+
+    def full(path, obj):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(results_mod, "_write_json_atomic", full)
+    out, cache = tmp_path / "run", tmp_path / "cache"
+    assert main(_argv(out, cache)) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("clrecon: error: disk full") and err.count("\n") == 1, err
+    assert (out / "volumes.h5").exists() and not (out / "results.json").exists()
+    assert not (out / "report.md").exists() and not (out / "report.html").exists() and not _partials(out)
+    monkeypatch.undo()
+    assert main(_argv(out, cache)) == 0
+    jsonio.loads_strictly((out / "results.json").read_text())
+    assert "## Stages" in (out / "report.md").read_text() and (out / "report.html").exists() and not _partials(out)
 
 
 def test_kill_mid_write_leaves_only_a_partial_file(tmp_path):
@@ -131,6 +154,7 @@ def test_kill_mid_write_leaves_only_a_partial_file(tmp_path):
     p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert p.returncode == -9, p.stderr
     assert not (out / "results.json").exists() and (out / "results.json.partial").exists()
+    assert not (out / "report.md").exists() and not (out / "report.html").exists()  # no report without results
     env.pop("CLRECON_FAULT")
     p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert p.returncode == 0, p.stderr

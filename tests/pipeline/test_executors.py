@@ -176,7 +176,8 @@ def test_cli_executor_and_workers_conflict(tmp_path, capsys):
 def test_a_killed_run_leaves_no_helper_behind(tmp_path):
     """kill -9 of a run while its helper lives (under ``python -m clrecon`` on >= 2 cores the local
     executor starts one): the helper notices that its parent is gone and ends
-    (core.resources._watch_parent), so the run's stdout and stderr close at once."""
+    (core.resources._watch_parent), so the run's stdout and stderr close at once, and releases the pool's
+    named semaphores: no "leaked semaphore objects" warning from the resource tracker on stderr."""
     env = dict(os.environ, CLRECON_NO_PROGRESS="1", CLRECON_FAULT="recon:5")
     cmd = [sys.executable, "-m", "clrecon", "run", "--scene", "tiny", "--out", str(tmp_path / "out"),
            "--cache", str(tmp_path / "cache"), "--no-progress", "--pitch", "0.1,0.2", "--executor", "local"]
@@ -184,7 +185,8 @@ def test_a_killed_run_leaves_no_helper_behind(tmp_path):
     try:
         proc.wait(timeout=600)
         assert proc.returncode == -signal.SIGKILL
-        proc.communicate(timeout=30)  # EOF on both pipes: no process holds them any more
+        _, err = proc.communicate(timeout=30)  # EOF on both pipes: no process holds them any more
+        assert "leaked semaphore" not in err, err
     finally:
         if proc.poll() is None:
             proc.kill()

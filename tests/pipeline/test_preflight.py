@@ -1,5 +1,7 @@
 """Pre-flight: the run's modelled memory and disk need against the machine, before any work."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -7,6 +9,7 @@ from clrecon import api
 from clrecon.cli import main
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import ClreconError
+from clrecon.core.resources import format_bytes
 from clrecon.pipeline import preflight
 from clrecon.pipeline.costs import PROJECTION_RATIO, VOLUME_RATIO, disk_model, run_costs, scene_costs
 from clrecon.pipeline.run import run
@@ -33,7 +36,7 @@ def test_huge_volume_is_a_one_line_error_not_a_memory_error(tmp_path, roomy, cap
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1, err
     assert err.startswith("clrecon: error: pre-flight:") and "of memory" in err
-    assert "64.00 GiB available" in err and "--force" in err and "force=True" in err
+    assert "64.0 GiB available" in err and "--force" in err and "force=True" in err
     assert not (tmp_path / "run" / "volumes.h5.units").exists()   # nothing was started
 
 
@@ -48,14 +51,24 @@ def test_not_enough_memory_then_force(tmp_path, monkeypatch):
 
 
 def test_not_enough_disk_names_both_numbers(tmp_path, monkeypatch, capsys):
+    """At KiB-MiB sizes both numbers show (the issue's "needs about 0.00 GiB ... has 0.00 GiB free")."""
     monkeypatch.setattr(preflight, "available_memory_bytes", lambda: 64 * GiB)
-    monkeypatch.setattr(preflight, "free_disk_bytes", lambda path: 1000)
+    monkeypatch.setattr(preflight, "free_disk_bytes", lambda path: 900 * 1024)
     argv = ["run", "--scene", "tiny", "--methods", "nearest", "--out", str(tmp_path / "run"),
             "--cache", str(tmp_path / "c"), "--no-progress"]
     assert main(argv) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "of disk" in err and "0.00 GiB free" in err and "--force" in err
+    assert err.count("\n") == 1 and "of disk" in err and "has 900 KiB free" in err and "--force" in err
+    need = re.search(r"needs about ([0-9.]+) (KiB|MiB) of disk", err)
+    assert need and float(need.group(1)) > 0, err
     assert main(argv + ["--force"]) == 0
+
+
+@pytest.mark.parametrize("n, text", [(0, "0 B"), (1000, "1000 B"), (1536, "1.50 KiB"), (900 * 1024, "900 KiB"),
+                                     (1023.9 * 1024, "1024 KiB"), (9.996 * 1024 ** 2, "10.0 MiB"),
+                                     (64 * GiB, "64.0 GiB"), (123.4 * GiB, "123 GiB"), (146 * 1024 ** 5, "146 PiB")])
+def test_bytes_show_three_significant_figures(n, text):
+    assert format_bytes(n) == text
 
 
 def test_separate_file_systems_are_checked_separately(tmp_path, monkeypatch):

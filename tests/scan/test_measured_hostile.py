@@ -151,3 +151,51 @@ def test_hostile_series_is_refused_in_one_line(series, tmp_path, case, capsys):
 
     assert re.search(pattern, err), err
     assert not (tmp_path / "run" / "results.json").exists()
+
+
+def _dicomdir(path: Path) -> None:
+    """An empty DICOMDIR (Media Storage Directory Storage), as removable media carry beside their files."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = "1.2.840.10008.1.3.10"
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.FileSetID = "CLRECON"
+    ds.OffsetOfTheFirstDirectoryRecordOfTheRootDirectoryEntity = 0
+    ds.OffsetOfTheLastDirectoryRecordOfTheRootDirectoryEntity = 0
+    ds.FileSetConsistencyFlag = 0
+    ds.DirectoryRecordSequence = []
+    pydicom.dcmwrite(path, ds, enforce_file_format=True)
+
+
+def test_a_dicomdir_beside_the_files_is_skipped_by_name(series, tmp_path, capsys):
+    """A DICOMDIR in the projections folder (normal on media) is a whole DICOMDIR, not a truncated
+    projection (it was called "truncated: the file ends after 384 bytes"): the run skips it with one note."""
+    exp = tmp_path / "exp"
+    shutil.copytree(series, exp)
+    _dicomdir(exp / "projections" / "DICOMDIR")
+    code = main(["run", "--scene", str(exp / "measured.toml"), "--methods", "nearest", "--out", str(tmp_path / "run"),
+                 "--cache", str(tmp_path / "cache"), "--no-progress"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    notes = [ln for ln in (out + err).splitlines() if "DICOMDIR" in ln]
+    assert len(notes) == 1 and "skipped" in notes[0] and "truncated" not in notes[0], notes
+    assert (tmp_path / "run" / "results.json").exists()
+
+
+def test_a_dicomdir_under_another_name_is_known_by_its_file_meta(series, tmp_path):
+    """A DICOMDIR renamed (here 'index.dcm') is known by its Media Storage SOP Class (1.2.840.10008.1.3.10)
+    and skipped by name; the series reads as without it."""
+    from clrecon.scan import dicom_ct_pd
+
+    exp = tmp_path / "exp"
+    shutil.copytree(series, exp)
+    _dicomdir(exp / "projections" / "index.dcm")
+    ix = dicom_ct_pd.series_index(exp / "projections")
+    ref = dicom_ct_pd.series_index(series / "projections")
+    assert len(ix) == len(ref) and [Path(f).name for f in ix.files] == [Path(f).name for f in ref.files]
+    assert [name for name, _ in ix.skipped] == ["index.dcm"] and "DICOMDIR" in ix.skipped[0][1]

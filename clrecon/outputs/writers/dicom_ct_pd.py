@@ -9,7 +9,8 @@
   ``docs/measured-conventions.md``): DICOM Rows = detector channels (the TCIA layout), the channel index
   towards decreasing phi0, row 1 at the +z0 end, the DetectorCentralElement reflected with them,
   with the DICOM-CT-PD private tags of :data:`clrecon.scan.dicom_ct_pd.TAGS`, the water coefficient
-  and the patient position, and every attribute the CT Image IOD asks for (dciodvfy: no error);
+  and the patient position, and every attribute the CT Image IOD asks for (dciodvfy: no error; ImageType
+  DERIVED\\SECONDARY, a measured run's re-export too);
 - ``DIR/breathing.vxp``: the breathing trace (RPM 1.6 layout, 200 samples/s, the model's raw
   amplitude r(t) in cm with Scale_factor 10, ttlin = 1 while the beam is on) when the scene breathes;
 - ``DIR/r_peaks.csv``: the R-peak times (``r_peak_s``) when the heart beats;
@@ -226,7 +227,9 @@ def projection_dataset(scene: Scene, table, k: int, stored: np.ndarray, slope: f
     ds.SeriesNumber = 1
     ds.AcquisitionNumber = 1
     ds.SeriesDescription = description[:64]
-    ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL"] if scene.measured else ["DERIVED", "SECONDARY", "AXIAL"]
+    # derived data, a measured run's re-export too (its projections re-quantised, its private groups rewritten):
+    # ORIGINAL with RescaleType LINE_INTEGRAL is invalid (the CT Image IOD wants HU there; dciodvfy: an error)
+    ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"]
     ds.ImageComments = "DICOM-CT-PD projection (CT_PROJECTION): geometry in the private groups 7029-7041"
     ds.InstanceNumber = k + 1
     ds.PatientPosition = scene.scan.patient_position or "HFS"
