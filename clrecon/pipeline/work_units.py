@@ -31,11 +31,11 @@ import numpy as np
 
 from clrecon.core import faults
 from clrecon.core.runtime import get_runtime
+from clrecon.core.stage_times import StageTimes
 from clrecon.evaluation import groundtruth
 from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion.model import FieldGrid, MotionModel
-from clrecon.reconstruction.reconstruct import StageTimes
 from clrecon.scan.table import projection_table, usable_table
 from clrecon.simulation.projector import project
 from clrecon.simulation.store import ProjectionStore

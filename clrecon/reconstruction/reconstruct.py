@@ -29,6 +29,7 @@ from clrecon.core.conventions import voxel_coords
 from clrecon.core.detector import spot_shift_in_frame
 from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import aligned_empty, get_runtime
+from clrecon.core.stage_times import StageTimes
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction import interpolation, parallel_fbp, rebin
 from clrecon.reconstruction.interpolation import weights as interpolate
@@ -268,20 +269,6 @@ def _cardiac_bin_width(targets: Targets) -> float:
         return 0.2
     gaps = np.diff(np.concatenate([c, [c[0] + 1.0]]))
     return float(np.min(gaps))
-
-
-@dataclass
-class StageTimes:
-    """Seconds per stage (``add``) and work counts (``count``: e.g. detector cells read, noise cells)."""
-
-    seconds: dict = field(default_factory=dict)
-    counts: dict = field(default_factory=dict)
-
-    def add(self, name: str, dt: float) -> None:
-        self.seconds[name] = self.seconds.get(name, 0.0) + dt
-
-    def count(self, name: str, n) -> None:
-        self.counts[name] = self.counts.get(name, 0) + int(n)
 
 
 def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-free",), rt=None,

@@ -26,7 +26,7 @@ from typing import Any
 
 from clrecon.core import write_behind
 from clrecon.core.progress import progress as progress_counter
-from clrecon.reconstruction.reconstruct import StageTimes
+from clrecon.core.stage_times import StageTimes
 
 
 class StageClock:
