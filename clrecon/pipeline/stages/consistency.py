@@ -1,11 +1,12 @@
 """Stage ``consistency`` (per pitch, with the ``mc`` method): did ``mc`` help? A truth-free check.
 
-After ``mc_reconstruct``, every 5D method's volumes of the sampled slices are read back from the
-writer's unit files and projected at the states of the sampled rows; the RMS residual of the
-rows against those predictions (:func:`clrecon.evaluation.consistency.check`) is compared
-between ``mc`` and its first pass, barycentric, per noise variant (docs/motion-model.md "Did it
-help? A truth-free check"). Methods on other target grids (r4DCT, helical) are left out with
-the reason. ``results.json["consistency"][pitch]``, a report section and a log line per variant.
+After ``mc_reconstruct`` (``after``: its units are on disk), every 5D method's volumes of the
+sampled slices are read back from the writer's unit files and projected at the states of the
+sampled rows; the RMS residual of the rows against those predictions
+(:func:`clrecon.evaluation.consistency.check`) is compared between ``mc`` and its first pass,
+barycentric, per noise variant (docs/motion-model.md "Did it help? A truth-free check"). Methods
+on other target grids (r4DCT, helical) are left out with the reason.
+``results.json["consistency"][pitch]``, a report section and a log line per variant.
 A run without ``mc`` skips it; the projections it reads are added to the plan's (plan stage).
 """
 
@@ -37,7 +38,7 @@ def checked_methods(methods) -> tuple[tuple, dict]:
     return tuple(keep), left
 
 
-def stage(run, pitch: float, plan, store, mc):
+def stage(run, pitch: float, plan, store):
     pk = pitch_key(pitch)
     rec = run.records["consistency"]
     if plan.pp is None:

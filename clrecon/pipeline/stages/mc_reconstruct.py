@@ -260,8 +260,7 @@ class _Pitch:
             info["warning"] = warning
         if not run.scene.measured:
             t0 = time.perf_counter()
-            info["error_against_phantom_motion"] = registration_error(run.scene, model, self.pairs,
-                                                                      run.extra.setdefault("mc_truth", {}))
+            info["error_against_phantom_motion"] = registration_error(run.scene, model, self.pairs, run.mc_truth)
             info["error_seconds"] = round(time.perf_counter() - t0, 3)
         _save_model(run, self.pk, variant, model, info)
         clock.add("registration", time.perf_counter() - t_start)
@@ -305,7 +304,7 @@ def _slab_unit(ctx: _Pitch, k: int, variant: str, model: MotionModel) -> Unit:
                 f"mc slab of slices {a}..{b - 1} ({variant}) at pitch {ctx.pitch:g}")
 
 
-def stage(run, pitch: float, plan, store, recon):
+def stage(run, pitch: float, plan, store):
     pk = pitch_key(pitch)
     for v in run.variants:
         run.writer.create(f"recon/{pk}/{v}/{NAME}", run.full_shape, len(run.slices_z))

@@ -51,7 +51,7 @@ def planned_methods(methods) -> tuple:
 def todo(run, pitch: float) -> tuple[tuple, np.ndarray]:
     """(methods with an unfinished unit, slice indices one of them lacks); declares the pitch's datasets."""
     pk = pitch_key(pitch)
-    got = run.extra.setdefault("todo", {})
+    got = run.unfinished
     if pk not in got:
         slabs_mod.declare_recon(run.writer, pk, run.methods, run.variants, run.full_shape, len(run.slices_z))
         got[pk] = slabs_mod.unfinished(run.writer, pk, run.variants, run.methods)
