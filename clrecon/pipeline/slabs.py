@@ -15,7 +15,7 @@ import numpy as np
 
 from clrecon.core.progress import progress as progress_counter
 from clrecon.evaluation.truth_cache import TruthCache
-from clrecon.outputs.volumes import VolumeWriter
+from clrecon.outputs.volumes import VolumeWriter, recon_path
 from clrecon.reconstruction import interpolation, rebin, reconstruct
 from clrecon.reconstruction.diagnostics import combine as combine_diagnostics
 from clrecon.reconstruction.diagnostics import weight_diagnostics
@@ -31,7 +31,7 @@ def declare_recon(writer: VolumeWriter, pk: str, methods, variants, full_shape: 
     for m in methods:
         bc = BROADCAST.get(interpolation.METHODS[m].target_grid, ())
         for v in variants:
-            writer.create(f"recon/{pk}/{v}/{m}", full_shape, n_slices, broadcast=bc)
+            writer.create(recon_path(pk, v, m), full_shape, n_slices, broadcast=bc)
 
 
 def unfinished(writer: VolumeWriter, pk: str, variants, methods) -> tuple[tuple, np.ndarray]:
@@ -40,9 +40,9 @@ def unfinished(writer: VolumeWriter, pk: str, variants, methods) -> tuple[tuple,
     A resumed run redoes only the units (slab x variant x method) not yet written: the methods
     with an unfinished unit, on the slices one of them lacks.
     """
-    run_methods = tuple(m for m in methods if not all(writer.done(f"recon/{pk}/{v}/{m}").all() for v in variants))
+    run_methods = tuple(m for m in methods if not all(writer.done(recon_path(pk, v, m)).all() for v in variants))
     todo = np.flatnonzero(~np.logical_and.reduce(
-        [writer.done(f"recon/{pk}/{v}/{m}") for v in variants for m in run_methods] or [True]))
+        [writer.done(recon_path(pk, v, m)) for v in variants for m in run_methods] or [True]))
     return run_methods, todo
 
 

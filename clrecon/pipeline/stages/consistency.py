@@ -13,7 +13,7 @@ A run without ``mc`` skips it; the projections it reads are added to the plan's 
 from __future__ import annotations
 
 from clrecon.evaluation import consistency
-from clrecon.outputs.volumes import pitch_key
+from clrecon.outputs.volumes import pitch_key, recon_path
 from clrecon.pipeline.executors.base import Idle
 from clrecon.reconstruction import interpolation
 
@@ -50,7 +50,7 @@ def stage(run, pitch: float, plan, store):
     run.log(f"[{pk}] consistency: residual of the rows against {', '.join(methods)}")
 
     def volumes(variant, method, slices):
-        return run.writer.read(f"recon/{pk}/{variant}/{method}", slices)
+        return run.writer.read(recon_path(pk, variant, method), slices)
 
     res = consistency.check(store, plan.pp.plan_table, run.slices_z, run.recon_cfg, run.targets, run.variants,
                             tuple(run.scene.recon.small_fov_mm), volumes, methods, rt=run.rt)

@@ -27,7 +27,7 @@ from clrecon.core.errors import ClreconError
 from clrecon.core.progress import progress as progress_counter
 from clrecon.core.resources import spawn_is_safe, spawned_pool
 from clrecon.evaluation.motion_model import registration_error
-from clrecon.outputs.volumes import pitch_key
+from clrecon.outputs.volumes import pitch_key, recon_path
 from clrecon.pipeline import work_units
 from clrecon.pipeline.executors.base import Idle, Unit, Work
 from clrecon.reconstruction import interpolation, rebin, reconstruct
@@ -221,7 +221,7 @@ class _Pitch:
         t_start = time.perf_counter()
         nc, nr = self.shape
         grid = mcm.field_grid(self.coarse, run.slices_z)
-        first = mcm.downsample(run.writer.read(f"recon/{self.pk}/{variant}/barycentric"), self.f)
+        first = mcm.downsample(run.writer.read(recon_path(self.pk, variant, "barycentric")), self.f)
         first = np.broadcast_to(first, (nc, nr) + first.shape[2:])
         warning = thin_warning(self.pk, run.slices_z)
         if warning:
@@ -307,8 +307,8 @@ def _slab_unit(ctx: _Pitch, k: int, variant: str, model: MotionModel) -> Unit:
 def stage(run, pitch: float, plan, store):
     pk = pitch_key(pitch)
     for v in run.variants:
-        run.writer.create(f"recon/{pk}/{v}/{NAME}", run.full_shape, len(run.slices_z))
-    todo = {v: np.flatnonzero(~run.writer.done(f"recon/{pk}/{v}/{NAME}")) for v in run.variants}
+        run.writer.create(recon_path(pk, v, NAME), run.full_shape, len(run.slices_z))
+    todo = {v: np.flatnonzero(~run.writer.done(recon_path(pk, v, NAME))) for v in run.variants}
     if not any(t.size for t in todo.values()):
         return Idle(pk)
     if store is None or isinstance(store, Idle):
@@ -321,11 +321,11 @@ def stage(run, pitch: float, plan, store):
     finally:
         ctx.close()
     units_ = [_slab_unit(ctx, k, v, models[v]) for v in run.variants if todo[v].size
-              for k, (a, b) in enumerate(ctx.slabs) if (~run.writer.done(f"recon/{pk}/{v}/{NAME}")[a:b]).any()]
+              for k, (a, b) in enumerate(ctx.slabs) if (~run.writer.done(recon_path(pk, v, NAME))[a:b]).any()]
 
     def write(piece) -> None:
         z, v, vol = piece
-        run.writer.write(f"recon/{pk}/{v}/{NAME}", vol, z)
+        run.writer.write(recon_path(pk, v, NAME), vol, z)
 
     def finish(times):
         per = run.records["method_seconds"].setdefault(pk, {})
