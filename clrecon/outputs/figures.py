@@ -159,7 +159,7 @@ def phase_space_sample(scene, pitch: float, slice_z_mm: float, view: int, target
     with non-zero weights only. Uses :func:`clrecon.reconstruction.rebin.candidates` and
     :func:`clrecon.reconstruction.interpolation.weights.method_weights` exactly as the reconstruction plan does.
     """
-    table = geometry.projection_table(scene, pitch)
+    table = geometry.cached_projection_table(scene, pitch)
     cand = rebin.candidates(table, float(slice_z_mm), scene.scanner, reconstruct.object_radius_mm(scene))
     sel = cand[table.view[cand] == view]
     if sel.size == 0:

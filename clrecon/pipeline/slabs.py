@@ -139,7 +139,7 @@ def plan_pitch(scene, cfg, pitch: float, slices_z, todo, targets, methods, n_var
     """The projection table, the slab-by-slab plans (:func:`plan_slabs`), the diagnostics and the
     sampling summary of one pitch, for the slices ``todo`` of ``slices_z``."""
     t0 = time.perf_counter()
-    table = geometry.projection_table(scene, pitch)
+    table = geometry.cached_projection_table(scene, pitch)
     ptab, excluded = geometry.usable_table(scene, table)
     t1 = time.perf_counter()
     slabs, plans, needed, parts, plan_s = plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants,

@@ -170,7 +170,7 @@ class _Pitch:
         if plan.pp is not None:
             self.table, self.ptab = plan.pp.table, plan.pp.plan_table
         else:
-            self.table = geometry.projection_table(run.scene, pitch)
+            self.table = geometry.cached_projection_table(run.scene, pitch)
             self.ptab = geometry.usable_table(run.scene, self.table)[0]
         self.store = store
         self.slabs = slab_ranges(self.ptab, run.scene.scanner, self.cfg, run.slices_z, self.knobs)
