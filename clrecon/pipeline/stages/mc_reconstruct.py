@@ -76,9 +76,10 @@ def skip(run) -> str | None:
 GROWTH = 1.5
 
 
-def slab_ranges(table, scanner, cfg, slices_z, knobs, budget: float = ROWS_BYTES) -> list[tuple[int, int]]:
-    """Consecutive slice ranges whose plane rows ((P, planes, C) float32) stay within ``budget``, or
-    within :data:`GROWTH` times the rows of the range's first slice where that is more."""
+def plane_row_slabs(table, scanner, cfg, slices_z, knobs, budget: float = ROWS_BYTES) -> list[tuple[int, int]]:
+    """The run's slices cut into mc slabs: consecutive slice ranges whose plane rows ((P, planes, C)
+    float32) stay within ``budget``, or within :data:`GROWTH` times the rows of the range's first
+    slice where that is more."""
     w = rebin.slice_window_mm(scanner, cfg.object_radius_mm)
     per_proj = (int((2 * (w + knobs.plane_dz_mm)) / knobs.plane_dz_mm) + 2) * scanner.n_cols * 4
     z = np.sort(np.asarray(table.source_z_mm, np.float64))
@@ -119,7 +120,7 @@ def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     per_proj = (int((2 * (w + knobs.plane_dz_mm)) / knobs.plane_dz_mm) + 2) * scanner.n_cols * 4
     n_proj = (z_extent_mm + 2 * (w + knobs.margin_mm)) / feed_mm * scanner.views_per_rotation
     one_slice = 2 * (w + knobs.margin_mm) / feed_mm * scanner.views_per_rotation * per_proj
-    rows = min(max(ROWS_BYTES, GROWTH * one_slice), n_proj * per_proj)  # slab_ranges' limit
+    rows = min(max(ROWS_BYTES, GROWTH * one_slice), n_proj * per_proj)  # plane_row_slabs' limit
     kept = n_var * rows if n_var * rows <= ROWS_BYTES else 0.0
     f = max(1, knobs.downsample)
     volumes = 3 * n_targets * nz * ny * nx * 4
@@ -173,7 +174,7 @@ class _Pitch:
             self.table = geometry.cached_projection_table(run.scene, pitch)
             self.ptab = geometry.usable_table(run.scene, self.table)[0]
         self.store = store
-        self.slabs = slab_ranges(self.ptab, run.scene.scanner, self.cfg, run.slices_z, self.knobs)
+        self.slabs = plane_row_slabs(self.ptab, run.scene.scanner, self.cfg, run.slices_z, self.knobs)
         self.pairs = run.targets.pairs
         self.shape = run.targets.shape
         self.f = mcm.factor(self.cfg.fbp, self.knobs)
