@@ -38,12 +38,13 @@ import numpy as np
 
 from clrecon.config.scene import load_scene
 from clrecon.core.runtime import get_runtime
+from clrecon.core.stage_times import StageTimes
 from clrecon.evaluation import groundtruth
 from clrecon.pipeline import costs, distributed, work_units
 from clrecon.pipeline.run import run
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import reconstruct
-from clrecon.reconstruction.reconstruct import StageTimes, Targets
+from clrecon.reconstruction.reconstruct import Targets
 from clrecon.scan.table import projection_table
 from clrecon.simulation import noise
 from clrecon.simulation.simulate import CHUNK

@@ -24,6 +24,7 @@ import numpy as np
 from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
 from clrecon.core.resources import spawned_pool
+from clrecon.outputs.volumes import recon_path
 from clrecon.pipeline.context import resolve_targets
 from clrecon.pipeline.run import run as run_pipeline
 from clrecon.reconstruction import reconstruct
@@ -42,7 +43,7 @@ MC_STAGES = ("registration", "plane_rows", "mc_backproject")
 def _first_pass(run_dir: Path, pk: str, variant: str) -> np.ndarray:
     """The run's volumes of ``mc``'s first pass (barycentric) of ``variant``: (n_c, n_r, S, ny, nx) HU."""
     with h5py.File(run_dir / "volumes.h5", "r") as f:
-        return np.asarray(f[f"recon/{pk}/{variant}/{mc_fbp.FIRST_PASS}"], np.float32)
+        return np.asarray(f[recon_path(pk, variant, mc_fbp.FIRST_PASS)], np.float32)
 
 
 def _registration_round(first, sc, slices_z, repeats: int) -> dict:

@@ -46,7 +46,7 @@ from clrecon.scan.config import (
     ScannerConfig,
     SignalsConfig,
 )
-from clrecon.scan.recorded import file_digest
+from clrecon.scan.table import recorded_content
 from clrecon.simulation.config import NoiseConfig
 from clrecon.simulation.phantom_sources import PHANTOM_SOURCES, PhantomConfig
 
@@ -189,18 +189,6 @@ class Scene:
 
 
 # ---------------------------------------------------------------------------------------
-def recorded_content(scene: Scene) -> dict:
-    """Content digests of the scene's recorded inputs (traces, measured series), for the scan hash."""
-    out = {}
-    for key in ("breathing_trace", "ecg_trace"):
-        path = getattr(scene.signals, key)
-        if path:
-            out[key] = file_digest(path)
-    if scene.measured:
-        out["projections"] = dicom_ct_pd.series_signature(scene.scan.projections)
-    return out
-
-
 def _measured_sections(parts: dict, raw: dict, prefix: str) -> dict:
     """``[scanner]`` and ``[scan]`` of a measured scene: the DICOM-CT-PD series' geometry.
 

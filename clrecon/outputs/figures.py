@@ -158,7 +158,7 @@ def phase_space_sample(scene, pitch: float, slice_z_mm: float, view: int, target
     (the candidate window, then ``recon.max_turns``) and
     :func:`clrecon.reconstruction.interpolation.weights.method_weights` exactly as the reconstruction plan does.
     """
-    table = geometry.projection_table(scene, pitch)
+    table = geometry.cached_projection_table(scene, pitch)
     cfg = reconstruct.ReconstructionConfig.from_scene(scene)
     groups = reconstruct.candidate_groups_of(cfg, table, [float(slice_z_mm)])  # one slice: group = view
     rows = groups.row[groups.offsets[view]:groups.offsets[view + 1]]

@@ -38,10 +38,12 @@ from clrecon.outputs.volumes import (
     DIMS,
     FORMAT_VERSION,
     READABLE_VERSIONS,
+    RECON,
     list_recons,
     open_volumes,
     read_part,
     read_volume,
+    recon_path,
 )
 from clrecon.reconstruction.interpolation import by_rank
 
@@ -136,7 +138,7 @@ def sources(f: VolumeFile) -> list[Source]:
     """Every volume of the run: ground truth, phantom, then each (pitch, variant, method)."""
     f = _h5(f)
     out = [Source(name, name) for name in REFERENCE_VOLUMES if name in f]
-    out += [Source(f"recon/{p}/{v}/{m}", m, p, v) for p, v, m in list_recons(f)]
+    out += [Source(recon_path(p, v, m), m, p, v) for p, v, m in list_recons(f)]
     return out
 
 
@@ -184,7 +186,7 @@ def resolve_source(f: VolumeFile, method: str | None = None, pitch: PitchLike = 
         return (mi, float(p[1:]), vi, m)
 
     p, v, m = min(cands, key=rank)
-    return Source(f"recon/{p}/{v}/{m}", m, p, v)
+    return Source(recon_path(p, v, m), m, p, v)
 
 
 def run_axes(f: VolumeFile) -> dict[str, np.ndarray]:
@@ -333,17 +335,18 @@ class RunDirectory:
 
     @staticmethod
     def recon_name(pk: str, variant: str, method: str) -> str:
-        return f"recon/{pk}/{variant}/{method}"
+        """:func:`clrecon.outputs.volumes.recon_path` (kept for callers of the run directory)."""
+        return recon_path(pk, variant, method)
 
     def pitches(self) -> list[str]:
         """Pitch keys present, smallest pitch first."""
-        return sorted(self.h5["recon"].keys(), key=lambda k: float(k[1:])) if "recon" in self.h5 else []
+        return sorted(self.h5[RECON].keys(), key=lambda k: float(k[1:])) if RECON in self.h5 else []
 
     def variants(self, pk: str) -> list[str]:
-        return list(self.h5[f"recon/{pk}"].keys())
+        return list(self.h5[recon_path(pk)].keys())
 
     def methods(self, pk: str, variant: str) -> list[str]:
-        return list(self.h5[f"recon/{pk}/{variant}"].keys())
+        return list(self.h5[recon_path(pk, variant)].keys())
 
     def preferred_variant(self, pk: str) -> str:
         vs = self.variants(pk)

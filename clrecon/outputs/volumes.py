@@ -8,6 +8,7 @@ Layout (HDF5)::
     /groundtruth                  ground-truth CT (exact in-plane projections + same FBP)
     /phantom                      voxelised analytic phantom
     /recon/<pitch>/<variant>/<method>     e.g. /recon/p0.020/noise-free/local_linear
+                                  (:func:`recon_path`; <pitch> is :func:`pitch_key`'s)
 
 Every volume dataset is HU, float32 or (``recon.volume_dtype = "float16"``, the paper-scale
 scenes) IEEE half precision, with attribute ``dims``: the axis names of its shape, a subset of
@@ -74,8 +75,22 @@ def resolve_compression(choice: str, volume_bytes: int) -> str:
     return choice
 
 
+#: The group of every reconstruction in ``volumes.h5``.
+RECON = "recon"
+
+
 def pitch_key(pitch: float) -> str:
+    """A pitch's name in ``volumes.h5`` and ``results.json``: ``0.02`` -> ``"p0.020"``."""
     return f"p{pitch:.3f}"
+
+
+def recon_path(pk: str, variant: str | None = None, method: str | None = None) -> str:
+    """The HDF5 path of a reconstruction, ``recon/<pitch key>/<variant>/<method>``; with fewer parts
+    the group of its pitch (``recon/<pk>``) or of its variant (``recon/<pk>/<variant>``).
+    The one spelling of the layout (module docstring); ``pk`` is :func:`pitch_key`'s."""
+    if method is not None and variant is None:
+        raise ValueError("recon_path: a method needs its variant")
+    return "/".join([RECON, pk] + [x for x in (variant, method) if x is not None])
 
 
 class VolumeWriter:
@@ -620,10 +635,10 @@ def read_volume(f: h5py.File, name: str, index=None) -> np.ndarray:
 def list_recons(f: h5py.File) -> list[tuple[str, str, str]]:
     """(pitch_key, variant, method) of every reconstruction in the file."""
     out = []
-    if "recon" not in f:
+    if RECON not in f:
         return out
-    for p in f["recon"]:
-        for v in f["recon"][p]:
-            for m in f["recon"][p][v]:
+    for p in f[RECON]:
+        for v in f[RECON][p]:
+            for m in f[RECON][p][v]:
                 out.append((p, v, m))
     return out

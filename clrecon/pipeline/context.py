@@ -6,7 +6,9 @@ pre-flight of memory and disk, :mod:`clrecon.pipeline.preflight`), opens the run
 request) and returns the :class:`RunContext` the stages of :mod:`clrecon.pipeline.graph` share.
 The stages put what ``results.json`` reports into ``records`` (its keys are results.json's)
 and their notes on a timed part into ``notes``; the executor sets ``clock``, ``pool`` and
-``fine_units``.
+``fine_units``; :func:`clrecon.pipeline.run.run` the graph, the executor's name and summary and the
+machine-speed probe. Every field is typed and named here: no stage passes data to another through
+the context but its records, notes and the caches named below (``unfinished``, ``mc_truth``).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from clrecon.config.scene import Scene
+from clrecon.core import machine_speed as machine_speed_mod
 from clrecon.core.errors import ClreconError
 from clrecon.outputs.volumes import VolumeWriter
 from clrecon.pipeline import costs as costs_mod
@@ -68,7 +71,14 @@ class RunContext:
     clock: Any = None             # the executor's StageClock
     pool: Any = None              # the executor's warm helper process, or None
     fine_units: bool = False      # units are cut for workers elsewhere (Dask)
-    extra: dict = field(default_factory=dict)
+    # set by clrecon.pipeline.run.run for the results stage
+    graph: tuple = ()             # the run's stages (pipeline.graph.GRAPH): the stage table's order and skips
+    executor_kind: str = "serial"  # the executor's name (results.json "executor")
+    executor_summary: Callable[[], dict | None] = lambda: None  # its results.json "distributed" entry, or None
+    machine_speed: machine_speed_mod.Sample | None = None  # the probe started before the run's clock
+    # kept by the stages across nodes
+    unfinished: dict = field(default_factory=dict)  # pitch key -> (methods with an unfinished unit, their slices)
+    mc_truth: dict = field(default_factory=dict)  # the phantom's own motion, kept for the mc model's next error
 
     @property
     def want_truth_free(self) -> bool:
@@ -172,7 +182,7 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
     run = RunContext(scene=scene, out=out, methods=methods, pitches=pitches, targets=targets, slices_z=slices_z,
                      slice_range=slice_range, variants=variants,
                      recon_cfg=reconstruct.ReconstructionConfig.from_scene(scene), cache_path=cache_path,
-                     writer=writer, rt=rt, need=need, force=force, **opts)
+                     writer=writer, rt=rt, need=need, force=force, executor_kind=executor_kind, **opts)
     if writer.resumed:
         run.log("resuming an interrupted run: finished slices and targets are kept")
     if scene.measured:  # a DICOMDIR beside the projections (normal on media): one note each

@@ -26,7 +26,7 @@ import numpy as np
 from clrecon.core.progress import progress as progress_counter
 from clrecon.core.resources import spawn_is_safe, spawned_pool
 from clrecon.evaluation import groundtruth, metrics, motion
-from clrecon.outputs.volumes import pitch_key, read_volume
+from clrecon.outputs.volumes import pitch_key, read_volume, recon_path
 from clrecon.reconstruction import interpolation, reconstruct
 from clrecon.simulation.phantom_sources import phantom_from_config
 
@@ -118,7 +118,7 @@ def _accumulate(ctx: _Context, f, keys, bar=None) -> dict:
                 lv_gt[i, j] = ctx.lv(truth, i, j)
             for k in keys:
                 pk, v, m = k
-                vol = read_volume(f, f"recon/{pk}/{v}/{m}", (i, j))
+                vol = read_volume(f, recon_path(pk, v, m), (i, j))
                 acc[k].add(i, j, vol, truth, scratch)
                 if ctx.want_mot:
                     macc[k].add(i, j, vol, truth, ctx.geoms[i][j], mot_gt.lv_ml[i, j])

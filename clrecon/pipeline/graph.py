@@ -1,10 +1,17 @@
 """The run as a graph of stages, declared once: what each stage needs, what it gives, how it is timed.
 
 :data:`GRAPH` is the whole run. An executor (:mod:`clrecon.pipeline.executors`) runs it: a node
-(a stage, per pitch or once per run) starts when every node giving what it needs is done.
+(a stage, per pitch or once per run) starts when every node giving what it needs, and every node
+of the stages it comes ``after``, is done.
 Serially, overlapped on this machine's cores, or with its units on Dask workers, it is the
 same graph and the same stage functions, so the volumes and the numbers are the same bit for
 bit. How to add a stage: docs/adding-a-stage.md "A new pipeline stage".
+
+Each :class:`~clrecon.pipeline.stage.Stage` is declared with keyword arguments and checked when it
+is made, and :data:`GRAPH` as a whole when this module is imported (:func:`~clrecon.pipeline.stage.graph`):
+a wrong graph fails at import with one line naming the stage and what is wrong. Products are what a
+stage takes (``needs``/``gives``); ``after`` orders a stage behind others whose products it does not
+take (it reads what they wrote), e.g. ``assemble`` behind every stage that writes volume units.
 
 A stage function is ``fn(run, pitch, **needs)``: ``run`` is the run's
 :class:`~clrecon.pipeline.context.RunContext`, ``pitch`` the node's pitch (None for a stage
@@ -17,9 +24,7 @@ the product.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
-
+from clrecon.pipeline.stage import GraphError, Stage, graph
 from clrecon.pipeline.stages import (
     assemble,
     consistency,
@@ -34,61 +39,34 @@ from clrecon.pipeline.stages import (
     truth_free,
 )
 
-
-@dataclass(frozen=True)
-class Stage:
-    """One stage of the run.
-
-    ``parts``: the names it is timed under in ``results.json["stages"]`` (the executor times
-    each node; a stage may split its time among its parts, and whatever it does not split goes
-    to ``rest``); ``write_part``: the part its pieces' writing is booked to (None: ``rest``).
-    ``skip(run)``: a reason the stage does not run in this run, or None; ``optional``: its parts
-    are left out of the stage table when it is skipped (else listed with the reason). ``ahead(run, pitch)``:
-    a pure ``(fn, args)`` of the node that an executor may compute early in a helper process,
-    handing the result to ``fn(..., ahead=result)``. ``beside``: the stage after whose first
-    node an overlapping executor starts this one in a thread of its own. ``priority``: the
-    order of units on Dask (higher first).
-    """
-
-    name: str
-    fn: Callable
-    needs: tuple[str, ...] = ()
-    gives: tuple[str, ...] = ()
-    per_pitch: bool = False
-    parts: tuple[str, ...] = ()
-    rest: str | None = None
-    write_part: str | None = None
-    skip: Callable | None = None
-    optional: bool = False
-    ahead: Callable | None = None
-    beside: str | None = None
-    priority: int = 0
-
+__all__ = ["GRAPH", "VOLUME_WRITERS", "GraphError", "Stage"]
 
 _R = ("read", "noise", "rebin", "interpolate", "fbp", "write_volumes")
+#: The stages that write volume units, which ``assemble`` maps into ``volumes.h5`` (``consistency``
+#: reads the methods' unit files back, so it too is done before they are assembled).
+VOLUME_WRITERS = ("reconstruct", "mc_reconstruct", "consistency", "truth")
 
 #: The run, in the order a serial executor walks it (the per-pitch stages pitch by pitch).
-GRAPH = (
-    Stage("plan", plan.stage, gives=("plan",), per_pitch=True, parts=("signals", "plan"), rest="plan",
+GRAPH = graph(
+    Stage(name="plan", fn=plan.stage, gives=("plan",), per_pitch=True, parts=("signals", "plan"), rest="plan",
           ahead=plan.ahead),
-    Stage("simulate", simulate.stage, ("plan",), ("store",), True, ("simulate",), "simulate", priority=20),
-    Stage("truth_free", truth_free.stage, ("plan", "store"), ("tuning",), True, ("truth_free",), "truth_free",
-          skip=truth_free.skip, optional=True),
-    Stage("reconstruct", reconstruct.stage, ("plan", "store", "tuning"), ("recon", "volume_units"), True, _R,
+    Stage(name="simulate", fn=simulate.stage, needs=("plan",), gives=("store",), per_pitch=True,
+          parts=("simulate",), rest="simulate", priority=20),
+    Stage(name="truth_free", fn=truth_free.stage, needs=("plan", "store"), gives=("tuning",), per_pitch=True,
+          parts=("truth_free",), rest="truth_free", skip=truth_free.skip, optional=True),
+    Stage(name="reconstruct", fn=reconstruct.stage, needs=("plan", "store", "tuning"), per_pitch=True, parts=_R,
           write_part="write_volumes", priority=10),
-    Stage("mc_reconstruct", mc_reconstruct.stage, ("plan", "store", "recon"), ("mc", "volume_units"), True,
-          ("registration", "plane_rows", "mc_backproject", "write_volumes"), "registration",
-          write_part="write_volumes", skip=mc_reconstruct.skip, optional=True, priority=5),
-    # gives volume_units too: it reads the methods' unit files back, so assemble waits for it
-    Stage("consistency", consistency.stage, ("plan", "store", "mc"), ("consistency", "volume_units"), True,
-          ("consistency",), "consistency", skip=consistency.skip, optional=True),
-    Stage("truth", truth.stage, gives=("truths", "volume_units"), parts=("groundtruth", "phantom_truth"),
-          skip=truth.skip, beside="simulate"),
-    Stage("assemble", assemble.stage, ("volume_units",), ("volumes",), parts=("assemble_volumes",),
-          rest="assemble_volumes"),
-    Stage("metrics", metrics.stage, ("volumes",), ("metrics",), parts=("metrics",), rest="metrics",
+    Stage(name="mc_reconstruct", fn=mc_reconstruct.stage, needs=("plan", "store"), after=("reconstruct",),
+          per_pitch=True, parts=("registration", "plane_rows", "mc_backproject", "write_volumes"),
+          rest="registration", write_part="write_volumes", skip=mc_reconstruct.skip, optional=True, priority=5),
+    Stage(name="consistency", fn=consistency.stage, needs=("plan", "store"), after=("mc_reconstruct",),
+          per_pitch=True, parts=("consistency",), rest="consistency", skip=consistency.skip, optional=True),
+    Stage(name="truth", fn=truth.stage, parts=("groundtruth", "phantom_truth"), skip=truth.skip, beside="simulate"),
+    Stage(name="assemble", fn=assemble.stage, gives=("volumes",), after=VOLUME_WRITERS,
+          parts=("assemble_volumes",), rest="assemble_volumes"),
+    Stage(name="metrics", fn=metrics.stage, needs=("volumes",), parts=("metrics",), rest="metrics",
           skip=metrics.skip),
-    Stage("results", results.stage, ("volumes", "metrics"), ("results",)),
-    Stage("report", report.stage, ("results",), ("report",), parts=("report",), rest="report", skip=report.skip,
+    Stage(name="results", fn=results.stage, gives=("results",), after=("assemble", "metrics")),
+    Stage(name="report", fn=report.stage, needs=("results",), parts=("report",), rest="report", skip=report.skip,
           optional=True),
 )

@@ -69,8 +69,7 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
         client.register_plugin(distributed.preference_plugin(decision.key, decision.reason))
     ctx = open_run(scene, out, methods, cardiac, resp, slice_range, pitches, cache_dir, rt=rt,
                    executor_kind=ex.kind, distributed=ex.fine_units, force=force, report=report, progress=progress,
-                   log=log)
-    ctx.extra.update(graph=GRAPH, executor=ex.kind, machine_speed=machine0, summary=ex.summary)
+                   log=log, graph=GRAPH, executor_summary=ex.summary, machine_speed=machine0)
     try:
         products = ex.run(GRAPH, ctx)
     except BaseException:

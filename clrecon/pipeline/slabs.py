@@ -15,7 +15,7 @@ import numpy as np
 
 from clrecon.core.progress import progress as progress_counter
 from clrecon.evaluation.truth_cache import TruthCache
-from clrecon.outputs.volumes import VolumeWriter
+from clrecon.outputs.volumes import VolumeWriter, recon_path
 from clrecon.reconstruction import interpolation, rebin, reconstruct
 from clrecon.reconstruction.diagnostics import combine as combine_diagnostics
 from clrecon.reconstruction.diagnostics import weight_diagnostics
@@ -31,7 +31,7 @@ def declare_recon(writer: VolumeWriter, pk: str, methods, variants, full_shape: 
     for m in methods:
         bc = BROADCAST.get(interpolation.METHODS[m].target_grid, ())
         for v in variants:
-            writer.create(f"recon/{pk}/{v}/{m}", full_shape, n_slices, broadcast=bc)
+            writer.create(recon_path(pk, v, m), full_shape, n_slices, broadcast=bc)
 
 
 def unfinished(writer: VolumeWriter, pk: str, variants, methods) -> tuple[tuple, np.ndarray]:
@@ -40,9 +40,9 @@ def unfinished(writer: VolumeWriter, pk: str, variants, methods) -> tuple[tuple,
     A resumed run redoes only the units (slab x variant x method) not yet written: the methods
     with an unfinished unit, on the slices one of them lacks.
     """
-    run_methods = tuple(m for m in methods if not all(writer.done(f"recon/{pk}/{v}/{m}").all() for v in variants))
+    run_methods = tuple(m for m in methods if not all(writer.done(recon_path(pk, v, m)).all() for v in variants))
     todo = np.flatnonzero(~np.logical_and.reduce(
-        [writer.done(f"recon/{pk}/{v}/{m}") for v in variants for m in run_methods] or [True]))
+        [writer.done(recon_path(pk, v, m)) for v in variants for m in run_methods] or [True]))
     return run_methods, todo
 
 
@@ -59,8 +59,9 @@ def candidates_per_slice(table, slices_z, cfg) -> np.ndarray:
     return (np.searchsorted(z, zs + w, side="right") - np.searchsorted(z, zs - w, side="left")).astype(np.int64)
 
 
-def slab_ranges(bytes_per_slice, budget: float = reconstruct.SLAB_BYTES) -> list[tuple[int, int]]:
-    """Consecutive (a, b) ranges whose summed ``bytes_per_slice`` (S,) stay within ``budget`` (>= 1 slice each).
+def reconstruction_slabs(bytes_per_slice, budget: float = reconstruct.SLAB_BYTES) -> list[tuple[int, int]]:
+    """The slices to reconstruct cut into slabs: consecutive (a, b) ranges whose summed
+    ``bytes_per_slice`` (S,) (each slice's working set) stay within ``budget`` (>= 1 slice each).
 
     Slabs of a helical scan's end slices (few candidate turns) hold more slices than the
     interior ones, so every slab's working set, not only the first's, is within the budget.
@@ -82,7 +83,7 @@ def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progres
     The slab sizes come from the plan of the densest slice (the most candidates, an interior
     slice of a helical scan), scaled to every slice by its candidate count
     (:func:`candidates_per_slice`), and are cut so that each slab's working set stays within
-    :data:`clrecon.reconstruction.reconstruct.SLAB_BYTES` (:func:`slab_ranges`); so a paper-scale
+    :data:`clrecon.reconstruction.reconstruct.SLAB_BYTES` (:func:`reconstruction_slabs`); so a paper-scale
     scan never holds the plan of every slice at once. (The first slice is no probe: at a scan's
     end it has far fewer rows than inside; docs/results/code-history.md "Slabs sized from the densest slice".)
     Each slab is planned to find the projections the reconstruction needs (``needed``, (n,)
@@ -99,7 +100,7 @@ def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progres
     share = counts / max(int(counts[dense]) if todo.size else 1, 1)  # each slice's rows and plan vs the probe's
     per_slice = reconstruct.slab_bytes_per_slice(rows * share, cfg.scanner.n_cols, n_variants, n_t,
                                                  cfg.fbp.ny, cfg.fbp.nx, plan_b * share)
-    slabs = slab_ranges(per_slice)
+    slabs = reconstruction_slabs(per_slice)
     needed = np.zeros(len(table), bool)
     plans, parts, plan_s, kept = [], [], {}, 0
     bar = progress_counter(len(slabs), "plan", progress and len(slabs) > 1, "slabs")
@@ -118,14 +119,16 @@ def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progres
 
 
 @dataclass
-class PitchPlan:
-    """The planning of one pitch (:func:`plan_pitch`): what both paths record and reconstruct from."""
+class PitchSlabs:
+    """One pitch's slices cut into slabs, with each slab's weights (:func:`plan_pitch`): its tables,
+    the slabs and their :class:`~clrecon.reconstruction.reconstruct.SlabWeights`, the projections
+    they read, and what the planning records; what both paths record and reconstruct from."""
 
     table: object              # ProjectionTable of the scan
     plan_table: object         # its usable rows (geometry.usable_table): what every plan is made from
     excluded: dict             # reason -> views left out (lost / invalid recorded-trace stretches)
     slabs: list                # (a, b) ranges into the slices still to do
-    plans: list                # per slab: its Plan, or None (made again when its turn comes)
+    plans: list                # per slab: its SlabWeights, or None (made again when its turn comes)
     needed: np.ndarray         # (n,) bool: projections the reconstruction reads
     diagnostics: dict          # weight diagnostics of every slab, combined
     sampling: dict             # phase-space sampling summary of the requested slices
@@ -134,11 +137,11 @@ class PitchPlan:
     plan_seconds: float        # the whole planning pass (wall)
 
 
-def plan_pitch(scene, cfg, pitch: float, slices_z, todo, targets, methods, n_variants, progress) -> PitchPlan:
+def plan_pitch(scene, cfg, pitch: float, slices_z, todo, targets, methods, n_variants, progress) -> PitchSlabs:
     """The projection table, the slab-by-slab plans (:func:`plan_slabs`), the diagnostics and the
     sampling summary of one pitch, for the slices ``todo`` of ``slices_z``."""
     t0 = time.perf_counter()
-    table = geometry.projection_table(scene, pitch)
+    table = geometry.cached_projection_table(scene, pitch)
     ptab, excluded = geometry.usable_table(scene, table)
     t1 = time.perf_counter()
     slabs, plans, needed, parts, plan_s = plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants,
@@ -148,7 +151,7 @@ def plan_pitch(scene, cfg, pitch: float, slices_z, todo, targets, methods, n_var
     sampling = sampling_mod.sampling_summary(
         ptab, reconstruct.limit_turns(rebin.candidate_groups(ptab, slices_z, scene.scanner, cfg.object_radius_mm,
                                                              cfg.candidate_window_mm), cfg.max_turns))
-    return PitchPlan(table=table, plan_table=ptab, excluded=excluded, slabs=slabs, plans=plans, needed=needed,
+    return PitchSlabs(table=table, plan_table=ptab, excluded=excluded, slabs=slabs, plans=plans, needed=needed,
                      diagnostics=combine_diagnostics(parts),
                      sampling=sampling, method_plan_seconds=plan_s, signals_seconds=t1 - t0, plan_seconds=t2 - t1)
 

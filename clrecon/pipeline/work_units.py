@@ -7,7 +7,10 @@ functions on the same inputs, so the numbers are bit-identical) and returns ``(p
 seconds, counts)``: the pieces the stage's ``write`` takes (NumPy arrays, which the client
 writes as unit files, :mod:`clrecon.core.units`, with the run's own writers), the stage
 seconds and the work counts. Nothing is written here, so a worker killed mid-unit leaves
-nothing behind: the scheduler gives the unit to another worker.
+nothing behind: the scheduler gives the unit to another worker. The scan's projection table is
+made on the worker (:func:`clrecon.scan.table.cached_projection_table`, once per worker process
+and scan) rather than sent: it is deterministic (the client's is the same array), and a worker
+that joins or restarts needs nothing but the scene.
 
 The units:
 
@@ -32,11 +35,11 @@ import numpy as np
 
 from clrecon.core import faults
 from clrecon.core.runtime import get_runtime
+from clrecon.core.stage_times import StageTimes
 from clrecon.evaluation import groundtruth
 from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.motion import mc_fbp
-from clrecon.reconstruction.reconstruct import StageTimes
-from clrecon.scan.table import projection_table, usable_table
+from clrecon.scan.table import cached_projection_table, usable_table
 from clrecon.simulation.projector import project
 from clrecon.simulation.store import ProjectionStore
 
@@ -54,30 +57,12 @@ def prepare_worker(device: str | None = None) -> str:
     return get_runtime().description
 
 
-_tables: dict = {}
-
-
-def scan_table(scene, pitch: float):
-    """``projection_table(scene, pitch)``, kept per worker process for the last few scans.
-
-    Computed here rather than sent: it is deterministic (the client's is the same array), and
-    a worker that joins or restarts needs nothing but the scene.
-    """
-    key = scene.scan_hash(pitch)
-    table = _tables.get(key)
-    if table is None:
-        if len(_tables) >= 4:
-            _tables.pop(next(iter(_tables)))
-        table = _tables[key] = projection_table(scene, pitch)
-    return table
-
-
 def simulate_chunk(scene, pitch: float, indices: np.ndarray) -> tuple[list, dict, dict]:
     """Line integrals of projections ``indices`` (increasing, (m,)) of the scan: one piece
     ``(indices, (m, R, C) float32)``."""
     faults.point("worker-unit")
     t0 = time.perf_counter()
-    table = scan_table(scene, pitch)
+    table = cached_projection_table(scene, pitch)
     data = np.ascontiguousarray(project(scene, table.take(np.asarray(indices, np.int64))), np.float32)
     return [(indices, data)], {"simulate": time.perf_counter() - t0}, {}
 
@@ -95,7 +80,7 @@ def reconstruct_slab(cfg, scene, pitch: float, cache_dir: str, plan, slices_z, t
     """
     faults.point("worker-unit")
     times = StageTimes()
-    table = scan_table(scene, pitch)
+    table = cached_projection_table(scene, pitch)
     if plan is None:
         t0 = time.perf_counter()
         plan = reconstruct.plan(cfg, usable_table(scene, table)[0], np.asarray(slices_z), targets, methods)
@@ -147,7 +132,7 @@ def mc_slab(cfg, scene, pitch: float, cache_dir: str, slices_z, a: int, b: int, 
     n_r, s, ny, nx) HU)``."""
     faults.point("worker-unit")
     times = StageTimes()
-    table = scan_table(scene, pitch)
+    table = cached_projection_table(scene, pitch)
     store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table, create=False)
     try:
         scan = mc_fbp.MCScan(cfg, scene.recon.mc, scene.scanner, table, usable_table(scene, table)[0], store,

@@ -1,14 +1,14 @@
 """Per-target diagnostics of a reconstruction plan's interpolation weights.
 
 How far from a target, in phase space, are the rows that make its volume? For every method of
-a :class:`clrecon.reconstruction.reconstruct.Plan` and every target of the grid (cardiac-major,
+a :class:`clrecon.reconstruction.reconstruct.SlabWeights` and every target of the grid (cardiac-major,
 :attr:`clrecon.reconstruction.reconstruct.Targets.pairs`), over all (slice, view) pairs of the
 plan and the candidates with a non-zero weight:
 
 - ``max_abs_dc``: the largest circular |c_k - c*| (cardiac phase, cycles, in [0, 0.5]);
 - ``max_abs_da``: the largest |a_k - a*| (respiratory amplitude, in [0, 1] for amplitudes in
   [0, 1]);
-- ``branch_share`` (methods that report their branch, ``MethodPlan.branch``: barycentric):
+- ``branch_share`` (methods that report their branch, ``MethodWeights.branch``: barycentric):
   the share of (slice, view) pairs that took each branch (``triangle``, ``segment`` = the
   two-point fallback, ``nearest``), each in [0, 1], summing to one per target.
 
@@ -33,8 +33,8 @@ def weight_diagnostics(plan, table, targets) -> dict:
 
     Parameters
     ----------
-    plan : Plan
-        :func:`clrecon.reconstruction.reconstruct.plan` result; per method a ``MethodPlan``
+    plan : SlabWeights
+        :func:`clrecon.reconstruction.reconstruct.plan` result; per method a ``MethodWeights``
         with ``proj_index`` and ``weight`` (S, V, T, K), ``targets_shape`` (n_c, n_r) of the
         targets it was solved for, and ``branch`` (S, V, T) int8 or None.
     table : ProjectionTable

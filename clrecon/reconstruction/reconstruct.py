@@ -29,6 +29,7 @@ from clrecon.core.conventions import voxel_coords
 from clrecon.core.detector import spot_shift_in_frame
 from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import aligned_empty, get_runtime
+from clrecon.core.stage_times import StageTimes
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction import interpolation, parallel_fbp, rebin
 from clrecon.reconstruction.interpolation import weights as interpolate
@@ -126,8 +127,9 @@ def object_radius_mm(scene) -> float:
 
 
 @dataclass
-class MethodPlan:
-    """Weights of one method over a set of slices: arrays (S, V, T, K)."""
+class MethodWeights:
+    """One method's interpolation weights over a set of slices (what :func:`plan` makes per method):
+    arrays (S, V, T, K) of (slice, view, target, candidate)."""
 
     proj_index: np.ndarray  # int64 global projection index
     weight: np.ndarray      # float64, 0 in unused slots
@@ -136,9 +138,12 @@ class MethodPlan:
 
 
 @dataclass
-class Plan:
+class SlabWeights:
+    """Every planned method's weights over one set of slices (a slab; :func:`plan`'s result): the
+    slices' z (S,) mm, ``methods`` name -> :class:`MethodWeights`, and the planning's seconds."""
+
     slices_z: np.ndarray
-    methods: dict = field(default_factory=dict)  # name -> MethodPlan
+    methods: dict = field(default_factory=dict)  # name -> MethodWeights
     seconds: float = 0.0
     #: name -> seconds of planning that method: its weights, plus an equal share of the shared
     #: candidate search (the whole plan's ``seconds`` is their sum)
@@ -165,7 +170,8 @@ class Plan:
         return mask
 
 
-def plan(cfg: ReconstructionConfig, table: ProjectionTable, slices_z: np.ndarray, targets: Targets, methods) -> Plan:
+def plan(cfg: ReconstructionConfig, table: ProjectionTable, slices_z: np.ndarray, targets: Targets,
+         methods) -> SlabWeights:
     """Weights of every method for every (slice, view, target); see the module docstring.
 
     Raises :class:`clrecon.core.errors.ClreconError` naming the slice and view when a (slice, view)
@@ -174,7 +180,7 @@ def plan(cfg: ReconstructionConfig, table: ProjectionTable, slices_z: np.ndarray
     t0 = time.perf_counter()
     sc = cfg.scanner
     nv = sc.views_per_rotation
-    p = Plan(slices_z=np.asarray(slices_z, float))
+    p = SlabWeights(slices_z=np.asarray(slices_z, float))
     groups = rebin.candidate_groups(table, p.slices_z, sc, cfg.object_radius_mm, cfg.candidate_window_mm)
     if groups.empty.any():
         g = int(np.flatnonzero(groups.empty)[0])
@@ -199,7 +205,7 @@ def plan(cfg: ReconstructionConfig, table: ProjectionTable, slices_z: np.ndarray
         proj = groups.projection[w.index].reshape(S, nv, T, K)
         weight = np.where(w.weight != 0, w.weight, 0.0).reshape(S, nv, T, K)
         branch = None if w.branch is None else w.branch.reshape(S, nv, T)
-        p.methods[m] = MethodPlan(proj_index=proj, weight=weight, targets_shape=shape, branch=branch)
+        p.methods[m] = MethodWeights(proj_index=proj, weight=weight, targets_shape=shape, branch=branch)
         p.method_seconds[m] = time.perf_counter() - t1
     for m in p.method_seconds:
         p.method_seconds[m] += t_shared / len(p.method_seconds)
@@ -270,21 +276,7 @@ def _cardiac_bin_width(targets: Targets) -> float:
     return float(np.min(gaps))
 
 
-@dataclass
-class StageTimes:
-    """Seconds per stage (``add``) and work counts (``count``: e.g. detector cells read, noise cells)."""
-
-    seconds: dict = field(default_factory=dict)
-    counts: dict = field(default_factory=dict)
-
-    def add(self, name: str, dt: float) -> None:
-        self.seconds[name] = self.seconds.get(name, 0.0) + dt
-
-    def count(self, name: str, n) -> None:
-        self.counts[name] = self.counts.get(name, 0) + int(n)
-
-
-def reconstruct(cfg: ReconstructionConfig, store, plan_: Plan, variants=("noise-free",), rt=None,
+def reconstruct(cfg: ReconstructionConfig, store, plan_: SlabWeights, variants=("noise-free",), rt=None,
                 times: StageTimes | None = None, progress=None, chunk: int = 512, on_slab=None,
                 slab_size: int | None = None, max_buffer_bytes: int | None = None) -> dict:
     """Reconstruct every planned method and noise variant.
@@ -360,7 +352,7 @@ SLAB_BYTES = 2.5e9
 KEEP_PLANS_BYTES = 2.0e9
 
 
-def plan_bytes(plan_: Plan) -> int:
+def plan_bytes(plan_: SlabWeights) -> int:
     """Bytes a plan holds (its weight, index and branch arrays)."""
     n = 0
     for mp in plan_.methods.values():
@@ -391,7 +383,7 @@ def slices_per_slab(bytes_per_slice: float, budget: float = SLAB_BYTES) -> int:
     return int(max(1, budget // max(bytes_per_slice, 1.0)))
 
 
-def probe_sizes(probe: Plan) -> tuple[float, int, float]:
+def probe_sizes(probe: SlabWeights) -> tuple[float, int, float]:
     """``(rebinned rows per slice, targets, plan bytes per slice)`` of a plan of a few slices,
     the inputs of :func:`slab_bytes_per_slice`."""
     S = max(len(probe.slices_z), 1)
@@ -400,7 +392,7 @@ def probe_sizes(probe: Plan) -> tuple[float, int, float]:
     return len(proj) / S, n_t, plan_bytes(probe) / S
 
 
-def slab_slices(cfg: ReconstructionConfig, probe: Plan, n_variants: int, budget: float = SLAB_BYTES) -> int:
+def slab_slices(cfg: ReconstructionConfig, probe: SlabWeights, n_variants: int, budget: float = SLAB_BYTES) -> int:
     """:func:`slices_per_slab` from the plan ``probe`` of a few slices, their mean size per slice
     (the run sizes its slabs slice by slice instead: :func:`clrecon.pipeline.slabs.plan_slabs`)."""
     rows, n_t, plan_b = probe_sizes(probe)
@@ -412,7 +404,7 @@ class SlabTooLarge(ClreconError, MemoryError):
     """One slice's rebinned rows do not fit in one device buffer (``CL_DEVICE_MAX_MEM_ALLOC_SIZE``)."""
 
 
-def _slab_pairs(plan_: Plan, s0: int, s1: int):
+def _slab_pairs(plan_: SlabWeights, s0: int, s1: int):
     """Slices ``s0:s1`` of the plan: ``(sub, ukeys)``, each method's ``(proj_index, weight,
     targets_shape)`` for the slab and the sorted unique (projection, slice) pair keys
     ``projection * (s1 - s0) + slice`` that carry a non-zero weight (one rebinned row each)."""
@@ -426,7 +418,7 @@ def _slab_pairs(plan_: Plan, s0: int, s1: int):
     return sub, np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
 
 
-def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: Plan, s0, s1, variants, geom, rt, times, chunk,
+def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: SlabWeights, s0, s1, variants, geom, rt, times, chunk,
                       progress, emit, sub, ukeys) -> None:
     sc = cfg.scanner
     t0 = time.perf_counter()

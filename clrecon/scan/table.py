@@ -8,12 +8,18 @@ Projectors and the rebinner see only these arrays and the canonical vector form 
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
-from clrecon.scan import measured, signals
+from clrecon.scan import dicom_ct_pd, measured, signals
 from clrecon.scan.config import Acquisition
+from clrecon.scan.recorded import file_digest
+
+#: Projection tables :func:`cached_projection_table` keeps per process (a run's pitches, a worker's scans).
+TABLES_KEPT = 8
 
 
 @dataclass(frozen=True)
@@ -109,6 +115,50 @@ def projection_table(scene: Acquisition, pitch: float) -> ProjectionTable:
                            resp_direction=phys.resp_direction, state_cardiac=phys.state_cardiac,
                            state_resp=phys.state_resp, views_per_rotation=nv, focal_shift=shift,
                            angle_sign=scan.rotation_sign)
+
+
+def recorded_content(scene: Acquisition) -> dict:
+    """Content digests of the scene's recorded inputs (traces, measured series): what a scan's
+    table and projections are made from besides the scene's values (the scan hash,
+    :meth:`clrecon.config.scene.Scene.scan_hash`, and :func:`cached_projection_table`'s key)."""
+    out = {}
+    for key in ("breathing_trace", "ecg_trace"):
+        path = getattr(scene.signals, key)
+        if path:
+            out[key] = file_digest(path)
+    if scene.measured:
+        out["projections"] = dicom_ct_pd.series_signature(scene.scan.projections)
+    return out
+
+
+def cached_projection_table(scene: Acquisition, pitch: float) -> ProjectionTable:
+    """:func:`projection_table` of ``(scene, pitch)``, made once per process and kept for the
+    last :data:`TABLES_KEPT` scans: every stage, work unit and reader of one scan shares one table.
+
+    Keyed by the scene's value (a :class:`~clrecon.config.scene.Scene` is a frozen, hashable
+    dataclass: equal scenes are one key), the pitch and the content of its recorded inputs
+    (:func:`recorded_content`: a trace or series changed on disk is another scan). The table's
+    columns are read-only views (``flags.writeable`` False): shared by every caller, they are
+    never written (:meth:`ProjectionTable.take` makes a writable sub-table).
+    """
+    return _cached_table(scene, float(pitch), tuple(sorted(recorded_content(scene).items())))
+
+
+@functools.lru_cache(maxsize=TABLES_KEPT)
+def _cached_table(scene: Acquisition, pitch: float, content: tuple) -> ProjectionTable:
+    """``content`` is only part of the key (:func:`cached_projection_table`)."""
+    table = projection_table(scene, pitch)
+    return dataclasses.replace(table, focal_shift=_read_only(table.focal_shift),
+                               **{c: _read_only(getattr(table, c)) for c in ProjectionTable.COLUMNS})
+
+
+def _read_only(a: np.ndarray | None) -> np.ndarray | None:
+    """A read-only view of ``a`` (``a`` itself stays as it was)."""
+    if a is None:
+        return None
+    v = a.view()
+    v.flags.writeable = False
+    return v
 
 
 def usable_table(scene: Acquisition, table: ProjectionTable) -> tuple[ProjectionTable, dict]:

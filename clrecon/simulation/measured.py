@@ -23,7 +23,7 @@ from clrecon.core.errors import InputError
 from clrecon.core.progress import progress as progress_counter
 from clrecon.scan import dicom_ct_pd
 from clrecon.scan.dicom_ct_pd_pixels import PIXEL_TAGS, read_projection  # noqa: F401 (read_projection: patched in tests)
-from clrecon.scan.table import projection_table
+from clrecon.scan.table import cached_projection_table
 from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.store import ProjectionStore
 
@@ -67,7 +67,7 @@ def import_series(scene: SimulatedScan, pitch: float, needed=None, cache_dir=Non
     import pydicom
 
     if table is None:
-        table = projection_table(scene, pitch)
+        table = cached_projection_table(scene, pitch)
     ix = dicom_ct_pd.series_index(scene.scan.projections)
     reading = measured_reading(scene)
     n = len(table)

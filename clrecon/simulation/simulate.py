@@ -14,7 +14,7 @@ import numpy as np
 
 from clrecon.core import write_behind
 from clrecon.core.progress import progress as progress_counter
-from clrecon.scan.table import projection_table
+from clrecon.scan.table import cached_projection_table
 from clrecon.simulation import measured
 from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.projector import project
@@ -75,7 +75,7 @@ def simulate(scene: SimulatedScan, pitch: float, needed=None, cache_dir=None, pr
         raise ValueError(f"chunk = {chunk!r}: must be an integer > 0")
     if scene.measured:  # a measured scan: its files are read into the store instead (same store, same units)
         return measured.import_series(scene, pitch, needed=needed, cache_dir=cache_dir, chunk=chunk, progress=progress)
-    table = projection_table(scene, pitch)
+    table = cached_projection_table(scene, pitch)
     n = len(table)
     if needed is None:
         needed = np.ones(n, dtype=bool)

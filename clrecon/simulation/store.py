@@ -75,7 +75,7 @@ from clrecon.core.cache import default_cache_dir
 from clrecon.core.errors import StoreError
 from clrecon.core.versions import PROJECTOR_VERSION, __version__
 from clrecon.scan.patient_data import redact_scene_dict  # no patient's path in the shared cache
-from clrecon.scan.table import ProjectionTable, projection_table
+from clrecon.scan.table import ProjectionTable, cached_projection_table
 from clrecon.simulation.config import SimulatedScan
 from clrecon.simulation.noise import add_noise
 
@@ -177,7 +177,7 @@ class ProjectionStore:
         """
         cache_dir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
         if table is None:
-            table = projection_table(scene, pitch)
+            table = cached_projection_table(scene, pitch)
         store = cls(scene, pitch, table, cache_dir)
         if store.partial_path.exists():
             # an assembly cut short (or a .partial of an older clrecon): rebuilt from the units

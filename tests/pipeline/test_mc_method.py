@@ -292,22 +292,22 @@ def test_slabs_grow_past_the_budget_while_rows_stay_near_one_slices(monkeypatch,
     cfg = reconstruct.ReconstructionConfig.from_scene(sc)
     ptab = geometry.projection_table(sc, 0.1)
     z = reconstruct.slice_positions(sc, (0, sc.recon.nz))
-    cut = memory.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0)
+    cut = memory.plane_row_slabs(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0)
     assert cut[0][0] == 0 and cut[-1][1] == len(z) and all(a[1] == b[0] for a, b in zip(cut[:-1], cut[1:], strict=True))
     assert 1 < len(cut) < len(z)  # grown past the budget, not whole
-    assert memory.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1e18) == [(0, len(z))]
+    assert memory.plane_row_slabs(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1e18) == [(0, len(z))]
     monkeypatch.setattr(memory, "GROWTH", 0.0)  # the budget alone: one slice per slab
-    assert memory.slab_ranges(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0) == [
+    assert memory.plane_row_slabs(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0) == [
         (i, i + 1) for i in range(len(z))]
 
     tiny = load_scene("tiny")
     tz = reconstruct.slice_positions(tiny, (0, tiny.recon.nz))
-    tcut = memory.slab_ranges(geometry.projection_table(tiny, 0.1), tiny.scanner,
+    tcut = memory.plane_row_slabs(geometry.projection_table(tiny, 0.1), tiny.scanner,
                                       reconstruct.ReconstructionConfig.from_scene(tiny), tz, tiny.recon.mc, budget=1.0)
     assert len(tcut) == len(tz) > 1
 
-    real = memory.slab_ranges
-    monkeypatch.setattr(memory, "slab_ranges", lambda *a, **k: real(*a, **dict(k, budget=1.0)))
+    real = memory.plane_row_slabs
+    monkeypatch.setattr(memory, "plane_row_slabs", lambda *a, **k: real(*a, **dict(k, budget=1.0)))
     out = tmp_path / "cut"
     run(tiny, out, methods=METHODS.split(","), cache_dir=tmp_path / "cache", executor="serial", **QUIET)
     ref_out, ref_res = reference

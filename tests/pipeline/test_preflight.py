@@ -151,7 +151,7 @@ def test_slabs_are_sized_by_each_slices_candidates_not_the_first_slices():
     """paper-p002's end slices have a sixth of the interior's candidates: the slabs follow each
     slice's size, so no slab's working set exceeds the budget (the first-slice probe sized the
     interior slabs 6.6x over it: 8.49 GiB peak against the modelled 4.6)."""
-    from clrecon.pipeline.slabs import candidates_per_slice, slab_ranges
+    from clrecon.pipeline.slabs import candidates_per_slice, reconstruction_slabs
     from clrecon.reconstruction import reconstruct
     from clrecon.scan import table as geometry
 
@@ -166,14 +166,14 @@ def test_slabs_are_sized_by_each_slices_candidates_not_the_first_slices():
     mid = z[len(z) // 2]
     assert n[len(n) // 2] == int(np.sum(np.abs(table.source_z_mm - mid) <= w))
     per = 1e6 * n / n.max()  # bytes per slice, proportional to the candidates
-    slabs = slab_ranges(per, budget=5e6)
+    slabs = reconstruction_slabs(per, budget=5e6)
     assert slabs[0][0] == 0 and slabs[-1][1] == len(z)
     assert all(a1 == b0 for (_, a1), (b0, _) in zip(slabs[:-1], slabs[1:], strict=True))
     assert all(per[a:b].sum() <= 5e6 or b - a == 1 for a, b in slabs)
     sizes = [b - a for a, b in slabs]
     assert sizes[0] > max(sizes[len(sizes) // 2 - 1:len(sizes) // 2 + 2])  # the ends take more slices
-    assert slab_ranges(np.array([9e6, 1.0]), budget=5e6) == [(0, 1), (1, 2)]  # one slice over budget: alone
-    assert slab_ranges(np.zeros(0)) == []
+    assert reconstruction_slabs(np.array([9e6, 1.0]), budget=5e6) == [(0, 1), (1, 2)]  # one slice over budget: alone
+    assert reconstruction_slabs(np.zeros(0)) == []
 
 
 def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():

@@ -18,7 +18,7 @@ import numpy as np
 from clrecon.config.scene import load_scene
 from clrecon.core.conventions import voxel_coords
 from clrecon.evaluation import metrics, motion
-from clrecon.outputs.volumes import VolumeWriter, pitch_key
+from clrecon.outputs.volumes import VolumeWriter, pitch_key, recon_path
 
 METHODS = ("nearest", "barycentric", "local_linear", "r4dct")
 PITCHES = (0.02, 0.1)
@@ -95,7 +95,7 @@ def make_fake_run(out: Path, methods=METHODS, pitches=PITCHES, variants=VARIANTS
                 else:
                     vol = gt.copy()
                 vol = vol + rng.normal(0.0, noise * (1 + k) * (1 + 5 * pitch), shape).astype(np.float32)
-                name = f"recon/{pk}/{v}/{m}"
+                name = recon_path(pk, v, m)
                 w.create(name, shape, nz)
                 w.write(name, vol, np.arange(nz))
                 met[pk][v][m] = metrics.table2(vol, gt, metrics.MetricsConfig.from_scene(scene))

@@ -14,6 +14,7 @@ import numpy as np
 from clrecon.config.scene import load_scene
 from clrecon.evaluation import consistency as cs
 from clrecon.evaluation import groundtruth as gt
+from clrecon.outputs.volumes import recon_path
 from clrecon.reconstruction import reconstruct as rc
 
 
@@ -35,7 +36,7 @@ def main():
     views = np.arange(0, g.n_views, 4)
     circle = cs.channels_through_circle(det, g, views, cfg.object_radius_mm)
     scale = 1000 / cfg.mu_water_per_mm
-    names = ["groundtruth"] + [f"recon/{pk}/noise-free/{m}" for pk in res["metrics"]
+    names = ["groundtruth"] + [recon_path(pk, "noise-free", m) for pk in res["metrics"]
                                for m in ("barycentric", "local_linear", "nearest", "mc") if m in req["methods"]]
     picks = [(0, len(R) // 4), (len(C) // 2, len(R) // 2), (len(C) - 1, 3 * len(R) // 4)]
     with h5py.File(f"{args.run}/volumes.h5", "r") as f:

@@ -17,6 +17,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from clrecon.config.scene import load_scene
 from clrecon.evaluation import consistency as cs
+from clrecon.outputs.volumes import recon_path
 from clrecon.reconstruction import reconstruct as rc
 from clrecon.scan import table as geometry
 from clrecon.simulation.store import ProjectionStore, default_cache_dir
@@ -53,7 +54,7 @@ def main():
         store = ProjectionStore.open(scene, pitch, cache_dir=default_cache_dir(), table=table)
 
         def volumes(v, m, s, pk=pk):
-            return np.asarray(f["groundtruth" if m == "groundtruth" else f"recon/{pk}/{v}/{m}"][:, :, list(s)],
+            return np.asarray(f["groundtruth" if m == "groundtruth" else recon_path(pk, v, m)][:, :, list(s)],
                               np.float32)
 
         t = time.time()

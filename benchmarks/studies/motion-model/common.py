@@ -174,7 +174,7 @@ def candidate_rows(ctx: Context, variant: str, slices_z, method: str = "barycent
     """SSRB rows (unfiltered) of every (projection, slice) pair the method's plan uses, and the plan.
 
     Returns (rows (p, C), pair_proj (p,), pair_slice (p,), plan): pairs sorted as
-    ``Plan.needed_pairs``.
+    ``SlabWeights.needed_pairs``.
     """
     z = np.asarray(slices_z, np.float64)
     plan = rc.plan(ctx.cfg, ctx.table, z, ctx.targets, (method,))

@@ -1,7 +1,9 @@
 """The executor: runs the graph of stages (:mod:`clrecon.pipeline.graph`) and times it, once.
 
 :class:`Executor` is the serial one: every node in this thread, in the graph's order (the
-per-pitch stages pitch by pitch), every piece written as it is made. The others change only
+per-pitch stages pitch by pitch), every piece written as it is made. A node is ready when the
+nodes giving what it needs and those of the stages it comes ``after`` are done
+(:meth:`Executor.ready`, which every executor uses). The others change only
 *where* work runs, never what it computes: :class:`~clrecon.pipeline.executors.local.LocalExecutor`
 overlaps the nodes on this machine's cores (a helper process, a writer thread, a thread beside
 the reconstruction), :class:`~clrecon.pipeline.executors.dask.DaskExecutor` sends the units to
@@ -26,7 +28,7 @@ from typing import Any
 
 from clrecon.core import write_behind
 from clrecon.core.progress import progress as progress_counter
-from clrecon.reconstruction.reconstruct import StageTimes
+from clrecon.core.stage_times import StageTimes
 
 
 class StageClock:
@@ -159,13 +161,23 @@ class Executor:
         finally:
             self.writer.close()
 
+    @staticmethod
+    def _upstream(node, other) -> bool:
+        """Whether ``other``'s node counts for ``node``: a once-per-run stage waits for every pitch's
+        node, a per-pitch stage for its own pitch's (and for a once-per-run node)."""
+        return not node[0].per_pitch or not other[0].per_pitch or other[1] == node[1]
+
     def givers(self, node, product: str) -> list:
-        st, pitch = node
-        return [n for n in self.nodes if product in n[0].gives
-                and (not st.per_pitch or not n[0].per_pitch or n[1] == pitch)]
+        """The nodes whose product ``product`` ``node`` takes."""
+        return [n for n in self.nodes if product in n[0].gives and self._upstream(node, n)]
+
+    def before(self, node) -> list:
+        """The nodes of the stages ``node``'s stage comes ``after`` (it reads what they wrote)."""
+        return [n for n in self.nodes if n[0].name in node[0].after and self._upstream(node, n)]
 
     def ready(self, node) -> bool:
-        return all(g in self.done for need in node[0].needs for g in self.givers(node, need))
+        return (all(g in self.done for need in node[0].needs for g in self.givers(node, need))
+                and all(n in self.done for n in self.before(node)))
 
     def startable(self, node) -> bool:
         return self.ready(node)
@@ -253,7 +265,7 @@ class Executor:
 
     def wait(self) -> None:
         """Wait for some work in flight; the serial walk never has any."""
-        raise RuntimeError("the graph cannot go on: a stage needs a product no stage gives")
+        raise RuntimeError("the graph cannot go on: no node is ready and none is in flight")
 
     def wait_all(self) -> None:
         """Wait for every work still in flight."""

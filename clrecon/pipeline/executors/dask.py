@@ -33,10 +33,10 @@ import numpy as np
 from tqdm import tqdm
 
 from clrecon.core.errors import ClreconError
+from clrecon.core.stage_times import StageTimes
 from clrecon.pipeline import distributed
 from clrecon.pipeline.executors.base import Work, book_times
 from clrecon.pipeline.executors.local import LocalExecutor
-from clrecon.reconstruction.reconstruct import StageTimes
 
 
 class DaskExecutor(LocalExecutor):

@@ -37,10 +37,10 @@ from clrecon.core import write_behind
 from clrecon.core.progress import progress as progress_counter
 from clrecon.core.resources import spawn_is_safe, spawned_pool
 from clrecon.core.runtime import Runtime, thread_runtime
+from clrecon.core.stage_times import StageTimes
 from clrecon.outputs import figures
 from clrecon.pipeline import evaluate  # noqa: F401 - imported in the helper by unpickling _warm
 from clrecon.pipeline.executors.base import Executor, Work, book_times
-from clrecon.reconstruction.reconstruct import StageTimes
 
 #: Seconds between the run's checks on a thread beside it while it waits for it.
 POLL_S = 0.2

@@ -1,13 +1,14 @@
 """Stage ``assemble`` (once per run): ``volumes.h5`` made from the volume unit files, in place
 (:meth:`clrecon.outputs.volumes.VolumeWriter.assemble`), once every stage that writes volume
-units (``gives`` ``volume_units``) is done; :func:`close` renames it into place at the end."""
+units is done (``after``: :data:`clrecon.pipeline.graph.VOLUME_WRITERS`); :func:`close` renames it
+into place at the end. Its product, ``volumes``, is the assembled file open for reading."""
 
 from __future__ import annotations
 
 import time
 
 
-def stage(run, pitch=None, volume_units=None):
+def stage(run, pitch=None):
     return run.writer.assemble()
 
 

@@ -1,18 +1,19 @@
 """Stage ``consistency`` (per pitch, with the ``mc`` method): did ``mc`` help? A truth-free check.
 
-After ``mc_reconstruct``, every 5D method's volumes of the sampled slices are read back from the
-writer's unit files and projected at the states of the sampled rows; the RMS residual of the
-rows against those predictions (:func:`clrecon.evaluation.consistency.check`) is compared
-between ``mc`` and its first pass, barycentric, per noise variant (docs/consistency.md "Did it
-help? A truth-free check"). Methods on other target grids (r4DCT, helical) are left out with
-the reason. ``results.json["consistency"][pitch]``, a report section and a log line per variant.
+After ``mc_reconstruct`` (``after``: its units are on disk), every 5D method's volumes of the
+sampled slices are read back from the writer's unit files and projected at the states of the
+sampled rows; the RMS residual of the rows against those predictions
+(:func:`clrecon.evaluation.consistency.check`) is compared between ``mc`` and its first pass,
+barycentric, per noise variant (docs/consistency.md "Did it help? A truth-free check"). Methods
+on other target grids (r4DCT, helical) are left out with the reason.
+``results.json["consistency"][pitch]``, a report section and a log line per variant.
 A run without ``mc`` skips it; the projections it reads are added to the plan's (plan stage).
 """
 
 from __future__ import annotations
 
 from clrecon.evaluation import consistency
-from clrecon.outputs.volumes import pitch_key
+from clrecon.outputs.volumes import pitch_key, recon_path
 from clrecon.pipeline.executors.base import Idle
 from clrecon.reconstruction import interpolation
 
@@ -37,7 +38,7 @@ def checked_methods(methods) -> tuple[tuple, dict]:
     return tuple(keep), left
 
 
-def stage(run, pitch: float, plan, store, mc):
+def stage(run, pitch: float, plan, store):
     pk = pitch_key(pitch)
     rec = run.records["consistency"]
     if plan.pp is None:
@@ -49,7 +50,7 @@ def stage(run, pitch: float, plan, store, mc):
     run.log(f"[{pk}] consistency: residual of the rows against {', '.join(methods)}")
 
     def volumes(variant, method, slices):
-        return run.writer.read(f"recon/{pk}/{variant}/{method}", slices)
+        return run.writer.read(recon_path(pk, variant, method), slices)
 
     res = consistency.check(store, plan.pp.plan_table, run.slices_z, run.recon_cfg, run.targets, run.variants,
                             tuple(run.scene.recon.small_fov_mm), volumes, methods, rt=run.rt)

@@ -23,7 +23,7 @@ import numpy as np
 
 from clrecon.core.errors import ClreconError
 from clrecon.evaluation.motion_model import registration_error
-from clrecon.outputs.volumes import pitch_key
+from clrecon.outputs.volumes import pitch_key, recon_path
 from clrecon.pipeline import work_units
 from clrecon.pipeline.executors.base import Idle, Unit, Work
 from clrecon.reconstruction.motion import mc_fbp, persist
@@ -44,7 +44,7 @@ def _scan(run, pitch, plan, store) -> mc_fbp.MCScan:
     if plan.pp is not None:
         table, ptab = plan.pp.table, plan.pp.plan_table
     else:
-        table = geometry.projection_table(run.scene, pitch)
+        table = geometry.cached_projection_table(run.scene, pitch)
         ptab = geometry.usable_table(run.scene, table)[0]
     return mc_fbp.MCScan(run.recon_cfg, run.scene.recon.mc, run.scene.scanner, table, ptab, store, run.slices_z,
                          run.targets, rt=run.rt, n_variants=len(run.variants))
@@ -66,7 +66,7 @@ def _model(run, scan: mc_fbp.MCScan, pk: str, variant: str, seconds: dict) -> Mo
         _note(run, pk, variant, got[1], seconds)
         return got[0]
     t_start = time.perf_counter()
-    first = run.writer.read(f"recon/{pk}/{variant}/{mc_fbp.FIRST_PASS}")
+    first = run.writer.read(recon_path(pk, variant, mc_fbp.FIRST_PASS))
     warning = mc_fbp.thin_warning(pk, run.slices_z)
     if warning:
         run.log(warning)
@@ -77,7 +77,7 @@ def _model(run, scan: mc_fbp.MCScan, pk: str, variant: str, seconds: dict) -> Mo
     if not run.scene.measured:
         t0 = time.perf_counter()
         info["error_against_phantom_motion"] = registration_error(run.scene, model, scan.pairs,
-                                                                  run.extra.setdefault("mc_truth", {}))
+                                                                  run.mc_truth)
         info["error_seconds"] = round(time.perf_counter() - t0, 3)
     persist.save_model(folder, stem, model, info, FAULT)
     run.clock.add("registration", time.perf_counter() - t_start)
@@ -97,11 +97,11 @@ def _slab_unit(run, pitch: float, scan: mc_fbp.MCScan, a: int, b: int, variant: 
                 f"mc slab of slices {a}..{b - 1} ({variant}) at pitch {pitch:g}")
 
 
-def stage(run, pitch: float, plan, store, recon):
+def stage(run, pitch: float, plan, store):
     pk = pitch_key(pitch)
     for v in run.variants:
-        run.writer.create(f"recon/{pk}/{v}/{NAME}", run.full_shape, len(run.slices_z))
-    todo = {v: np.flatnonzero(~run.writer.done(f"recon/{pk}/{v}/{NAME}")) for v in run.variants}
+        run.writer.create(recon_path(pk, v, NAME), run.full_shape, len(run.slices_z))
+    todo = {v: np.flatnonzero(~run.writer.done(recon_path(pk, v, NAME))) for v in run.variants}
     if not any(t.size for t in todo.values()):
         return Idle(pk)
     if store is None or isinstance(store, Idle):
@@ -111,11 +111,11 @@ def stage(run, pitch: float, plan, store, recon):
     with scan:  # the registration's process pool ends with the models
         models = {v: _model(run, scan, pk, v, seconds) for v in run.variants if todo[v].size}
     units_ = [_slab_unit(run, pitch, scan, a, b, v, models[v]) for v in run.variants if todo[v].size
-              for a, b in scan.slabs if (~run.writer.done(f"recon/{pk}/{v}/{NAME}")[a:b]).any()]
+              for a, b in scan.slabs if (~run.writer.done(recon_path(pk, v, NAME))[a:b]).any()]
 
     def write(piece) -> None:
         z, v, vol = piece
-        run.writer.write(f"recon/{pk}/{v}/{NAME}", vol, z)
+        run.writer.write(recon_path(pk, v, NAME), vol, z)
 
     def finish(times):
         per = run.records["method_seconds"].setdefault(pk, {})

@@ -23,13 +23,14 @@ from clrecon.reconstruction import interpolation, reconstruct
 
 
 @dataclass
-class PitchWork:
-    """The product of ``plan``: what one pitch still has to do, and how."""
+class PitchTodo:
+    """The product of ``plan`` (the ``plan`` the later stages take): what one pitch still has to do
+    (its unfinished methods and slices, the projections they read) and its slabs (``pp``)."""
 
     pitch: float
     methods: tuple                  # the methods with an unfinished unit
     todo: np.ndarray                # slice indices one of them lacks
-    pp: slabs_mod.PitchPlan | None  # None: nothing to do (a resumed run's finished pitch)
+    pp: slabs_mod.PitchSlabs | None  # its planned slabs; None: nothing to do (a resumed run's finished pitch)
     needed: np.ndarray | None = None  # (n,) bool: the projections the reconstruction (and the folds) read
     plan_seconds: dict = field(default_factory=dict)  # method -> planning seconds
 
@@ -53,7 +54,7 @@ def planned_methods(methods) -> tuple:
 def todo(run, pitch: float) -> tuple[tuple, np.ndarray]:
     """(methods with an unfinished unit, slice indices one of them lacks); declares the pitch's datasets."""
     pk = pitch_key(pitch)
-    got = run.extra.setdefault("todo", {})
+    got = run.unfinished
     if pk not in got:
         slabs_mod.declare_recon(run.writer, pk, run.methods, run.variants, run.full_shape, len(run.slices_z))
         got[pk] = slabs_mod.unfinished(run.writer, pk, run.variants, run.methods)
@@ -73,12 +74,12 @@ def ahead(run, pitch: float):
                                   len(run.variants), False)
 
 
-def stage(run, pitch: float, ahead=None) -> PitchWork | Idle:
+def stage(run, pitch: float, ahead=None) -> PitchTodo | Idle:
     pk = pitch_key(pitch)
     methods, slices = todo(run, pitch)
     if slices.size == 0:
         run.log(f"[{pk}] already reconstructed (resumed run)")
-        return Idle(PitchWork(pitch, methods, slices, None))
+        return Idle(PitchTodo(pitch, methods, slices, None))
     run.log(f"[{pk}] planning {slices.size} slices x {run.n_targets} targets x {len(methods)} methods")
     fixed = planned_methods(methods)
     pp = ahead
@@ -106,4 +107,4 @@ def stage(run, pitch: float, ahead=None) -> PitchWork | Idle:
         run.records["recorded_signals"][pk] = {
             "views_total": len(pp.table), "views_used": len(pp.plan_table),
             "views_excluded": int(len(pp.table) - len(pp.plan_table)), "excluded_by_reason": dict(pp.excluded)}
-    return PitchWork(pitch, methods, slices, pp, needed, dict(pp.method_plan_seconds))
+    return PitchTodo(pitch, methods, slices, pp, needed, dict(pp.method_plan_seconds))

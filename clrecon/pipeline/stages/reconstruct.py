@@ -13,7 +13,7 @@ import dataclasses
 import time
 
 from clrecon.evaluation import truth_free
-from clrecon.outputs.volumes import pitch_key
+from clrecon.outputs.volumes import pitch_key, recon_path
 from clrecon.pipeline import work_units
 from clrecon.pipeline.context import TUNED
 from clrecon.pipeline.executors.base import Idle, Unit, Work
@@ -75,7 +75,7 @@ def stage(run, pitch: float, plan, store, tuning):
     def write(piece) -> None:
         z, slab = piece
         for (v, m), vol in slab.items():  # r4dct (1, n_r), helical (1, 1): stored as they are
-            run.writer.write(f"recon/{pk}/{v}/{m}", vol, z)
+            run.writer.write(recon_path(pk, v, m), vol, z)
 
     def finish(times):
         """A method's cost per variant: its interpolation + FBP of that variant plus its whole plan

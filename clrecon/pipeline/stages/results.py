@@ -1,5 +1,5 @@
-"""Stage ``results`` (once per run, untimed): ``volumes.h5`` closed, the ``results.json``
-dictionary built from the stages' records and the executor's clock (schema:
+"""Stage ``results`` (once per run, untimed; ``after`` ``assemble`` and ``metrics``): ``volumes.h5``
+closed, the ``results.json`` dictionary built from the stages' records and the executor's clock (schema:
 docs/run-directory.md "results.json"); :func:`finish` adds what is known only at the very end
 and :func:`write_json_atomic` writes it."""
 
@@ -57,7 +57,7 @@ BESIDE = ("the seconds are the run's own time on it and its wait for what was do
 def stage_table(run, skipped: set) -> dict:
     """``results.json["stages"]``: every part of every stage in the graph's order, with its seconds."""
     clock, out = run.clock, {}
-    for st in run.extra["graph"]:
+    for st in run.graph:
         if st.optional and st.name in skipped:
             continue
         for part in st.parts:
@@ -84,10 +84,10 @@ def stage_table(run, skipped: set) -> dict:
     return out
 
 
-def stage(run, pitch=None, volumes=None, metrics=None) -> dict:
+def stage(run, pitch=None) -> dict:
     assemble.close(run)
     scene, rec, targets = run.scene, run.records, run.targets
-    skipped = {st.name for st in run.extra["graph"] if st.skip is not None and st.skip(run)}
+    skipped = {st.name for st in run.graph if st.skip is not None and st.skip(run)}
     results = {
         "format_version": RESULTS_FORMAT,
         "scene": scene.to_dict(),
@@ -103,7 +103,7 @@ def stage(run, pitch=None, volumes=None, metrics=None) -> dict:
         "resumed": run.writer.resumed,
         "preflight": {"forced": bool(run.force), "needs_bytes": run.need},
         "units_written": dict(rec["units_written"], **run.writer.units_written),
-        "executor": run.extra["executor"],
+        "executor": run.executor_kind,
         "stages": stage_table(run, skipped),
         "metrics": rec["metrics"],
         "method_seconds": rec["method_seconds"],
@@ -126,13 +126,13 @@ def stage(run, pitch=None, volumes=None, metrics=None) -> dict:
         results["truth_free"] = rec["truth_free"]
     if "mc" in run.methods:  # the truth-free check of mc (stage consistency)
         results["consistency"] = rec["consistency"]
-    summary = run.extra["summary"]()
+    summary = run.executor_summary()
     if summary is not None:
         results["distributed"] = summary
     results["claims"] = claims.evaluate_claims(results)  # the paper's claims, measured
     # how fast the machine was over the work (before the report, which shows it): cross-run
     # seconds on a shared machine are comparable only beside this (core/machine_speed.py)
-    results["machine_speed"] = run.extra["machine_speed"].finish()
+    results["machine_speed"] = run.machine_speed.finish()
     return results
 
 

@@ -8,7 +8,7 @@ its model so that a resumed run does not register again) and :func:`reconstruct_
 final pass of one slab: the one body of the stage's work unit, in the run's process and on a
 Dask worker, :func:`clrecon.pipeline.work_units.mc_slab`). :class:`MCScan` holds what they
 share: the scan's tables, store, slices and targets, its slab cut
-(:func:`clrecon.reconstruction.motion.memory.slab_ranges`), the registration's process pool,
+(:func:`clrecon.reconstruction.motion.memory.plane_row_slabs`), the registration's process pool,
 and the plane rows of the last round kept for the final pass.
 
 The steps themselves (registration, fit, plane rows, the kernel) are
@@ -67,7 +67,7 @@ class MCScan:
     usable rows (what the first pass planned with); ``store``: the projection store
     (``read_indices``; a noisy variant draws the run's noise); ``slices_z`` (S,) mm; ``targets``:
     the run's ``Targets``; ``slabs``: the slice ranges ``(a, b)`` (default
-    :func:`memory.slab_ranges`); ``n_variants``: the noise variants the run makes (the rows kept
+    :func:`memory.plane_row_slabs`); ``n_variants``: the noise variants the run makes (the rows kept
     for the final pass of each must fit ``memory.ROWS_BYTES`` together). Holds the registration's
     process pool once made (:meth:`close` ends it; also a context manager) and the plane rows of
     the last round's slab where they are kept for the final pass.
@@ -79,8 +79,8 @@ class MCScan:
         self.table, self.plan_table, self.store = table, plan_table, store
         self.slices_z = np.asarray(slices_z)
         self.targets, self.rt, self.n_variants = targets, rt, int(n_variants)
-        self.slabs = list(slabs) if slabs is not None else memory.slab_ranges(plan_table, scanner, cfg, self.slices_z,
-                                                                              knobs)
+        self.slabs = (list(slabs) if slabs is not None
+                      else memory.plane_row_slabs(plan_table, scanner, cfg, self.slices_z, knobs))
         self.pairs = targets.pairs
         self.shape = targets.shape
         self.f = mcm.factor(cfg.fbp, knobs)

@@ -1,6 +1,6 @@
 """How ``mc`` cuts a scan's slices into slabs, and the memory its work holds (the pre-flight's model).
 
-:func:`slab_ranges` is the cut :func:`clrecon.reconstruction.motion.mc_fbp.MCScan` makes (one
+:func:`plane_row_slabs` is the cut :func:`clrecon.reconstruction.motion.mc_fbp.MCScan` makes (one
 work unit per slab and noise variant); :func:`working_bytes` what a run of ``mc`` at one pitch
 adds to the process's memory (read by :func:`clrecon.pipeline.costs.run_costs`).
 """
@@ -28,7 +28,7 @@ def _bytes_per_projection(scanner, window_mm: float, knobs) -> int:
     return (int((2 * (window_mm + knobs.plane_dz_mm)) / knobs.plane_dz_mm) + 2) * scanner.n_cols * 4
 
 
-def slab_ranges(table, scanner, cfg, slices_z, knobs, budget: float | None = None) -> list[tuple[int, int]]:
+def plane_row_slabs(table, scanner, cfg, slices_z, knobs, budget: float | None = None) -> list[tuple[int, int]]:
     """Consecutive slice ranges whose plane rows ((P, planes, C) float32) stay within ``budget``
     (default :data:`ROWS_BYTES`), or within :data:`GROWTH` times the rows of the range's first slice
     where that is more."""
@@ -71,7 +71,7 @@ def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     per_proj = _bytes_per_projection(scanner, w, knobs)
     n_proj = (z_extent_mm + 2 * (w + knobs.margin_mm)) / feed_mm * scanner.views_per_rotation
     one_slice = 2 * (w + knobs.margin_mm) / feed_mm * scanner.views_per_rotation * per_proj
-    rows = min(max(ROWS_BYTES, GROWTH * one_slice), n_proj * per_proj)  # slab_ranges' limit
+    rows = min(max(ROWS_BYTES, GROWTH * one_slice), n_proj * per_proj)  # plane_row_slabs' limit
     kept = n_var * rows if n_var * rows <= ROWS_BYTES else 0.0
     f = max(1, knobs.downsample)
     volumes = 3 * n_targets * nz * ny * nx * 4

@@ -109,7 +109,7 @@ def refine(model: MotionModel, geom: FanBeamGeometry) -> MotionModel:
 
 
 def slab_projections(bary_plan) -> np.ndarray:
-    """The projections a slab's barycentric plan (``MethodPlan``) gives a non-zero weight, sorted."""
+    """The projections a slab's barycentric plan (``MethodWeights``) gives a non-zero weight, sorted."""
     return np.unique(bary_plan.proj_index[bary_plan.weight != 0]).astype(np.int64)
 
 
@@ -152,7 +152,7 @@ def backproject_slab(rows: mcb.PlaneRows, bary_plan, model: MotionModel, table, 
                      pairs, mu_water: float, knobs, rt=None, progress=None) -> np.ndarray:
     """Motion-compensated FBP of every target of one slab: HU (T, s, ny, nx) float32.
 
-    ``bary_plan``: the slab's barycentric ``MethodPlan`` (S, V, T, K) (the rows and weights each
+    ``bary_plan``: the slab's barycentric ``MethodWeights`` (S, V, T, K) (the rows and weights each
     target uses); ``model`` on ``geom``'s in-plane grid (a coarse ``geom`` for the rounds before
     the last); ``pairs`` (T, 2) the targets (c, a); ``progress``: optional ``update(n)``, one step per target.
     """

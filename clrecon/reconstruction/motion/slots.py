@@ -93,7 +93,7 @@ def kernel_slots(groups: CandidateGroups, cardiac_phase, resp_amplitude, targets
 
 
 def plan_slots(proj_index, weight, rows: PlaneRows | None = None):
-    """A method plan's weights (S, V, T, K) (``MethodPlan.proj_index``, ``.weight``) as slots (T, S, V, K).
+    """A method plan's weights (S, V, T, K) (``MethodWeights.proj_index``, ``.weight``) as slots (T, S, V, K).
 
     Zero-weight slots are emptied (-1) and the filled ones moved to the front of each list.
     """
