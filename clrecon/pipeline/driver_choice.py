@@ -235,8 +235,9 @@ def choose_for_run(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=No
 
 
 def apply(decision: Decision | None) -> None:
-    """Make ``decision``'s driver this process's (and its children's) preferred CPU driver."""
-    if decision is not None and decision.key:
+    """Make ``decision``'s driver this process's (and its children's) preferred CPU driver, where it was
+    chosen by comparing timings (with one working driver, or none timed, the default order stands)."""
+    if decision is not None and decision.key and decision.predicted:
         drivers.prefer(decision.key, decision.reason)
 
 

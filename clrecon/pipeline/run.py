@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from clrecon.config.scene import Scene
-from clrecon.core import machine_speed
+from clrecon.core import drivers, machine_speed
 from clrecon.core.errors import ClreconError
 from clrecon.core.runtime import get_runtime
 from clrecon.outputs import report as report_mod
@@ -61,11 +61,12 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     out = Path(out_dir)  # made by the volume writer: a run refused before it leaves no folder behind
     decision = _choose_driver(scene, methods, cardiac, resp, slice_range, pitches)
     rt = get_runtime()  # first: a machine with no working OpenCL driver gets its one line before any file
-    if decision is not None and decision.key and rt.choice.timing is None and decision.predicted:
-        rt.choice.timing = decision.as_dict()
+    if decision is not None and decision.predicted and drivers.driver_of(rt.device.platform.name) is not None \
+            and drivers.driver_of(rt.device.platform.name).key == decision.key:  # this run's comparison
+        rt.choice.chosen_by, rt.choice.timing = decision.reason, decision.as_dict()
         log(f"OpenCL driver: {decision.key}, {decision.reason}")
     ex = executors.make(executor, client)
-    if client is not None and decision is not None and decision.key:  # the workers use the run's driver
+    if client is not None and decision is not None and decision.key and decision.predicted:  # the workers too
         client.register_plugin(distributed.preference_plugin(decision.key, decision.reason))
     ctx = open_run(scene, out, methods, cardiac, resp, slice_range, pitches, cache_dir, rt=rt,
                    executor_kind=ex.kind, distributed=ex.fine_units, force=force, report=report, progress=progress,
