@@ -39,6 +39,7 @@ import numpy as np
 import scipy.ndimage
 
 from clrecon.core.errors import ClreconError
+from clrecon.reconstruction.motion.flow import TVL1Config, register_tvl1
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
@@ -167,7 +168,7 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
         Voxel spacing (mm) along x, y, z.
     origin_mm : (x0, y0, z0)
         Centre of voxel (0, 0, 0) (mm); only shifts the ITK frame (fields are relative).
-    cfg : DemonsConfig or FlowConfig
+    cfg : DemonsConfig, FlowConfig or TVL1Config (:mod:`clrecon.reconstruction.motion.flow`)
     initial : (3, nz, ny, nx) array, optional
         Starting field (mm), e.g. a neighbouring state's (demons only).
 
@@ -184,12 +185,16 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
         raise ValueError("fixed and moving must be finite")
     if len(spacing_mm) != 3 or min(spacing_mm) <= 0:
         raise ValueError(f"spacing_mm = {spacing_mm!r}: three spacings > 0 (x, y, z)")
+    if isinstance(cfg, TVL1Config):
+        if initial is not None:
+            raise ValueError("initial: the TV-L1 registration starts from zero")
+        return register_tvl1(f, m, tuple(float(s) for s in spacing_mm), cfg)
     if isinstance(cfg, FlowConfig):
         if initial is not None:
             raise ValueError("initial: the Lucas-Kanade registration starts from zero")
         return _flow(f, m, tuple(float(s) for s in spacing_mm), cfg)
     if not isinstance(cfg, DemonsConfig):
-        raise TypeError(f"cfg: expected a DemonsConfig or FlowConfig, got {type(cfg).__name__}")
+        raise TypeError(f"cfg: expected a DemonsConfig, FlowConfig or TVL1Config, got {type(cfg).__name__}")
     sitk = require("SimpleITK")
     if cfg.threads > 0:
         sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(cfg.threads))
@@ -274,7 +279,7 @@ def register_to_reference(volumes, reference: int, spacing_mm: tuple, cfg: Demon
     if not 0 <= reference < n:
         raise ValueError(f"reference = {reference}: must index one of the {n} volumes")
     out = np.zeros((n, 3) + v.shape[1:], np.float32)
-    if pool is not None and order is None:
+    if pool is not None and order is None and not isinstance(cfg, TVL1Config):  # OpenCL uses every core itself
         futures = {pool.submit(register, v[reference], v[i], spacing_mm, cfg=cfg): i
                    for i in range(n) if i != reference}
         for fut in as_completed(futures):
