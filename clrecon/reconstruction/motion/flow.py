@@ -1,7 +1,7 @@
 """Multi-resolution 3D TV-L1 optical flow on the engine's OpenCL runtime (``kernels/flow.cl``).
 
 A registration for the ``mc`` motion model (``recon.mc.registration = "tvl1"``;
-docs/motion-model.md "Registration"): the displacement u (mm) minimising
+docs/motion-model.md "TV-L1 registration"): the displacement u (mm) minimising
 
     E(u) = sum_c integral |grad u_c| dx  +  lambda integral |I1(x + u(x)) - I0(x)| dx
 
@@ -25,8 +25,8 @@ voxels for a size ratio f, as IPOL's cascade) by trilinear resampling of voxels 
 extent (``flow_resample``); fields carry to the next level by the same resampling (mm need no
 rescaling). Levels stop at ``levels`` or before an in-plane side falls under ``min_size``.
 
-Device memory at the finest level: 16 float32 volumes (fixed, moving, warped, residual, u x 3,
-dual x 9), i.e. 64 bytes per voxel (:data:`BYTES_PER_VOXEL` adds the host's pyramid and result).
+Memory at the finest level: 16 float32 volumes (fixed, moving, warped, residual, u x 3, dual x 9),
+64 bytes per voxel (:data:`BYTES_PER_VOXEL`).
 Deterministic: no random sampling and no reductions in the kernels (one work-item per output), so
 a repeated call gives the same bits on one device.
 
@@ -46,9 +46,12 @@ from clrecon.core.runtime import aligned_empty, get_runtime
 
 #: |grad I|^2 below which the thresholding step does not move u (normalised intensity per mm, squared).
 EPS = 1e-12
-#: Host + device bytes per voxel of the finest level at peak: 16 device volumes, the host's two
-#: normalised images, their smoothed pyramid copy and the 3-component result (float32).
-BYTES_PER_VOXEL = 4 * (16 + 2 + 1 + 3)
+#: Peak bytes per voxel of the finest level, host and device together on a CPU device: the two
+#: normalised images (shared with the device, not copied), warped image, residual, u (3) and the
+#: dual (9), float32. The coarser levels' smoothed copies come and go before it; the result (3
+#: volumes) is read back after the dual and the images are released (measured against this:
+#: docs/motion-model.md "TV-L1 registration").
+BYTES_PER_VOXEL = 4 * 16
 
 
 @dataclass(frozen=True, kw_only=True)
