@@ -308,7 +308,7 @@ def _check(fixed, moving, spacing_mm):
 
 
 class _Kernels:
-    """The program's kernels on one runtime, with the launch geometry of one volume shape."""
+    """The kernels of ``flow.cl`` on one runtime (built once per runtime by :meth:`Runtime.kernel`)."""
 
     def __init__(self, rt):
         self.rt = rt
