@@ -159,7 +159,8 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
         if len(slices_z) < 2:
             raise ClreconError(f"method {m!r} registers the volumes along z: it needs at least 2 slices, the run "
                                f"has {len(slices_z)}")
-        registration.require("skimage.registration")  # before any work: one line naming the extra
+        if scene.recon.mc.registration == "lucas_kanade":  # tvl1 runs on the engine's OpenCL runtime
+            registration.require("skimage.registration")  # before any work: one line naming the extra
     run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches,
                                     overlap=executor_kind != "serial")
     cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()

@@ -61,6 +61,11 @@ class MotionCompensationConfig(Section):
                         "in-plane factor the registration (and the rounds before the last) works at: 1 = the "
                         "reconstruction grid (the study's A2), 2 = half its voxels along x and y (about 3x cheaper, "
                         "MAE 8-11 % higher on demo: docs/motion-model.md); the last pass is always on the full grid")
+    registration: str = F("lucas_kanade", one_of(("lucas_kanade", "tvl1")),
+                          "the registration: 'lucas_kanade' (scikit-image's iterative Lucas-Kanade, windows of "
+                          "flow_radius, flow_warps warps) or 'tvl1' (multi-resolution Huber-TV-L1 optical flow on the "
+                          "engine's OpenCL runtime, clrecon.reconstruction.motion.flow; not the default until it "
+                          "measures better in mc)")
     flow_radius: int = F(7, integer_in(1, 30, "voxels of the registration grid; the window is 2 r + 1 wide"),
                          "Lucas-Kanade window radius in voxels of the registration grid")
     flow_warps: int = F(10, integer_in(1, 50, "warps per pyramid level; 10 converged on demo"),

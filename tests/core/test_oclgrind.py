@@ -382,3 +382,29 @@ def test_motion_compensation_kernels(grind, clean, detector, monkeypatch):
     ref = warp.warp_reference(vol, model, [(0.1, 0.2), (0.9, 0.6)], [-6.0, 1.0, 9.0])
     assert np.abs(got - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
     clean()
+
+
+# ---------------------------------------------------------------------------------------
+# kernels/flow.cl (the TV-L1 registration, clrecon.reconstruction.motion.flow)
+def test_flow_kernels(grind, clean):
+    from clrecon.reconstruction.motion import flow
+
+    rng = np.random.default_rng(41)
+    shape, h = (3, 5, 7), (0.8, 1.0, 2.0)        # no axis a multiple of another; anisotropic spacing
+    img, fixed = rng.uniform(0, 1, shape), rng.uniform(0, 1, shape)
+    u = rng.normal(0, 2.0, (3,) + shape)          # past the edges: clamped reads
+    p = rng.uniform(-0.7, 0.7, (9,) + shape)
+    rho0 = rng.normal(0, 0.3, shape)
+    scale = TOL["f32"]                            # O(1) data, a few dozen float32 operations per output
+    checks = [
+        (flow.warp_cl(img, u, h, runtime=grind), flow.warp_reference(img, u, h)),
+        (flow.residual_cl(img, fixed, u, h, runtime=grind), flow.residual_reference(img, fixed, u, h)),
+        (flow.primal_cl(u, p, img, rho0, h, 0.4, 0.3, runtime=grind),
+         flow.primal_reference(u, p, img, rho0, h, 0.4, 0.3)),
+        (flow.dual_cl(u, p, h, 0.2, 0.1, runtime=grind), flow.dual_reference(u, p, h, 0.2, 0.1)),
+        (flow.resample_cl(u, (2, 4, 9), runtime=grind), flow.resample_reference(u, (2, 4, 9))),
+        (flow.resample_cl(img[None], (4, 3, 3), runtime=grind), flow.resample_reference(img[None], (4, 3, 3))),
+    ]
+    for got, ref in checks:
+        assert np.abs(got - ref).max() <= scale * max(1.0, np.abs(ref).max())
+    clean()

@@ -360,3 +360,16 @@ def test_on_a_static_scene_the_verdict_says_no_clear_difference(tmp_path):
         e = ver["regions"][region]
         assert abs(e["ratio"] - 1) <= consistency.MIN_EFFECT and e["says"] == "no clear difference", e
     assert res["consistency"]["p0.100"]["config"]["min_effect"] == consistency.MIN_EFFECT
+
+
+def test_mc_with_tvl1_runs_without_the_motion_extra(tmp_path):
+    """``recon.mc.registration = "tvl1"`` registers on the engine's OpenCL runtime: a run asking for
+    mc with it needs neither scikit-image nor SimpleITK, and makes mc's volumes."""
+    code = ("import sys; sys.modules['skimage'] = None; sys.modules['skimage.registration'] = None; "
+            "sys.modules['SimpleITK'] = None; import clrecon; "
+            f"r = clrecon.run(clrecon.load_scene('tiny', recon__mc__registration='tvl1'), {str(tmp_path / 'o')!r}, "
+            f"methods={METHODS!r}.split(','), cache={str(tmp_path / 'c')!r}, report=False); "
+            "print(sorted(r.results['stages']['registration']['mc']))")
+    got = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert got.returncode == 0, got.stderr[-3000:]
+    assert got.stdout.strip().splitlines()[-1].startswith("['p"), got.stdout

@@ -32,6 +32,7 @@ from clrecon.reconstruction.fbp import FanBeamGeometry
 from clrecon.reconstruction.motion import backproject as mcb
 from clrecon.reconstruction.motion import estimate
 from clrecon.reconstruction.motion import slots as msl
+from clrecon.reconstruction.motion.flow import TVL1Config
 from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel, fit_motion_model, sample
 from clrecon.reconstruction.motion.registration import FlowConfig
 
@@ -73,7 +74,10 @@ def basis_of(knobs, n_cardiac: int, n_resp: int) -> MotionBasis:
                        cardiac_harmonics=min(knobs.cardiac_harmonics, (n_cardiac - 1) // 2))
 
 
-def flow_of(knobs) -> FlowConfig:
+def flow_of(knobs) -> FlowConfig | TVL1Config:
+    """The registration ``knobs.registration`` names, with its knobs."""
+    if knobs.registration == "tvl1":
+        return TVL1Config()
     return FlowConfig(radius=knobs.flow_radius, num_warp=knobs.flow_warps)
 
 

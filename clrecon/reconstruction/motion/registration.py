@@ -34,6 +34,7 @@ import numpy as np
 import scipy.ndimage
 
 from clrecon.core.errors import ClreconError
+from clrecon.reconstruction.motion.flow import TVL1Config, register_tvl1
 
 #: The extra that installs the registration libraries (pyproject.toml ``[project.optional-dependencies]``).
 EXTRA = "pip install 'clrecon[motion]'"
@@ -107,7 +108,8 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
         Voxel spacing (mm) along x, y, z.
     origin_mm : (x0, y0, z0)
         Centre of voxel (0, 0, 0) (mm); handed to a plugged-in registration (fields are relative).
-    cfg : FlowConfig (default), or a config with a ``register`` method (module docstring)
+    cfg : FlowConfig (default), TVL1Config (:mod:`clrecon.reconstruction.motion.flow`), or a config with a
+        ``register`` method (module docstring)
     initial : (3, nz, ny, nx) array, optional
         Starting field (mm), e.g. a neighbouring state's (a plugged-in registration only).
 
@@ -124,13 +126,17 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
         raise ValueError("fixed and moving must be finite")
     if len(spacing_mm) != 3 or min(spacing_mm) <= 0:
         raise ValueError(f"spacing_mm = {spacing_mm!r}: three spacings > 0 (x, y, z)")
+    if isinstance(cfg, TVL1Config):
+        if initial is not None:
+            raise ValueError("initial: the TV-L1 registration starts from zero")
+        return register_tvl1(f, m, tuple(float(s) for s in spacing_mm), cfg)
     if isinstance(cfg, FlowConfig):
         if initial is not None:
             raise ValueError("initial: the Lucas-Kanade registration starts from zero")
         return _flow(f, m, tuple(float(s) for s in spacing_mm), cfg)
     if not callable(getattr(cfg, "register", None)):
-        raise TypeError(f"cfg: expected a FlowConfig or a registration config with a register() method, got "
-                        f"{type(cfg).__name__}")
+        raise TypeError(f"cfg: expected a FlowConfig, a TVL1Config or a registration config with a register() "
+                        f"method, got {type(cfg).__name__}")
     return cfg.register(f, m, tuple(float(s) for s in spacing_mm), tuple(float(o) for o in origin_mm), initial)
 
 
@@ -182,7 +188,7 @@ def register_to_reference(volumes, reference: int, spacing_mm: tuple, cfg: FlowC
     if not 0 <= reference < n:
         raise ValueError(f"reference = {reference}: must index one of the {n} volumes")
     out = np.zeros((n, 3) + v.shape[1:], np.float32)
-    if pool is not None and order is None:
+    if pool is not None and order is None and not isinstance(cfg, TVL1Config):  # OpenCL uses every core itself
         futures = {pool.submit(register, v[reference], v[i], spacing_mm, cfg=cfg): i
                    for i in range(n) if i != reference}
         for fut in as_completed(futures):
