@@ -4,7 +4,8 @@ AVX-512, else 8) against the scalar kernel it replaced (``kernels/reference/mc_b
 on each OpenCL CPU driver, in the same run; and the kernel's other build (8 lanes where the device
 gets 16, else 16).
 
-The case has `demo`'s geometry (128^2 voxels of 3 mm, 360 views x 240 columns, flat detector)
+The case (:func:`clrecon.bench.mc_kernel.synthetic_case`, shared with the bench's ``mc`` section) has
+`demo`'s geometry (128^2 voxels of 3 mm, 360 views x 240 columns, flat detector)
 and the motion model's basis (NB = 6: constant, amplitude, 2 cardiac harmonics), with synthetic
 data of `demo`'s sizes at pitch 0.10: projections every view on 13 turns 2.8 mm apart in z, each
 rebinned to the 2-mm planes within its SSRB window (11.9 mm) plus one plane (14 planes), random
@@ -20,52 +21,16 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import scipy.ndimage
 
 from clrecon.bench import reference_kernels
+from clrecon.bench.mc_kernel import synthetic_case
 from clrecon.bench.timing import load1, timed
-from clrecon.config.scene import load_scene
 from clrecon.core.runtime import Runtime
-from clrecon.reconstruction import rebin
-from clrecon.reconstruction.fbp import FanBeamGeometry
 from clrecon.reconstruction.motion import backproject as mcb
-from clrecon.reconstruction.motion.backproject import MCBackprojector, PlaneRows, plane_range
-from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel
+from clrecon.reconstruction.motion.backproject import MCBackprojector
 
 #: The drivers measured (``CLRECON_DEVICE`` names): Intel's CPU runtime and PoCL.
 DRIVERS = ("intel", "portable")
-
-
-def synthetic_case(n_slices: int = 4, seed: int = 34, scene: str = "demo"):
-    """(geom, model, rows, proj_basis, slot_proj, slot_w, slices_z) of the module docstring's case."""
-    rng = np.random.default_rng(seed)
-    sc = load_scene(scene)
-    geom = FanBeamGeometry.from_scene(sc)
-    V = geom.n_views
-    feed = 2.8                                               # mm per turn: demo at pitch 0.10
-    window = rebin.slice_window_mm(sc.scanner, geom.fov_radius_mm)
-    slices_z = 2.5 * np.arange(n_slices)
-    lo, hi = slices_z[0] - window - 2.0, slices_z[-1] + window + 2.0
-    n_turns = int(np.ceil((hi - lo) / feed))
-    z = lo + feed * (np.arange(n_turns)[:, None] + np.arange(V)[None, :] / V)   # (turn, view)
-    proj_z = z.ravel()
-    first, count = plane_range(proj_z, window, 2.0, lo - 4.0, hi + 4.0)
-    rows = PlaneRows(rows=rng.normal(size=(proj_z.size, int(count.max()), geom.n_cols)).astype(np.float32),
-                     plane_first=first.astype(np.int32), plane_count=count.astype(np.int32),
-                     projection=np.arange(proj_z.size), proj_z_mm=proj_z, plane_dz_mm=2.0, window_mm=window)
-    K = 3
-    sp = np.empty((n_slices, V, K), np.int32)
-    for s, zs in enumerate(slices_z):
-        near = np.argsort(np.abs(z - zs), axis=0)[:K]           # (K, V) nearest turns per view
-        sp[s] = (near * V + np.arange(V)[None, :]).T
-    sw = rng.uniform(0.1, 1.0, sp.shape).astype(np.float32)
-    basis = MotionBasis(resp_degree=1, cardiac_harmonics=2)
-    grid = FieldGrid(nx=geom.nx, ny=geom.ny, nz=8, voxel_mm=geom.voxel_mm, z0_mm=lo, dz_mm=(hi - lo) / 7)
-    f = scipy.ndimage.gaussian_filter(rng.normal(size=(basis.size, 3) + grid.shape), (0, 0, 1, 8, 8))
-    f *= 6.0 / np.abs(f).max()
-    model = MotionModel(basis=basis, grid=grid, fields=f.astype(np.float32), reference=(0.5, 0.5))
-    pb = basis.values(rng.uniform(0, 1, proj_z.size), rng.uniform(0, 1, proj_z.size))
-    return geom, model, rows, pb, sp, sw, slices_z
 
 
 def bench_mc_backproject(quick: bool = False, repeats: int = 3, drivers=DRIVERS, scene: str = "demo") -> dict:
@@ -94,10 +59,10 @@ def bench_mc_backproject(quick: bool = False, repeats: int = 3, drivers=DRIVERS,
 
             alt = 24 - bp.lanes  # the other build: 8 or 16 lanes
             k_alt = rt.kernel(mcb._KERNEL_FILE, "mc_backproject", **{**bp._defines, "LANES": alt})
-            g_alt = mcb._global_size(geom, len(zs), alt)
+            g_alt = mcb._global_size(geom, len(zs), alt, bp.local_size)
 
             def other(out=out, bp=bp, k_alt=k_alt, g_alt=g_alt):
-                out["other"] = bp._launch(k_alt, g_alt, mcb.LOCAL_SIZE, sp, sw, target)
+                out["other"] = bp._launch(k_alt, g_alt, bp.local_size, sp, sw, target)
 
             fns = {"new": new, "old": old, "other": other}
             for fn in fns.values():  # warm-up: builds, PoCL specialisation

@@ -43,6 +43,9 @@
 // one projection's rows (NPMAX C) and within one field component (MZ ny nx) are int: the host
 // checks they are below 2^31.
 // Work-item (bx, iy, s): voxels ix = LANES bx .. LANES bx + LANES - 1 of row iy of slice s.
+// The host picks LX, LY and VCHUNK per driver (backproject.launch_shape: a 8x32 tile on Intel's
+// runtime, whose work-items then share a chunk's rows from cache; 1x8 elsewhere); a work-item's
+// result does not depend on them.
 // Compile-time: LANES, LX, LY (local size), VCHUNK (views per barrier chunk), NB (basis size, >= 1),
 // NINV (inversion steps), CURVED (+ ATAN_TERMS, ATAN_C*: atan_poly.h's coefficients).
 

@@ -9,7 +9,9 @@ reconstruction (read + noise + rebin + interpolate + FBP, every variant and meth
 motion-compensated backprojection), and ``mc``'s MAE beside min(barycentric, local linear).
 Then, on the run's own noisy first pass, one registration round (13 Lucas-Kanade registrations
 on ``demo``) one after the other and in the run's process pool, alternating, ``repeats`` times:
-the pool's speed-up, with the fields' bit-identity checked.
+the pool's speed-up, with the fields' bit-identity checked. Last, the motion-compensated
+backprojection kernel against the static backprojector on the same geometry, in the same process
+(:mod:`clrecon.bench.mc_kernel`: G updates/s, their ratio, medians, the load).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from clrecon.bench import mc_kernel
 from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
 from clrecon.core.resources import spawned_pool
@@ -107,10 +110,11 @@ def bench_mc_section(quick: bool = False, repeats: int = 3, scene="demo") -> dic
         mae[v] = {"mc": list(got), "min_bary_ll": list(paper), "ratio": [got[0] / paper[0], got[1] / paper[1]]}
     slices_z = reconstruct.slice_positions(sc, slices)
     reg = _registration_round(first, sc, slices_z, max(1, repeats if not quick else 1))
+    kernel = mc_kernel.run(quick, repeats, scene=sc)
     return {"scene": sc.name, "pitch": PITCH, "slices": list(slices), "methods": list(METHODS),
             "variants": list(res["metrics"][pk]), "load_average_1min_before": load, "run_s": run_s,
             "reconstruction_s": recon_s, "mc_s": mc_s, "mc_parts_s": parts,
-            "ratio": mc_s / recon_s if recon_s else None, "mae": mae, "registration_round": reg}
+            "ratio": mc_s / recon_s if recon_s else None, "mae": mae, "registration_round": reg, "kernel": kernel}
 
 
 def run(quick: bool = False, repeats: int = 3, log=print) -> dict:
@@ -138,4 +142,5 @@ def report_lines(r: dict | None) -> list[str]:
                    f"{g['repeats']})")
     else:
         out.append(f"   one registration round: {g['serial_s']:.1f} s (one core: no pool)")
+    out.extend(mc_kernel.report_lines(r.get("kernel")))
     return out

@@ -48,10 +48,11 @@ Sections (``--only`` picks some):
 ``measured`` (:mod:`clrecon.bench.measured`)
     DICOM-CT-PD import views/s (header pass + pixel import into a fresh store) against reading
     the same files' bytes; goal >= 200 views/s.
-``mc`` (only when named; :mod:`clrecon.bench.mc`)
+``mc`` (only when named; :mod:`clrecon.bench.mc`, :mod:`clrecon.bench.mc_kernel`)
     The cost of the ``mc`` method against the paper methods' reconstruction of the same ``demo``
-    run at pitch 0.10 (``--quick``: 4 slices), its MAE ratio, and one registration round one
-    after the other against the run's process pool.
+    run at pitch 0.10 (``--quick``: 4 slices), its MAE ratio, one registration round one
+    after the other against the run's process pool, and the motion-compensated backprojection
+    kernel's G updates/s against the static backprojector's on the same geometry (goal >= 1/4).
 
 The A/B benchmarks of the code's own levers and options, and the studies (levers, backprojector
 options, detectors, Dask scaling, truth-free trust), live in a checkout's ``benchmarks/`` folder,

@@ -163,7 +163,13 @@ def test_mc_section_tiny(monkeypatch):
     assert g["workers"] == min(cores, registration.MAX_WORKERS)
     if cores > 1:
         assert g["same_bits"] is True and g["pool_s"] > 0
-    assert "registration round" in "\n".join(report_lines(r))
+    k = r["kernel"]   # the motion-compensated kernel against the static one, same geometry (tiny's)
+    assert k["scene"] == "tiny" and k["repeats"] == 3 and len(k["load_average_1min_repeats"]) == 3
+    assert k["mc_gups"] == pytest.approx(k["mc_updates"] / k["median_s"]["mc"] / 1e9)
+    assert k["static_gups"] == pytest.approx(k["static_updates"] / k["median_s"]["static"] / 1e9)
+    assert k["ratio"] == pytest.approx(k["mc_gups"] / k["static_gups"]) and k["mc_updates"] > 0
+    text = "\n".join(report_lines(r))
+    assert "registration round" in text and "motion-compensated" in text and "static" in text
 
 
 def test_the_ab_benchmarks_are_not_sections_of_the_users_bench():

@@ -166,6 +166,48 @@ def test_lanes_follow_the_device_vector_width():
     assert mcb.lanes_for(object()) == 8
 
 
+@pytest.mark.parametrize("nx", [13, 150])
+def test_mc_backproject_launch_shape_changes_no_bit(monkeypatch, nx):
+    """The work-group shape and the views per barrier chunk (``launch_shape``: Intel's runtime gets
+    a larger tile) decide which work-item computes a voxel, never how: the same bits for every
+    shape, tiles past the image's edges included (150 voxels: two 128-wide tiles), and the scalar
+    kernel's values up to contraction. Against the float64 reference only at nx = 13 (the tolerance
+    of the tests above): at nx = 150 the voxels sit half a voxel off those, and 5 of them differ from
+    float64 by up to 1.0e-4 of the maximum, in the scalar kernel as in this one (float32 fixed-point
+    steps through these rough random fields), so the scalar kernel is the check there."""
+    import clrecon.reconstruction.motion.backproject as mcb
+
+    geom, model, rows, pb, sp, sw, zs = _random_case("flat", nx=nx)
+    got = {}
+    for shape in [((1, 8), 8), (mcb.INTEL_LOCAL_SIZE, mcb.INTEL_VIEW_CHUNK), ((2, 4), 5)]:
+        monkeypatch.setattr(mcb, "launch_shape", lambda device, shape=shape: shape)
+        with MCBackprojector(rows, pb, model, zs, geom) as bp:
+            assert (bp.local_size, bp.view_chunk) == shape
+            got[shape] = bp(sp, sw, (0.3, 0.6))
+            old = reference_kernels.mc_backproject_scalar(bp, sp, sw, (0.3, 0.6))
+    first = next(iter(got.values()))
+    for img in got.values():
+        assert np.array_equal(img, first)
+    assert np.abs(first - old).max() <= TOL["lanes_vs_scalar"] * np.abs(old).max()
+    if nx == 13:
+        ref = mc_backproject_reference(rows, pb, sp, sw, model, (0.3, 0.6), zs, geom)
+        assert np.abs(first - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
+
+
+def test_launch_shape_follows_the_driver():
+    from types import SimpleNamespace
+
+    import clrecon.reconstruction.motion.backproject as mcb
+
+    def dev(name):
+        return SimpleNamespace(platform=SimpleNamespace(name=name))
+
+    assert mcb.launch_shape(dev("Intel(R) OpenCL")) == (mcb.INTEL_LOCAL_SIZE, mcb.INTEL_VIEW_CHUNK)
+    assert mcb.launch_shape(dev("Portable Computing Language")) == (mcb.LOCAL_SIZE, mcb.VIEW_CHUNK)
+    assert mcb.launch_shape(dev("Oclgrind")) == (mcb.LOCAL_SIZE, mcb.VIEW_CHUNK)
+    assert mcb.launch_shape(object()) == (mcb.LOCAL_SIZE, mcb.VIEW_CHUNK)
+
+
 def test_mc_backproject_lanes_at_the_window_edge():
     """Rows whose moved SSRB distance crosses the taper and the window within one work-item's
     8 voxels: some lanes take the weighted mean, others the nearest slot's fallback."""
