@@ -34,7 +34,7 @@ import math
 import numpy as np
 
 from clrecon.core.runtime import get_runtime
-from clrecon.reconstruction.iterative.fixed_point import scale_exponent, to_float
+from clrecon.reconstruction.iterative.fixed_point import scale_exponent, to_float, zero_accumulator
 from clrecon.simulation.voxel_projector import (
     CHUNK_CELLS,
     MAX_VOXELS,
@@ -45,6 +45,7 @@ from clrecon.simulation.voxel_projector import (
     _rays,
     _real,
 )
+
 
 def _check_shape(shape_zyx, origin_mm, spacing_mm):
     shape = tuple(int(n) for n in np.asarray(shape_zyx).ravel())
@@ -119,7 +120,7 @@ def backproject_volume(proj, shape_zyx, origin_mm, spacing_mm, src, det_centre, 
     else:
         kern = rt.kernel("voxel_backproject.cl", "voxel_backproject")
     views = np.concatenate([(src - origin) / spacing, det - src, eu, ev], axis=1)
-    acc = rt.to_device(np.zeros(2 * nz * ny * nx, np.uint32), np.uint32, "accumulator")
+    acc = zero_accumulator(rt, nz * ny * nx)
     u_buf, v_buf = rt.to_device(u), rt.to_device(v)
     step = int(chunk_views or max(1, CHUNK_CELLS // (n_rows * n_cols)))
     scale = np.float32(2.0 ** S)

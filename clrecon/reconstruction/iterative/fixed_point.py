@@ -33,3 +33,13 @@ def to_float(words: np.ndarray, S: int, shape: tuple) -> np.ndarray:
     w = np.asarray(words, np.uint32).reshape(-1, 2)
     fixed = ((w[:, 1].astype(np.uint64) << np.uint64(32)) | w[:, 0].astype(np.uint64)).view(np.int64)
     return (fixed.astype(np.float64) * 2.0 ** -S).astype(np.float32).reshape(shape)
+
+
+def zero_accumulator(rt, n: int):
+    """A read-write device buffer of ``n`` zeroed accumulators (2 n uint32 words)."""
+    nbytes = 8 * max(int(n), 1)
+    if nbytes > rt.max_alloc_bytes:
+        raise MemoryError(f"accumulator: one device buffer of {nbytes / 2**30:.2f} GiB (8 bytes per voxel) is above "
+                          f"the device's largest allocation ({rt.max_alloc_bytes / 2**30:.2f} GiB)")
+    mf = rt.cl.mem_flags
+    return rt.cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.zeros(2 * max(int(n), 1), np.uint32))

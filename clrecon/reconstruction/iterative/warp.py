@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from clrecon.core.runtime import get_runtime
-from clrecon.reconstruction.iterative.fixed_point import scale_exponent, to_float
+from clrecon.reconstruction.iterative.fixed_point import scale_exponent, to_float, zero_accumulator
 
 
 def _check(vol, u, spacing_mm, name):
@@ -77,7 +77,7 @@ def warp_adjoint(g, u, spacing_mm, rt=None) -> np.ndarray:
     if not np.any(g32):
         return np.zeros(g.shape, np.float32)
     rt = rt or get_runtime()
-    acc = rt.to_device(np.zeros(2 * g.size, np.uint32), np.uint32, "accumulator")
+    acc = zero_accumulator(rt, g.size)
     _launch(rt, "warp_push", g32, u, h, np.float32(2.0 ** S), acc)
     return to_float(rt.from_device(acc, (g.size, 2), np.uint32), S, g.shape)
 
