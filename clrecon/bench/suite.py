@@ -22,6 +22,9 @@ Sections (``--only`` picks some):
 ``voxel-projector`` (:mod:`clrecon.bench.voxel_projector`)
     The voxel projector (the path of ``[phantom] kind = "voxel"``) against its float64 NumPy
     reference and the analytic projector on the same rays.
+``iterative`` (only when named; :mod:`clrecon.bench.iterative`)
+    The iterative operators: the voxel projector A beside its matched transpose A^T (rays/s,
+    voxel-updates/s, the dot-product test of the timed data), the warp W_u beside W_u^T.
 ``interpolation`` (:mod:`clrecon.bench.interpolation`)
     Output rows/s of the neighbour search, weights and weight-applying kernel, per method, on
     the demo scan, against the float64 NumPy reference.
@@ -80,6 +83,7 @@ from clrecon.bench import (
     drivers,
     end_to_end,
     interpolation,
+    iterative,
     mc,
     measured,
     memory,
@@ -115,6 +119,7 @@ REGISTRY = (
     Section("backprojection", backprojection.run, backprojection.report_lines),
     Section("projector", projector.run, projector.report_lines),
     Section("voxel-projector", voxel_projector.run, voxel_projector.report_lines),
+    Section("iterative", iterative.run, iterative.report_lines, default=False),
     Section("interpolation", interpolation.run, interpolation.report_lines),
     Section("end-to-end", end_to_end.run, end_to_end.report_lines),
     Section("memory", memory.run, memory.report_lines),

@@ -146,6 +146,17 @@ def test_measured_section_tiny():
     assert r["meets_goal"] == (r["views_per_s"] >= 200) and "DICOM-CT-PD import" in "\n".join(report_lines(r))
 
 
+def test_iterative_section_tiny():
+    from clrecon.bench.iterative import bench_iterative, report_lines
+
+    r = bench_iterative(repeats=1, quick=True)
+    assert r["rays"] == 2 * 8 * 96 and r["samples"] > r["rays"]
+    assert r["project_rays_per_s"] > 0 and r["backproject_rays_per_s"] > 0 and r["warp_adjoint_voxels_per_s"] > 0
+    # the pair is matched on the timed data too (tests/reconstruction/test_cone_backprojector.py: TOL["dot_rel"])
+    assert r["dot_rel_projector"] <= 1e-6 and r["dot_rel_warp"] <= 1e-6
+    assert "backprojector A^T" in "\n".join(report_lines(r))
+
+
 def test_mc_section_tiny(monkeypatch):
     """The mc section's run, its cost split and ratio, and the registration round in a pool (forced
     on tiny's small volumes) giving the serial round's bits."""

@@ -408,3 +408,46 @@ def test_flow_kernels(grind, clean):
     for got, ref in checks:
         assert np.abs(got - ref).max() <= scale * max(1.0, np.abs(ref).max())
     clean()
+
+
+# ---------------------------------------------------------------------------------------
+# kernels/voxel_backproject.cl and kernels/warp.cl (the iterative operators' transposes: fixed-point atomics)
+def test_iterative_operator_kernels(grind, clean):
+    from clrecon.core.conventions import detector_coords, detector_frames
+    from clrecon.core.detector import CylindricalDetector, spot_shift_in_frame
+    from clrecon.reconstruction.iterative import cone_backprojector as bp
+    from clrecon.reconstruction.iterative import warp as W
+    from clrecon.simulation.projector import spot_frames
+
+    rng = np.random.default_rng(13)
+    shape, origin, spacing = (3, 4, 5), (-8.0, -6.0, -3.0), (4.0, 4.0, 3.0)
+    src, det, eu, ev = detector_frames(np.array([0.2, 1.9]), np.array([0.0, 2.0]), 60.0, 120.0)
+    # a third view along z (dominant axis z), a fourth with its source inside the volume
+    src = np.vstack([src, [0.5, 0.3, -50.0], [1.0, -1.0, 0.5]])
+    det = np.vstack([det, [0.5, 0.3, 50.0], [1.0, 40.0, 0.5]])
+    eu = np.vstack([eu, [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    ev = np.vstack([ev, [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    u, v = detector_coords(7, 9.0), detector_coords(3, 7.0)          # outer cells miss the volume
+    y = rng.normal(size=(4, 3, 7)).astype(np.float32)
+    for shp in (shape, (1,) + shape[1:]):                              # and a one-voxel-thick volume
+        got = bp.backproject_volume(y, shp, origin, spacing, src, det, eu, ev, u, v, rt=grind, chunk_views=3)
+        ref = bp.backproject_volume_reference(y, shp, origin, spacing, src, det, eu, ev, u, v)
+        assert np.abs(got - ref).max() <= TOL["f32"] * np.abs(ref).max()
+    cyl = CylindricalDetector(sid_mm=60.0, sdd_mm=120.0, n_cols=9, n_rows=3, col_pitch_mm=12.0, row_pitch_mm=5.0,
+                              central_col=4.25, central_row=1.0)
+    shift = spot_shift_in_frame(np.array([[0.002, 0.8, 0.5]]), 60.0)[0]
+    frames, (uc, vc, vs) = spot_frames(cyl, np.array([0.2, 1.9]), np.array([0.0, 2.0]), shift)
+    yc = rng.normal(size=(2, 3, 9)).astype(np.float32)
+    got = bp.backproject_volume(yc, shape, origin, spacing, *frames, uc, vc, v_scale=vs, rt=grind)
+    ref = bp.backproject_volume_reference(yc, shape, origin, spacing, *frames, uc, vc, v_scale=vs)
+    assert np.any(ref != 0) and np.abs(got - ref).max() <= TOL["f32"] * np.abs(ref).max()
+    vol = rng.normal(size=(3, 4, 5)).astype(np.float32)
+    disp = rng.normal(0, 4.0, (3, 3, 4, 5)).astype(np.float32)          # past the edges: clamped
+    for shp in ((3, 4, 5), (1, 4, 5)):
+        x, d = vol[:shp[0]], disp[:, :shp[0]]
+        got, ref = W.warp(x, d, (2.0, 1.5, 3.0), rt=grind), W.warp_reference(x, d, (2.0, 1.5, 3.0))
+        assert np.abs(got - ref).max() <= TOL["f32"] * np.abs(ref).max()
+        got = W.warp_adjoint(x, d, (2.0, 1.5, 3.0), rt=grind)
+        ref = W.warp_adjoint_reference(x, d, (2.0, 1.5, 3.0))
+        assert np.abs(got - ref).max() <= TOL["f32"] * np.abs(ref).max()
+    clean()

@@ -1,0 +1,187 @@
+"""Matched cone-beam backprojector: the exact transpose of the voxel projector (``kernels/voxel_backproject.cl``).
+
+:func:`clrecon.simulation.voxel_projector.project_volume` is a linear map A from a voxel volume
+``mu[z, y, x]`` (1/mm) to line integrals ``proj[view, row, col]`` (dimensionless) with Joseph's
+weights (a slab length in mm times bilinear fractions). :func:`backproject_volume` applies
+A^T: ``vol[v] = sum over rays r of A[r, v] proj[r]`` (mm times the units of ``proj``), with the
+same rays (the scan's own detector, flat or cylindrical through ``v_scale``; a flying focal spot
+is one call per spot state with that state's frames and cells, as for the projector), so that
+``<A x, y> = <x, A^T y>`` up to float32 rounding of the weights. It is the adjoint an iterative
+solver needs (gradients of ||A x - y||^2, CG / LSQR on the normal equations, SART).
+
+How: one work-item per ray repeats the projector's ray set-up (clip to the box, dominant axis,
+slab range, in-plane coordinates per plane) and scatters ``proj[r]`` times each of its
+samples' four bilinear weights to the four voxels the projector reads. The scatter is a 64-bit
+fixed-point sum (``kernels/fixed_add.h``): each float32 contribution ``c`` is rounded to the
+integer ``rint(c 2^S)`` and added with 32-bit atomics and an exact carry; integer addition is
+associative, so the result is **bit-identical whatever the order the work-items run in, the
+chunking of the views and the executor** (float atomics would not be). The scale ``2^S`` is the
+largest power of two with ``|spacing| sum|proj| 2^S <= 2^61``
+(:mod:`clrecon.reconstruction.iterative.fixed_point`) (no voxel's sum can reach it:
+one ray gives one voxel at most ``|spacing|`` mm, the norm of the voxel's diagonal), so it
+depends on the call's data, not on its chunking; each contribution is quantised to ``2^-S``
+(absolute), far below its float32 rounding unless ``proj`` spans more than ~2^30 in dynamic
+range. Views split over several calls are summed by the caller, in the caller's order.
+
+Memory: the device holds 8 bytes per voxel (the accumulator) and one chunk of views
+(``CHUNK_CELLS`` cells, as the projector).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from clrecon.core.runtime import get_runtime
+from clrecon.reconstruction.iterative.fixed_point import scale_exponent, to_float, zero_accumulator
+from clrecon.simulation.voxel_projector import (
+    CHUNK_CELLS,
+    MAX_VOXELS,
+    _check_frames,
+    _clip,
+    _dominant,
+    _finite,
+    _rays,
+    _real,
+)
+
+
+def _check_shape(shape_zyx, origin_mm, spacing_mm):
+    shape = tuple(int(n) for n in np.asarray(shape_zyx).ravel())
+    if len(shape) != 3 or any(n < 1 for n in shape) or any(int(n) != n for n in np.asarray(shape_zyx).ravel()):
+        raise ValueError(f"shape_zyx must be three integers >= 1 (nz, ny, nx), got {shape_zyx!r}")
+    if math.prod(shape) > MAX_VOXELS:
+        raise ValueError(f"shape_zyx {shape} has {math.prod(shape)} voxels, more than the kernel's {MAX_VOXELS}")
+    origin = np.asarray(_real(origin_mm, "origin_mm"), np.float64)
+    spacing = np.asarray(_real(spacing_mm, "spacing_mm"), np.float64)
+    if origin.shape != (3,) or spacing.shape != (3,):
+        raise ValueError(f"origin_mm and spacing_mm must be (x, y, z) triples, got shapes {origin.shape}, "
+                         f"{spacing.shape}")
+    _finite(origin, "origin_mm")
+    if not np.all(np.isfinite(spacing) & (spacing > 0)):
+        raise ValueError(f"spacing_mm must be finite and > 0, got {spacing.tolist()}")
+    return shape, origin, spacing
+
+
+def _check_proj(proj, m, n_rows, n_cols):
+    proj = _real(proj, "proj")
+    if proj.shape != (m, n_rows, n_cols):
+        raise ValueError(f"proj must have shape (views, rows, cols) = {(m, n_rows, n_cols)}, got {proj.shape}")
+    _finite(proj, "proj [view, row, col]")
+    return proj
+
+
+def backproject_volume(proj, shape_zyx, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None, *,
+                       chunk_views: int | None = None, v_scale=None) -> np.ndarray:
+    """A^T proj: the transpose of :func:`clrecon.simulation.voxel_projector.project_volume` (OpenCL).
+
+    Parameters
+    ----------
+    proj : (m, n_rows, n_cols) real array
+        Values on the rays, ``proj[view, row, col]`` (sent as float32; must be finite).
+    shape_zyx : (nz, ny, nx)
+        Shape of the volume.
+    origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm, v_scale
+        The geometry, exactly as for ``project_volume`` (origin and spacing in x, y, z order).
+    rt : Runtime, optional
+    chunk_views : int, optional
+        Views per kernel launch (default: ``CHUNK_CELLS`` cells per launch). The result does
+        not depend on it (fixed-point sum).
+
+    Returns
+    -------
+    (nz, ny, nx) float32: ``sum_r A[r, v] proj[r]`` per voxel (mm x the units of ``proj``).
+
+    Raises
+    ------
+    TypeError for a non-numeric array; ValueError for a wrong shape, a non-finite value (the
+    message names the first one's index), a non-positive spacing.
+    """
+    shape, origin, spacing = _check_shape(shape_zyx, origin_mm, spacing_mm)
+    src, det, eu, ev, u, v = _check_frames(src, det_centre, e_u, e_v, u_mm, v_mm)
+    m, n_rows, n_cols = len(src), len(v), len(u)
+    proj = _check_proj(proj, m, n_rows, n_cols)
+    if chunk_views is not None and (int(chunk_views) != chunk_views or chunk_views < 1):
+        raise ValueError(f"chunk_views must be an integer >= 1, got {chunk_views!r}")
+    proj32 = np.ascontiguousarray(proj, np.float32)
+    S = scale_exponent(float(np.linalg.norm(spacing)) * float(np.abs(proj32, dtype=np.float64).sum()))
+    nz, ny, nx = shape
+    if m == 0 or not np.any(proj32):
+        return np.zeros(shape, np.float32)
+    rt = rt or get_runtime()
+    extra = []
+    if v_scale is not None:
+        vs = np.asarray(v_scale, np.float64)
+        if vs.shape != (n_cols,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
+            raise ValueError(f"v_scale must be {n_cols} finite numbers > 0, got shape {vs.shape}")
+        kern = rt.kernel("voxel_backproject.cl", "voxel_backproject", CURVED=1)
+        extra = [rt.to_device(vs)]
+    else:
+        kern = rt.kernel("voxel_backproject.cl", "voxel_backproject")
+    views = np.concatenate([(src - origin) / spacing, det - src, eu, ev], axis=1)
+    acc = zero_accumulator(rt, nz * ny * nx)
+    u_buf, v_buf = rt.to_device(u), rt.to_device(v)
+    step = int(chunk_views or max(1, CHUNK_CELLS // (n_rows * n_cols)))
+    scale = np.float32(2.0 ** S)
+    for a in range(0, m, step):
+        b = min(m, a + step)
+        view_buf = rt.to_device(views[a:b])
+        proj_buf = rt.to_device(proj32[a:b])
+        kern(rt.queue, (n_cols, n_rows, b - a), None, proj_buf, np.int32(nx), np.int32(ny), np.int32(nz),
+             np.float32(spacing[0]), np.float32(spacing[1]), np.float32(spacing[2]),
+             view_buf, u_buf, v_buf, np.int32(n_cols), np.int32(n_rows), *extra, scale, acc)
+    words = rt.from_device(acc, (nz * ny * nx, 2), np.uint32)
+    return to_float(words, S, shape)
+
+
+# ---------------------------------------------------------------------------------------
+def backproject_volume_reference(proj, shape_zyx, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm,
+                                 v_scale=None) -> np.ndarray:
+    """:func:`backproject_volume` in float64 NumPy (for tests; small inputs).
+
+    The transpose of :func:`clrecon.simulation.voxel_projector.project_volume_reference`,
+    written as its scatter: the same rays and planes, ``np.add.at`` of ``proj[r]`` times each
+    sample's four weights. Returns (nz, ny, nx) float64.
+    """
+    shape, origin, spacing = _check_shape(shape_zyx, origin_mm, spacing_mm)
+    src, det, eu, ev, u, v = _check_frames(src, det_centre, e_u, e_v, u_mm, v_mm)
+    y = np.asarray(_check_proj(proj, len(src), len(v), len(u)), np.float64).ravel()
+    vol = np.zeros(shape, np.float64)
+    n = np.array(shape[::-1])                          # (nx, ny, nz)
+    volx = np.transpose(vol, (2, 1, 0))                # a view: volx[ix, iy, iz]
+    a, b, length = _rays(src, det, eu, ev, u, v, origin, spacing, v_scale)
+    t0, t1, hit = _clip(a, b, n)
+    hit &= length > 0
+    k_all = _dominant(b)
+    for k in range(3):
+        sel = np.nonzero(hit & (k_all == k))[0]
+        if not len(sel):
+            continue
+        j, l = [ax for ax in range(3) if ax != k]
+        ak, bk = a[sel, k], b[sel, k]
+        ga, gb = ak + bk * t0[sel], ak + bk * t1[sel]
+        glo = np.clip(np.minimum(ga, gb), -0.5, n[k] - 0.5)
+        ghi = np.clip(np.maximum(ga, gb), -0.5, n[k] - 0.5)
+        rj, rl = b[sel, j] / bk, b[sel, l] / bk
+        cj, cl = a[sel, j] - rj * ak, a[sel, l] - rl * ak
+        ys = y[sel] * length[sel] / np.abs(bk)
+        vk = np.moveaxis(volx, k, 0)                   # vk[i, g_j, g_l], a view of vol
+        for i in range(n[k]):
+            w = np.minimum(i + 0.5, ghi) - np.maximum(i - 0.5, glo)
+            on = w > 0
+            if not on.any():
+                continue
+            gj = np.clip(cj[on] + rj[on] * i, 0, n[j] - 1)
+            gl = np.clip(cl[on] + rl[on] * i, 0, n[l] - 1)
+            j0 = np.minimum(np.floor(gj).astype(np.int64), max(n[j] - 2, 0))
+            l0 = np.minimum(np.floor(gl).astype(np.int64), max(n[l] - 2, 0))
+            fj, fl = gj - j0, gl - l0
+            j1, l1 = np.minimum(j0 + 1, n[j] - 1), np.minimum(l0 + 1, n[l] - 1)
+            c = ys[on] * w[on]
+            plane = vk[i]
+            np.add.at(plane, (j0, l0), c * (1 - fj) * (1 - fl))
+            np.add.at(plane, (j1, l0), c * fj * (1 - fl))
+            np.add.at(plane, (j0, l1), c * (1 - fj) * fl)
+            np.add.at(plane, (j1, l1), c * fj * fl)
+    return vol
