@@ -300,7 +300,9 @@ def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None, first_row: 
         d_idx = rt.to_device(idx[j0:j1].astype(np.int64), np.int64, "proj_index")
         d_out = rt.empty((j1 - j0, padded), np.float32)
         if listed:
-            d_rest = rt.empty(((j1 - j0) * padded,), np.uint32)  # the list of flagged cells
+            # the list of flagged cells' places j * padded + cell: below 2^32, as a block holds at most
+            # max(BLOCK_CELLS, padded) cells and padded is an int32
+            d_rest = rt.empty(((j1 - j0) * padded,), np.uint32)
             d_count = rt.empty((1,), np.uint32)  # entries in the list
             rt.cl.enqueue_copy(rt.queue, d_count, np.zeros(1, np.uint32))
             ev = knl(rt.queue, (padded, j1 - j0), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, d_count, *args)
@@ -320,6 +322,7 @@ def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None, first_row: 
     return out.reshape(p.shape)
 
 
-#: Cells per kernel launch (about 2^22: 16 MiB of line integrals, as many of output).
+#: Cells per kernel launch (about 2^22: 16 MiB of line integrals, as many of output, and on Intel's
+#: runtime as many of the list of open cells).
 BLOCK_CELLS = 1 << 22
 _LOCAL = 64  # fixed work-group size (PoCL specialises binaries per local size)
