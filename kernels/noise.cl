@@ -19,9 +19,12 @@
 // mul_hi are calls that stop the vectoriser) -- and resolves every cell that the fast test
 // of the first PTRS attempt accepts (~86 % for means >= 10); it flags the others (mean below
 // 10, or not accepted by that test), which add_noise_rest redoes with the whole algorithm
-// (loops, scalar). Measured: the flagged fifth costs pass 2 as much as pass 1 costs for all
-// cells; a vectorised pass over a list of them (the whole first attempt) did not pay off. Both passes follow the same steps, so a cell's value does not depend on
-// which pass finished it.
+// (loops, scalar). Measured on PoCL: the flagged fifth costs pass 2 as much as pass 1 costs for
+// all cells; a vectorised pass over a list of them (the whole first attempt) did not pay off there.
+// Intel's CPU runtime is the other way round (it vectorises pass 2 too, whole vectors wherever one
+// lane is flagged): there the host takes add_noise_listed / add_noise_list, which list the flagged
+// cells (docs/results/noise-interp-intel.md). All passes follow the same steps, so a cell's value
+// does not depend on which pass finished it.
 //
 // Needs cl_khr_fp64 (the host falls back to the NumPy reference without it). Built without
 // -cl-fast-relaxed-math: the reference must be reproducible.
@@ -100,7 +103,9 @@ INLINE words philox4x64_10(const ulong c0_in, const ulong c1_in, ulong k0, ulong
 }
 
 // log Gamma(x) for x >= 1, NumPy's random_loggam (numpy/random/src/distributions/distributions.c);
-// the shift loop runs a fixed 6 times with selects (n <= 6 for x >= 1)
+// the shift loop runs n <= 6 times (n = 0 for x >= 7, i.e. for nearly every PTRS candidate of a
+// mean >= 10; no log is computed then: a loop, not six selects, which cost Intel's
+// runtime six unused logs per slow test -- same operations on the same values, so the same bits)
 INLINE double loggam(const double x)
 {
     const double n = x < 7.0 ? FLOOR(7.0 - x) : 0.0;
@@ -117,11 +122,10 @@ INLINE double loggam(const double x)
     gl0 = gl0 * x2 - 2.777777777777778e-03;
     gl0 = gl0 * x2 + 8.333333333333333e-02;
     double gl = gl0 / x0 + 0.5 * 1.8378770664093453e+00 + (x0 - 0.5) * LOG(x0) - x0;
-#define LOGGAM_STEP(kk)                              \
-    gl = (kk <= n) ? gl - LOG(x0 - 1.0) : gl;        \
-    x0 = (kk <= n) ? x0 - 1.0 : x0;
-    LOGGAM_STEP(1.0) LOGGAM_STEP(2.0) LOGGAM_STEP(3.0) LOGGAM_STEP(4.0) LOGGAM_STEP(5.0) LOGGAM_STEP(6.0)
-#undef LOGGAM_STEP
+    for (double kk = 1.0; kk <= n; kk += 1.0) {
+        gl = gl - LOG(x0 - 1.0);
+        x0 = x0 - 1.0;
+    }
     return (x == 1.0 || x == 2.0) ? 0.0 : gl;
 }
 
@@ -209,6 +213,43 @@ INLINE float noisy_value(const double counts, const words r0, const double i0, c
     return (float)(-LOG(FMAX(c, n_floor) / i0));
 }
 
+// Round 0 of cell `cell` of projection j (at = its place in p and out): writes the cell's value, exact
+// where the fast acceptance test of the first PTRS attempt accepts (ptrs_attempt's first branch, same
+// expressions) or the mean is 0, and returns whether it did (false: the whole sampler must redo it).
+INLINE bool first_round(__global const float *p, __global const long *proj_index, __global float *out,
+                        const int cell, const int j, const size_t at, const long cell0, const ulong seed,
+                        const double i0, const double sigma, const double n_floor)
+{
+    const words r0 = philox4x64_10((ulong)(cell0 + cell), 0UL, seed, (ulong)proj_index[j]);
+    const double lam = i0 * EXP(-(double)p[at]);
+    // lam_p keeps the unused lanes finite
+    const double lam_p = lam >= PTRS_MIN_LAM ? lam : PTRS_MIN_LAM;
+    const double slam = SQRT(lam_p);
+    const double b = 0.931 + 2.53 * slam;
+    const double a = -0.059 + 0.02483 * b;
+    const double vr = 0.9277 - 3.6224 / (b - 2.0);
+    const double U = u01_co(r0.w2) - 0.5;
+    const double V = u01_oc(r0.w3);
+    const double us = 0.5 - FABS(U);
+    const double k = FLOOR((2.0 * a / us + b) * U + lam_p + 0.43);
+    const bool zero = !(lam > 0.0);
+    const bool done = zero || (lam >= PTRS_MIN_LAM && us >= 0.07 && V <= vr);
+    out[at] = noisy_value(zero ? 0.0 : k, r0, i0, sigma, n_floor);  // overwritten by pass 2 if !done
+    return done;
+}
+
+// The whole sampler for cell `cell` of projection j.
+INLINE void whole_sampler(__global const float *p, __global const long *proj_index, __global float *out,
+                          const int cell, const int j, const size_t at, const long cell0, const ulong seed,
+                          const double i0, const double sigma, const double n_floor)
+{
+    const ulong k1 = (ulong)proj_index[j];
+    const ulong c = (ulong)(cell0 + cell);
+    const words r0 = philox4x64_10(c, 0UL, seed, k1);
+    const double lam = i0 * EXP(-(double)p[at]);
+    out[at] = noisy_value(poisson(lam, r0, seed, k1, c), r0, i0, sigma, n_floor);
+}
+
 // Pass 1, work-item (cell, j): cell of projection j (cells = rows * columns, row-major).
 // Straight-line: writes the cells resolved by round 0 and flags the rest in `rest`.
 __kernel void add_noise(__global const float *p,          // (m, cells) noise-free line integrals
@@ -227,22 +268,7 @@ __kernel void add_noise(__global const float *p,          // (m, cells) noise-fr
     // no bounds check: the host pads cells to a multiple of the local size (an early return
     // keeps PoCL from vectorising the work-item loop)
     const size_t at = (size_t)j * (size_t)cells + (size_t)cell;
-    const words r0 = philox4x64_10((ulong)(cell0 + cell), 0UL, seed, (ulong)proj_index[j]);
-    const double lam = i0 * EXP(-(double)p[at]);
-    // the fast acceptance test of the first PTRS attempt only (ptrs_attempt's first branch,
-    // same expressions); lam_p keeps the unused lanes finite
-    const double lam_p = lam >= PTRS_MIN_LAM ? lam : PTRS_MIN_LAM;
-    const double slam = SQRT(lam_p);
-    const double b = 0.931 + 2.53 * slam;
-    const double a = -0.059 + 0.02483 * b;
-    const double vr = 0.9277 - 3.6224 / (b - 2.0);
-    const double U = u01_co(r0.w2) - 0.5;
-    const double V = u01_oc(r0.w3);
-    const double us = 0.5 - FABS(U);
-    const double k = FLOOR((2.0 * a / us + b) * U + lam_p + 0.43);
-    const bool zero = !(lam > 0.0);
-    const bool done = zero || (lam >= PTRS_MIN_LAM && us >= 0.07 && V <= vr);
-    out[at] = noisy_value(zero ? 0.0 : k, r0, i0, sigma, n_floor);  // overwritten by pass 2 if !done
+    const bool done = first_round(p, proj_index, out, cell, j, at, cell0, seed, i0, sigma, n_floor);
     rest[at] = done ? 0 : 1;
 }
 
@@ -265,9 +291,51 @@ __kernel void add_noise_rest(__global const float *p,
     const size_t at = (size_t)j * (size_t)cells + (size_t)cell;
     if (!rest[at])
         return;
-    const ulong k1 = (ulong)proj_index[j];
-    const ulong c = (ulong)(cell0 + cell);
-    const words r0 = philox4x64_10(c, 0UL, seed, k1);
-    const double lam = i0 * EXP(-(double)p[at]);
-    out[at] = noisy_value(poisson(lam, r0, seed, k1, c), r0, i0, sigma, n_floor);
+    whole_sampler(p, proj_index, out, cell, j, at, cell0, seed, i0, sigma, n_floor);
+}
+
+// The same two passes with the flagged cells listed (the host's choice on Intel's CPU runtime, whose
+// vectoriser runs add_noise_rest's vectors whole wherever one lane of eight is flagged: 4-5x the
+// time of pass 1 for a fifth of the cells). Pass 1 appends each flagged cell's place
+// j * cells + cell to `list` (count[0] entries, in no fixed order: each cell's value depends on the
+// cell alone, so the output does not depend on the order); pass 2 runs the whole sampler on the
+// list, every lane a flagged cell. Same functions as add_noise / add_noise_rest: the same bits.
+__kernel void add_noise_listed(__global const float *p,           // (m, cells)
+                               __global const long *proj_index,   // (m,)
+                               __global float *out,               // (m, cells)
+                               __global uint *list,               // (m * cells,) flagged places
+                               volatile __global uint *count,     // (1,) entries in list, 0 on entry
+                               const int cells,
+                               const long cell0,
+                               const ulong seed,
+                               const double i0,
+                               const double sigma,
+                               const double n_floor)
+{
+    const int cell = get_global_id(0);
+    const int j = get_global_id(1);
+    const size_t at = (size_t)j * (size_t)cells + (size_t)cell;  // host pads cells (no bounds check)
+    if (!first_round(p, proj_index, out, cell, j, at, cell0, seed, i0, sigma, n_floor))
+        list[atomic_inc(count)] = (uint)at;
+}
+
+__kernel void add_noise_list(__global const float *p,
+                             __global const long *proj_index,
+                             __global float *out,
+                             __global const uint *list,  // (n_list,) from add_noise_listed
+                             const int n_list,
+                             const int cells,
+                             const long cell0,
+                             const ulong seed,
+                             const double i0,
+                             const double sigma,
+                             const double n_floor)
+{
+    const int i = get_global_id(0);
+    if (i >= n_list)
+        return;
+    const uint at = list[i];
+    const int j = (int)(at / (uint)cells);
+    const int cell = (int)(at - (uint)j * (uint)cells);
+    whole_sampler(p, proj_index, out, cell, j, (size_t)at, cell0, seed, i0, sigma, n_floor);
 }

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from clrecon.core import drivers
 from clrecon.core.runtime import get_runtime
 from clrecon.simulation.config import NoiseConfig
 
@@ -228,6 +229,19 @@ def _has_fp64(rt) -> bool:
     return "cl_khr_fp64" in rt.device.extensions
 
 
+def lists_flagged_cells(device) -> bool:
+    """Whether :func:`add_noise` lists the cells that round 0 leaves open (kernels ``add_noise_listed``
+    and ``add_noise_list``) instead of flagging them (``add_noise`` and ``add_noise_rest``, over every
+    cell): on Intel's CPU runtime, whose vectoriser runs the flagged pass in whole vectors wherever one
+    lane is flagged, not on PoCL (measured: docs/results/noise-interp-intel.md). Either way the output
+    is the same bits: which kernel finishes a cell changes nothing in how it is computed."""
+    try:
+        name = str(device.platform.name)
+    except Exception:  # noqa: BLE001 - a device that does not say: the flagged passes
+        name = ""
+    return drivers.INTEL.matches(name)
+
+
 def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None, first_row: int = 0) -> np.ndarray:
     """Noisy line integrals from noise-free ones.
 
@@ -267,8 +281,9 @@ def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None, first_row: 
     if not _has_fp64(rt):
         return add_noise_reference(p, idx, cfg, first_row=first_row)
     llvm_math = int("portable" in rt.device.platform.name.lower() or "pocl" in rt.device.platform.name.lower())
-    knl = rt.kernel("noise.cl", "add_noise", LLVM_MATH=llvm_math)
-    knl_rest = rt.kernel("noise.cl", "add_noise_rest", LLVM_MATH=llvm_math)
+    listed = lists_flagged_cells(rt.device)
+    names = ("add_noise_listed", "add_noise_list") if listed else ("add_noise", "add_noise_rest")
+    knl, knl_rest = (rt.kernel("noise.cl", n, LLVM_MATH=llvm_math) for n in names)
     padded = -(-cells // _LOCAL) * _LOCAL  # pass 1 has no bounds check (it would stop vectorisation)
     flat_in = p.reshape(m, cells)
     out = np.empty((m, cells), np.float32)
@@ -284,9 +299,22 @@ def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None, first_row: 
         d_p = rt.to_device(part, np.float32, "line_integrals")
         d_idx = rt.to_device(idx[j0:j1].astype(np.int64), np.int64, "proj_index")
         d_out = rt.empty((j1 - j0, padded), np.float32)
-        d_rest = rt.empty((j1 - j0, padded), np.uint8)
-        ev = knl(rt.queue, (padded, j1 - j0), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, *args)
-        ev = knl_rest(rt.queue, (padded, j1 - j0), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, *args, wait_for=[ev])
+        if listed:
+            # the list of flagged cells' places j * padded + cell: below 2^32, as a block holds at most
+            # max(BLOCK_CELLS, padded) cells and padded is an int32
+            d_rest = rt.empty(((j1 - j0) * padded,), np.uint32)
+            d_count = rt.empty((1,), np.uint32)  # entries in the list
+            rt.cl.enqueue_copy(rt.queue, d_count, np.zeros(1, np.uint32))
+            ev = knl(rt.queue, (padded, j1 - j0), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, d_count, *args)
+            n_list = int(rt.from_device(d_count, (1,), np.uint32, wait_for=[ev])[0])
+            if n_list:
+                ev = knl_rest(rt.queue, (-(-n_list // _LOCAL) * _LOCAL,), (_LOCAL,), d_p, d_idx, d_out, d_rest,
+                              np.int32(n_list), *args)
+            d_count.release()
+        else:
+            d_rest = rt.empty((j1 - j0, padded), np.uint8)
+            ev = knl(rt.queue, (padded, j1 - j0), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, *args)
+            ev = knl_rest(rt.queue, (padded, j1 - j0), (_LOCAL, 1), d_p, d_idx, d_out, d_rest, *args, wait_for=[ev])
         res = rt.from_device(d_out, (j1 - j0, padded), np.float32, wait_for=[ev])
         out[j0:j1] = res[:, :cells]
         for buf in (d_p, d_idx, d_out, d_rest):
@@ -294,6 +322,7 @@ def add_noise(line_integrals, proj_index, cfg: NoiseConfig, rt=None, first_row: 
     return out.reshape(p.shape)
 
 
-#: Cells per kernel launch (about 2^22: 16 MiB of line integrals, as many of output).
+#: Cells per kernel launch (about 2^22: 16 MiB of line integrals, as many of output, and on Intel's
+#: runtime as many of the list of open cells).
 BLOCK_CELLS = 1 << 22
 _LOCAL = 64  # fixed work-group size (PoCL specialises binaries per local size)

@@ -168,3 +168,24 @@ def test_a_block_of_rows_gets_exactly_those_rows_of_the_whole_projections_noise(
         assert not np.array_equal(add_noise(np.ascontiguousarray(p[:, r0:r1]), idx, cfg), block)
     with pytest.raises(ValueError, match="first_row"):
         add_noise(p, idx, cfg, first_row=-1)
+
+
+@pytest.mark.parametrize("shape, i0", [((5, 6, 70), 2.0e5), ((5, 6, 70), 50.0), ((24, 64, 900), 2.0e5)])
+def test_listed_and_flagged_passes_give_the_same_bits(monkeypatch, shape, i0):
+    """add_noise_listed / add_noise_list (Intel's CPU runtime) against add_noise / add_noise_rest (the
+    launch before them, PoCL's): the same bits on random cells (inversion, PTRS, starvation) and on a
+    chunk of demo-sized projections (24 x 64 x 900), whichever the runtime chooses by default."""
+    rng = np.random.default_rng(11)
+    p = rng.uniform(0.0, 12.0, shape).astype(np.float32)
+    p[0, 0, :10] = 40.0  # starvation
+    idx = np.arange(shape[0]) * 3 + 5
+    cfg = NoiseConfig(i0_photons=i0, electronic_sigma=5.0, seed=4)
+    got = {}
+    for listed in (False, True):
+        monkeypatch.setattr(noise_mod, "lists_flagged_cells", lambda device, listed=listed: listed)
+        got[listed] = add_noise(p, idx, cfg)
+    np.testing.assert_array_equal(got[True].view(np.uint32), got[False].view(np.uint32))
+    if shape[0] <= 5:
+        np.testing.assert_array_equal(got[True], noise_mod.add_noise_reference(p, idx, cfg))
+    monkeypatch.setattr(noise_mod, "BLOCK_CELLS", 2 * 64 * 960)  # several launches, several lists
+    np.testing.assert_array_equal(add_noise(p, idx, cfg), got[False])
