@@ -95,7 +95,7 @@ def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs, progress=None, pool
     model, rms = fit_motion_model(fields, pairs, basis_of(knobs, *volumes.shape[:2]), grid, ref)
     info = {"registration_seconds": t1 - t0, "fit_seconds": time.perf_counter() - t1,
             "fit_rms_mm": float(np.sqrt(np.mean(rms ** 2)))}
-    if "shrink" in parts:  # the fields' mean gain (1: unchanged) and the least of them
+    if parts.get("shrink"):  # the fields' mean gain (1: unchanged) and the least of them (none: one target)
         gains = [x["mean_gain"] for x in parts["shrink"]]
         info.update(shrink_mean_gain=float(np.mean(gains)), shrink_min_gain=float(np.min(gains)))
     return model, info
