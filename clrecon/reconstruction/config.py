@@ -70,6 +70,10 @@ class MotionCompensationConfig(Section):
                          "Lucas-Kanade window radius in voxels of the registration grid")
     flow_warps: int = F(10, integer_in(1, 50, "warps per pyramid level; 10 converged on demo"),
                         "Lucas-Kanade warps per pyramid level")
+    shrink: bool = F(True, BOOL, "shrink each registered field towards zero where the fixed image's structure "
+                     "(its structure tensor over the registration window, less the noise measured from the "
+                     "registration's residual) cannot show the motion: the posterior mean under a zero-motion prior "
+                     "(clrecon.reconstruction.motion.confidence); no knob to tune")
     resp_degree: int = F(1, integer_in(0, 3, "powers of the amplitude; the paper's targets are 10 amplitudes"),
                          "powers a, .., a^P of the respiratory amplitude in the motion model")
     cardiac_harmonics: int = F(2, integer_in(0, 4, "1 + 2 H coefficients need at least as many cardiac targets"),

@@ -117,3 +117,16 @@ def test_motion_flags_drop_axes():
     assert s.cardiac_targets == (0.0,) and len(s.resp_targets) == 2
     s = load_scene("tiny").replace(signals={"breath_hold": True})
     assert s.resp_targets == (0.5,)
+
+
+def test_heldout_scenes_differ_from_demo_as_issue_41_asks():
+    """The mc method's held-out scenes (docs/results/mc-heldout.md): demo's grid, another heart rate
+    or rhythm, breathing period 3-6 s, rotation 0.28-0.5 s, pitch 0.05-0.10, each unlike demo's."""
+    demo = load_scene("demo")
+    for n in ("heldout-a", "heldout-b", "heldout-c"):
+        s = load_scene(n)
+        assert (s.recon.nx, s.recon.ny, s.recon.nz) == (demo.recon.nx, demo.recon.ny, demo.recon.nz)
+        assert 3.0 <= s.signals.resp_period_s <= 6.0 and s.signals.resp_period_s != demo.signals.resp_period_s
+        assert 0.28 <= s.scanner.rotation_time_s <= 0.5 and s.scanner.rotation_time_s != demo.scanner.rotation_time_s
+        assert all(0.05 <= p <= 0.10 for p in s.scan.pitches)
+        assert (s.signals.rr_s, s.signals.rhythm) != (demo.signals.rr_s, demo.signals.rhythm)

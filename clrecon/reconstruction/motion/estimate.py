@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from clrecon.reconstruction.motion.confidence import shrink_field
 from clrecon.reconstruction.motion.model import FieldGrid, sample
 from clrecon.reconstruction.motion.registration import FlowConfig, register_to_reference
 
@@ -35,8 +36,26 @@ def to_reference(volume, field, grid: FieldGrid) -> np.ndarray:
     return sample(volume, grid, pts).astype(np.float32)
 
 
+def shrunk(fields, images, reference: int, grid: FieldGrid, shrink) -> tuple[np.ndarray, list]:
+    """Each of ``fields`` (n, 3, nz, ny, nx), registered from ``images[reference]`` to ``images[i]``
+    (n, nz, ny, nx) HU, shrunk towards zero where the fixed image cannot show it
+    (:func:`clrecon.reconstruction.motion.confidence.shrink_field`); ``shrink``: (window radius,
+    HU window). Returns (fields, one info dict per non-reference field)."""
+    radius, hu_window = shrink
+    spacing = (grid.voxel_mm, grid.voxel_mm, grid.dz_mm)
+    out = np.array(fields, np.float32)
+    infos = []
+    for i in range(len(out)):
+        if i == reference:
+            continue
+        out[i], info = shrink_field(images[reference], to_reference(images[i], out[i], grid), out[i], spacing,
+                                    radius, hu_window)
+        infos.append(info)
+    return out, infos
+
+
 def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig | None = None,
-                     progress=None, pool=None) -> tuple[np.ndarray, dict]:
+                     progress=None, pool=None, shrink: tuple | None = None) -> tuple[np.ndarray, dict]:
     """Fields u(x_ref; c_i, a_j) of every target from the two registration steps (module docstring).
 
     Parameters
@@ -47,11 +66,14 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig
     cfg : FlowConfig, or a plugged-in registration's config (:mod:`clrecon.reconstruction.motion.registration`)
     progress : optional ``update(n)`` counter, one step per registration
     pool : optional process pool running each step's registrations at once (same bits)
+    shrink : optional (window radius, (lo, hi) HU): each step's fields shrunk towards zero where its
+        fixed image cannot show the motion (:func:`shrunk`), before the next step uses them
 
     Returns
     -------
     (fields (n_c n_r, 3, nz, ny, nx) float32, parts) with ``parts["resp"]`` (n_r, 3, ...) and
-    ``parts["cardiac"]`` (n_c, 3, ...).
+    ``parts["cardiac"]`` (n_c, 3, ...), and with ``shrink`` ``parts["shrink"]``: the measured noise
+    and mean gain of each shrunk field (:func:`clrecon.reconstruction.motion.confidence.shrink_voxels`).
     """
     v = np.asarray(volumes, np.float32)
     if v.ndim != 5 or v.shape[2:] != grid.shape:
@@ -61,7 +83,11 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig
     if not (0 <= i_ref < nc and 0 <= j_ref < nr):
         raise ValueError(f"reference = {reference!r}: must index the ({nc}, {nr}) targets")
     spacing = (grid.voxel_mm, grid.voxel_mm, grid.dz_mm)
-    resp = register_to_reference(v.mean(axis=0), j_ref, spacing, cfg=cfg, progress=progress, pool=pool)
+    resp_avg = v.mean(axis=0)
+    resp = register_to_reference(resp_avg, j_ref, spacing, cfg=cfg, progress=progress, pool=pool)
+    infos: list = []
+    if shrink is not None:
+        resp, infos = shrunk(resp, resp_avg, j_ref, grid, shrink)
     card_avg = np.zeros((nc,) + grid.shape, np.float64)
     for j in range(nr):
         for i in range(nc):
@@ -69,5 +95,9 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig
     card_avg /= nr
     card = register_to_reference(card_avg.astype(np.float32), i_ref, spacing, cfg=cfg, progress=progress,
                                 pool=pool)
+    parts = {"resp": resp, "cardiac": card}
+    if shrink is not None:
+        card, more = shrunk(card, card_avg.astype(np.float32), i_ref, grid, shrink)
+        parts.update(cardiac=card, shrink=infos + more)
     fields = (card[:, None] + resp[None, :]).reshape((nc * nr, 3) + grid.shape)
-    return fields.astype(np.float32), {"resp": resp, "cardiac": card}
+    return fields.astype(np.float32), parts

@@ -87,13 +87,26 @@ def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs, progress=None, pool
     ``progress``: optional ``update(n)`` counter, one step per registration; ``pool``: optional
     process pool running each step's registrations at once (the same fields, bit for bit)."""
     t0 = time.perf_counter()
-    fields, _ = estimate.separable_fields(volumes, tuple(ref_ij), grid, flow_of(knobs), progress=progress, pool=pool)
+    fields, parts = estimate.separable_fields(volumes, tuple(ref_ij), grid, flow_of(knobs), progress=progress,
+                                              pool=pool, shrink=shrink_of(knobs))
     t1 = time.perf_counter()
     nr = volumes.shape[1]
     ref = tuple(map(float, pairs[ref_ij[0] * nr + ref_ij[1]]))
     model, rms = fit_motion_model(fields, pairs, basis_of(knobs, *volumes.shape[:2]), grid, ref)
-    return model, {"registration_seconds": t1 - t0, "fit_seconds": time.perf_counter() - t1,
-                   "fit_rms_mm": float(np.sqrt(np.mean(rms ** 2)))}
+    info = {"registration_seconds": t1 - t0, "fit_seconds": time.perf_counter() - t1,
+            "fit_rms_mm": float(np.sqrt(np.mean(rms ** 2)))}
+    if parts.get("shrink"):  # the fields' mean gain (1: unchanged) and the least of them (none: one target)
+        gains = [x["mean_gain"] for x in parts["shrink"]]
+        info.update(shrink_mean_gain=float(np.mean(gains)), shrink_min_gain=float(np.min(gains)))
+    return model, info
+
+
+def shrink_of(knobs) -> tuple | None:
+    """(window radius, HU window) of the shrinkage towards zero (``knobs.shrink``), or None when off.
+    The window is the Lucas-Kanade registration's (``flow_radius``; TV-L1's fields are judged in the same window)."""
+    if not knobs.shrink:
+        return None
+    return knobs.flow_radius, FlowConfig().hu_window
 
 
 def refine(model: MotionModel, geom: FanBeamGeometry) -> MotionModel:
