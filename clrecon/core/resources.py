@@ -17,6 +17,19 @@ def peak_rss_bytes() -> int:
     return int(rss if sys.platform == "darwin" else rss * 1024)
 
 
+def rss_bytes() -> int:
+    """This process's resident set now (bytes; ``VmRSS`` of ``/proc/self/status``), or its peak so far
+    (:func:`peak_rss_bytes`) where ``/proc`` has none."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return peak_rss_bytes()
+
+
 #: Binary units above bytes, for :func:`format_bytes`.
 BYTE_UNITS = ("KiB", "MiB", "GiB", "TiB", "PiB", "EiB")
 

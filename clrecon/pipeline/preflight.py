@@ -30,7 +30,7 @@ import shutil
 from pathlib import Path
 
 from clrecon.core.errors import ClreconError
-from clrecon.core.resources import folder_bytes, format_bytes, peak_rss_bytes
+from clrecon.core.resources import folder_bytes, format_bytes, peak_rss_bytes, rss_bytes
 from clrecon.core.runtime import get_runtime
 from clrecon.pipeline.costs import disk_model
 
@@ -84,7 +84,8 @@ def _left_by_interrupted_run(out_dir: Path) -> int:
 
 def needs(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
     """Bytes this run needs: ``memory`` (the modelled peak of the run's work, this process's resident
-    set now and :data:`PROCESS_GROWTH_BYTES`), ``cache_disk``, ``out_disk``."""
+    set now and :data:`PROCESS_GROWTH_BYTES`, or the process's peak so far where that is more),
+    ``cache_disk``, ``out_disk``."""
     import h5py
 
     existing: dict = {}
@@ -102,8 +103,9 @@ def needs(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
                       truth_copies=_device(cache_dir) != _device(out_dir))  # the truth cache copies, not links
     # the model is what the run's arrays add to the process; the process itself (interpreter, libraries,
     # the OpenCL driver: 0.2-0.4 GiB by driver, most of a small run's peak) is measured now, after the
-    # imports and the OpenCL runtime (docs/measured-data.md), and grows by PROCESS_GROWTH_BYTES later
-    memory = costs["peak_memory_bytes"] + peak_rss_bytes() + PROCESS_GROWTH_BYTES
+    # imports and the OpenCL runtime (docs/measured-data.md), and grows by PROCESS_GROWTH_BYTES later;
+    # a peak the process already reached (the driver's probe) counts where it is larger
+    memory = max(peak_rss_bytes(), costs["peak_memory_bytes"] + rss_bytes() + PROCESS_GROWTH_BYTES)
     return {"memory": memory, **disk}
 
 
