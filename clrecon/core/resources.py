@@ -17,6 +17,13 @@ def peak_rss_bytes() -> int:
     return int(rss if sys.platform == "darwin" else rss * 1024)
 
 
+def peak_child_rss_bytes() -> int:
+    """The largest peak resident set of this process's children that have ended and been waited for
+    (bytes; ``RUSAGE_CHILDREN``: the largest one, not a sum; a child still running is not in it)."""
+    rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return int(rss if sys.platform == "darwin" else rss * 1024)
+
+
 def rss_bytes() -> int:
     """This process's resident set now (bytes; ``VmRSS`` of ``/proc/self/status``), or its peak so far
     (:func:`peak_rss_bytes`) where ``/proc`` has none."""
