@@ -18,6 +18,10 @@ from clrecon.reconstruction.motion.registration import FLOW_BYTES_PER_VOXEL, reg
 #: registration's ``FLOW_BYTES_PER_VOXEL`` (docs/results/code-history.md "The mc working set against
 #: the measured peak").
 WORKER_BYTES = 60_000_000
+#: Bytes per (slice, view, target) of a slab's first-pass plan (barycentric: 3 neighbours of int64
+#: index and float64 weight, 48 bytes), its slots and the planning's transients (measured on
+#: ``demo``: docs/results/code-history.md "The mc working set against the measured peak").
+PLAN_BYTES = 300
 #: Plane rows of one slab stay within this many bytes (half the reconstruction's slab budget).
 ROWS_BYTES = reconstruct.SLAB_BYTES / 2
 #: A slab may grow past the rows budget while its plane rows stay within this factor of its first
@@ -83,8 +87,8 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       size fields) and the fit's float64 block (``model.FIT_BLOCK``; the targets' fields are summed a
       block at a time, ``model.fit_separable_model``);
     - ``round backprojection`` (rounds after the first, per slab): the first pass and the images,
-      the rows kept for other variants, the slab's first-pass plan and slots (2 x 40 bytes per
-      (slice, view, target, neighbour), 8 neighbours), the model, the slab's plane rows, and the
+      the rows kept for other variants, the slab's first-pass plan and slots (:data:`PLAN_BYTES`
+      per (slice, view, target)), the model, the slab's plane rows, and the
       larger of what their making and their use add: the raw rows being read (3 chunks of
       ``READ_CHUNK_BYTES``: the chunk, its covering range and its SSRB rows), or the rows' and the
       model's copies on the device (host memory on a CPU driver) and the slab's images;
@@ -97,7 +101,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       the registrations then run in the process, and ``fit`` holds one's ``FLOW_BYTES_PER_VOXEL``).
 
     The plane rows of a slab: (planes, n_cols) float32 per projection its first-pass plan uses (those
-    within the SSRB window of its slices and one rotation; at most ``max_projections``, the scan's);
+    within the SSRB window of its slices; at most ``max_projections``, the scan's);
     the slab holds as many slices as :func:`slab_ranges` lets it (which counts the projections within
     ``knobs.margin_mm`` more).
     The model against measured peaks: docs/results/code-history.md "The mc working set against the
@@ -114,7 +118,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     s = _slab_slices(rows_per_mm, reach, slice_mm, nz)
     # the rows are those of the projections the slab's first-pass plan uses (within the SSRB window of
     # its slices), each on the planes within ``margin_mm``; the cut above counts the margin's too
-    n_proj = ((s - 1) * slice_mm + 2 * w) / feed_mm * scanner.views_per_rotation + scanner.views_per_rotation
+    n_proj = ((s - 1) * slice_mm + 2 * w) / feed_mm * scanner.views_per_rotation
     if max_projections is not None:
         n_proj = min(n_proj, max_projections)
     rows = n_proj * per_row
@@ -133,7 +137,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
           + 2 * min(knobs.cardiac_harmonics, (n_cardiac - 1) // 2))
     fit_block = (4 * n_targets + nb) * FIT_BLOCK * 8
     registration = (n_resp + n_cardiac) * fld + n_resp * n_reg * 4 + n_cardiac * n_reg * 8
-    plan = 2 * 40 * s * scanner.views_per_rotation * n_targets * 8
+    plan = PLAN_BYTES * s * scanner.views_per_rotation * n_targets
     read = 3 * min(mcm.READ_CHUNK_BYTES, n_proj * scanner.n_rows * scanner.n_cols * 4)
     workers = registration_workers(n_reg, available_bytes=1 << 62)  # 1: in this process, no pool
     if workers == 1:
