@@ -86,7 +86,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       respiratory averages float32 and the cardiac ones float64), the old and new model (2 x basis
       size fields) and the fit's float64 block (``model.FIT_BLOCK``; the targets' fields are summed a
       block at a time, ``model.fit_separable_model``);
-    - ``round backprojection`` (rounds after the first, per slab): the first pass and the images,
+    - ``round backprojection`` (rounds after the first, per slab): the first pass and the earlier slabs' images,
       the rows kept for other variants, the slab's first-pass plan and slots (:data:`PLAN_BYTES`
       per (slice, view, target)), the model, the slab's plane rows, and the
       larger of what their making and their use add: the raw rows being read (3 chunks of
@@ -145,8 +145,10 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     fit = first + imgs + kept + registration + 2 * nb * fld + fit_block
     # while a slab's rows are read, the raw rows of the read; while it is backprojected, their device copy,
     # the model's and the images (never both at once)
-    rounds = (first + imgs + max(kept - rows, 0) + rows + plan + nb * fld
-              + max(read, rows + nb * fld + n_targets * s * cny * cnx * 4)) if knobs.rounds > 1 else 0
+    # (the round's images, np.empty, are touched slab by slab: the earlier slabs' and this slab's)
+    slab_imgs = n_targets * s * cny * cnx * 4
+    rounds = (first + max(imgs - slab_imgs, 0) + max(kept - rows, 0) + rows + plan + nb * fld
+              + max(read, rows + nb * fld + slab_imgs)) if knobs.rounds > 1 else 0
     refined = nb * 3 * nz * vox * 4  # the model on the reconstruction grid (the model itself where f = 1)
     final = ((kept if kept else rows) + plan + n_var * nb * fld + (refined if f > 1 else 0)
              + max(0 if kept else read, rows + refined + 2 * n_targets * s * vox * 4))
