@@ -17,6 +17,26 @@ def peak_rss_bytes() -> int:
     return int(rss if sys.platform == "darwin" else rss * 1024)
 
 
+def peak_child_rss_bytes() -> int:
+    """The largest peak resident set of this process's children that have ended and been waited for
+    (bytes; ``RUSAGE_CHILDREN``: the largest one, not a sum; a child still running is not in it)."""
+    rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return int(rss if sys.platform == "darwin" else rss * 1024)
+
+
+def rss_bytes() -> int:
+    """This process's resident set now (bytes; ``VmRSS`` of ``/proc/self/status``), or its peak so far
+    (:func:`peak_rss_bytes`) where ``/proc`` has none."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return peak_rss_bytes()
+
+
 #: Binary units above bytes, for :func:`format_bytes`.
 BYTE_UNITS = ("KiB", "MiB", "GiB", "TiB", "PiB", "EiB")
 
@@ -139,3 +159,78 @@ def spawned_pool(n: int):
         return pool
     except (OSError, ValueError, ImportError):
         return None
+
+
+#: Environment variable: set to a file path, :func:`rss_mark` appends one line per call to it
+#: (a debug aid for locating a run's memory peak; unset: :func:`rss_mark` does nothing).
+RSS_TRACE_ENV = "CLRECON_RSS_TRACE"
+#: Seconds between the trace's samples of this process's resident set.
+RSS_TRACE_INTERVAL_S = 0.05
+
+
+def _rss_now() -> tuple[int, int]:
+    """(this process's resident bytes, the resident bytes of its live descendants) from ``/proc``."""
+    def rss(pid) -> int:
+        try:
+            with open(f"/proc/{pid}/status") as f:
+                for line in f:
+                    if line.startswith("VmRSS:"):
+                        return int(line.split()[1]) * 1024
+        except OSError:
+            pass
+        return 0
+
+    def children(pid) -> list[int]:
+        out = []
+        try:
+            for t in os.listdir(f"/proc/{pid}/task"):
+                with open(f"/proc/{pid}/task/{t}/children") as f:
+                    out += [int(c) for c in f.read().split()]
+        except OSError:
+            pass
+        return out + [g for c in out for g in children(c)]
+
+    return rss("self"), sum(rss(c) for c in children(os.getpid()))
+
+
+class _RssTrace:
+    """A daemon thread sampling :func:`_rss_now` every :data:`RSS_TRACE_INTERVAL_S`, keeping the
+    largest samples since the last :meth:`mark`."""
+
+    def __init__(self, path: str):
+        self.path, self.t0 = path, time.perf_counter()
+        self.lock = threading.Lock()
+        self.peak = self.peak_total = 0
+        threading.Thread(target=self._run, name="clrecon-rss-trace", daemon=True).start()
+
+    def _run(self) -> None:
+        while True:
+            own, kids = _rss_now()
+            with self.lock:
+                self.peak, self.peak_total = max(self.peak, own), max(self.peak_total, own + kids)
+            time.sleep(RSS_TRACE_INTERVAL_S)
+
+    def mark(self, label: str) -> None:
+        own, kids = _rss_now()
+        with self.lock:
+            peak, total = max(self.peak, own), max(self.peak_total, own + kids)
+            self.peak = self.peak_total = 0
+        with open(self.path, "a") as f:
+            f.write(f"{time.perf_counter() - self.t0:9.2f} s  rss {own / 1e9:7.3f} GB  children {kids / 1e9:6.3f} GB"
+                    f"  peak since last mark {peak / 1e9:7.3f} GB (with children {total / 1e9:7.3f})  {label}\n")
+
+
+_trace: _RssTrace | None = None
+
+
+def rss_mark(label: str) -> None:
+    """Debug aid: with ``CLRECON_RSS_TRACE=<file>`` set, append to that file this process's resident
+    set now, its descendants', and the largest sampled since the previous mark, then ``label``
+    (what the process did since that mark). Costs nothing when the variable is unset."""
+    global _trace
+    path = os.environ.get(RSS_TRACE_ENV)
+    if not path:
+        return
+    if _trace is None:
+        _trace = _RssTrace(path)
+    _trace.mark(label)

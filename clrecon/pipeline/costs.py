@@ -92,12 +92,15 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     target_vox = nz * rc.ny * rc.nx
     regions = n_targets * target_vox if any(g == "resp" for g in grid.values()) else 0
     metrics_peak = n_proc * (regions + 3 * target_vox * 4) + (n_proc - 1) * 0.4e9
-    peak = max(peak, metrics_peak)
-    if "mc" in methods:  # the motion-compensated second pass, at its worst pitch, on top: the process
-        # does not give the reconstruction's memory back to the system before it
+    if "mc" in methods:  # the motion-compensated second pass, at its worst pitch, after the reconstruction
+        # of its pitch: the pitch's plans (its input) and the truths beside it stay
         # (docs/results/code-history.md "The mc working set against the measured peak")
-        peak += max(mc_memory.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p), n_var,
-                                            n_targets, nz, rc.ny, rc.nx) for p in pitches)
+        held = plans + (truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx) if overlap
+                        else 0)
+        peak = max(peak, held + max(mc_memory.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p),
+                                                            n_var, n_c, n_r, nz, rc.ny, rc.nx, n_proj[p])
+                                    for p in pitches))
+    peak = max(peak, metrics_peak)
     if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)
         peak += measured_memory_bytes(scene)
     out = {"projections": n_proj, "projections_needed": needed, "store_bytes": sum(n_proj.values()) * proj_bytes,

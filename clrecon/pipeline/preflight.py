@@ -30,9 +30,16 @@ import shutil
 from pathlib import Path
 
 from clrecon.core.errors import ClreconError
-from clrecon.core.resources import folder_bytes, format_bytes, peak_rss_bytes
+from clrecon.core.resources import folder_bytes, format_bytes, peak_rss_bytes, rss_bytes
 from clrecon.core.runtime import get_runtime
 from clrecon.pipeline.costs import disk_model
+
+#: What the process grows by after the pre-flight beyond the arrays :func:`clrecon.pipeline.costs.run_costs`
+#: models: kernels built or loaded from the cache, modules imported on first use (scikit-image for
+#: ``mc``, matplotlib for the report's figures), the allocator's small blocks (measured on ``tiny``
+#: with ``mc``, warm kernel cache: docs/results/code-history.md "The mc working set against the
+#: measured peak").
+PROCESS_GROWTH_BYTES = 100_000_000
 
 
 def free_disk_bytes(path: Path) -> int:
@@ -76,7 +83,9 @@ def _left_by_interrupted_run(out_dir: Path) -> int:
 
 
 def needs(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
-    """Bytes this run needs: ``memory``, ``cache_disk``, ``out_disk``."""
+    """Bytes this run needs: ``memory`` (the modelled peak of the run's work, this process's resident
+    set now and :data:`PROCESS_GROWTH_BYTES`, or the process's peak so far where that is more),
+    ``cache_disk``, ``out_disk``."""
     import h5py
 
     existing: dict = {}
@@ -92,9 +101,11 @@ def needs(scene, costs: dict, cache_dir: Path, out_dir: Path) -> dict:
                 pass
     disk = disk_model(costs, existing, present_out=_left_by_interrupted_run(out_dir),
                       truth_copies=_device(cache_dir) != _device(out_dir))  # the truth cache copies, not links
-    memory = costs["peak_memory_bytes"]
-    if getattr(scene, "measured", False):  # a small scan: the process itself (0.2-0.4 GiB by driver) counts
-        memory += peak_rss_bytes()  # measured now, after the imports and the OpenCL runtime (docs/measured-data.md)
+    # the model is what the run's arrays add to the process; the process itself (interpreter, libraries,
+    # the OpenCL driver: 0.2-0.4 GiB by driver, most of a small run's peak) is measured now, after the
+    # imports and the OpenCL runtime (docs/measured-data.md), and grows by PROCESS_GROWTH_BYTES later;
+    # a peak the process already reached (the driver's probe) counts where it is larger
+    memory = max(peak_rss_bytes(), costs["peak_memory_bytes"] + rss_bytes() + PROCESS_GROWTH_BYTES)
     return {"memory": memory, **disk}
 
 

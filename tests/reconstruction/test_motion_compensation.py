@@ -21,6 +21,7 @@ from clrecon.bench import reference_kernels
 from clrecon.core.resources import spawned_pool
 from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
 from clrecon.reconstruction.motion import estimate, registration, slots
+from clrecon.reconstruction.motion import model as motion_model
 from clrecon.reconstruction.motion.backproject import (
     MCBackprojector,
     MCConfig,
@@ -29,7 +30,14 @@ from clrecon.reconstruction.motion.backproject import (
     mc_backproject_reference,
     plane_range,
 )
-from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel, fit_motion_model, sample
+from clrecon.reconstruction.motion.model import (
+    FieldGrid,
+    MotionBasis,
+    MotionModel,
+    fit_motion_model,
+    fit_separable_model,
+    sample,
+)
 from clrecon.reconstruction.rebin import CandidateGroups
 from clrecon.simulation.phantoms import motion_field
 from clrecon.simulation.phantoms.analytic import Phantom
@@ -461,6 +469,30 @@ def test_registration_rejects_bad_inputs():
                               initial=np.zeros((3,) + fixed.shape))
     with pytest.raises(ValueError, match="reference"):
         registration.register_to_reference(fixed[None], 1, (3.0, 3.0, 4.0))
+
+
+def test_the_fit_in_blocks_and_from_the_separable_parts_is_the_same_bits(monkeypatch):
+    """The fit works a block of columns at a time and, in the run, sums each block of the targets'
+    fields from the two registration steps' parts: the same model (and residuals to rounding) as
+    one block of the whole summed fields, for any block size."""
+    grid = FieldGrid(nx=9, ny=7, nz=4, voxel_mm=2.0, z0_mm=0.0, dz_mm=3.0)
+    rng = np.random.default_rng(5)
+    card = (3 * rng.standard_normal((5, 3) + grid.shape)).astype(np.float32)
+    resp = (3 * rng.standard_normal((4, 3) + grid.shape)).astype(np.float32)
+    cc, aa = np.meshgrid(np.arange(5) / 5, (np.arange(4) + 0.5) / 4, indexing="ij")
+    states = np.stack([cc.ravel(), aa.ravel()], 1)
+    fields = (card[:, None] + resp[None, :]).reshape((20, 3) + grid.shape)
+    basis = MotionBasis(resp_degree=1, cardiac_harmonics=2)
+    monkeypatch.setattr(motion_model, "FIT_BLOCK", 1 << 30)
+    whole, rms = fit_motion_model(fields, states, basis, grid, (0.0, 0.5))
+    for block in (1, 7, 100):
+        monkeypatch.setattr(motion_model, "FIT_BLOCK", block)
+        for model, r in (fit_motion_model(fields, states, basis, grid, (0.0, 0.5)),
+                         fit_separable_model(card, resp, states, basis, grid, (0.0, 0.5))):
+            assert np.array_equal(model.fields, whole.fields), block
+            assert np.allclose(r, rms, rtol=1e-12), block
+    with pytest.raises(ValueError, match="states"):
+        fit_separable_model(card, resp, states[:-1], basis, grid, (0.0, 0.5))
 
 
 def test_separable_fields_add_breathing_and_beat():

@@ -28,6 +28,7 @@ from typing import Any
 
 from clrecon.core import write_behind
 from clrecon.core.progress import progress as progress_counter
+from clrecon.core.resources import rss_mark
 from clrecon.core.stage_times import StageTimes
 
 
@@ -206,6 +207,7 @@ class Executor:
         if ahead is not None:
             kw["ahead"] = ahead
         out = st.fn(self.run_ctx, pitch, **kw)
+        rss_mark(f"stage {st.name} {pitch} (its work is {type(out).__name__})")
         if isinstance(out, Work):
             self.start_work(node, out, t0, b0)
         elif isinstance(out, Idle):
@@ -248,6 +250,7 @@ class Executor:
         finally:
             if bar is not None:
                 bar.close()
+        rss_mark(f"stage {st.name}: its units")
         self.book_writes(st, self.writer.wait_seconds - w0, self.writer.beside_seconds - wb0)
         book_times(self.clock, times)
         self.done[node] = work.finish(times)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from clrecon.core import atomic
-from clrecon.core.resources import peak_rss_bytes
+from clrecon.core.resources import peak_child_rss_bytes, peak_rss_bytes
 from clrecon.core.versions import __version__
 from clrecon.evaluation import claims, motion
 from clrecon.outputs import measured_record
@@ -147,5 +147,6 @@ def finish(run, results: dict, t_start: float, load_start) -> dict:
     st["unaccounted"] = {"ran": True, "seconds": round(
         results["total_seconds"] - sum(s.get("seconds", 0.0) for s in st.values()), 3)}
     results["peak_rss_bytes"] = peak_rss_bytes()
+    results["peak_child_rss_bytes"] = peak_child_rss_bytes()
     results["load_average"] = {"start": load_start, "end": load_average()}
     return results

@@ -31,9 +31,12 @@ from clrecon.reconstruction.motion.registration import FlowConfig, register_to_r
 def to_reference(volume, field, grid: FieldGrid) -> np.ndarray:
     """``volume`` (nz, ny, nx) at a state, seen in the reference frame: ``volume(x + u(x))`` on the grid."""
     x, y, z = grid.coords()
-    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
-    pts = np.stack([X, Y, Z], -1) + np.moveaxis(np.asarray(field, np.float64), 0, -1)
-    return sample(volume, grid, pts).astype(np.float32)
+    Y, X = np.meshgrid(y, x, indexing="ij")
+    out = np.empty(grid.shape, np.float32)
+    for k, zk in enumerate(z):  # slice by slice: the float64 points of a whole paper-scale grid would be GBs
+        pts = np.stack([X, Y, np.full_like(X, zk)], -1) + np.moveaxis(np.asarray(field[:, k], np.float64), 0, -1)
+        out[k] = sample(volume, grid, pts)
+    return out
 
 
 def shrunk(fields, images, reference: int, grid: FieldGrid, shrink) -> tuple[np.ndarray, list]:
@@ -75,6 +78,18 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig
     ``parts["cardiac"]`` (n_c, 3, ...), and with ``shrink`` ``parts["shrink"]``: the measured noise
     and mean gain of each shrunk field (:func:`clrecon.reconstruction.motion.confidence.shrink_voxels`).
     """
+    parts = separable_parts(volumes, reference, grid, cfg, progress=progress, pool=pool, shrink=shrink)
+    card, resp = parts["cardiac"], parts["resp"]
+    fields = (card[:, None] + resp[None, :]).reshape((len(card) * len(resp), 3) + grid.shape)
+    return fields, parts
+
+
+def separable_parts(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig | None = None,
+                    progress=None, pool=None, shrink: tuple | None = None) -> dict:
+    """The two steps' fields of :func:`separable_fields`, not summed: ``{"resp": (n_r, 3, nz, ny, nx),
+    "cardiac": (n_c, 3, nz, ny, nx)}`` float32 mm (the target (i, j)'s field is ``cardiac[i] + resp[j]``;
+    :func:`clrecon.reconstruction.motion.model.fit_separable_model` fits them without that sum's
+    n_c n_r fields), with ``"shrink"`` where ``shrink`` is given. Parameters as :func:`separable_fields`."""
     v = np.asarray(volumes, np.float32)
     if v.ndim != 5 or v.shape[2:] != grid.shape:
         raise ValueError(f"volumes: expected (n_c, n_r) + {grid.shape}, got {v.shape}")
@@ -99,5 +114,4 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig
     if shrink is not None:
         card, more = shrunk(card, card_avg.astype(np.float32), i_ref, grid, shrink)
         parts.update(cardiac=card, shrink=infos + more)
-    fields = (card[:, None] + resp[None, :]).reshape((nc * nr, 3) + grid.shape)
-    return fields.astype(np.float32), parts
+    return parts

@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from clrecon.core.progress import progress as progress_counter
-from clrecon.core.resources import spawn_is_safe, spawned_pool
+from clrecon.core.resources import rss_mark, spawn_is_safe, spawned_pool
 from clrecon.reconstruction import interpolation, reconstruct
 from clrecon.reconstruction.motion import memory
 from clrecon.reconstruction.motion import method as mcm
@@ -148,6 +148,7 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
     state, the registration grid and workers, the basis, the total seconds).
     """
     t_start = time.perf_counter()
+    rss_mark(f"mc {variant}: before the fit")
     knobs, cfg = scan.knobs, scan.cfg
     say = log or (lambda line: None)
     nc, nr = scan.shape
@@ -159,6 +160,7 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
     bar = progress_counter(fit_steps(scan), f"mc model {label} {variant}", progress, "steps")
     pool = scan.pool(grid)
     model, info = mcm.register(first, scan.ref_ij, grid, scan.pairs, knobs, progress=bar, pool=pool)
+    rss_mark(f"mc {variant}: round 1's registration and fit")
     rounds = [info]
     keep = len(scan.slabs) == 1
     for r in range(2, knobs.rounds + 1):
@@ -171,10 +173,13 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
                                                 scan.pairs, cfg.mu_water_per_mm, knobs, rt=scan.rt, progress=bar)
             if keep and rows.rows.nbytes * scan.n_variants <= memory.ROWS_BYTES:
                 scan.kept[(a, b, variant)] = rows  # the final pass's rows (one slab, every variant's within budget)
+            rss_mark(f"mc {variant}: round {r}'s backprojection of slices {a}..{b - 1} "
+                     f"(rows {rows.rows.nbytes / 1e9:.3f} GB)")
         t_bp = time.perf_counter() - t0
         say(f"registering {variant} (round {r} of {knobs.rounds})")
         model, info = mcm.register(imgs.reshape((nc, nr) + imgs.shape[1:]), scan.ref_ij, grid, scan.pairs, knobs,
                                    progress=bar, pool=pool)
+        rss_mark(f"mc {variant}: round {r}'s registration and fit")
         rounds.append(dict(info, backproject_seconds=t_bp))
     bar.close()
     info = {"rounds": [{k: round(v, 3) for k, v in x.items()} for x in rounds],
@@ -211,6 +216,7 @@ def reconstruct_slab(scan: MCScan, a: int, b: int, variant: str, model: MotionMo
         times.add("plane_rows", t1 - t0)
         times.add("mc_backproject", t2 - t1)
         times.add(f"method:{NAME}:{variant}", t2 - t0)
+    rss_mark(f"mc {variant}: final pass of slices {a}..{b - 1} (rows {rows.rows.nbytes / 1e9:.3f} GB)")
     return hu.reshape(scan.shape + hu.shape[1:])
 
 

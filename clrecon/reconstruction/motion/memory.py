@@ -11,8 +11,17 @@ import numpy as np
 
 from clrecon.reconstruction import rebin, reconstruct
 from clrecon.reconstruction.motion import method as mcm
+from clrecon.reconstruction.motion.model import FIT_BLOCK
 from clrecon.reconstruction.motion.registration import FLOW_BYTES_PER_VOXEL, registration_workers
 
+#: A registration process's own resident set (interpreter, NumPy, SciPy, scikit-image) beside its
+#: registration's ``FLOW_BYTES_PER_VOXEL`` (docs/results/code-history.md "The mc working set against
+#: the measured peak").
+WORKER_BYTES = 60_000_000
+#: Bytes per (slice, view, target) of a slab's first-pass plan (barycentric: 3 neighbours of int64
+#: index and float64 weight, 48 bytes), its slots and the planning's transients (measured on
+#: ``demo``: docs/results/code-history.md "The mc working set against the measured peak").
+PLAN_BYTES = 300
 #: Plane rows of one slab stay within this many bytes (half the reconstruction's slab budget).
 ROWS_BYTES = reconstruct.SLAB_BYTES / 2
 #: A slab may grow past the rows budget while its plane rows stay within this factor of its first
@@ -51,35 +60,107 @@ def plane_row_slabs(table, scanner, cfg, slices_z, knobs, budget: float | None =
     return out
 
 
-def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
-                  n_targets: int, nz: int, ny: int, nx: int) -> int:
-    """Modelled memory of ``mc`` at one pitch (bytes), beside the process's baseline.
+def _slab_slices(rows_per_mm: float, reach_mm: float, slice_mm: float, nz: int) -> int:
+    """Slices of the largest slab :func:`plane_row_slabs` cuts: its rows (``rows_per_mm`` bytes per mm of
+    z, over its slices' span plus ``reach_mm`` on both sides) within the larger of :data:`ROWS_BYTES`
+    and :data:`GROWTH` times one slice's."""
+    limit = max(ROWS_BYTES, GROWTH * 2 * reach_mm * rows_per_mm)
+    if slice_mm <= 0:
+        return nz
+    return int(min(nz, max(1, 1 + (limit / rows_per_mm - 2 * reach_mm) // slice_mm)))
 
-    The plane rows of a slab ((planes, n_cols) float32 per projection it uses, the projections
-    within the SSRB window plus ``knobs.margin_mm`` of its slices: at most ``ROWS_BYTES``, or
-    ``GROWTH`` times one slice's where that is more), kept for
-    the final pass for every noise variant (when they fit ``ROWS_BYTES``) plus one variant's copy on
-    the device (host memory on a CPU driver); the first pass of one variant, the previous round's
-    images and the slab's output, float32 (3 x targets x slices x ny x nx); the registration's
-    fields (13 registrations and the model's basis, 3 components each, at the registration's
-    grid); the raw rows read for the plane rows (``method.READ_CHUNK_BYTES`` at a time, with their
-    covering range and SSRB rows: 3 chunks); the registration processes' working sets
-    (``FLOW_BYTES_PER_VOXEL`` per voxel each, one per core up to ``MAX_WORKERS``: 2 x 79 MB on
-    ``demo`` with 2 cores, in processes of their own). Returns bytes. The model against a measured
-    peak: docs/results/code-history.md "The mc working set against the measured peak"."""
+
+def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
+                  n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int,
+                  max_projections: int | None = None) -> dict[str, int]:
+    """Modelled bytes of ``mc`` at one pitch beside the process's baseline, by part of its work.
+
+    The parts follow one another (the largest is the method's peak, :func:`working_bytes`), except
+    ``registration processes``, which runs beside ``fit`` in processes of its own.
+
+    - ``fit`` (each round's registration and model fit, :func:`mc_fbp.fit_model`): the first pass
+      read back (targets x slices x ny x nx float32; a downsampled copy where the registration works
+      coarser), the previous round's images on the registration grid (rounds after the first), the
+      plane rows kept for the final pass (every variant's, where kept), the registration's fields on
+      its grid (``estimate.separable_parts``: n_resp + n_cardiac fields of 3 components float32, the
+      respiratory averages float32 and the cardiac ones float64), the old and new model (2 x basis
+      size fields) and the fit's float64 block (``model.FIT_BLOCK``; the targets' fields are summed a
+      block at a time, ``model.fit_separable_model``);
+    - ``round backprojection`` (rounds after the first, per slab): the first pass and the earlier slabs' images,
+      the rows kept for other variants, the slab's first-pass plan and slots (:data:`PLAN_BYTES`
+      per (slice, view, target)), the model, the slab's plane rows, and the
+      larger of what their making and their use add: the raw rows being read (3 chunks of
+      ``READ_CHUNK_BYTES``: the chunk, its covering range and its SSRB rows), or the rows' and the
+      model's copies on the device (host memory on a CPU driver) and the slab's images;
+    - ``final pass`` (per slab and variant, :func:`mc_fbp.reconstruct_slab`): the plane rows (every
+      variant's where kept), the plan and slots, every variant's model, the model refined to the
+      reconstruction grid, and the larger of the read (rows not kept) or the device copies of the
+      rows and the refined model with two slabs of output (one being written behind);
+    - ``registration processes``: ``FLOW_BYTES_PER_VOXEL`` per voxel of the registration grid and
+      :data:`WORKER_BYTES` in each, one per core up to ``MAX_WORKERS`` (none below ``POOL_MIN_VOXELS``:
+      the registrations then run in the process, and ``fit`` holds one's ``FLOW_BYTES_PER_VOXEL``).
+
+    The plane rows of a slab: (planes, n_cols) float32 per projection its first-pass plan uses (those
+    within the SSRB window of its slices; at most ``max_projections``, the scan's);
+    the slab holds as many slices as :func:`plane_row_slabs` lets it (which counts the projections within
+    ``knobs.margin_mm`` more).
+    The model against measured peaks: docs/results/code-history.md "The mc working set against the
+    measured peak".
+    """
     w = window_mm  # the SSRB slice window (reconstruction.rebin.slice_window_mm)
-    per_proj = _bytes_per_projection(scanner, w, knobs)
-    n_proj = (z_extent_mm + 2 * (w + knobs.margin_mm)) / feed_mm * scanner.views_per_rotation
-    one_slice = 2 * (w + knobs.margin_mm) / feed_mm * scanner.views_per_rotation * per_proj
-    rows = min(max(ROWS_BYTES, GROWTH * one_slice), n_proj * per_proj)  # plane_row_slabs' limit
-    kept = n_var * rows if n_var * rows <= ROWS_BYTES else 0.0
+    n_targets = n_cardiac * n_resp
+    per_proj = _bytes_per_projection(scanner, w, knobs)  # the cut's (plane_row_slabs')
+    # the rows' own: at most floor(2 (w + dz) / dz) + 1 planes a projection (backproject.plane_range)
+    per_row = (int(2 * (w + knobs.plane_dz_mm) / knobs.plane_dz_mm) + 1) * scanner.n_cols * 4
+    reach = w + knobs.margin_mm
+    rows_per_mm = scanner.views_per_rotation * per_proj / feed_mm
+    slice_mm = z_extent_mm / (nz - 1) if nz > 1 else 0.0
+    s = _slab_slices(rows_per_mm, reach, slice_mm, nz)
+    # the rows are those of the projections the slab's first-pass plan uses (within the SSRB window of
+    # its slices), each on the planes within ``margin_mm``; the cut above counts the margin's too
+    n_proj = ((s - 1) * slice_mm + 2 * w) / feed_mm * scanner.views_per_rotation
+    if max_projections is not None:
+        n_proj = min(n_proj, max_projections)
+    rows = n_proj * per_row
+    one_slab = s >= nz
+    # kept for the final pass where the scan is one slab and every variant's rows fit ROWS_BYTES: at most
+    # that (the modelled rows err high by up to a rotation's, so a run near the limit counts it)
+    kept = min(n_var * rows, ROWS_BYTES) if one_slab else 0.0
     f = max(1, knobs.downsample)
-    volumes = 3 * n_targets * nz * ny * nx * 4
-    n_reg = nz * (ny // f) * (nx // f)
-    fields = (13 + 1 + 2 * knobs.resp_degree + 2 * knobs.cardiac_harmonics) * 3 * n_reg * 4
-    # the registration processes (one per core, at most MAX_WORKERS: the most the run starts)
-    flows = registration_workers(n_reg, available_bytes=1 << 62) * FLOW_BYTES_PER_VOXEL * n_reg
-    # the raw detector rows a slab's plane rows are made from, one chunk at a time, with the chunk's
-    # covering range of the store and its SSRB rows (measured on a paper-p010 slice: 2.9 chunks of 128 MiB)
+    cny, cnx = ny // f, nx // f
+    n_reg = nz * cny * cnx
+    vox = ny * nx
+    first = n_targets * nz * vox * 4 + (n_targets * n_reg * 4 if f > 1 else 0)
+    imgs = n_targets * n_reg * 4 if knobs.rounds > 1 else 0
+    fld = 3 * n_reg * 4  # one field on the registration grid
+    nb = (1 + 2 * min(knobs.resp_degree, n_resp - 1)
+          + 2 * min(knobs.cardiac_harmonics, (n_cardiac - 1) // 2))
+    fit_block = (4 * n_targets + nb) * FIT_BLOCK * 8
+    registration = (n_resp + n_cardiac) * fld + n_resp * n_reg * 4 + n_cardiac * n_reg * 8
+    plan = PLAN_BYTES * s * scanner.views_per_rotation * n_targets
     read = 3 * min(mcm.READ_CHUNK_BYTES, n_proj * scanner.n_rows * scanner.n_cols * 4)
-    return int(kept + rows + volumes + fields + flows + read)
+    workers = registration_workers(n_reg, available_bytes=1 << 62)  # 1: in this process, no pool
+    if workers == 1:
+        registration += FLOW_BYTES_PER_VOXEL * n_reg
+    fit = first + imgs + kept + registration + 2 * nb * fld + fit_block
+    # while a slab's rows are read, the raw rows of the read; while it is backprojected, their device copy,
+    # the model's and the images (never both at once)
+    # (the round's images, np.empty, are touched slab by slab: the earlier slabs' and this slab's)
+    slab_imgs = n_targets * s * cny * cnx * 4
+    rounds = (first + max(imgs - slab_imgs, 0) + max(kept - rows, 0) + rows + plan + nb * fld
+              + max(read, rows + nb * fld + slab_imgs)) if knobs.rounds > 1 else 0
+    refined = nb * 3 * nz * vox * 4  # the model on the reconstruction grid (the model itself where f = 1)
+    final = ((kept if kept else rows) + plan + n_var * nb * fld + (refined if f > 1 else 0)
+             + max(0 if kept else read, rows + refined + 2 * n_targets * s * vox * 4))
+    flows = workers * (FLOW_BYTES_PER_VOXEL * n_reg + WORKER_BYTES) if workers > 1 else 0
+    return {"fit": int(fit), "round backprojection": int(rounds), "final pass": int(final),
+            "registration processes": int(flows)}
+
+
+def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
+                  n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int, max_projections: int | None = None) -> int:
+    """Modelled memory of ``mc`` at one pitch (bytes), beside the process's baseline: the largest
+    part of :func:`working_parts` in the process, with the registration processes beside the fit."""
+    p = working_parts(scanner, window_mm, knobs, z_extent_mm, feed_mm, n_var, n_cardiac, n_resp, nz, ny, nx,
+                      max_projections)
+    return max(p["fit"] + p["registration processes"], p["round backprojection"], p["final pass"])

@@ -6,9 +6,9 @@ docs/motion-model.md is the method's reference (what it assumes, its failure cas
 scan (pitch) and noise variant:
 
 1. ``mc_fbp.fit_model``: :func:`register` registers the first pass (barycentric, the registry's
-   ``Method.first_pass``; :func:`estimate.separable_fields`, Lucas-Kanade) on a grid
+   ``Method.first_pass``; :func:`estimate.separable_parts`, Lucas-Kanade) on a grid
    ``downsample`` times coarser in-plane (:func:`factor`, :func:`downsample`) and fits the
-   (c, a) motion model (:func:`model.fit_motion_model`); for each further round it backprojects
+   (c, a) motion model (:func:`model.fit_separable_model`); for each further round it backprojects
    every target with that model on the coarse grid (:func:`backproject_slab`), registers those
    images and fits again;
 2. ``mc_fbp.reconstruct_slab``: :func:`refine` samples the model's basis fields onto the
@@ -27,13 +27,14 @@ import time
 
 import numpy as np
 
+from clrecon.core.resources import rss_mark
 from clrecon.reconstruction import rebin
 from clrecon.reconstruction.fbp import FanBeamGeometry
 from clrecon.reconstruction.motion import backproject as mcb
 from clrecon.reconstruction.motion import estimate
 from clrecon.reconstruction.motion import slots as msl
 from clrecon.reconstruction.motion.flow import TVL1Config
-from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel, fit_motion_model, sample
+from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel, fit_separable_model, sample
 from clrecon.reconstruction.motion.registration import FlowConfig
 
 
@@ -87,12 +88,14 @@ def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs, progress=None, pool
     ``progress``: optional ``update(n)`` counter, one step per registration; ``pool``: optional
     process pool running each step's registrations at once (the same fields, bit for bit)."""
     t0 = time.perf_counter()
-    fields, parts = estimate.separable_fields(volumes, tuple(ref_ij), grid, flow_of(knobs), progress=progress,
-                                              pool=pool, shrink=shrink_of(knobs))
+    parts = estimate.separable_parts(volumes, tuple(ref_ij), grid, flow_of(knobs), progress=progress, pool=pool,
+                                     shrink=shrink_of(knobs))
+    rss_mark("mc: the registrations (separable_parts)")
     t1 = time.perf_counter()
     nr = volumes.shape[1]
     ref = tuple(map(float, pairs[ref_ij[0] * nr + ref_ij[1]]))
-    model, rms = fit_motion_model(fields, pairs, basis_of(knobs, *volumes.shape[:2]), grid, ref)
+    model, rms = fit_separable_model(parts["cardiac"], parts["resp"], pairs, basis_of(knobs, *volumes.shape[:2]),
+                                     grid, ref)
     info = {"registration_seconds": t1 - t0, "fit_seconds": time.perf_counter() - t1,
             "fit_rms_mm": float(np.sqrt(np.mean(rms ** 2)))}
     if parts.get("shrink"):  # the fields' mean gain (1: unchanged) and the least of them (none: one target)

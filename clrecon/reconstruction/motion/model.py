@@ -11,7 +11,7 @@ motion) are fitted voxel by voxel, in 3D, as
 not used: the phantom's motion depends on the amplitude only, docs/motion-model.md
 "Assumptions") plus a periodic cardiac term of H harmonics, additive in the two motions. The
 fit is linear least squares over the registered states with a small ridge (every voxel shares
-one design matrix). docs/motion-model.md "The method" (step 3).
+one design matrix), :data:`FIT_BLOCK` columns at a time. docs/motion-model.md "The method" (step 3).
 
 Fields are float32 arrays (..., 3, nz, ny, nx): components (dx, dy, dz) in mm, LPS, on the grid
 of voxel centres of the reconstruction in-plane (``voxel_coords(nx, voxel_mm)``) and on
@@ -28,6 +28,13 @@ import numpy as np
 import scipy.ndimage
 
 from clrecon.core.conventions import voxel_coords
+
+#: Columns (voxel components) of the fit worked on at once: the fit is float64 within a block of
+#: n states x FIT_BLOCK columns (with its projection and residual: about 4 such arrays, 0.1 GB for
+#: 50 states), never over the whole field, which for 50 states of a 512 x 512 x 8 grid would be
+#: four float64 copies of 1.26 GB of float32 fields. Each column is fitted on its own, so the
+#: coefficients do not depend on the block.
+FIT_BLOCK = 1 << 16
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -214,14 +221,46 @@ def fit_motion_model(displacements, states, basis: MotionBasis, grid: FieldGrid,
         raise ValueError(f"states: expected shape (n, 2) = (c, a) rows, got {s.shape}")
     if d.shape != (len(s), 3) + grid.shape:
         raise ValueError(f"displacements: expected shape {(len(s), 3) + grid.shape}, got {d.shape}")
+    flat = d.reshape(len(s), -1)
+    return _fit(lambda j0, j1: flat[:, j0:j1], flat.shape[1], s, basis, grid, reference, ridge)
+
+
+def fit_separable_model(cardiac, resp, states, basis: MotionBasis, grid: FieldGrid, reference: tuple,
+                        ridge: float = 1e-6) -> tuple[MotionModel, np.ndarray]:
+    """:func:`fit_motion_model` of the fields ``cardiac[i] + resp[j]`` of every state (i, j), cardiac-major
+    (``states`` (n_c n_r, 2) in that order), without holding those n_c n_r fields: each block of
+    columns is summed when it is fitted (float32, as the whole sum would be: the same bits).
+
+    ``cardiac`` (n_c, 3, nz, ny, nx) and ``resp`` (n_r, 3, nz, ny, nx) float32 mm on ``grid``
+    (:func:`clrecon.reconstruction.motion.estimate.separable_parts`).
+    """
+    card = np.asarray(cardiac, np.float32)
+    res = np.asarray(resp, np.float32)
+    s = np.asarray(states, np.float64)
+    if card.shape[1:] != (3,) + grid.shape or res.shape[1:] != (3,) + grid.shape:
+        raise ValueError(f"cardiac {card.shape} and resp {res.shape}: expected (n, 3) + {grid.shape} each")
+    if s.ndim != 2 or s.shape != (len(card) * len(res), 2):
+        raise ValueError(f"states: expected shape ({len(card) * len(res)}, 2) = (c, a) rows, got {s.shape}")
+    c2, r2 = card.reshape(len(card), -1), res.reshape(len(res), -1)
+    return _fit(lambda j0, j1: (c2[:, None, j0:j1] + r2[None, :, j0:j1]).reshape(len(s), -1), c2.shape[1], s,
+                basis, grid, reference, ridge)
+
+
+def _fit(columns, n_columns: int, s, basis: MotionBasis, grid: FieldGrid, reference: tuple, ridge: float):
+    """The fit of :func:`fit_motion_model` on ``columns(j0, j1)`` ((n, j1 - j0) float32, the fields' columns
+    j0 .. j1-1 of ``n_columns``), :data:`FIT_BLOCK` columns at a time."""
     if len(s) < basis.size:
         raise ValueError(f"{len(s)} states cannot fit {basis.size} basis functions {basis.names}")
     B = basis.values(s[:, 0], s[:, 1])                         # (n, NB)
     lam = float(ridge) * float(np.linalg.norm(B, 2)) ** 2
     solve = np.linalg.solve(B.T @ B + lam * np.eye(basis.size), B.T)   # (NB, n)
-    flat = d.reshape(len(s), -1).astype(np.float64)
-    coef = solve @ flat
-    resid = flat - B @ coef
-    rms = np.sqrt(np.mean(resid ** 2, axis=1))
-    fields = coef.reshape((basis.size, 3) + grid.shape).astype(np.float32)
+    coef = np.empty((basis.size, n_columns), np.float32)
+    sq = np.zeros(len(s), np.float64)
+    for j in range(0, n_columns, FIT_BLOCK):  # float64 a block of columns at a time (module docstring)
+        block = columns(j, min(j + FIT_BLOCK, n_columns)).astype(np.float64)
+        c = solve @ block
+        sq += ((block - B @ c) ** 2).sum(axis=1)
+        coef[:, j:j + FIT_BLOCK] = c
+    rms = np.sqrt(sq / max(1, n_columns))
+    fields = coef.reshape((basis.size, 3) + grid.shape)
     return MotionModel(basis=basis, grid=grid, fields=fields, reference=tuple(map(float, reference))), rms
