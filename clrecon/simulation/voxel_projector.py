@@ -241,13 +241,60 @@ def ray_samples(origin_mm, spacing_mm, shape_zyx, src, det_centre, e_u, e_v, u_m
     return np.where(hit, hi - lo + 1, 0).astype(np.int64).reshape(len(src), len(v), len(u))
 
 
+def joseph_samples(a, b, length, n):
+    """The float64 Joseph samples of rays ``p(t) = a + t b`` (voxel units) through a grid of ``n`` =
+    (nx, ny, nz) voxels, as :func:`project_volume` takes them: the walk both float64 references share.
+
+    ``a``, ``b`` (R, 3) and ``length`` (R,) mm per unit of t, from :func:`_rays`. Returns
+    ``(step, samples)``. ``step`` (R,): ``|b|`` along each ray's dominant axis (1 for a ray that
+    misses). ``samples``: an iterator of ``(k, i, rays, w, j0, j1, l0, l1, fj, fl)``: rays ``rays``
+    (int64) cross plane ``i`` of their dominant axis ``k`` over ``w`` of a plane, at the bilinear
+    position between voxels ``j0``/``j1`` and ``l0``/``l1`` of the other two axes (j < l) with
+    fractions ``fj``, ``fl``. Ray r's line integral is ``length[r] / step[r]`` (mm per plane) times
+    the sum, plane by plane in increasing ``i``, of ``w`` times the plane's bilinear value there.
+    """
+    t0, t1, hit = _clip(a, b, n)
+    hit &= length > 0
+    k_all = _dominant(b)
+    step = np.ones(len(a))
+    parts = []
+    for k in range(3):
+        sel = np.nonzero(hit & (k_all == k))[0]
+        if len(sel):
+            step[sel] = np.abs(b[sel, k])
+            parts.append((k, sel))
+
+    def samples():
+        for k, sel in parts:
+            j, l = [ax for ax in range(3) if ax != k]
+            ak, bk = a[sel, k], b[sel, k]
+            ga, gb = ak + bk * t0[sel], ak + bk * t1[sel]
+            glo = np.clip(np.minimum(ga, gb), -0.5, n[k] - 0.5)
+            ghi = np.clip(np.maximum(ga, gb), -0.5, n[k] - 0.5)
+            rj, rl = b[sel, j] / bk, b[sel, l] / bk
+            cj, cl = a[sel, j] - rj * ak, a[sel, l] - rl * ak
+            for i in range(n[k]):
+                w = np.minimum(i + 0.5, ghi) - np.maximum(i - 0.5, glo)
+                on = w > 0
+                if not on.any():
+                    continue
+                gj = np.clip(cj[on] + rj[on] * i, 0, n[j] - 1)
+                gl = np.clip(cl[on] + rl[on] * i, 0, n[l] - 1)
+                j0 = np.minimum(np.floor(gj).astype(np.int64), max(n[j] - 2, 0))
+                l0 = np.minimum(np.floor(gl).astype(np.int64), max(n[l] - 2, 0))
+                j1, l1 = np.minimum(j0 + 1, n[j] - 1), np.minimum(l0 + 1, n[l] - 1)
+                yield k, i, sel[on], w[on], j0, j1, l0, l1, gj - j0, gl - l0
+
+    return step, samples()
+
+
 def project_volume_reference(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm,
                              v_scale=None) -> np.ndarray:
     """:func:`project_volume` in float64 NumPy, the same algorithm (for tests; small inputs).
 
     Vectorised over rays: for each dominant axis, one pass over its planes for all rays of
-    that axis at once. Memory ~ 100 bytes per ray. Same parameters and checks as
-    :func:`project_volume`; returns (m, n_rows, n_cols) float64.
+    that axis at once (:func:`joseph_samples`). Memory ~ 100 bytes per ray. Same parameters and
+    checks as :func:`project_volume`; returns (m, n_rows, n_cols) float64.
     """
     mu, origin, spacing = _check_volume(mu, origin_mm, spacing_mm)
     src, det, eu, ev, u, v = _check_frames(src, det_centre, e_u, e_v, u_mm, v_mm)
@@ -255,37 +302,11 @@ def project_volume_reference(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_
     n = np.array(vol.shape[::-1])                      # (nx, ny, nz)
     volx = np.transpose(vol, (2, 1, 0))                # volx[ix, iy, iz]
     a, b, length = _rays(src, det, eu, ev, u, v, origin, spacing, v_scale)
-    t0, t1, hit = _clip(a, b, n)
-    hit &= length > 0
-    k_all = _dominant(b)
-    res = np.zeros(len(a))
-    for k in range(3):
-        sel = np.nonzero(hit & (k_all == k))[0]
-        if not len(sel):
-            continue
-        j, l = [ax for ax in range(3) if ax != k]
-        ak, bk = a[sel, k], b[sel, k]
-        ga, gb = ak + bk * t0[sel], ak + bk * t1[sel]
-        glo = np.clip(np.minimum(ga, gb), -0.5, n[k] - 0.5)
-        ghi = np.clip(np.maximum(ga, gb), -0.5, n[k] - 0.5)
-        rj, rl = b[sel, j] / bk, b[sel, l] / bk
-        cj, cl = a[sel, j] - rj * ak, a[sel, l] - rl * ak
-        vk = np.moveaxis(volx, k, 0)                   # vk[i, g_j, g_l] (j < l)
-        acc = np.zeros(len(sel))
-        for i in range(n[k]):
-            w = np.minimum(i + 0.5, ghi) - np.maximum(i - 0.5, glo)
-            on = w > 0
-            if not on.any():
-                continue
-            gj = np.clip(cj[on] + rj[on] * i, 0, n[j] - 1)
-            gl = np.clip(cl[on] + rl[on] * i, 0, n[l] - 1)
-            j0 = np.minimum(np.floor(gj).astype(np.int64), max(n[j] - 2, 0))
-            l0 = np.minimum(np.floor(gl).astype(np.int64), max(n[l] - 2, 0))
-            fj, fl = gj - j0, gl - l0
-            j1, l1 = np.minimum(j0 + 1, n[j] - 1), np.minimum(l0 + 1, n[l] - 1)
-            plane = vk[i]
-            m0 = plane[j0, l0] + fj * (plane[j1, l0] - plane[j0, l0])
-            m1 = plane[j0, l1] + fj * (plane[j1, l1] - plane[j0, l1])
-            acc[on] += w[on] * (m0 + fl * (m1 - m0))
-        res[sel] = acc * length[sel] / np.abs(bk)
-    return res.reshape(len(src), len(v), len(u))
+    step, samples = joseph_samples(a, b, length, n)
+    acc = np.zeros(len(a))
+    for k, i, rays, w, j0, j1, l0, l1, fj, fl in samples:
+        plane = np.moveaxis(volx, k, 0)[i]             # plane[g_j, g_l] (j < l)
+        m0 = plane[j0, l0] + fj * (plane[j1, l0] - plane[j0, l0])
+        m1 = plane[j0, l1] + fj * (plane[j1, l1] - plane[j0, l1])
+        acc[rays] += w * (m0 + fl * (m1 - m0))
+    return (acc * length / step).reshape(len(src), len(v), len(u))

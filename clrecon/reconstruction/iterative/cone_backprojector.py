@@ -39,11 +39,10 @@ from clrecon.simulation.voxel_projector import (
     CHUNK_CELLS,
     MAX_VOXELS,
     _check_frames,
-    _clip,
-    _dominant,
     _finite,
     _rays,
     _real,
+    joseph_samples,
 )
 
 
@@ -151,37 +150,13 @@ def backproject_volume_reference(proj, shape_zyx, origin_mm, spacing_mm, src, de
     n = np.array(shape[::-1])                          # (nx, ny, nz)
     volx = np.transpose(vol, (2, 1, 0))                # a view: volx[ix, iy, iz]
     a, b, length = _rays(src, det, eu, ev, u, v, origin, spacing, v_scale)
-    t0, t1, hit = _clip(a, b, n)
-    hit &= length > 0
-    k_all = _dominant(b)
-    for k in range(3):
-        sel = np.nonzero(hit & (k_all == k))[0]
-        if not len(sel):
-            continue
-        j, l = [ax for ax in range(3) if ax != k]
-        ak, bk = a[sel, k], b[sel, k]
-        ga, gb = ak + bk * t0[sel], ak + bk * t1[sel]
-        glo = np.clip(np.minimum(ga, gb), -0.5, n[k] - 0.5)
-        ghi = np.clip(np.maximum(ga, gb), -0.5, n[k] - 0.5)
-        rj, rl = b[sel, j] / bk, b[sel, l] / bk
-        cj, cl = a[sel, j] - rj * ak, a[sel, l] - rl * ak
-        ys = y[sel] * length[sel] / np.abs(bk)
-        vk = np.moveaxis(volx, k, 0)                   # vk[i, g_j, g_l], a view of vol
-        for i in range(n[k]):
-            w = np.minimum(i + 0.5, ghi) - np.maximum(i - 0.5, glo)
-            on = w > 0
-            if not on.any():
-                continue
-            gj = np.clip(cj[on] + rj[on] * i, 0, n[j] - 1)
-            gl = np.clip(cl[on] + rl[on] * i, 0, n[l] - 1)
-            j0 = np.minimum(np.floor(gj).astype(np.int64), max(n[j] - 2, 0))
-            l0 = np.minimum(np.floor(gl).astype(np.int64), max(n[l] - 2, 0))
-            fj, fl = gj - j0, gl - l0
-            j1, l1 = np.minimum(j0 + 1, n[j] - 1), np.minimum(l0 + 1, n[l] - 1)
-            c = ys[on] * w[on]
-            plane = vk[i]
-            np.add.at(plane, (j0, l0), c * (1 - fj) * (1 - fl))
-            np.add.at(plane, (j1, l0), c * fj * (1 - fl))
-            np.add.at(plane, (j0, l1), c * (1 - fj) * fl)
-            np.add.at(plane, (j1, l1), c * fj * fl)
+    step, samples = joseph_samples(a, b, length, n)
+    ys = y * length / step
+    for k, i, rays, w, j0, j1, l0, l1, fj, fl in samples:
+        c = ys[rays] * w
+        plane = np.moveaxis(volx, k, 0)[i]             # plane[g_j, g_l], a view of vol
+        np.add.at(plane, (j0, l0), c * (1 - fj) * (1 - fl))
+        np.add.at(plane, (j1, l0), c * fj * (1 - fl))
+        np.add.at(plane, (j0, l1), c * (1 - fj) * fl)
+        np.add.at(plane, (j1, l1), c * fj * fl)
     return vol
