@@ -9,8 +9,9 @@ is one call per spot state with that state's frames and cells, as for the projec
 ``<A x, y> = <x, A^T y>`` up to float32 rounding of the weights. It is the adjoint an iterative
 solver needs (gradients of ||A x - y||^2, CG / LSQR on the normal equations, SART).
 
-How: one work-item per ray repeats the projector's ray set-up (clip to the box, dominant axis,
-slab range, in-plane coordinates per plane) and scatters ``proj[r]`` times each of its
+How: one work-item per ray walks it with the projector's own set-up and samples
+(``kernels/joseph_ray.h``: clip to the box, dominant axis, slab range, in-plane coordinates per
+plane) and scatters ``proj[r]`` times each of its
 samples' four bilinear weights to the four voxels the projector reads. The scatter is a 64-bit
 fixed-point sum (``kernels/fixed_add.h``): each float32 contribution ``c`` is rounded to the
 integer ``rint(c 2^S)`` and added with 32-bit atomics and an exact carry; integer addition is
