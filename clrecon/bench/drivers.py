@@ -53,9 +53,9 @@ def working_cpu_drivers() -> list[tuple[str, str]]:
 
     drivers.register_wheel_drivers()
     out = []
-    for _rank, dev, idx in drivers.candidates(cl.get_platforms()):
+    for dev, idx in drivers.first_device_per_driver(cl.get_platforms()):
         drv = drivers.driver_of(dev.platform.name)
-        if drv and drivers.probe_device(dev, idx).ok and drv.key not in [k for k, _ in out]:
+        if drivers.probe_device(dev, idx).ok:
             out.append((drv.key, drv.platform_match[0]))
     return out
 

@@ -383,6 +383,19 @@ def candidates(platforms) -> list[tuple[int, object, int]]:
     return sorted(out, key=lambda t: t[0])
 
 
+def first_device_per_driver(platforms) -> list[tuple[object, int]]:
+    """(device, index in its platform) of the first CPU device of every known driver installed, in the
+    order of :func:`candidates` (probed or not: :func:`probe_device` says whether it works)."""
+    out, seen = [], set()
+    for _rank, dev, idx in candidates(platforms):
+        drv = driver_of(dev.platform.name)
+        if drv is None or drv.key in seen:
+            continue
+        seen.add(drv.key)
+        out.append((dev, idx))
+    return out
+
+
 def missing_drivers(platforms) -> list[CpuDriver]:
     """Known drivers with no platform installed (or not registered)."""
     names = [p.name for p in platforms]

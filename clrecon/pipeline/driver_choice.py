@@ -176,16 +176,24 @@ def time_driver(dev, index: int, cache_dir: Path | None = None, use_cache: bool 
 
 # -- the choice -----------------------------------------------------------------------------------
 
-def working_cpu_devices(platforms, cache_dir: Path | None = None) -> list[tuple[object, int]]:
-    """(device, index) of the first device of every known CPU driver, in clrecon's order."""
-    out, seen = [], set()
-    for _rank, dev, idx in drivers.candidates(platforms):
-        drv = drivers.driver_of(dev.platform.name)
-        if drv is None or drv.key in seen:
-            continue
-        seen.add(drv.key)
-        out.append((dev, idx))
-    return out
+def timed_drivers(cache_dir: Path | None = None, use_cache: bool = True) -> tuple[list[DriverTiming], list[str]]:
+    """The timings of every known CPU driver that passes the probe (clrecon's order), and the keys of those that
+    pass it but could not be timed; ([], []) where no OpenCL platform answers (the runtime says so in its line)."""
+    import pyopencl as cl
+
+    drivers.register_wheel_drivers()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error:
+        return [], []
+    timings, untimed = [], []
+    for dev, idx in drivers.first_device_per_driver(platforms):
+        t = time_driver(dev, idx, cache_dir, use_cache=use_cache)
+        if t is not None:
+            timings.append(t)
+        elif (v := drivers.cached_verdict(dev, cache_dir)) is not None and v.ok:
+            untimed.append(drivers.driver_of(dev.platform.name).key)
+    return timings, untimed
 
 
 def decide(work: dict, timings: list[DriverTiming]) -> Decision:
@@ -210,20 +218,7 @@ def choose_for_run(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=No
     """The run's driver :class:`Decision`; None where ``CLRECON_DEVICE`` names the device (nothing timed)."""
     if os.environ.get("CLRECON_DEVICE"):
         return None
-    import pyopencl as cl
-
-    drivers.register_wheel_drivers()
-    try:
-        platforms = cl.get_platforms()
-    except cl.Error:
-        return None  # the runtime says what is missing, in its one line
-    timings, untimed = [], []
-    for dev, idx in working_cpu_devices(platforms, cache_dir):
-        t = time_driver(dev, idx, cache_dir)
-        if t is not None:
-            timings.append(t)
-        elif (v := drivers.cached_verdict(dev, cache_dir)) is not None and v.ok:
-            untimed.append(drivers.driver_of(dev.platform.name).key)
+    timings, untimed = timed_drivers(cache_dir)
     if untimed:  # a working driver whose timing failed: nothing to compare with, the default order decides
         return Decision(None, f"{', '.join(untimed)} passed the probe but could not be timed: clrecon's order",
                         {}, tuple(timings))
@@ -252,15 +247,7 @@ def timing_report(time_again: bool = False, cache_dir: Path | None = None) -> di
 
     ``{"drivers": {key: {"seconds_per_unit", "cached", "child_seconds"}}, "scenes": {scene: Decision.as_dict()},
     "note": str}``; with one working driver (or none) only ``note`` says why nothing is compared."""
-    import pyopencl as cl
-
-    drivers.register_wheel_drivers()
-    try:
-        platforms = cl.get_platforms()
-    except cl.Error:
-        platforms = []
-    timings = [t for dev, idx in working_cpu_devices(platforms, cache_dir)
-               if (t := time_driver(dev, idx, cache_dir, use_cache=not time_again)) is not None]
+    timings, _untimed = timed_drivers(cache_dir, use_cache=not time_again)
     out = {"drivers": {t.key: {"seconds_per_unit": t.seconds_per_unit, "cached": t.cached,
                                "child_seconds": t.child_seconds} for t in timings}, "scenes": {}}
     if len(timings) < 2:

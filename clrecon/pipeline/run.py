@@ -61,8 +61,8 @@ def run(scene: Scene, out_dir: str | Path, methods: Sequence[str] | None = None,
     out = Path(out_dir)  # made by the volume writer: a run refused before it leaves no folder behind
     decision = _choose_driver(scene, methods, cardiac, resp, slice_range, pitches)
     rt = get_runtime()  # first: a machine with no working OpenCL driver gets its one line before any file
-    if decision is not None and decision.predicted and drivers.driver_of(rt.device.platform.name) is not None \
-            and drivers.driver_of(rt.device.platform.name).key == decision.key:  # this run's comparison
+    ran = drivers.driver_of(rt.device.platform.name)
+    if decision is not None and decision.predicted and ran is not None and ran.key == decision.key:  # compared
         rt.choice.chosen_by, rt.choice.timing = decision.reason, decision.as_dict()
         log(f"OpenCL driver: {decision.key}, {decision.reason}")
     ex = executors.make(executor, client)

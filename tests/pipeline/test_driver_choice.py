@@ -82,7 +82,7 @@ def test_run_work_counts_what_the_run_does():
 
 def test_timings_are_kept_per_machine_and_no_child_runs_the_second_time(cache, monkeypatch):
     drivers.register_wheel_drivers()
-    devs = driver_choice.working_cpu_devices(cl.get_platforms())
+    devs = drivers.first_device_per_driver(cl.get_platforms())
     dev, idx = next(((d, i) for d, i in devs if drivers.probe_device(d, i).ok), (None, None))
     if dev is None:
         pytest.skip("no CPU driver passes the probe here")
@@ -102,7 +102,7 @@ def test_timings_are_kept_per_machine_and_no_child_runs_the_second_time(cache, m
 
 def test_a_driver_known_to_fail_the_probe_is_not_timed(cache, monkeypatch):
     drivers.register_wheel_drivers()
-    dev, idx = driver_choice.working_cpu_devices(cl.get_platforms())[0]
+    dev, idx = drivers.first_device_per_driver(cl.get_platforms())[0]
     drivers.remember_verdict(dev, False, "failed for the test")
 
     def no_child(*a):
@@ -114,7 +114,7 @@ def test_a_driver_known_to_fail_the_probe_is_not_timed(cache, monkeypatch):
 
 def test_the_timing_child_reports_a_failed_probe_as_a_verdict(cache, monkeypatch):
     drivers.register_wheel_drivers()
-    dev, idx = driver_choice.working_cpu_devices(cl.get_platforms())[0]
+    dev, idx = drivers.first_device_per_driver(cl.get_platforms())[0]
     monkeypatch.setenv("CLRECON_PROBE_FAIL", "intel,portable,pocl")
     res = driver_choice.run_timing_child(dev.platform.name, idx)
     assert not res["ok"] and "seconds_per_unit" not in res
@@ -123,7 +123,7 @@ def test_the_timing_child_reports_a_failed_probe_as_a_verdict(cache, monkeypatch
 
 def test_the_preferred_driver_comes_first_and_says_why(cache, monkeypatch):
     drivers.register_wheel_drivers()
-    ok = [d for d, i in driver_choice.working_cpu_devices(cl.get_platforms()) if drivers.probe_device(d, i).ok]
+    ok = [d for d, i in drivers.first_device_per_driver(cl.get_platforms()) if drivers.probe_device(d, i).ok]
     if not ok:
         pytest.skip("no CPU driver passes the probe here")
     key = drivers.driver_of(ok[-1].platform.name).key  # the last working one: preferring it changes the order
@@ -142,7 +142,7 @@ def test_a_run_records_the_timed_choice(cache, monkeypatch, tmp_path):
     """With two working drivers the run logs and records its choice; here the decision is given (this CPU may
     have one working driver), the rest is the real run."""
     drivers.register_wheel_drivers()
-    ok = [d for d, i in driver_choice.working_cpu_devices(cl.get_platforms()) if drivers.probe_device(d, i).ok]
+    ok = [d for d, i in drivers.first_device_per_driver(cl.get_platforms()) if drivers.probe_device(d, i).ok]
     if not ok:
         pytest.skip("no CPU driver passes the probe here")
     key = drivers.driver_of(ok[0].platform.name).key
@@ -166,7 +166,7 @@ def test_devices_shows_the_timings(cache):
 
 def test_a_timing_that_dies_after_the_probe_leaves_the_driver_working_and_the_order_decides(cache, monkeypatch):
     drivers.register_wheel_drivers()
-    dev, idx = driver_choice.working_cpu_devices(cl.get_platforms())[0]
+    dev, idx = drivers.first_device_per_driver(cl.get_platforms())[0]
     monkeypatch.setattr(driver_choice, "run_timing_child", lambda *a: {
         "ok": True, "reason": "builds and runs the probe kernel", "died": "the probe process died on signal 11"})
     assert driver_choice.time_driver(dev, idx) is None
@@ -179,7 +179,7 @@ def test_a_timing_that_dies_after_the_probe_leaves_the_driver_working_and_the_or
 
 def test_a_timing_child_without_a_verdict_leaves_it_to_the_plain_probe(cache, monkeypatch):
     drivers.register_wheel_drivers()
-    dev, idx = driver_choice.working_cpu_devices(cl.get_platforms())[0]
+    dev, idx = drivers.first_device_per_driver(cl.get_platforms())[0]
     monkeypatch.setattr(driver_choice, "run_timing_child", lambda *a: {
         "ok": False, "reason": "the probe process exited with status 1 (ImportError)", "no_output": True})
     monkeypatch.setattr(drivers, "run_probe_child", lambda *a: (True, "probed by the plain probe"))
