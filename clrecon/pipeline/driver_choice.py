@@ -8,7 +8,7 @@ backprojection. So, before a run with no ``CLRECON_DEVICE``:
 
 1. every CPU driver that passes the probe is *timed* once per machine, driver version and
    Python, on the five kernel families of :mod:`clrecon.pipeline.driver_timing` (in the same
-   child process that probes it; about a second of timing per driver after its kernel builds);
+   child process that probes it; its cost: docs/performance.md);
    the seconds per unit of work are kept in ``<cache>/opencl-driver-timings.json`` beside the
    probe's verdicts, keyed like them (:func:`clrecon.core.drivers.verdict_key`);
 2. :func:`run_work` counts the run's units of work per family from its scene, methods, targets,

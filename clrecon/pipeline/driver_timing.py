@@ -56,9 +56,9 @@ TIMING_VERSION = 1
 #: Weights per interpolated output row in the interpolation workload (the 5D methods' neighbours).
 K_WEIGHTS = 8
 
-#: (projections, SSRB pairs, sinograms, views, grid, noise projections) per size. Every size fills the
-#: backprojector's 16 lanes and calls each kernel on batches like a run's, so a call's fixed cost
-#: weighs about as in a run ("timing": 20-150 ms a call with Intel's runtime on a 2-core EPYC).
+#: (projections, SSRB pairs, sinograms, views, grid, noise projections) per size. "timing" fills the
+#: backprojector's 16 lanes and calls each kernel on batches like a run's, so that a call's fixed cost
+#: weighs about as in a run; "quick" and "full" are bench --drivers' sizes.
 _SIZES = {"timing": (32, 16384, 16, 246, 256, 16), "quick": (16, 4096, 4, 492, 256, 8),
           "full": (64, 32768, 16, 984, 512, 32)}
 
