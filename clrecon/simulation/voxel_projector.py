@@ -76,6 +76,11 @@ def _check_volume(mu, origin_mm, spacing_mm):
     _finite(mu, "mu [z, y, x]")
     if mu.dtype.itemsize > 4 and np.abs(mu).max() > np.finfo(np.float32).max:
         raise ValueError(f"mu has a voxel of magnitude {np.abs(mu).max():.3g}, beyond float32")
+    return (mu, *check_grid(origin_mm, spacing_mm))
+
+
+def check_grid(origin_mm, spacing_mm) -> tuple[np.ndarray, np.ndarray]:
+    """``origin_mm`` and ``spacing_mm`` as float64 (x, y, z) triples: finite, spacing > 0 (else ValueError)."""
     origin = np.asarray(_real(origin_mm, "origin_mm"), np.float64)
     spacing = np.asarray(_real(spacing_mm, "spacing_mm"), np.float64)
     if origin.shape != (3,) or spacing.shape != (3,):
@@ -84,7 +89,7 @@ def _check_volume(mu, origin_mm, spacing_mm):
     _finite(origin, "origin_mm")
     if not np.all(np.isfinite(spacing) & (spacing > 0)):
         raise ValueError(f"spacing_mm must be finite and > 0, got {spacing.tolist()}")
-    return mu, origin, spacing
+    return origin, spacing
 
 
 def _check_frames(src, det_centre, e_u, e_v, u_mm, v_mm):

@@ -43,6 +43,7 @@ from clrecon.simulation.voxel_projector import (
     _finite,
     _rays,
     _real,
+    check_grid,
     joseph_samples,
 )
 
@@ -53,15 +54,7 @@ def _check_shape(shape_zyx, origin_mm, spacing_mm):
         raise ValueError(f"shape_zyx must be three integers >= 1 (nz, ny, nx), got {shape_zyx!r}")
     if math.prod(shape) > MAX_VOXELS:
         raise ValueError(f"shape_zyx {shape} has {math.prod(shape)} voxels, more than the kernel's {MAX_VOXELS}")
-    origin = np.asarray(_real(origin_mm, "origin_mm"), np.float64)
-    spacing = np.asarray(_real(spacing_mm, "spacing_mm"), np.float64)
-    if origin.shape != (3,) or spacing.shape != (3,):
-        raise ValueError(f"origin_mm and spacing_mm must be (x, y, z) triples, got shapes {origin.shape}, "
-                         f"{spacing.shape}")
-    _finite(origin, "origin_mm")
-    if not np.all(np.isfinite(spacing) & (spacing > 0)):
-        raise ValueError(f"spacing_mm must be finite and > 0, got {spacing.tolist()}")
-    return shape, origin, spacing
+    return (shape, *check_grid(origin_mm, spacing_mm))
 
 
 def _check_proj(proj, m, n_rows, n_cols):
