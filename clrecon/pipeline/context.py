@@ -31,7 +31,7 @@ from clrecon.pipeline import costs as costs_mod
 from clrecon.pipeline import preflight
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, reconstruct
-from clrecon.reconstruction.config import MotionCompensationConfig
+from clrecon.reconstruction.config import IterativeConfig, MotionCompensationConfig
 from clrecon.reconstruction.motion import registration
 from clrecon.reconstruction.reconstruct import Targets
 from clrecon.scan import dicom_ct_pd
@@ -42,7 +42,8 @@ RESULTS_FORMAT = 1
 TUNED = "cv_tuned"
 #: recon keys added after run directories existed: left out of the run key at these defaults.
 _RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False, "volume_compression": "auto",
-                "cardiac_distance_scale": 1.0, "mc": dataclasses.asdict(MotionCompensationConfig())}
+                "cardiac_distance_scale": 1.0, "mc": dataclasses.asdict(MotionCompensationConfig()),
+                "mcir": dataclasses.asdict(IterativeConfig())}
 
 
 @dataclass

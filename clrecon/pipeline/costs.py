@@ -11,6 +11,7 @@ from clrecon.pipeline.stages import truth as truth_stage
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import fbp as fbp_mod
 from clrecon.reconstruction.interpolation import METHODS
+from clrecon.reconstruction.iterative import method as mcir
 from clrecon.reconstruction.motion import memory as mc_memory
 from clrecon.reconstruction.rebin import slice_window_mm
 from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, slab_bytes_per_slice, slices_per_slab
@@ -92,7 +93,7 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     target_vox = nz * rc.ny * rc.nx
     regions = n_targets * target_vox if any(g == "resp" for g in grid.values()) else 0
     metrics_peak = n_proc * (regions + 3 * target_vox * 4) + (n_proc - 1) * 0.4e9
-    if "mc" in methods:  # the motion-compensated second pass, at its worst pitch, after the reconstruction
+    if "mc" in methods or mcir.NAME in methods:  # mc's model (mcir's too), at its worst pitch, after the reconstruction
         # of its pitch: the pitch's plans (its input) and the truths beside it stay
         # (docs/results/code-history.md "The mc working set against the measured peak")
         held = plans + (truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx) if overlap
@@ -100,6 +101,9 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
         peak = max(peak, held + max(mc_memory.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p),
                                                             n_var, n_c, n_r, nz, rc.ny, rc.nx, n_proj[p])
                                     for p in pitches))
+    if mcir.NAME in methods:  # mcir's slabs after the model (the plans and truths still held)
+        peak = max(peak, held + max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius, z_extent, n_proj[p],
+                                                          scene.scan.feed_mm(sc, p)) for p in pitches))
     peak = max(peak, metrics_peak)
     if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)
         peak += measured_memory_bytes(scene)

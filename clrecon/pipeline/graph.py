@@ -29,6 +29,7 @@ from clrecon.pipeline.stages import (
     assemble,
     consistency,
     mc_reconstruct,
+    mcir_reconstruct,
     metrics,
     plan,
     reconstruct,
@@ -44,7 +45,7 @@ __all__ = ["GRAPH", "VOLUME_WRITERS", "GraphError", "Stage"]
 _R = ("read", "noise", "rebin", "interpolate", "fbp", "write_volumes")
 #: The stages that write volume units, which ``assemble`` maps into ``volumes.h5`` (``consistency``
 #: reads the methods' unit files back, so it too is done before they are assembled).
-VOLUME_WRITERS = ("reconstruct", "mc_reconstruct", "consistency", "truth")
+VOLUME_WRITERS = ("reconstruct", "mc_reconstruct", "mcir_reconstruct", "consistency", "truth")
 
 #: The run, in the order a serial executor walks it (the per-pitch stages pitch by pitch).
 GRAPH = graph(
@@ -59,7 +60,10 @@ GRAPH = graph(
     Stage(name="mc_reconstruct", fn=mc_reconstruct.stage, needs=("plan", "store"), after=("reconstruct",),
           per_pitch=True, parts=("registration", "plane_rows", "mc_backproject", "write_volumes"),
           rest="registration", write_part="write_volumes", skip=mc_reconstruct.skip, optional=True, priority=5),
-    Stage(name="consistency", fn=consistency.stage, needs=("plan", "store"), after=("mc_reconstruct",),
+    Stage(name="mcir_reconstruct", fn=mcir_reconstruct.stage, needs=("plan", "store"), after=("mc_reconstruct",),
+          per_pitch=True, parts=("registration", "mcir_solve", "write_volumes"), rest="registration",
+          write_part="write_volumes", skip=mcir_reconstruct.skip, optional=True, priority=4),
+    Stage(name="consistency", fn=consistency.stage, needs=("plan", "store"), after=("mcir_reconstruct",),
           per_pitch=True, parts=("consistency",), rest="consistency", skip=consistency.skip, optional=True),
     Stage(name="truth", fn=truth.stage, parts=("groundtruth", "phantom_truth"), skip=truth.skip, beside="simulate"),
     Stage(name="assemble", fn=assemble.stage, gives=("volumes",), after=VOLUME_WRITERS,

@@ -93,6 +93,40 @@ class MotionCompensationConfig(Section):
 
 
 @dataclass(frozen=True, kw_only=True)
+class IterativeConfig(Section):
+    """``[recon.mcir]``: knobs of the ``mcir`` method (OS-SART through the motion model, docs/iterative.md).
+
+    The motion model is ``mc``'s (``[recon.mc]``); these knobs set the forward model and the solver.
+    """
+
+    SECTION = "recon.mcir"
+
+    epochs: int = F(4, integer_in(1, 100, "each epoch costs one projection and one backprojection of every view"),
+                    "OS-SART epochs at most (each visits every motion-state bin once); fewer when an epoch lowers "
+                    "the data residual by less than tol")
+    cardiac_bins: int = F(20, integer_in(1, 200, "a bin spans 1/cardiac_bins of the R-R interval"),
+                          "cardiac-phase bins the views are grouped into (one warp of the volume per bin)")
+    resp_bins: int = F(10, integer_in(1, 100, "a bin spans 1/resp_bins of the amplitude range"),
+                       "respiratory-amplitude bins the views are grouped into")
+    warp: str = F("pull", one_of(("pull", "push")),
+                  "the volume at a state: 'pull' (intensity-preserving: each point keeps its value where the model "
+                  "moves it) or 'push' (mass-preserving: W_u^T, density falls where tissue expands)")
+    density: bool = F(True, BOOL, "solve a density term too: attenuation linear in the amplitude per voxel (the lungs "
+                      "darken as air comes in), in the reference frame")
+    plane_dz_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "about the detector row pitch at the isocentre"),
+                           "spacing of the iterative volume's z planes")
+    voxel_factor: int = F(1, integer_in(1, 4, "each factor of 2 costs about 2x per epoch"),
+                          "in-plane subdivision of the reconstruction voxel for the iterative volume (2: half the "
+                          "voxel size); the targets are sampled at the reconstruction grid's voxel centres")
+    relaxation: float = F(1.0, number_in(0.01, 1.99, "", "SART converges for 0 < relaxation < 2"),
+                          "OS-SART relaxation of the first epoch")
+    decay: float = F(0.3, number_in(0.0, 10.0, "", "0: a constant relaxation"),
+                     "epoch k's relaxation is relaxation / (1 + decay k)")
+    tol: float = F(0.01, number_in(0.0, 1.0, "", "relative"),
+                   "stop when an epoch lowers the data residual by less than this fraction")
+
+
+@dataclass(frozen=True, kw_only=True)
 class ReconConfig(Section):
     """Reconstruction grid, targets, methods and filter."""
 
@@ -154,6 +188,8 @@ class ReconConfig(Section):
     mc: MotionCompensationConfig = _f(MotionCompensationConfig(), "a [recon.mc] table",
                                       lambda v: isinstance(v, MotionCompensationConfig),
                                       "knobs of the mc method (docs/motion-model.md \"Knobs\")")
+    mcir: IterativeConfig = _f(IterativeConfig(), "a [recon.mcir] table", lambda v: isinstance(v, IterativeConfig),
+                               "knobs of the mcir method (docs/iterative.md \"Knobs\")")
     small_fov_mm: tuple = _f((-70.0, 85.0, -100.0, 40.0), f"[x_min, x_max, y_min, y_max] with min < max, each in "
                              f"[{-MAX_GRID_MM:g}, {MAX_GRID_MM:g}] mm (a box in the patient)",
                              lambda v: isinstance(v, tuple) and len(v) == 4

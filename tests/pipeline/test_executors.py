@@ -40,9 +40,9 @@ def serial(tmp_path_factory):
 def test_the_graph_is_in_order():
     """The serial walk goes pitch by pitch (the graph's own checks: tests/pipeline/test_graph.py)."""
     order = [(st.name, p) for st, p in serial_order(graph.GRAPH, PITCHES)]
-    assert order[:6] == [("plan", 0.1), ("simulate", 0.1), ("truth_free", 0.1), ("reconstruct", 0.1),
-                         ("mc_reconstruct", 0.1), ("consistency", 0.1)]
-    assert order[6][1] == 0.2 and [n for n, p in order if p is None][0] == "truth"
+    assert order[:7] == [("plan", 0.1), ("simulate", 0.1), ("truth_free", 0.1), ("reconstruct", 0.1),
+                         ("mc_reconstruct", 0.1), ("mcir_reconstruct", 0.1), ("consistency", 0.1)]
+    assert order[7][1] == 0.2 and [n for n, p in order if p is None][0] == "truth"
     assert [n for n, _ in order[-5:]] == ["truth", "assemble", "metrics", "results", "report"]
 
 

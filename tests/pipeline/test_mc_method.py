@@ -44,7 +44,7 @@ def reference(tmp_path_factory):
 
 def test_mc_is_opt_in_and_made_by_its_own_stage():
     assert "mc" not in default_methods()
-    assert second_pass_methods() == ("mc",)
+    assert second_pass_methods() == ("mc", "mcir")
 
 
 def test_the_registry_says_once_what_a_second_pass_is_made_from():

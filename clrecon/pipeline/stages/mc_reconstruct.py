@@ -40,7 +40,8 @@ def skip(run) -> str | None:
     return None if NAME in run.methods else "the mc method is not asked for (recon.methods)"
 
 
-def _scan(run, pitch, plan, store) -> mc_fbp.MCScan:
+def motion_scan(run, pitch, plan, store) -> mc_fbp.MCScan:
+    """The scan as ``mc``'s model fit sees it (also the ``mcir`` stage's, which shares the model)."""
     if plan.pp is not None:
         table, ptab = plan.pp.table, plan.pp.plan_table
     else:
@@ -57,8 +58,9 @@ def _note(run, pk: str, variant: str, info: dict, seconds: dict) -> None:
     seconds[variant] = float(info.get("seconds", 0.0))
 
 
-def _model(run, scan: mc_fbp.MCScan, pk: str, variant: str, seconds: dict) -> MotionModel:
-    """The final round's model of ``variant``: loaded (a resumed run), or fitted and saved."""
+def motion_model(run, scan: mc_fbp.MCScan, pk: str, variant: str, seconds: dict) -> MotionModel:
+    """The final round's model of ``variant``: loaded (a resumed run, or made by the other of the
+    ``mc`` / ``mcir`` stages), or fitted and saved."""
     folder, stem = run.writer.units_dir / NAME, f"model~{pk}~{variant}"
     got = persist.load_model(folder, stem, basis_of(scan.knobs, *scan.shape))
     if got is not None:
@@ -106,10 +108,10 @@ def stage(run, pitch: float, plan, store):
         return Idle(pk)
     if store is None or isinstance(store, Idle):
         raise ClreconError(f"[{pk}] mc: the projection store of this pitch is not open (no slice left to plan?)")
-    scan = _scan(run, pitch, plan, store)
+    scan = motion_scan(run, pitch, plan, store)
     seconds: dict = {}  # variant -> the model's seconds
     with scan:  # the registration's process pool ends with the models
-        models = {v: _model(run, scan, pk, v, seconds) for v in run.variants if todo[v].size}
+        models = {v: motion_model(run, scan, pk, v, seconds) for v in run.variants if todo[v].size}
     units_ = [_slab_unit(run, pitch, scan, a, b, v, models[v]) for v in run.variants if todo[v].size
               for a, b in scan.slabs if (~run.writer.done(recon_path(pk, v, NAME))[a:b]).any()]
 

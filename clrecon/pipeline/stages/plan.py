@@ -20,6 +20,7 @@ from clrecon.pipeline.context import TUNED
 from clrecon.pipeline.executors.base import Idle
 from clrecon.pipeline.stages import consistency as consistency_stage
 from clrecon.reconstruction import interpolation, reconstruct
+from clrecon.reconstruction.iterative import method as mcir
 
 
 @dataclass
@@ -101,6 +102,10 @@ def stage(run, pitch: float, ahead=None) -> PitchTodo | Idle:
         needed = needed.copy()
         needed[consistency.needed_projections(run.recon_cfg, pp.plan_table, run.slices_z)] = True
         run.clock.add("plan", time.perf_counter() - t0)
+    if mcir.NAME in methods:  # mcir reads every view that sees a slice (its slabs' cone-beam rows)
+        needed = needed.copy()
+        needed[mcir.needed_projections(run.scene.scanner, run.scene.recon, run.scene.recon.mcir,
+                                       run.recon_cfg.object_radius_mm, pp.plan_table, run.slices_z)] = True
     run.records["diagnostics"][pk] = pp.diagnostics
     run.records["sampling"][pk] = pp.sampling
     if pp.excluded:

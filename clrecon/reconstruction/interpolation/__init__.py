@@ -19,6 +19,7 @@ from clrecon.reconstruction.interpolation import bin
 from clrecon.reconstruction.interpolation import helical
 from clrecon.reconstruction.interpolation import cv_tuned
 from clrecon.reconstruction.interpolation import mc
+from clrecon.reconstruction.interpolation import mcir
 # isort: on
 
 from clrecon.reconstruction.interpolation.apply import (
@@ -46,6 +47,7 @@ __all__ = [
     "METHODS", "DeviceRows", "Method", "NoCandidatesError", "Options", "Weights",
     "apply_weights_interleaved", "apply_weights_reference", "barycentric", "batch_weights", "bin", "by_rank",
     "cv_tuned", "default_methods", "first_pass",
-    "figure_order", "five_d_methods", "helical", "local_linear", "markers", "mc", "method_names", "method_weights",
+    "figure_order", "five_d_methods", "helical", "local_linear", "markers", "mc", "mcir", "method_names",
+    "method_weights",
     "nearest", "r4dct", "register_method", "resp_grid_methods", "second_pass_methods",
 ]

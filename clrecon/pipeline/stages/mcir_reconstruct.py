@@ -1,0 +1,113 @@
+"""Stage ``mcir_reconstruct`` (per pitch, with the ``mcir`` method): OS-SART on the cone-beam rows
+through ``mc``'s motion model (docs/iterative.md). The algorithm is
+:mod:`clrecon.reconstruction.iterative.method`'s; this stage wires it to a run.
+
+The motion model is ``mc``'s, made once per (pitch, variant) whichever of the two stages comes
+first (:func:`clrecon.pipeline.stages.mc_reconstruct.motion_model`: loaded from its unit when
+``mc`` made it, or a resumed run; fitted from the barycentric first pass and saved otherwise).
+Then one unit per (slab, variant) (:func:`clrecon.reconstruction.iterative.method.reconstruct_slab`,
+in this process or on a Dask worker: :func:`clrecon.pipeline.work_units.mcir_slab`), written as
+``recon/<pitch>/<variant>/mcir`` one unit file per slab (resumable after kill -9 as
+``reconstruct``'s). Each unit logs the solver's residual per epoch; ``results.json["stages"]
+["mcir"]`` holds every slab's solver history (residuals, why it stopped, seconds).
+Timed as ``registration`` (the model, when this stage fits it) and ``mcir_solve``, ``write_volumes``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from clrecon.core.errors import ClreconError
+from clrecon.outputs.volumes import pitch_key, recon_path
+from clrecon.pipeline import work_units
+from clrecon.pipeline.executors.base import Idle, Unit, Work
+from clrecon.pipeline.stages import mc_reconstruct
+from clrecon.reconstruction.iterative import method as mcir
+
+#: The method this stage makes.
+NAME = mcir.NAME
+SLAB_BYTES = mcir.SLAB_BYTES
+
+
+def skip(run) -> str | None:
+    return None if NAME in run.methods else "the mcir method is not asked for (recon.methods)"
+
+
+def slabs(run, table) -> list[tuple[int, int]]:
+    """The slice ranges ``(a, b)``: the fewest equal slabs whose modelled memory is under :data:`SLAB_BYTES`."""
+    sc, knobs, z = run.scene.scanner, run.scene.recon.mcir, np.asarray(run.slices_z)
+    n = len(z)
+    for k in range(1, n + 1):
+        size = math.ceil(n / k)
+        cuts = [(a, min(n, a + size)) for a in range(0, n, size)]
+        worst = 0
+        for a, b in cuts:
+            st = mcir.slab_setup(sc, run.scene.recon, knobs, run.recon_cfg.object_radius_mm, table.source_z_mm, z[a:b])
+            worst = max(worst, mcir.memory_bytes(st.grid, st.views.size, sc.n_rows, sc.n_cols,
+                                                 knobs.cardiac_bins * knobs.resp_bins, knobs.density, knobs.warp))
+        if worst <= SLAB_BYTES:
+            return cuts
+    return [(a, a + 1) for a in range(n)]
+
+
+def _unit(run, pitch: float, table, store, a: int, b: int, variant: str, model) -> Unit:
+    pk = pitch_key(pitch)
+
+    def here(emit, times):
+        t0 = time.perf_counter()
+        hu, info = mcir.reconstruct_slab(
+            run.scene.scanner, run.scene.recon, run.scene.recon.mcir, run.recon_cfg.object_radius_mm,
+            run.recon_cfg.mu_water_per_mm, table, lambda views: store.read_indices(table.index[views],
+                                                                                   noisy=variant == "noisy"),
+            run.slices_z[a:b], run.targets, model, rt=run.rt,
+            log=lambda line: run.log(f"[{pk}] mcir {variant} slices {a}..{b - 1}: {line}"))
+        times.add("mcir_solve", time.perf_counter() - t0)
+        times.add(f"method:{NAME}:{variant}", time.perf_counter() - t0)
+        emit((np.arange(a, b), variant, hu, info))
+
+    def remote():
+        return work_units.mcir_slab, (run.recon_cfg, run.scene, pitch, str(run.cache_path), run.slices_z, a, b,
+                                      run.targets, variant, model)
+
+    return Unit(here, None if run.scene.measured else remote,
+                f"mcir slab of slices {a}..{b - 1} ({variant}) at pitch {pitch:g}")
+
+
+def stage(run, pitch: float, plan, store):
+    pk = pitch_key(pitch)
+    for v in run.variants:
+        run.writer.create(recon_path(pk, v, NAME), run.full_shape, len(run.slices_z))
+    todo = {v: np.flatnonzero(~run.writer.done(recon_path(pk, v, NAME))) for v in run.variants}
+    if not any(t.size for t in todo.values()):
+        return Idle(pk)
+    if store is None or isinstance(store, Idle):
+        raise ClreconError(f"[{pk}] mcir: the projection store of this pitch is not open (no slice left to plan?)")
+    scan = mc_reconstruct.motion_scan(run, pitch, plan, store)
+    seconds: dict = {}
+    with scan:
+        models = {v: mc_reconstruct.motion_model(run, scan, pk, v, seconds) for v in run.variants if todo[v].size}
+    table = scan.plan_table  # the usable views (a measured scan's excluded ones left out)
+    cuts = slabs(run, table)
+    units_ = [_unit(run, pitch, table, store, a, b, v, models[v]) for v in run.variants if todo[v].size
+              for a, b in cuts if (~run.writer.done(recon_path(pk, v, NAME))[a:b]).any()]
+
+    def write(piece) -> None:
+        z, v, vol, info = piece
+        run.writer.write(recon_path(pk, v, NAME), vol, z)
+        hist = run.notes.get("mcir", {}).get("slabs", {})
+        hist.setdefault(pk, {}).setdefault(v, {})[f"{int(z[0])}..{int(z[-1])}"] = info
+        run.note("mcir", slabs=hist)
+
+    def finish(times):
+        per = run.records["method_seconds"].setdefault(pk, {})
+        for key, sec in times.seconds.items():
+            if key.startswith(f"method:{NAME}:"):
+                v = key.split(":")[2]
+                per.setdefault(v, {})[NAME] = round(sec + seconds.get(v, 0.0), 3)
+        return pk
+
+    n = sum(t.size for t in todo.values())
+    return Work(units_, write, finish, progress=(f"mcir {pk}", n, "slices"), weight=lambda piece: len(piece[0]))

@@ -1,0 +1,156 @@
+"""The ``mcir`` method: OS-SART on the cone-beam rows through ``mc``'s motion model (docs/iterative.md).
+
+One entry point per slab, :func:`reconstruct_slab`: the scan's projections, ``mc``'s motion model
+and the run's targets in, the targets' volumes of the slab's slices out. Per slab of slices
+``a .. b-1`` (z from ``z_a`` to ``z_b``):
+
+1. **views**: every view whose source lies within ``[z_a - w, z_b + w]``, w the cone's half-width
+   at the far side of the reconstruction circle (:func:`geometry.half_cone_mm`): every view that
+   sees a slice of the slab;
+2. **volume**: the reconstruction's in-plane grid (subdivided ``voxel_factor`` times) on planes of
+   ``plane_dz_mm`` covering every ray of those views (:func:`geometry.volume_grid`: their sources
+   +- w), so that no used ray leaves the volume through an unmodelled object;
+3. **bins**: the views grouped by motion state (``cardiac_bins`` x ``resp_bins``,
+   :mod:`state_bins`), one ordered subset per bin;
+4. **solve**: X = (reference attenuation, density term) by OS-SART (:mod:`sart`) through
+   :class:`motion_operator.MotionConeOperator`, from zero, with the data residual per epoch;
+5. **targets**: each target's state volume ``W_s (X[0] + (a - a_ref) X[1])`` sampled trilinearly at
+   the slab's slices and the reconstruction grid's voxel centres, in HU.
+
+The result is the same bits whatever the process (every sum is either fixed-point or in a fixed
+order), so the stage's slab units may run anywhere. Volumes are (n_c, n_r, b - a, ny, nx) HU float32.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.ndimage
+
+from clrecon.core.conventions import mu_to_hu, voxel_coords
+from clrecon.reconstruction.iterative import geometry as geo
+from clrecon.reconstruction.iterative.motion_operator import FIELD_CACHE_BYTES, MotionConeOperator
+from clrecon.reconstruction.iterative.sart import SARTConfig, os_sart
+from clrecon.reconstruction.iterative.state_bins import state_bins
+from clrecon.reconstruction.motion.model import MotionModel
+
+#: The method this module makes (its registry entry: :mod:`clrecon.reconstruction.interpolation.mcir`).
+NAME = "mcir"
+#: Bytes one slab may take (:func:`memory_bytes`): the run's slices are cut into the fewest slabs under it.
+SLAB_BYTES = 6 << 30
+
+
+@dataclass(frozen=True)
+class SlabSetup:
+    """What one slab solves over: ``views`` (m,) table positions, ``grid`` the volume."""
+
+    views: np.ndarray
+    grid: geo.VolumeGrid
+
+
+def slab_setup(scanner, recon, knobs, object_radius_mm: float, source_z_mm, slices_z) -> SlabSetup:
+    """The views and the volume of the slab of slices ``slices_z`` (module docstring, steps 1-2).
+
+    ``recon``: the scene's ``[recon]`` (nx, ny, voxel_mm); ``knobs``: its ``[recon.mcir]``;
+    ``source_z_mm`` (n,) the scan's focal-spot z per view. ValueError when no view sees the slab.
+    """
+    z = np.asarray(slices_z, np.float64)
+    src = np.asarray(source_z_mm, np.float64)
+    w = geo.half_cone_mm(scanner, object_radius_mm)
+    views = np.flatnonzero((src >= z.min() - w) & (src <= z.max() + w)).astype(np.int64)
+    if views.size == 0:
+        raise ValueError(f"mcir: no view's source lies within {w:.1f} mm of slices {z.min():g}..{z.max():g} mm")
+    f = int(knobs.voxel_factor)
+    grid = geo.volume_grid(scanner, recon.nx * f, recon.ny * f, recon.voxel_mm / f, src[views], object_radius_mm,
+                           knobs.plane_dz_mm)
+    return SlabSetup(views, grid)
+
+
+def needed_projections(scanner, recon, knobs, object_radius_mm: float, table, slices_z) -> np.ndarray:
+    """Projection numbers (``table.index``) of every view a run's slices ``slices_z`` make ``mcir``
+    read (the union of its slabs' views: sources within the cone's far half-width of a slice)."""
+    z = np.asarray(slices_z, np.float64)
+    w = geo.half_cone_mm(scanner, object_radius_mm)
+    src = np.asarray(table.source_z_mm, np.float64)
+    return np.asarray(table.index)[(src >= z.min() - w) & (src <= z.max() + w)]
+
+
+def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n_bins: int, density: bool,
+                 warp: str) -> int:
+    """Peak bytes of :func:`reconstruct_slab` (a model, not measured): the projections and SART's
+    row weights (2 x 4 B per ray), the unknown and its update (K volumes each), SART's column
+    weights (K volumes per bin), the warp fields kept per bin (3 volumes per bin, at most
+    ``motion_operator.FIELD_CACHE_BYTES``), the model on the grid and a few working volumes."""
+    nv = grid.nx * grid.ny * grid.nz
+    k = 2 if density else 1
+    rays = 2 * 4 * n_views * n_rows * n_cols
+    fields = min(FIELD_CACHE_BYTES, 3 * 4 * nv * n_bins)
+    return int(rays + 4 * nv * (3 * k + k * n_bins + 3 * 6 + 8) + fields)
+
+
+def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, z_extent_mm: float, n_total_views: int,
+                     feed_mm: float) -> int:
+    """The modelled peak of a run's ``mcir`` stage (bytes): :func:`memory_bytes` of one volume over the
+    run's slices (``z_extent_mm``) and their views (sources within the cone's far half-width w of a
+    slice, at ``feed_mm`` per rotation, at most ``n_total_views``), or of a slab under
+    :data:`SLAB_BYTES` where the stage cuts the slices (a slab's views and planes scale with its z
+    extent plus the cone's)."""
+    w = geo.half_cone_mm(scanner, object_radius_mm)
+    n_views = int(min(n_total_views, (z_extent_mm + 2 * w) / feed_mm * scanner.views_per_rotation
+                      + scanner.views_per_rotation))
+    f = int(knobs.voxel_factor)
+    nz = int(np.ceil((z_extent_mm + 4 * w) / knobs.plane_dz_mm)) + 1
+    grid = geo.VolumeGrid(nx=recon.nx * f, ny=recon.ny * f, nz=nz, voxel_mm=recon.voxel_mm / f, z0_mm=0.0,
+                          dz_mm=knobs.plane_dz_mm)
+    whole = memory_bytes(grid, n_views, scanner.n_rows, scanner.n_cols, knobs.cardiac_bins * knobs.resp_bins,
+                         knobs.density, knobs.warp)
+    return int(min(whole, max(SLAB_BYTES, whole * (4 * w) / (z_extent_mm + 4 * w))))
+
+
+def target_slices(vol, grid: geo.VolumeGrid, slices_z, nx: int, ny: int, voxel_mm: float) -> np.ndarray:
+    """Trilinear samples of a grid volume (nz, ny', nx') at planes ``slices_z`` and the
+    reconstruction grid's voxel centres: (S, ny, nx) float64."""
+    xo, yo = voxel_coords(nx, voxel_mm), voxel_coords(ny, voxel_mm)
+    iz = (np.asarray(slices_z, np.float64) - grid.z0_mm) / grid.dz_mm
+    ix = (xo - grid.origin_mm[0]) / grid.voxel_mm
+    iy = (yo - grid.origin_mm[1]) / grid.voxel_mm
+    Z, Y, X = np.meshgrid(iz, iy, ix, indexing="ij")
+    return scipy.ndimage.map_coordinates(np.asarray(vol, np.float64), [Z, Y, X], order=1, mode="nearest")
+
+
+def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_per_mm: float, table, projections,
+                     slices_z, targets, model: MotionModel, *, rt=None, log=None) -> tuple[np.ndarray, dict]:
+    """``mcir``'s volumes of the slab of slices ``slices_z`` (s,) mm: (n_c, n_r, s, ny, nx) HU float32.
+
+    ``table``: the whole scan's :class:`~clrecon.scan.table.ProjectionTable`; ``projections(views)``
+    returns the projections (m, n_rows, n_cols) float32 of table positions ``views`` (sorted; the
+    noise variant's); ``targets``: the run's ``Targets``; ``model``: ``mc``'s motion model (any grid:
+    resampled to the volume). ``log(line)``: the solver's residual per epoch. Returns (volumes,
+    info: the views, the volume grid, the bins, SART's history, seconds).
+    """
+    t0 = time.perf_counter()
+    setup = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
+    sub = table.take(setup.views)
+    proj = np.asarray(projections(setup.views), np.float32)
+    groups = geo.view_groups(scanner, sub)
+    bins = state_bins(sub.cardiac_phase, sub.resp_amplitude, knobs.cardiac_bins, knobs.resp_bins)
+    op = MotionConeOperator(setup.grid, groups, bins, model, warp_mode=knobs.warp, density=knobs.density,
+                            mu_water_per_mm=mu_water_per_mm, rt=rt)
+    cfg = SARTConfig(epochs=knobs.epochs, relaxation=knobs.relaxation, decay=knobs.decay, tol=knobs.tol)
+    t1 = time.perf_counter()
+    X, hist = os_sart(op, lambda s: proj[op.subset_rows(s)], np.zeros(op.unknown_shape, np.float32), cfg, log=log)
+    t2 = time.perf_counter()
+    nc, nr = targets.shape
+    out = np.empty((nc, nr, len(slices_z), recon.ny, recon.nx), np.float32)
+    for i, c in enumerate(targets.cardiac):
+        for j, a in enumerate(targets.resp):
+            vol = op.state_volume(X, c, a)
+            out[i, j] = mu_to_hu(target_slices(vol, setup.grid, slices_z, recon.nx, recon.ny, recon.voxel_mm),
+                                 mu_water_per_mm)
+    info = {"views": int(setup.views.size), "grid": [setup.grid.nz, setup.grid.ny, setup.grid.nx],
+            "plane_dz_mm": setup.grid.dz_mm, "voxel_mm": setup.grid.voxel_mm, "bins": len(bins),
+            "sart": hist.as_dict(), "seconds": {"setup": round(t1 - t0, 3), "solve": round(t2 - t1, 3),
+                                                "targets": round(time.perf_counter() - t2, 3)}}
+    return out, info

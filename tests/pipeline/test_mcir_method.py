@@ -1,0 +1,98 @@
+"""The ``mcir`` method in the run (issue 42, docs/iterative.md): its stage shares ``mc``'s motion model,
+makes volumes that land in volumes.h5, the metrics and the report with the solver's residuals, a
+kill -9 at its write resumes to the same bits, the overlapped executor gives the serial bits, and
+its knobs are refused in one line."""
+
+import os
+import signal
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+from run_compare import assert_identical
+
+from clrecon.config.scene import load_scene
+from clrecon.core.errors import SceneError
+from clrecon.pipeline import executors
+from clrecon.pipeline.run import run
+from clrecon.reconstruction.interpolation import METHODS, default_methods, first_pass, second_pass_methods
+
+QUIET = dict(progress=False, log=lambda *a: None)
+METHODS_RUN = "barycentric,mc,mcir"
+
+
+def _cli(out, cache, fault=None):
+    env = dict(os.environ, CLRECON_NO_PROGRESS="1")
+    env.pop("CLRECON_FAULT", None)
+    if fault:
+        env["CLRECON_FAULT"] = fault
+    cmd = [sys.executable, "-m", "clrecon", "run", "--scene", "tiny", "--methods", METHODS_RUN, "--out", str(out),
+           "--cache", str(cache), "--no-progress", "--executor", "serial"]
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref")
+    res = run(load_scene("tiny"), out, methods=METHODS_RUN.split(","), cache_dir=tmp_path_factory.mktemp("cache"),
+              executor="serial", **QUIET)
+    return out, res
+
+
+def test_mcir_is_an_opt_in_second_pass_from_barycentric():
+    assert "mcir" not in default_methods()
+    assert "mcir" in second_pass_methods()
+    assert first_pass("mcir") == "barycentric"
+    assert METHODS["mcir"].stage == "mcir_reconstruct"
+
+
+def test_mcir_volumes_residuals_metrics_and_report(reference):
+    out, res = reference
+    with h5py.File(out / "volumes.h5", "r") as f:
+        for v in ("noisy", "noise-free"):
+            vol = f[f"recon/p0.100/{v}/mcir"][()]
+            assert vol.shape == f[f"recon/p0.100/{v}/barycentric"].shape and np.isfinite(vol).all()
+    for v in ("noisy", "noise-free"):
+        assert set(res["metrics"]["p0.100"][v]) == {"barycentric", "mc", "mcir"}
+        assert res["method_seconds"]["p0.100"][v]["mcir"] > 0
+        slabs = res["stages"]["mcir"]["slabs"]["p0.100"][v]
+        assert slabs
+        for info in slabs.values():
+            h = info["sart"]
+            assert len(h["running"]) >= 1 and h["final"] < h["initial"]
+            assert h["stop"]
+    report = (out / "report.md").read_text()
+    assert "mcir" in report and "OS-SART solver" in report
+
+
+def test_the_overlapped_executor_gives_the_serial_bits(tmp_path, reference):
+    run(load_scene("tiny"), tmp_path, methods=METHODS_RUN.split(","), cache_dir=tmp_path / "cache",
+        executor=executors.LocalExecutor(helper=False), **QUIET)
+    assert_identical(tmp_path, reference, ("metrics",))
+
+
+def test_sigkill_at_the_mcir_write_then_resume_is_bit_identical(tmp_path, reference):
+    """The serial run writes barycentric's 2 units, mc's 2, then mcir's: killed mid-write of the
+    first mcir unit, the rerun loads both models (no registration) and writes mcir's 2 units."""
+    out, cache = tmp_path / "run", tmp_path / "cache"
+    killed = _cli(out, cache, "recon:5")
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    again = _cli(out, cache)
+    assert again.returncode == 0, again.stderr
+    res = assert_identical(out, reference, ("metrics",))
+    assert res["units_written"]["recon"] == 2
+    assert "registering" not in again.stdout
+
+
+@pytest.mark.parametrize("table, key", [("epochs = 0", "recon.mcir.epochs = 0"),
+                                        ("warp = 'twist'", "recon.mcir.warp = 'twist'"),
+                                        ("voxel_factor = 9", "recon.mcir.voxel_factor = 9"),
+                                        ("epoch = 2", "recon.mcir.epoch: unknown key")])
+def test_a_bad_knob_is_refused_in_one_line(tmp_path, table, key):
+    scene = tmp_path / "s.toml"
+    scene.write_text(f'[recon]\nmethods = ["barycentric", "mcir"]\n[recon.mcir]\n{table}\n')
+    with pytest.raises(SceneError) as e:
+        load_scene(str(scene))
+    assert key in str(e.value) and "\n" not in str(e.value)
