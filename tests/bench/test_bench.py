@@ -155,6 +155,8 @@ def test_iterative_section_tiny():
     # the pair is matched on the timed data too (tests/reconstruction/test_cone_backprojector.py: TOL["dot_rel"])
     assert r["dot_rel_projector"] <= 1e-6 and r["dot_rel_warp"] <= 1e-6
     assert "backprojector A^T" in "\n".join(report_lines(r))
+    assert r["warped_pair_seconds"] > 0 and r["warped_over_static_pair"] > 0   # figures only: no timed assertion
+    assert "pair A W + W^T A^T" in "\n".join(report_lines(r))
 
 
 def test_mc_section_tiny(monkeypatch):
