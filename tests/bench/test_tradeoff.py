@@ -156,3 +156,18 @@ def test_a_point_run_on_more_slices_is_scored_on_the_sweeps_slices(tmp_path, mon
         for fov in ("small", "large"):
             assert wide[f"mae_{fov}_hu"] == pytest.approx(one[f"mae_{fov}_hu"], rel=1e-5)
             assert wide["mae_run_slices_hu"][fov] != pytest.approx(one[f"mae_{fov}_hu"], rel=1e-3)
+
+
+def test_the_full_sweep_runs_without_the_motion_extra_less_mcs_points(tmp_path, monkeypatch):
+    """Without scikit-image the full sweep leaves mc's points out and says so; asked for by name, mc is refused."""
+    def missing(module="skimage"):
+        raise ClreconError(f"{module} is not installed")
+
+    monkeypatch.setattr(tr.registration, "require", missing)
+    monkeypatch.setattr(tr, "sweep_points", lambda scene, quick=False: [tr.SweepPoint("nearest", "all", "base"),
+                                                                        tr.SweepPoint("mc", "r2", "base")])
+    res = tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path, warmup=False, repeats=1, log=lambda *a, **k: None)
+    assert {r["method"] for r in res["points"]} == {"nearest"} and "not installed" in res["skipped"]["mc"]
+    with pytest.raises(ClreconError, match="not installed"):
+        tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path / "mc", methods=("mc",), warmup=False, repeats=1,
+                        log=lambda *a, **k: None)
