@@ -298,7 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", metavar="FILE", help="also write every number and the machine description here")
     b.add_argument("--only", help="comma list from backprojection,projector,voxel-projector,interpolation,"
                    "end-to-end,memory,scaling,measured and the paper-scale paper-projector,noise,paper-fbp,"
-                   "groundtruth; also, only when named: tradeoff (error against run time, ~20 min), truth_free "
+                   "groundtruth; also, only when named: tradeoff (error against run time, ~50 min), truth_free "
                    "(cost of recon.truth_free against the reconstruction, ~2 min), drivers, mc (the mc method's cost "
                    "against the paper methods' on demo at pitch 0.10, ~5 min; needs clrecon[motion]), iterative (the "
                    "voxel projector beside its matched transpose, the warp beside its transpose, ~10 s). The A/B "

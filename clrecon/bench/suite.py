@@ -41,7 +41,7 @@ Sections (``--only`` picks some):
     phantom-truth slice-targets/s, each against its reference.
 ``truth_free`` (only when named; :mod:`clrecon.bench.truth_free`)
     The cost of ``recon.truth_free`` against the reconstruction it accompanies (demo, 4 middle slices).
-``tradeoff`` (only when named, about 20 minutes; :mod:`clrecon.bench.tradeoff`)
+``tradeoff`` (only when named, about 50 minutes; :mod:`clrecon.bench.tradeoff`)
     Per method, the knobs that trade seconds for error swept on demo at pitch 0.02: MAE against
     seconds, each method's Pareto front; ``tradeoff.json`` and ``tradeoff.png`` in a kept
     temporary folder (the report says where).

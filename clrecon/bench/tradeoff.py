@@ -8,6 +8,22 @@ under ~40 s on 2 cores. From its ``results.json``: the pooled MAE against the gr
 the small and large FOV (``metrics``) and the method's seconds (``method_seconds``: its plan,
 interpolation and FBP for that variant).
 
+A second-pass method (``mc``: motion-compensated FBP made from the registry's ``first_pass``,
+barycentric) runs with its first pass (``methods = (barycentric, mc)``), and its point's seconds
+are the method's whole cost: ``method_seconds`` of ``mc`` (its model's fit: every round's
+registrations, model fit and, after the first round, motion-compensated backprojection on the
+registration grid, the registration's process pool started; then the final pass: the
+first-pass plan again, the plane rows and the motion-compensated backprojection) plus
+``method_seconds`` of its first pass (barycentric's plan, interpolation and FBP of that
+variant); ``seconds_parts`` keeps the two. Not counted: reading the first pass back from
+``volumes.h5`` and the model's error against the phantom's motion (an evaluation; the row keeps
+its figures as ``model_error``). The registration sees only the run's slices (its
+``margin_mm`` widens the projection rows read around a slab, not the registered volume): on
+:data:`FULL_SLICES` (16 mm of z) ``mc`` is below its ``THIN_Z_MM`` and warns that its model does
+not recover the motion (the row keeps the warning); such a point measures ``mc``'s cost and
+error on a run of these slices, not its motion model; the ``z`` point gives it the scene's
+whole z.
+
 Knobs (one changed at a time from the scene's setting, the *base*):
 
 - local linear: points per quadrant ``q1``, ``q2`` (base), ``q3``; the nearest points overall
@@ -15,19 +31,32 @@ Knobs (one changed at a time from the scene's setting, the *base*):
   0.15 (base), 0.3 (``recon.local_linear_points``, ``local_linear_count``, ``kappa``, ``sigma``);
 - barycentric, nearest, bin, helical, r4dct: the candidate turns used, ``recon.max_turns`` 0
   (all, base), 4, 2;
-- every method: views per rotation N (base) and N/2 (``v180`` on demo), the image grid nx = ny
+- mc: registration rounds ``r2`` (base), ``r1``; the registration's in-plane factor ``ds1``
+  (base, in the base point), ``ds2``; the registration ``lucas_kanade`` (base), ``tvl1``
+  (``recon.mc.rounds``, ``downsample``, ``registration``); and, where the scene has at least
+  ``THIN_Z_MM`` of slices, the base knobs on a run of every slice (``z64`` on demo: 64 mm of
+  z for the registration), scored on the sweep's slices, its seconds the whole run's (the
+  pipeline reconstructs every slice it registers); not in the quick sweep;
+- every method except mc: views per rotation N (base) and N/2 (``v180`` on demo), the image grid nx = ny
   (base) and nx/2 with the voxel doubled (same FOV; ``64²`` on demo), and both halved. The
   ground truth is made on the same grid, so a coarser grid's MAE is against a coarser truth.
 
 Outputs: ``tradeoff.json`` (every point, every method's Pareto front per variant, the load
-average sampled during the sweep) and ``tradeoff.png`` (small-FOV MAE against seconds, log x,
-one panel per variant, one colour and the registry's marker per method, each method's Pareto
-front as a step line, every point labelled by its knob code). ``python -m clrecon bench --only
-tradeoff`` runs it (not part of the default bench set: about 30 minutes on 2 cores).
+average sampled during the sweep; a sweep of some methods merged into an earlier one:
+:func:`merge_results`, the earlier sweep's figures kept and this one's under ``added``) and
+``tradeoff.png`` (small-FOV MAE against seconds, log x, one panel per variant, one colour and
+the registry's marker per method, each method's Pareto front as a step line, every point
+labelled by its knob code). ``python -m clrecon bench --only
+tradeoff`` runs it (not part of the default bench set: about 50 minutes on 2 cores, mc's five
+points about 20 of them); ``python -m
+clrecon.bench.tradeoff --methods mc --merge docs/figures/tradeoff.json --out DIR`` sweeps some
+methods and merges them into an earlier sweep.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
 import shutil
 import sys
@@ -41,10 +70,13 @@ import numpy as np
 
 from clrecon.config.scene import load_scene
 from clrecon.core import atomic
+from clrecon.core.errors import ClreconError
+from clrecon.evaluation import metrics
 from clrecon.outputs.figures import _plt
-from clrecon.outputs.volumes import pitch_key
+from clrecon.outputs.volumes import open_volumes, pitch_key, read_part, recon_path
 from clrecon.pipeline.run import run as run_pipeline
 from clrecon.reconstruction import interpolation as _methods
+from clrecon.reconstruction.motion import mc_fbp, registration
 from clrecon.reconstruction.reconstruct import slice_positions
 
 #: Sweep pitch and the slices of a full sweep ([start, stop) of demo's 16: z = -6, -2, 2, 6 mm).
@@ -53,17 +85,23 @@ FULL_SLICES = (6, 10)
 #: Methods whose knob is the number of candidate turns, and its values (0 = all).
 TURN_METHODS = ("barycentric", "nearest", "bin", "helical", "r4dct")
 MAX_TURNS = (0, 4, 2)
+#: mc's points: (code, knob, ``recon.mc`` overrides); the first is the scene's setting.
+MC_POINTS = (("r2", "base", {}), ("r1", "rounds", {"rounds": 1}), ("ds2", "downsample", {"downsample": 2}),
+             ("tvl1", "registration", {"registration": "tvl1"}))
 
 
 @dataclass(frozen=True)
 class SweepPoint:
-    """One run: ``method`` with ``recon`` / ``scanner`` overrides; ``code`` labels it in the figure."""
+    """One run: ``method`` with ``recon`` / ``scanner`` overrides; ``code`` labels it in the figure.
+    ``run_slices``: the run's slice range (start, stop) where it is wider than the slices the
+    point is scored on (the sweep's): the MAE is of the sweep's slices, the seconds the run's."""
 
     method: str
     code: str
     knob: str
     recon: dict = field(default_factory=dict)
     scanner: dict = field(default_factory=dict)
+    run_slices: tuple | None = None
 
     @property
     def name(self) -> str:
@@ -99,7 +137,18 @@ def sweep_points(scene, quick: bool = False) -> list[SweepPoint]:
         pts += [SweepPoint(m, cv, "views_per_rotation", scanner=half_v),
                 SweepPoint(m, cg, "grid", recon=half_g),
                 SweepPoint(m, f"{cv} {cg}", "views_per_rotation+grid", recon=half_g, scanner=half_v)]
+    pts += [SweepPoint("mc", code, knob, {"mc": mc} if mc else {}) for code, knob, mc in MC_POINTS]
+    z_mm = scene.recon.nz * scene.recon.slice_mm
+    if z_mm >= mc_fbp.THIN_Z_MM and scene.recon.nz > FULL_SLICES[1] - FULL_SLICES[0]:
+        pts.append(SweepPoint("mc", f"z{z_mm:g}", "registration_z", run_slices=(0, scene.recon.nz)))
     return pts
+
+
+def run_methods(method: str) -> tuple[str, ...]:
+    """The methods one point of ``method`` runs: a second-pass method with its first pass before it."""
+    if method in _methods.second_pass_methods((method,)):
+        return (_methods.first_pass(method), method)
+    return (method,)
 
 
 def pareto_front(seconds, mae) -> list[int]:
@@ -144,7 +193,8 @@ class _LoadSampler:
 
 
 def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo", pitch: float = PITCH,
-                 slices: tuple | None = None, warmup: bool = True, repeats: int | None = None, log=print) -> dict:
+                 slices: tuple | None = None, warmup: bool = True, repeats: int | None = None, methods=None,
+                 codes=None, merge=None, log=print) -> dict:
     """Run the sweep; write ``tradeoff.json`` and ``tradeoff.png`` into ``out_dir`` and return the JSON.
 
     Parameters
@@ -164,13 +214,22 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
         Slice range (default :data:`FULL_SLICES` clipped to the scene, quick: the middle slice).
     warmup : bool
         Before each timed run, an untimed one of the same scene and method on one slice and
-        one target without noise, so that the timed seconds hold no OpenCL kernel builds
+        one target without noise (a second-pass method: two slices and 2 x 2 targets, what its
+        registration needs), so that the timed seconds hold no OpenCL kernel builds
         (the local-linear kernel is built per slot count, the backprojector per geometry:
         without it the first point of each build pays it).
     repeats : int, optional
         Timed runs per point (default 2, quick 1); a point's seconds are the fastest repeat's
         (``seconds_repeats`` keeps them all): on a shared machine the load inflates a single
         timing by tens of percent. The MAE is the same in every repeat (deterministic).
+    methods : sequence of str, optional
+        Only the points of these methods (default: every point of the sweep, less mc's where the
+        motion extra is not installed: ``skipped`` says so).
+    codes : sequence of str, optional
+        Only the points with these knob codes (of ``methods`` where given), e.g. ``("z64",)``.
+    merge : path-like or dict, optional
+        An earlier sweep's ``tradeoff.json`` (or its dict): the result is :func:`merge_results`
+        of it and this sweep (its points that this sweep ran replaced, the others kept).
     """
     sc = load_scene(scene) if isinstance(scene, str) else scene
     out = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="clrecon-tradeoff-"))
@@ -189,40 +248,80 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
     pk = pitch_key(pitch)
     repeats = max(1, int(repeats if repeats is not None else (1 if quick else 2)))
     points = sweep_points(sc, quick)
+    if methods is not None:
+        unknown = sorted(set(methods) - {p.method for p in points})
+        if unknown:
+            raise ClreconError(f"tradeoff --methods: {unknown[0]!r} has no point in this sweep; allowed: "
+                               f"{', '.join(dict.fromkeys(p.method for p in points))}")
+        points = [p for p in points if p.method in methods]
+    skipped = {}
+    if methods is None and any(p.method == "mc" for p in points):
+        try:  # the full sweep runs without the motion extra, less mc's points (asked for by name: refused)
+            registration.require("skimage.registration")
+        except ClreconError as e:
+            skipped["mc"] = str(e)
+            log(f"tradeoff: mc's points skipped: {e}")
+            points = [p for p in points if p.method != "mc"]
+    if codes is not None:
+        unknown = sorted(set(codes) - {p.code for p in points})
+        if unknown:
+            raise ClreconError(f"tradeoff --codes: {unknown[0]!r} has no point in this sweep; allowed: "
+                               f"{', '.join(dict.fromkeys(p.code for p in points))}")
+        points = [p for p in points if p.code in codes]
+    base = json.loads(Path(merge).read_text()) if isinstance(merge, (str, Path)) else merge
     rows = []
     t_all = time.perf_counter()
     with _LoadSampler() as load:
         for k, p in enumerate(points):
             s_i = sc.replace(**{sec: vals for sec, vals in (("recon", p.recon), ("scanner", p.scanner)) if vals})
             run_dir = out / "runs" / p.name
+            ms = run_methods(p.method)
+            span = tuple(p.run_slices) if p.run_slices else slices
+            scored = None  # {variant: {fov: mae}} of the sweep's slices, where the run is wider
             if warmup:
-                run_pipeline(s_i.replace(noise={"enabled": False}), out / "runs" / "warmup", methods=(p.method,),
-                             pitches=(pitch,), slice_range=(slices[0], slices[0] + 1), cardiac=sc.cardiac_targets[:1]
-                             if sc.has_cardiac else None, resp=sc.resp_targets[:1] if sc.has_respiratory else None,
+                two = len(ms) > 1  # a second-pass method registers along z: 2 slices, 2 x 2 targets
+                n_w = 2 if two else 1
+                run_pipeline(s_i.replace(noise={"enabled": False}), out / "runs" / "warmup", methods=ms,
+                             pitches=(pitch,), slice_range=(slices[0], min(slices[1], slices[0] + n_w)),
+                             cardiac=sc.cardiac_targets[:n_w] if sc.has_cardiac else None,
+                             resp=sc.resp_targets[:n_w] if sc.has_respiratory else None,
                              cache_dir=cache, progress=False, report=False, log=lambda *a, **kw: None)
                 shutil.rmtree(out / "runs" / "warmup", ignore_errors=True)
             load0 = os.getloadavg()[0]
             reps = []
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                res = run_pipeline(s_i, run_dir, methods=(p.method,), pitches=(pitch,), slice_range=slices,
+                res = run_pipeline(s_i, run_dir, methods=ms, pitches=(pitch,), slice_range=span,
                                    cardiac=cardiac, resp=resp, cache_dir=cache, progress=False, report=False,
                                    log=lambda *a, **kw: None)
                 reps.append((res, time.perf_counter() - t0))
+                if span != slices and scored is None:
+                    scored = {v: scored_mae(run_dir, s_i, pk, v, p.method, (slices[0] - span[0], slices[1] - span[0]))
+                              for v in res["metrics"][pk]}
                 shutil.rmtree(run_dir, ignore_errors=True)
             res, wall = reps[0]
             for v, bym in res["metrics"][pk].items():
                 met = bym[p.method]
-                secs = [r_["method_seconds"][pk][v][p.method] for r_, _ in reps]
-                best = reps[int(np.argmin(secs))][0]
-                rows.append({**asdict(p), "name": p.name, "variant": v,
-                             "mae_small_hu": met["small"]["mae_hu"], "mae_large_hu": met["large"]["mae_hu"],
-                             "seconds": min(secs), "seconds_repeats": secs,
-                             "plan_seconds": best.get("method_plan_seconds", {}).get(pk, {}).get(p.method),
-                             "mae_same_in_repeats": all(r_["metrics"][pk][v][p.method]["small"]["mae_hu"]
-                                                        == met["small"]["mae_hu"] for r_, _ in reps),
-                             "run_seconds": round(wall, 2), "load_before": round(load0, 2),
-                             "simulated": res["stages"]["simulate"]["per_pitch"][pk]["projections_simulated"]})
+                parts = [{m: r_["method_seconds"][pk][v][m] for m in ms} for r_, _ in reps]
+                secs = [round(sum(pt.values()), 3) for pt in parts]
+                i_best = int(np.argmin(secs))
+                best = reps[i_best][0]
+                plan = best.get("method_plan_seconds", {}).get(pk, {})
+                mae = scored[v] if scored else {fov: met[fov]["mae_hu"] for fov in ("small", "large")}
+                row = {**asdict(p), "name": p.name, "variant": v,
+                       "mae_small_hu": mae["small"], "mae_large_hu": mae["large"],
+                       "seconds": min(secs), "seconds_repeats": secs,
+                       "plan_seconds": plan.get(p.method) if len(ms) == 1 else sum(plan.get(m, 0.0) for m in ms),
+                       "mae_same_in_repeats": all(r_["metrics"][pk][v][p.method]["small"]["mae_hu"]
+                                                  == met["small"]["mae_hu"] for r_, _ in reps),
+                       "run_seconds": round(wall, 2), "load_before": round(load0, 2),
+                       "simulated": res["stages"]["simulate"]["per_pitch"][pk]["projections_simulated"]}
+                if len(ms) > 1:
+                    row["seconds_parts"] = parts[i_best]
+                    row.update(_model_notes(best, p.method, pk, v))
+                if scored:  # the run's own pooled MAE, over all its slices
+                    row["mae_run_slices_hu"] = {fov: met[fov]["mae_hu"] for fov in ("small", "large")}
+                rows.append(row)
             log(f"tradeoff {k + 1}/{len(points)} {p.method} {p.code}: {wall:.1f} s, load {load0:.2f}; "
                 + ", ".join(f"{r['variant']} MAE {r['mae_small_hu']:.1f}/{r['mae_large_hu']:.1f} HU "
                             f"{r['seconds']:.2f} s" for r in rows if r["name"] == p.name))
@@ -231,13 +330,66 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
               "targets": "all" if not quick else {"cardiac": cardiac, "resp": resp},
               "quick": quick, "repeats": repeats, "points": rows, "fronts": fronts(rows), "sweep_seconds": sweep_s,
               "load_average_1min": load.summary(), "logical_cores": os.cpu_count(),
-              "seconds_definition": "results.json method_seconds: the method's plan (weights + candidate search) "
-                                    "+ interpolation + FBP of that variant, this machine's OpenCL device; the "
-                                    "fastest of `repeats` timed runs"}
+              "methods": list(dict.fromkeys(p.method for p in points)), "run_points": [p.name for p in points],
+              "seconds_definition": SECONDS_DEFINITION, **({"skipped": skipped} if skipped else {})}
+    if base is not None:
+        result = merge_results(base, result)
     atomic.write_json(out / "tradeoff.json", result, indent=1, ensure_ascii=False)
     plot_tradeoff(result, out / "tradeoff.png")
     result["out_dir"] = str(out)
     return result
+
+
+#: What a point's ``seconds`` are (``tradeoff.json``; the module docstring says more).
+SECONDS_DEFINITION = ("results.json method_seconds: the method's plan (weights + candidate search) + interpolation "
+                      "+ FBP of that variant, this machine's OpenCL device; mc: its method_seconds (every round's "
+                      "registration, model fit and motion-compensated backprojection, then the final pass) + its "
+                      "first pass's (barycentric's), seconds_parts each; the fastest of `repeats` timed runs")
+
+
+def _model_notes(res: dict, method: str, pk: str, variant: str) -> dict:
+    """A second-pass point's model figures from its ``results.json``: ``model_error`` (heart and
+    body, mm RMS against the phantom's motion), ``model_seconds`` and the run's thin-z ``warning``."""
+    info = res.get("stages", {}).get("registration", {}).get(method, {}).get(pk, {}).get(variant, {})
+    err = info.get("error_against_phantom_motion", {})
+    return {"model_error": {k: err[k] for k in ("heart", "body_outside_lungs") if k in err},
+            "model_seconds": info.get("seconds"), "warning": info.get("warning")}
+
+
+#: Keys that must agree for two sweeps to share a figure.
+_SAME_SWEEP = ("scene", "pitch", "slices", "targets", "quick")
+
+
+def merge_results(base: dict, new: dict) -> dict:
+    """``base`` (an earlier sweep's ``tradeoff.json``) with ``new``'s points in place of its points
+    of the same name (``new["run_points"]``); its other points, and ``base``'s sweep figures
+    (seconds, load, repeats), are kept as they were; ``new``'s go into ``added`` (one entry per
+    merge; an older entry whose points are all run again is dropped). Fronts are recomputed.
+    ClreconError where the two are not the same sweep (scene, pitch, slices, targets, quick)."""
+    for key in _SAME_SWEEP:
+        if base.get(key) != new.get(key):
+            raise ClreconError(f"tradeoff merge: {key} = {new.get(key)!r} in this sweep but {base.get(key)!r} in "
+                               f"the earlier one; merge only sweeps of the same scene, pitch, slices and targets")
+    names = set(new["run_points"])
+    rows = [r for r in base["points"] if r["name"] not in names] + list(new["points"])
+    added = [a for a in base.get("added", []) if not set(a["run_points"]) <= names]
+    added.append({k: new[k] for k in ("methods", "run_points", "repeats", "sweep_seconds", "load_average_1min",
+                                      "logical_cores")})
+    return {**base, "points": rows, "fronts": fronts(rows), "added": added,
+            "seconds_definition": new["seconds_definition"]}
+
+
+def scored_mae(run_dir, scene, pk: str, variant: str, method: str, sel: tuple) -> dict:
+    """``{"small": mae, "large": mae}`` (HU) of ``method``'s volumes of ``variant`` in the run at
+    ``run_dir`` against its ground truth, pooled over every target and the run's slices
+    ``sel[0] .. sel[1]-1`` (indices into the run's slices), the FOVs of
+    :func:`clrecon.evaluation.metrics.fov_masks` (the run's ``metrics`` over those slices)."""
+    masks = metrics.fov_masks(metrics.MetricsConfig.from_scene(scene))
+    z = {"z": slice(int(sel[0]), int(sel[1]))}
+    with open_volumes(run_dir) as f:
+        rec = read_part(f, recon_path(pk, variant, method), z)
+        truth = read_part(f, "groundtruth", z)
+    return {fov: metrics.abs_error_stats(rec, truth, masks[fov])["mae_hu"] for fov in ("small", "large")}
 
 
 def _slice_z(sc, slices) -> list:
@@ -336,7 +488,8 @@ def _log_seconds_axis(ax):
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.tick_params(labelsize=8)
     ax.grid(alpha=0.3, which="both")
-    ax.set_xlabel("seconds of the method: plan + interpolation + FBP (log)", fontsize=8)
+    ax.set_xlabel("seconds of the method: plan + interpolation + FBP; mc: + its first pass, registration, model "
+                  "fit, MC backprojection (log)", fontsize=8)
     ax.set_ylabel("MAE vs ground truth, small FOV (HU)", fontsize=8)
 
 
@@ -398,7 +551,9 @@ def plot_tradeoff(result: dict, path) -> Path:
                  f"Error against run time, {result['scene']} pitch {result['pitch']:g} (quick)", fontsize=9)
     fig.supxlabel("labels: qN = N nearest per quadrant, nN = N nearest (local linear; base q2 κ1 σ0.15); κ, σ: kernel "
                   "widths; all / tN = every / the N nearest-in-z candidate turns; vN = N views per rotation; N² = "
-                  "N x N image grid (same FOV)", fontsize=6.5)
+                  "N x N image grid (same FOV);\nmc (base r2): rN = N registration rounds, ds2 = registration "
+                  "at half the in-plane voxels, tvl1 = TV-L1 registration (base Lucas-Kanade), zN = the base on a "
+                  "run of N mm of slices scored on these", fontsize=6.5)
     fig.canvas.draw()  # lay out once, then place the labels in the final display coordinates
     fig.set_layout_engine("none")
     for k, v in enumerate(variants):
@@ -445,3 +600,29 @@ def report_lines(tr: dict) -> list[str]:
                f"{tr['out_dir']}/tradeoff.png; * = on the method's Pareto front")
     out.extend("   " + line for line in format_table(tr).splitlines())
     return out
+
+
+def main(argv=None) -> dict:
+    """``python -m clrecon.bench.tradeoff [--methods mc] [--merge tradeoff.json] [--out DIR]``: the
+    sweep of some methods (default all), merged into an earlier sweep's JSON where given."""
+    ap = argparse.ArgumentParser(prog="python -m clrecon.bench.tradeoff", description=main.__doc__)
+    ap.add_argument("--methods", help="comma list: only these methods' points (default: every point)")
+    ap.add_argument("--codes", help="comma list: only the points with these knob codes (e.g. z64)")
+    ap.add_argument("--merge", metavar="JSON", help="an earlier sweep's tradeoff.json: its points of the other "
+                    "methods are kept, of these methods replaced")
+    ap.add_argument("--out", metavar="DIR", help="where tradeoff.json and tradeoff.png go (default: a new "
+                    "temporary folder)")
+    ap.add_argument("--cache", metavar="DIR", help="projection store (default: OUT/cache)")
+    ap.add_argument("--repeats", type=int, help="timed runs per point (default 2)")
+    a = ap.parse_args(argv)
+    res = run_tradeoff(out_dir=a.out, cache_dir=a.cache, repeats=a.repeats, merge=a.merge,
+                       methods=tuple(a.methods.split(",")) if a.methods else None,
+                       codes=tuple(a.codes.split(",")) if a.codes else None,
+                       log=lambda *x, **k: print(*x, file=sys.stderr, flush=True))
+    print(format_table(res))
+    print(f"{res['out_dir']}/tradeoff.json, tradeoff.png")
+    return res
+
+
+if __name__ == "__main__":
+    main()

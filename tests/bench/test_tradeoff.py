@@ -38,6 +38,15 @@ def test_sweep_points_cover_the_knobs_once_each():
     assert {"q1", "q2", "q3", "n5", "n8", "κ0.5", "κ2", "σ0.1", "σ0.3", "v180", "64²", "v180 64²"} == ll
     for m in tr.TURN_METHODS:
         assert {p.code for p in pts if p.method == m} == {"all", "t4", "t2", "v180", "64²", "v180 64²"}
+    mc = {p.code: p for p in pts if p.method == "mc"}
+    assert set(mc) == {"r2", "r1", "ds2", "tvl1", "z64"} and mc["r2"].knob == "base"
+    assert mc["z64"].run_slices == (0, demo.recon.nz) and not mc["z64"].recon   # base knobs, every slice
+    knobs = {c: demo.replace(recon=p.recon).recon.mc if p.recon else demo.recon.mc for c, p in mc.items()}
+    assert all(p.run_slices is None for p in pts if p.code != "z64")
+    assert (knobs["r2"].rounds, knobs["r2"].downsample, knobs["r2"].registration) == (2, 1, "lucas_kanade")
+    assert knobs["r1"].rounds == 1 and knobs["ds2"].downsample == 2 and knobs["tvl1"].registration == "tvl1"
+    assert tr.run_methods("mc") == ("barycentric", "mc") and tr.run_methods("nearest") == ("nearest",)
+    assert not any(p.method == "mc" for p in tr.sweep_points(demo, quick=True))
     g = next(p for p in pts if p.code == "64²")
     assert g.recon["nx"] * g.recon["voxel_mm"] == demo.recon.nx * demo.recon.voxel_mm   # same FOV
     for p in pts:   # every point is a valid scene
@@ -54,7 +63,7 @@ def _fake_result():
                              "mae_large_hu": float(15 + 5 * rng.random()), "seconds": float(10 ** rng.uniform(-1, 1)),
                              "plan_seconds": 0.1})
     return {"scene": "demo", "pitch": 0.02, "slices": [6, 10], "slices_z_mm": [-6.0, -2.0, 2.0, 6.0],
-            "points": rows, "fronts": tr.fronts(rows), "quick": False}
+            "points": rows, "fronts": tr.fronts(rows), "quick": False, "targets": "all"}
 
 
 def test_fronts_and_figure_and_table(tmp_path):
@@ -89,3 +98,76 @@ def test_quick_sweep_on_tiny(tmp_path, quick):
     assert back["load_average_1min"]["samples"]
     text = bench.format_report({"machine": bench.machine(), "tradeoff": res})
     assert "error against run time" in text and "local_linear" in text
+
+
+def test_mc_points_on_tiny_are_made_with_their_first_pass_merged_and_labelled(tmp_path, monkeypatch):
+    """mc's four points run (barycentric first pass + mc), each with its knob reaching the run;
+    a point's seconds are the two methods' method_seconds together; merged into an earlier
+    sweep they replace only its mc points, and the figure labels them by knob code."""
+    res = tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path, methods=("mc",), warmup=False, repeats=1,
+                          log=lambda *a, **k: None)
+    rows = res["points"]
+    assert {r["method"] for r in rows} == {"mc"} and res["methods"] == ["mc"]
+    assert sorted((r["code"], r["variant"]) for r in rows) == sorted(
+        (c, v) for c in ("r2", "r1", "ds2", "tvl1") for v in ("noise-free", "noisy"))
+    for r in rows:
+        parts = r["seconds_parts"]
+        assert list(parts) == ["barycentric", "mc"] and min(parts.values()) > 0
+        assert r["seconds"] == pytest.approx(sum(parts.values()), abs=1.5e-3) and r["seconds"] > parts["mc"]
+        assert r["model_error"]["heart"]["rms_mm"] > 0 and r["model_seconds"] > 0
+        assert "cover 10 mm of z" in r["warning"]    # tiny's 2 slices: thinner than mc's THIN_Z_MM
+    nf = {r["code"]: r["mae_small_hu"] for r in rows if r["variant"] == "noise-free"}
+    assert len(set(nf.values())) == 4               # each knob changed what the run made
+    # merged into an earlier sweep: its other methods kept, its mc points replaced
+    base = _fake_result()
+    for r in base["points"]:
+        r["name"] = f"{r['method']}-{r['code']}"
+    base.update(scene=res["scene"], pitch=res["pitch"], slices=res["slices"], quick=False)
+    old_mc = dict(base["points"][0], method="mc", code="r1", name="mc-r1")
+    base["points"].append(old_mc)
+    merged = tr.merge_results(base, res)
+    assert [r for r in merged["points"] if r["method"] != "mc"] == base["points"][:-1]
+    assert [r for r in merged["points"] if r["method"] == "mc"] == rows
+    assert merged["fronts"]["noisy"]["mc"] and merged["added"][-1]["methods"] == ["mc"]
+    again = tr.merge_results(merged, dict(res, points=rows[:2], run_points=[rows[0]["name"]]))  # one point again
+    assert len(again["points"]) == len(merged["points"]) and len(again["added"]) == 2
+    with pytest.raises(ClreconError, match="slices"):
+        tr.merge_results(dict(base, slices=[0, 1]), res)
+    with pytest.raises(ClreconError, match="no point"):
+        tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path, methods=("nope",))
+    labels = []
+    monkeypatch.setattr(tr, "_place_labels", lambda fig, ax, items, **kw: labels.extend(items))
+    tr.plot_tradeoff(merged, tmp_path / "merged.png")
+    mc_colour = tr._method_style()["mc"][0]
+    assert sorted(t for _, _, t, c in labels if c == mc_colour) == sorted(["r2", "r1", "ds2", "tvl1"] * 2)
+
+
+def test_a_point_run_on_more_slices_is_scored_on_the_sweeps_slices(tmp_path, monkeypatch):
+    """A point with ``run_slices`` (mc's z point) runs every slice of that range and is scored on
+    the sweep's: barycentric (slice by slice) scores on tiny's second slice the same from a run
+    of both slices as from a run of that slice alone; the run's own MAE of both slices is kept."""
+    pts = [tr.SweepPoint("barycentric", "all", "base"), tr.SweepPoint("barycentric", "wide", "x", run_slices=(0, 2))]
+    monkeypatch.setattr(tr, "sweep_points", lambda scene, quick=False: pts)
+    res = tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path, slices=(1, 2), warmup=False, repeats=1,
+                          log=lambda *a, **k: None)
+    for v in ("noise-free", "noisy"):
+        one, wide = (next(r for r in res["points"] if r["code"] == c and r["variant"] == v) for c in ("all", "wide"))
+        assert "mae_run_slices_hu" not in one
+        for fov in ("small", "large"):
+            assert wide[f"mae_{fov}_hu"] == pytest.approx(one[f"mae_{fov}_hu"], rel=1e-5)
+            assert wide["mae_run_slices_hu"][fov] != pytest.approx(one[f"mae_{fov}_hu"], rel=1e-3)
+
+
+def test_the_full_sweep_runs_without_the_motion_extra_less_mcs_points(tmp_path, monkeypatch):
+    """Without scikit-image the full sweep leaves mc's points out and says so; asked for by name, mc is refused."""
+    def missing(module="skimage"):
+        raise ClreconError(f"{module} is not installed")
+
+    monkeypatch.setattr(tr.registration, "require", missing)
+    monkeypatch.setattr(tr, "sweep_points", lambda scene, quick=False: [tr.SweepPoint("nearest", "all", "base"),
+                                                                        tr.SweepPoint("mc", "r2", "base")])
+    res = tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path, warmup=False, repeats=1, log=lambda *a, **k: None)
+    assert {r["method"] for r in res["points"]} == {"nearest"} and "not installed" in res["skipped"]["mc"]
+    with pytest.raises(ClreconError, match="not installed"):
+        tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path / "mc", methods=("mc",), warmup=False, repeats=1,
+                        log=lambda *a, **k: None)
