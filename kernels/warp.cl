@@ -65,3 +65,45 @@ __kernel void warp_push(__global const float *g, __global const float *u, const 
     fixed_add(acc + 2 * (q + sz + sy), v * gx * fy * fz, scale);
     fixed_add(acc + 2 * (q + sz + sy + dx), v * fx * fy * fz, scale);
 }
+
+// The inverse of a displacement field: v with v(p) = -u(p + v(p)), so that the point p + v(p)
+// moves to p (clrecon.reconstruction.iterative.warp.invert_field). Fixed-point iteration from
+// v = -u(p), ``steps`` times v <- -u(p + v(p)) with u sampled trilinearly (the weights of
+// warp_pull, clamped at the edges), all in registers: the same values as ``steps`` rounds of
+// three warp_pull calls of u's components, in one launch.
+inline float sample3(__global const float *f, const size_t q, const int dx, const size_t sy, const size_t sz,
+                     const float fx, const float fy, const float fz)
+{
+    const float c00 = f[q] + fx * (f[q + dx] - f[q]);
+    const float c10 = f[q + sy] + fx * (f[q + sy + dx] - f[q + sy]);
+    const float c01 = f[q + sz] + fx * (f[q + sz + dx] - f[q + sz]);
+    const float c11 = f[q + sz + sy] + fx * (f[q + sz + sy + dx] - f[q + sz + sy]);
+    const float c0 = c00 + fy * (c10 - c00), c1 = c01 + fy * (c11 - c01);
+    return c0 + fz * (c1 - c0);
+}
+
+__kernel void invert_field(__global const float *u, const int nx, const int ny, const int nz, const float hx,
+                           const float hy, const float hz, const int steps, __global float *v)
+{
+    const int x = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
+    if (x >= nx || y >= ny || z >= nz)
+        return;
+    const size_t nxy = (size_t)nx * ny, nv = nxy * nz;
+    const size_t o = (size_t)z * nxy + (size_t)y * nx + x;
+    float vx = -u[o], vy = -u[nv + o], vz = -u[2 * nv + o];
+    for (int k = 0; k < steps; k++) {
+        int x0, y0, z0, dx, dy, dz;
+        float fx, fy, fz;
+        warp_weights((float)x + vx / hx, nx, &x0, &dx, &fx);
+        warp_weights((float)y + vy / hy, ny, &y0, &dy, &fy);
+        warp_weights((float)z + vz / hz, nz, &z0, &dz, &fz);
+        const size_t q = (size_t)z0 * nxy + (size_t)y0 * nx + x0;
+        const size_t sy = dy * (size_t)nx, sz = dz * nxy;
+        vx = -sample3(u, q, dx, sy, sz, fx, fy, fz);
+        vy = -sample3(u + nv, q, dx, sy, sz, fx, fy, fz);
+        vz = -sample3(u + 2 * nv, q, dx, sy, sz, fx, fy, fz);
+    }
+    v[o] = vx;
+    v[nv + o] = vy;
+    v[2 * nv + o] = vz;
+}

@@ -477,4 +477,7 @@ def test_iterative_operator_kernels(grind, clean):
         got = W.warp_adjoint(x, d, (2.0, 1.5, 3.0), rt=grind)
         ref = W.warp_adjoint_reference(x, d, (2.0, 1.5, 3.0))
         assert np.abs(got - ref).max() <= TOL["f32"] * np.abs(ref).max()
+        got = W.invert_field(d, (2.0, 1.5, 3.0), 3, rt=grind)
+        ref = W.invert_field_reference(d, (2.0, 1.5, 3.0), 3)
+        assert np.abs(got - ref).max() <= TOL["f32"] * np.abs(ref).max()
     clean()

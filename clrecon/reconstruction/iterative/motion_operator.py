@@ -33,7 +33,7 @@ import numpy as np
 import scipy.ndimage
 
 from clrecon.reconstruction.iterative.operators import backproject_groups, project_groups, split_groups
-from clrecon.reconstruction.iterative.warp import warp, warp_adjoint
+from clrecon.reconstruction.iterative.warp import invert_field, warp, warp_adjoint
 from clrecon.reconstruction.motion.model import FieldGrid, MotionModel, sample
 
 WARPS = ("pull", "push")
@@ -70,12 +70,9 @@ def model_on_grid(model: MotionModel, grid) -> MotionModel:
 
 def inverse_field(u, spacing_mm, iterations: int = INVERSION_STEPS, rt=None) -> np.ndarray:
     """v with ``v(y) = -u(y + v(y))`` (so ``x_r = y + v(y)`` maps to ``y``): fixed-point iteration
-    from v = -u, each step three trilinear warps of u's components by the current v. (3, nz, ny, nx) float32 mm."""
-    u = np.asarray(u, np.float32)
-    v = -u
-    for _ in range(int(iterations)):
-        v = -np.stack([warp(u[k], v, spacing_mm, rt=rt) for k in range(3)])
-    return v.astype(np.float32)
+    from v = -u (:func:`~clrecon.reconstruction.iterative.warp.invert_field`, one kernel launch).
+    (3, nz, ny, nx) float32 mm."""
+    return invert_field(np.asarray(u, np.float32), spacing_mm, int(iterations), rt=rt)
 
 
 class MotionConeOperator:
