@@ -14,7 +14,8 @@ fixed-point sum for each); the warp's rates are output voxels/s. Times are wall-
 end (upload, kernel, read-back), after one untimed call (kernel build), median of ``repeats``.
 The pair through the warp (``mcir``'s operator for one motion-state bin, pull warp: A W_u x and
 W_u^T A^T y) is timed beside the static pair A x, A^T y. The dot-product mismatch
-``|<A x, y> - <x, A^T y>| / <|A||x|, |y|>`` of the timed data is reported beside (x the phantom, y its projection with the sign of a random field).
+``|<A x, y> - <x, A^T y>| / <|A||x|, |y|>`` of the timed data is reported beside (x the phantom,
+y its projection with the sign of a random field).
 
 On a shared machine the figures depend on the other load: the 1-min load average is recorded.
 Run as ``python -m clrecon.bench.iterative [--quick] [--repeats 3]`` or ``bench --only iterative``.
