@@ -15,6 +15,7 @@ from clrecon.reconstruction.iterative import method as mcir
 from clrecon.reconstruction.motion import memory as mc_memory
 from clrecon.reconstruction.rebin import slice_window_mm
 from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, slab_bytes_per_slice, slices_per_slab
+from clrecon.scan.table import cached_projection_table
 from clrecon.simulation.measured import memory_bytes as measured_memory_bytes
 
 GiB = 1024 ** 3
@@ -103,7 +104,9 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
                                     for p in pitches))
     if mcir.NAME in methods:  # mcir's slabs after the model (the plans and truths still held)
         peak = max(peak, held + max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius, z_extent, n_proj[p],
-                                                          scene.scan.feed_mm(sc, p)) for p in pitches))
+                                                          scene.scan.feed_mm(sc, p),
+                                                          mcir.n_bins(cached_projection_table(scene, p), rc.mcir))
+                                    for p in pitches))
     peak = max(peak, metrics_peak)
     if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)
         peak += measured_memory_bytes(scene)

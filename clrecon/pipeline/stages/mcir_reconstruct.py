@@ -47,7 +47,7 @@ def slabs(run, table) -> list[tuple[int, int]]:
         for a, b in cuts:
             st = mcir.slab_setup(sc, run.scene.recon, knobs, run.recon_cfg.object_radius_mm, table.source_z_mm, z[a:b])
             worst = max(worst, mcir.memory_bytes(st.grid, st.views.size, sc.n_rows, sc.n_cols,
-                                                 knobs.cardiac_bins * knobs.resp_bins, knobs.density, knobs.warp))
+                                                 mcir.n_bins(table.take(st.views), knobs), knobs.density, knobs.warp))
         if worst <= SLAB_BYTES:
             return cuts
     return [(a, a + 1) for a in range(n)]

@@ -90,13 +90,18 @@ def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n
     return int(rays + 4 * nv * (3 * k + k * n_bins + 3 * 6 + 8) + fields)
 
 
+def n_bins(table, knobs) -> int:
+    """The motion-state bins the views of ``table`` fill (empty bins cost nothing)."""
+    return len(state_bins(table.cardiac_phase, table.resp_amplitude, knobs.cardiac_bins, knobs.resp_bins))
+
+
 def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, z_extent_mm: float, n_total_views: int,
-                     feed_mm: float) -> int:
+                     feed_mm: float, bins: int) -> int:
     """The modelled peak of a run's ``mcir`` stage (bytes): :func:`memory_bytes` of one volume over the
     run's slices (``z_extent_mm``) and their views (sources within the cone's far half-width w of a
     slice, at ``feed_mm`` per rotation, at most ``n_total_views``), or of a slab under
     :data:`SLAB_BYTES` where the stage cuts the slices (a slab's views and planes scale with its z
-    extent plus the cone's)."""
+    extent plus the cone's); ``bins``: the motion-state bins the views fill (:func:`n_bins`)."""
     w = geo.half_cone_mm(scanner, object_radius_mm)
     n_views = int(min(n_total_views, (z_extent_mm + 2 * w) / feed_mm * scanner.views_per_rotation
                       + scanner.views_per_rotation))
@@ -104,8 +109,7 @@ def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, z_extent_mm
     nz = int(np.ceil((z_extent_mm + 4 * w) / knobs.plane_dz_mm)) + 1
     grid = geo.VolumeGrid(nx=recon.nx * f, ny=recon.ny * f, nz=nz, voxel_mm=recon.voxel_mm / f, z0_mm=0.0,
                           dz_mm=knobs.plane_dz_mm)
-    whole = memory_bytes(grid, n_views, scanner.n_rows, scanner.n_cols, knobs.cardiac_bins * knobs.resp_bins,
-                         knobs.density, knobs.warp)
+    whole = memory_bytes(grid, n_views, scanner.n_rows, scanner.n_cols, bins, knobs.density, knobs.warp)
     return int(min(whole, max(SLAB_BYTES, whole * (4 * w) / (z_extent_mm + 4 * w))))
 
 
