@@ -169,3 +169,45 @@ def test_model_on_grid_resamples():
     u1 = model.displacement(0.2, 0.6)
     u2 = m2.displacement(0.2, 0.6)
     np.testing.assert_allclose(u2[:, ::2, 1::2, 1::2][:, :, :-1, :-1].mean(), u1.mean(), atol=0.2)
+
+
+def test_density_term_fits_a_lung_whose_attenuation_follows_the_amplitude():
+    """Consistent data of a 'lung' (-800 HU at the reference amplitude) whose attenuation falls by
+    80 HU per unit of amplitude, inside water: with the density term the solver's final residual is
+    below the one without it (measured 0.83 % against 0.92 %), and the term it finds in the lung has
+    the truth's sign and size."""
+    mw = 0.0193
+    grid = geo.VolumeGrid(nx=16, ny=16, nz=3, voxel_mm=4.0, z0_mm=-4.0, dz_mm=4.0)
+    m = 240
+    rng = np.random.default_rng(5)
+    beta = np.linspace(0, 8 * np.pi, m, endpoint=False)
+    frames = detector_frames(beta, np.zeros(m), 300.0, 520.0)
+    groups = [geo.ViewGroup(np.arange(m, dtype=np.int64), frames,
+                            (detector_coords(48, 2.5), detector_coords(3, 4.0), None))]
+    c, a = rng.uniform(0, 1, m), rng.uniform(0, 1, m)
+    bins = state_bins(c, a, 2, 6)
+    fg = mm.FieldGrid(nx=16, ny=16, nz=3, voxel_mm=4.0, z0_mm=-4.0, dz_mm=4.0)
+    basis = mm.MotionBasis(resp_degree=1, cardiac_harmonics=0)
+    model = mm.MotionModel(basis=basis, grid=fg, fields=np.zeros((2, 3) + grid.shape, np.float32),
+                           reference=(0.0, 0.5))
+    x = np.zeros(grid.shape, np.float32)
+    x[:, 2:14, 2:14] = mw                                   # water
+    x[:, 5:11, 4:8] = 0.2 * mw                              # lung, -800 HU
+    d = np.zeros(grid.shape, np.float32)
+    d[:, 5:11, 4:8] = -0.08 * mw                            # -80 HU per unit of amplitude
+    truth = np.stack([x, d])
+    finals = {}
+    for density in (False, True):
+        op = MotionConeOperator(grid, groups, bins, model, warp_mode="pull", density=True, mu_water_per_mm=mw)
+        data = {s: op.forward(truth, s) for s in range(op.n_subsets)}
+        if not density:
+            op = MotionConeOperator(grid, groups, bins, model, warp_mode="pull", density=False, mu_water_per_mm=mw)
+        X, h = os_sart(op, data.__getitem__, np.zeros(op.unknown_shape, np.float32),
+                       SARTConfig(epochs=8, tol=0.0, decay=0.0))
+        finals[density] = h.final
+        if density:
+            found = X[1][1, 6:10, 5:7].mean()              # the lung's inner voxels, middle plane
+            # the truth's sign and at least a third of its size: measured -0.043 (54 %: the 1-voxel
+            # smoothing at this 6 x 4-voxel lung's edges and the step's under-relaxation)
+            assert -0.12 * mw < found < -0.027 * mw, found / mw
+    assert finals[True] < finals[False], finals

@@ -10,7 +10,9 @@ model fitted to the true fields, the study's model) and projected on every view 
 - per-view states voxelised exactly (no warp, no model, no bins): each bin's own phantom;
 - the warp with 20 x 10 and 40 x 20 bins, and with the phantom's lung density change added as
   the density term (lung voxels of the reference, -80 HU per unit of amplitude);
-and (FINE=2) all of it on half the reconstruction's voxel in-plane.
+and (FINE=2) all of it on half the reconstruction's voxel in-plane; (FILL=0) with the phantom's own
+rule everywhere (each point moves with the object that holds it, air stays) instead of the smooth
+fill of its textureless regions.
 What this separates: the voxel basis, the warp's interpolation and model, the binning.
 """
 
@@ -43,6 +45,7 @@ def rel(p, q):
 
 def main():
     fine = int(os.environ.get("FINE", 1))
+    fill = os.environ.get("FILL", "1") != "0"
     out = {}
     for static in (True, False):
         over = {"phantom.cardiac_motion": False, "phantom.respiratory_motion": False, "name": "demo-static"} \
@@ -65,7 +68,7 @@ def main():
         tg = rc.Targets(cardiac=sc.cardiac_targets, resp=sc.resp_targets)
         # the true fields on the reconstruction's in-plane grid (the operator resamples the model)
         fg = mm.FieldGrid(nx=r.nx, ny=r.ny, nz=grid.nz, voxel_mm=r.voxel_mm, z0_mm=grid.z0_mm, dz_mm=grid.dz_mm)
-        tf = motion_field.displacement_fields(ph, *fg.coords(), REFERENCE, tg.pairs)
+        tf = motion_field.displacement_fields(ph, *fg.coords(), REFERENCE, tg.pairs, fill_textureless=fill)
         model, _ = mm.fit_motion_model(tf, tg.pairs, mm.MotionBasis(resp_degree=1, cardiac_harmonics=2), fg,
                                        REFERENCE)
         del tf
@@ -100,7 +103,8 @@ def main():
                 out["each bin's state voxelised (no warp), bins 20x10"] = rel(proj, exact)
             print(out, f"{time.perf_counter() - t0:.0f} s")
     res = json.load(open(OUT)) if os.path.exists(OUT) else {}
-    res[f"forward_model voxel {sc.recon.voxel_mm / fine:g} mm"] = {k: round(v, 5) for k, v in out.items()}
+    key = f"forward_model voxel {sc.recon.voxel_mm / fine:g} mm" + ("" if fill else " unfilled fields")
+    res[key] = {k: round(v, 5) for k, v in out.items()}
     json.dump(res, open(OUT, "w"), indent=1)
 
 

@@ -9,7 +9,8 @@ Rows (each measured alone, every other setting at its default):
   push          mass-preserving warp (W_u^T), no density term
   push+density  mass-preserving warp with the density term
 Variants by environment: PITCH (0.1), VAR (noise-free | noisy), EPOCHS (3), DZ (2 mm plane
-spacing), FINE (1: the reconstruction's voxel; 2: half of it in-plane), BINS ("20x10").
+spacing), FINE (1: the reconstruction's voxel; 2: half of it in-plane), BINS ("20x10"), KEYTAG
+(appended to the row's key in study.json, to keep a row of an earlier version of the code).
 
 The true motion model is the one the motion-model study gives `mc` ("mc with the true motion"):
 the phantom's own displacement from the reference state (0.8, 0.45) to the 50 targets
@@ -138,7 +139,8 @@ def run_row(row):
             vol = X if static else op.state_volume(X, c, a)
             out[i, j] = mu_to_hu(to_slices(vol, grid, z, r.nx, r.voxel_mm), sc.phantom.mu_water_per_mm)
     m = table2(out, gt, MetricsConfig.from_scene(sc))
-    key = f"{row} p{pitch:g} {var} e{epochs} dz{dz:g} fine{fine}" + ("" if static else f" bins{nbc}x{nbr}")
+    key = f"{row} p{pitch:g} {var} e{epochs} dz{dz:g} fine{fine}" + ("" if static else f" bins{nbc}x{nbr}") \
+        + os.environ.get("KEYTAG", "")
     res[key] = {"mae_hu": [round(m["large"]["mae_hu"], 2), round(m["small"]["mae_hu"], 2)],
                 "setup_s": round(t_setup, 1), "solve_s": round(t_solve, 1), "history": hist.as_dict(),
                 "grid": list(grid.shape), "voxel_mm": grid.voxel_mm, "dz_mm": dz,

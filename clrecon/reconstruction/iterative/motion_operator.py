@@ -102,6 +102,11 @@ class MotionConeOperator:
         lo, hi = DENSITY_HU
         self._mu_range = (mu_water_per_mm * (1 + lo / 1000.0), mu_water_per_mm * (1 + hi / 1000.0))
         self._mask = None
+        # the density term's step (update_direction, constrain): sum_b alpha_b g_b over an epoch,
+        # and sum_b alpha_b^2 C_b (its diagonal scale), both in the reference frame
+        self._gd = np.zeros(grid.shape, np.float64) if self.density else None
+        self._hd = np.zeros(grid.shape, np.float64) if self.density else None
+        self._epochs = 0
 
     # -- per bin ---------------------------------------------------------------------------
     def _bin(self, s: int) -> int:
@@ -144,21 +149,39 @@ class MotionConeOperator:
         vol = X[0] + (float(a) - self.a_ref) * X[1] if self.density else X[0]
         return self.to_state(np.ascontiguousarray(vol, np.float32), self.field(c, a))
 
+    def update_direction(self, r, s: int) -> np.ndarray:
+        """SART's update direction for subset s: W_b^T A_b^T r for the attenuation; the density term
+        gets none per subset (its per-bin step, sign(alpha) times the residual, is noisy where
+        |alpha| is small) but accumulates alpha_b W_b^T A_b^T r for one step per epoch (:meth:`constrain`)."""
+        g = self.adjoint(r, s)
+        if self.density:
+            self._gd += g[1]              # alpha_b g_b
+            g[1] = 0.0
+        return g
+
+    def col_sums(self, w, s: int) -> np.ndarray:
+        """|A_s|^T w (SART's C_s for the ray mask w); also accumulates the density step's scale."""
+        c = self.adjoint(w, s, absolute=True)
+        if self.density:
+            self._hd += float(self.alpha(self._bin(s))) ** 2 * c[0]
+        return c
+
     def constrain(self, X, epoch_end: bool) -> None:
-        """The density term's constraint, in place: zero outside the lung-like voxels of the current
-        reference (:data:`DENSITY_HU`, the mask renewed at each epoch's end, empty before the first:
-        the first epoch solves the attenuation alone), smoothed by :data:`DENSITY_SIGMA_VOXELS`
-        at each epoch's end."""
-        if not self.density:
+        """The density term's step and constraint, in place, at each epoch's end (after the first,
+        which solves the attenuation alone): ``d += sum_b alpha_b g_b / sum_b alpha_b^2 C_b`` (a
+        SIRT step over every bin, fitting the residual's dependence on the amplitude), smoothed
+        by :data:`DENSITY_SIGMA_VOXELS` and kept only on the lung-like voxels of the current
+        reference (:data:`DENSITY_HU`)."""
+        if not self.density or not epoch_end:
             return
-        if epoch_end:
-            lo, hi = self._mu_range
-            self._mask = ((X[0] >= lo) & (X[0] <= hi)).astype(np.float32)
-            X[1] = scipy.ndimage.gaussian_filter(X[1], DENSITY_SIGMA_VOXELS, mode="nearest")
-        if self._mask is None:
-            X[1] = 0.0
-        else:
-            X[1] *= self._mask
+        self._epochs += 1
+        if self._epochs >= 2:
+            step = np.where(self._hd > 0, self._gd / np.maximum(self._hd, 1e-30), 0.0)
+            X[1] += step.astype(np.float32)
+        self._gd[:] = 0.0
+        lo, hi = self._mu_range
+        self._mask = ((X[0] >= lo) & (X[0] <= hi)).astype(np.float32)
+        X[1] = scipy.ndimage.gaussian_filter(X[1], DENSITY_SIGMA_VOXELS, mode="nearest") * self._mask
 
     # -- the operator ------------------------------------------------------------------------
     def forward(self, X, s: int, *, absolute: bool = False) -> np.ndarray:
@@ -183,6 +206,3 @@ class MotionConeOperator:
         """|A_s| 1 (SART's R_s)."""
         return self.forward(np.ones(self.unknown_shape, np.float32), s, absolute=True)
 
-    def col_sums(self, w, s: int) -> np.ndarray:
-        """|A_s|^T w (SART's C_s for the ray mask w)."""
-        return self.adjoint(w, s, absolute=True)

@@ -18,7 +18,9 @@ first time it is visited.
 **Residual**: the data misfit ``||p - A x|| / ||p||`` (relative, over all subsets' rays). The
 *running* residual of an epoch sums ``||p_s - A_s x||^2`` as each subset is visited (before its
 update); it costs nothing extra. An operator with entries of both signs (the density term's)
-provides ``row_sums(s)`` and ``col_sums(w, s)`` for |A_s|; otherwise A_s itself is used. The
+provides ``row_sums(s)`` and ``col_sums(w, s)`` for |A_s|; otherwise A_s itself is used; an
+operator may steer part of the unknown itself (``update_direction(r, s)`` instead of A_s^T r:
+the density term's once-per-epoch step). The
 exact residual of the initial and the final volume costs one forward pass each (A is ~5x
 cheaper than A^T) and is always computed.
 
@@ -121,7 +123,8 @@ def os_sart(op, data, x0, cfg: SARTConfig = SARTConfig(), log=None) -> tuple[np.
                 cols[s] = np.where(C > 0, 1.0 / np.maximum(C, 1e-30), 0.0).astype(np.float32)
             r = p - op.forward(x, s)
             run += float(np.sum(r.astype(np.float64) ** 2))
-            x += lam * cols[s] * op.adjoint(r * rows[s], s)
+            direction = op.update_direction if hasattr(op, "update_direction") else op.adjoint
+            x += lam * cols[s] * direction(r * rows[s], s)
             if cfg.nonnegative:
                 np.maximum(x[0] if x.ndim == 4 else x, 0.0, out=x[0] if x.ndim == 4 else x)
             if hasattr(op, "constrain"):
