@@ -161,7 +161,8 @@ def test_static_scene_gives_the_same_volume_for_every_method(tmp_path, still):
     rotation, bounded by n_views * eps32 * max|HU| (0.015 HU here). Phase-blind methods
     (no phase axis, e.g. ``helical``: the turn nearest in z) choose rows by another rule, and a
     second-pass method (``mc``) reads its rows through z planes 2 mm apart instead of the
-    slice's own SSRB rows: both are compared with the ground truth instead."""
+    slice's own SSRB rows: both are compared with the ground truth instead, as is ``mcir``, which
+    solves a voxel volume from the cone-beam rows (its own floor against the FBP truth)."""
     s = load_scene("tiny").replace(noise={"enabled": False}, **still)
     methods = interpolation.METHODS.names
     phase_space = [m for m in methods if interpolation.METHODS[m].axes and interpolation.METHODS[m].stage is None]
@@ -174,8 +175,14 @@ def test_static_scene_gives_the_same_volume_for_every_method(tmp_path, still):
     tol = s.scanner.views_per_rotation * np.finfo(np.float32).eps * np.abs(ref).max()
     for m in phase_space:
         assert np.abs(vols[m] - ref).max() <= tol, m  # HU; all methods see the same static data
-    for m in set(methods) - set(phase_space):  # another turn's SSRB rows: same error floor
+    voxel_basis = {"mcir"}  # solved on a voxel basis, not from SSRB rows: its own floor (below)
+    for m in set(methods) - set(phase_space) - voxel_basis:  # another turn's SSRB rows: same error floor
         assert res["metrics"]["p0.100"]["noise-free"][m]["large"]["mae_hu"] < 15.0, m
+    # mcir (OS-SART on 12-mm voxels) against an FBP truth: the voxel basis's own floor, measured
+    # 68.7 HU large FOV on this scene (docs/results/iterative-study.md "The voxel basis against the
+    # truth"); a geometry or sign slip gives several hundred
+    for m in voxel_basis & set(methods):
+        assert res["metrics"]["p0.100"]["noise-free"][m]["large"]["mae_hu"] < 100.0, m
     # and it matches the ground truth up to SSRB's cone-angle approximation
     assert res["metrics"]["p0.100"]["noise-free"]["nearest"]["large"]["mae_hu"] < 15.0
     assert gt.shape == ref.shape
