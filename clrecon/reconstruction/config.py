@@ -111,8 +111,9 @@ class IterativeConfig(Section):
     warp: str = F("pull", one_of(("pull", "push")),
                   "the volume at a state: 'pull' (intensity-preserving: each point keeps its value where the model "
                   "moves it) or 'push' (mass-preserving: W_u^T, density falls where tissue expands)")
-    density: bool = F(True, BOOL, "solve a density term too: attenuation linear in the amplitude per voxel (the lungs "
-                      "darken as air comes in), in the reference frame")
+    density: bool = F(False, BOOL, "solve a density term too: attenuation linear in the amplitude per voxel (the lungs "
+                      "darken as air comes in), in the reference frame; off by default: on demo it measured worse "
+                      "(docs/iterative.md)")
     plane_dz_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "about the detector row pitch at the isocentre"),
                            "spacing of the iterative volume's z planes")
     voxel_factor: int = F(1, integer_in(1, 4, "each factor of 2 costs about 2x per epoch"),

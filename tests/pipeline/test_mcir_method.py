@@ -125,6 +125,6 @@ def test_mcir_on_a_measured_scan_reconstructs_what_it_does_on_the_simulation(tmp
         bary = b["recon/p0.100/measured/barycentric"][()].astype(float)
     assert np.all(np.isfinite(meas))
     # the import quantises the projections (0.25 HU after FBP for the paper methods); SART is linear
-    # in the data but its density mask is a threshold of the current image: measured max 0.14 HU
+    # in the data but for its clamp at zero attenuation: measured max 0.14 HU (with the density term on)
     assert np.abs(meas - sim).max() < 0.25, np.abs(meas - sim).max()
     assert np.abs(meas - bary).max() > 10.0
