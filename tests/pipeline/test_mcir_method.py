@@ -128,3 +128,20 @@ def test_mcir_on_a_measured_scan_reconstructs_what_it_does_on_the_simulation(tmp
     # in the data but for its clamp at zero attenuation: measured max 0.14 HU (with the density term on)
     assert np.abs(meas - sim).max() < 0.25, np.abs(meas - sim).max()
     assert np.abs(meas - bary).max() > 10.0
+
+
+def test_mcir_on_a_cylindrical_detector_with_a_flying_focal_spot(tmp_path):
+    """The rays are the scan's own (the arc's flat-equivalent cells, one view group per focal-spot
+    state): on the curved, z-FFS tiny scan mcir explains its data as well as on the flat one (final
+    residual measured 3.61 % against 3.72 %) and its error stays in the flat one's range (81.8
+    against 85.9 HU large FOV); a geometry slip would leave the data unexplained."""
+    out = {}
+    for name, scanner in (("flat", {}), ("curved", {"detector": "cylindrical", "flying_focal_spot": "z",
+                                                    "ffs_z_mm": 1.5})):
+        scene = load_scene("tiny").replace(scanner=scanner, noise={"enabled": False})
+        res = run(scene, tmp_path / name, methods=["barycentric", "mcir"], cache_dir=tmp_path / f"c{name}",
+                  executor="serial", report=False, **QUIET)
+        (info,) = res["stages"]["mcir"]["slabs"]["p0.100"]["noise-free"].values()
+        out[name] = (info["sart"]["final"], res["metrics"]["p0.100"]["noise-free"]["mcir"]["large"]["mae_hu"])
+    assert out["curved"][0] < 1.1 * out["flat"][0], out
+    assert out["curved"][1] < 1.15 * out["flat"][1], out
