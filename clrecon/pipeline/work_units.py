@@ -148,22 +148,15 @@ def mcir_slab(cfg, scene, pitch: float, cache_dir: str, slices_z, a: int, b: int
               model) -> tuple[list, dict, dict]:
     """One slab (slices ``a .. b-1`` of ``slices_z``) of the ``mcir`` method for one noise variant with
     ``mc``'s ``model``: the body of the stage's unit in the run's process,
-    :func:`clrecon.reconstruction.iterative.method.reconstruct_slab`, on the finished projection
+    :func:`clrecon.reconstruction.iterative.method.reconstruct_slab_from_store`, on the finished projection
     store at ``cache_dir``. Pieces: ``(slice indices, variant, (n_c, n_r, s, ny, nx) HU, info)``."""
     faults.point("worker-unit")
     times = StageTimes()
     table = cached_projection_table(scene, pitch)
     store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table, create=False)
-    usable = usable_table(scene, table)[0]
     try:
-        t0 = time.perf_counter()
-        hu, info = mcir.reconstruct_slab(scene.scanner, scene.recon, scene.recon.mcir, cfg.object_radius_mm,
-                                         cfg.mu_water_per_mm, usable,
-                                         lambda views: store.read_indices(usable.index[views],
-                                                                          noisy=variant == "noisy"),
-                                         slices_z[a:b], targets, model, rt=get_runtime())
-        times.add("mcir_solve", time.perf_counter() - t0)
-        times.add(f"method:{mcir.NAME}:{variant}", time.perf_counter() - t0)
+        hu, info = mcir.reconstruct_slab_from_store(scene, cfg, usable_table(scene, table)[0], store, slices_z[a:b],
+                                                    targets, variant, model, rt=get_runtime(), times=times)
     finally:
         store.close()
     return [(np.arange(a, b), variant, hu, info)], times.seconds, times.counts

@@ -99,19 +99,43 @@ def _slab_unit(run, pitch: float, scan: mc_fbp.MCScan, a: int, b: int, variant: 
                 f"mc slab of slices {a}..{b - 1} ({variant}) at pitch {pitch:g}")
 
 
-def stage(run, pitch: float, plan, store):
+def models_to_do(run, pitch: float, plan, store, name: str):
+    """The shared start of the ``mc`` and ``mcir`` stages: declare method ``name``'s datasets of the
+    pitch and find the slices left. Returns ``Idle`` when none is, else ``(todo, scan, models,
+    seconds)``: the slice indices left per variant, the :class:`mc_fbp.MCScan`, the motion model
+    of every variant with work left (:func:`motion_model`) and the models' seconds per variant."""
     pk = pitch_key(pitch)
     for v in run.variants:
-        run.writer.create(recon_path(pk, v, NAME), run.full_shape, len(run.slices_z))
-    todo = {v: np.flatnonzero(~run.writer.done(recon_path(pk, v, NAME))) for v in run.variants}
+        run.writer.create(recon_path(pk, v, name), run.full_shape, len(run.slices_z))
+    todo = {v: np.flatnonzero(~run.writer.done(recon_path(pk, v, name))) for v in run.variants}
     if not any(t.size for t in todo.values()):
         return Idle(pk)
     if store is None or isinstance(store, Idle):
-        raise ClreconError(f"[{pk}] mc: the projection store of this pitch is not open (no slice left to plan?)")
+        raise ClreconError(f"[{pk}] {name}: the projection store of this pitch is not open (no slice left to plan?)")
     scan = motion_scan(run, pitch, plan, store)
     seconds: dict = {}  # variant -> the model's seconds
     with scan:  # the registration's process pool ends with the models
         models = {v: motion_model(run, scan, pk, v, seconds) for v in run.variants if todo[v].size}
+    return todo, scan, models, seconds
+
+
+def record_method_seconds(run, pk: str, name: str, times, seconds: dict) -> str:
+    """``method_seconds`` of method ``name`` per variant: its units' ``method:<name>:<variant>``
+    seconds plus its model's (``seconds``); returns ``pk`` (a stage's ``finish``)."""
+    per = run.records["method_seconds"].setdefault(pk, {})
+    for key, sec in times.seconds.items():
+        if key.startswith(f"method:{name}:"):
+            v = key.split(":")[2]
+            per.setdefault(v, {})[name] = round(sec + seconds.get(v, 0.0), 3)
+    return pk
+
+
+def stage(run, pitch: float, plan, store):
+    pk = pitch_key(pitch)
+    got = models_to_do(run, pitch, plan, store, NAME)
+    if isinstance(got, Idle):
+        return got
+    todo, scan, models, seconds = got
     units_ = [_slab_unit(run, pitch, scan, a, b, v, models[v]) for v in run.variants if todo[v].size
               for a, b in scan.slabs if (~run.writer.done(recon_path(pk, v, NAME))[a:b]).any()]
 
@@ -119,13 +143,6 @@ def stage(run, pitch: float, plan, store):
         z, v, vol = piece
         run.writer.write(recon_path(pk, v, NAME), vol, z)
 
-    def finish(times):
-        per = run.records["method_seconds"].setdefault(pk, {})
-        for key, sec in times.seconds.items():
-            if key.startswith(f"method:{NAME}:"):
-                v = key.split(":")[2]
-                per.setdefault(v, {})[NAME] = round(sec + seconds.get(v, 0.0), 3)
-        return pk
-
     n = sum(t.size for t in todo.values())
-    return Work(units_, write, finish, progress=(f"mc {pk}", n, "slices"), weight=lambda piece: len(piece[0]))
+    return Work(units_, write, lambda times: record_method_seconds(run, pk, NAME, times, seconds),
+                progress=(f"mc {pk}", n, "slices"), weight=lambda piece: len(piece[0]))

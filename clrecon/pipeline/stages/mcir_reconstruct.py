@@ -16,11 +16,9 @@ Timed as ``registration`` (the model, when this stage fits it) and ``mcir_solve`
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
-from clrecon.core.errors import ClreconError
 from clrecon.outputs.volumes import pitch_key, recon_path
 from clrecon.pipeline import work_units
 from clrecon.pipeline.executors.base import Idle, Unit, Work
@@ -47,7 +45,7 @@ def slabs(run, table) -> list[tuple[int, int]]:
         for a, b in cuts:
             st = mcir.slab_setup(sc, run.scene.recon, knobs, run.recon_cfg.object_radius_mm, table.source_z_mm, z[a:b])
             worst = max(worst, mcir.memory_bytes(st.grid, st.views.size, sc.n_rows, sc.n_cols,
-                                                 mcir.n_bins(table.take(st.views), knobs), knobs.density, knobs.warp))
+                                                 mcir.n_bins(table.take(st.views), knobs), knobs.density))
         if worst <= SLAB_BYTES:
             return cuts
     return [(a, a + 1) for a in range(n)]
@@ -57,15 +55,9 @@ def _unit(run, pitch: float, table, store, a: int, b: int, variant: str, model) 
     pk = pitch_key(pitch)
 
     def here(emit, times):
-        t0 = time.perf_counter()
-        hu, info = mcir.reconstruct_slab(
-            run.scene.scanner, run.scene.recon, run.scene.recon.mcir, run.recon_cfg.object_radius_mm,
-            run.recon_cfg.mu_water_per_mm, table, lambda views: store.read_indices(table.index[views],
-                                                                                   noisy=variant == "noisy"),
-            run.slices_z[a:b], run.targets, model, rt=run.rt,
-            log=lambda line: run.log(f"[{pk}] mcir {variant} slices {a}..{b - 1}: {line}"))
-        times.add("mcir_solve", time.perf_counter() - t0)
-        times.add(f"method:{NAME}:{variant}", time.perf_counter() - t0)
+        hu, info = mcir.reconstruct_slab_from_store(
+            run.scene, run.recon_cfg, table, store, run.slices_z[a:b], run.targets, variant, model, rt=run.rt,
+            log=lambda line: run.log(f"[{pk}] mcir {variant} slices {a}..{b - 1}: {line}"), times=times)
         emit((np.arange(a, b), variant, hu, info))
 
     def remote():
@@ -78,17 +70,10 @@ def _unit(run, pitch: float, table, store, a: int, b: int, variant: str, model) 
 
 def stage(run, pitch: float, plan, store):
     pk = pitch_key(pitch)
-    for v in run.variants:
-        run.writer.create(recon_path(pk, v, NAME), run.full_shape, len(run.slices_z))
-    todo = {v: np.flatnonzero(~run.writer.done(recon_path(pk, v, NAME))) for v in run.variants}
-    if not any(t.size for t in todo.values()):
-        return Idle(pk)
-    if store is None or isinstance(store, Idle):
-        raise ClreconError(f"[{pk}] mcir: the projection store of this pitch is not open (no slice left to plan?)")
-    scan = mc_reconstruct.motion_scan(run, pitch, plan, store)
-    seconds: dict = {}
-    with scan:
-        models = {v: mc_reconstruct.motion_model(run, scan, pk, v, seconds) for v in run.variants if todo[v].size}
+    got = mc_reconstruct.models_to_do(run, pitch, plan, store, NAME)
+    if isinstance(got, Idle):
+        return got
+    todo, scan, models, seconds = got
     table = scan.plan_table  # the usable views (a measured scan's excluded ones left out)
     cuts = slabs(run, table)
     units_ = [_unit(run, pitch, table, store, a, b, v, models[v]) for v in run.variants if todo[v].size
@@ -101,13 +86,6 @@ def stage(run, pitch: float, plan, store):
         hist.setdefault(pk, {}).setdefault(v, {})[f"{int(z[0])}..{int(z[-1])}"] = info
         run.note("mcir", slabs=hist)
 
-    def finish(times):
-        per = run.records["method_seconds"].setdefault(pk, {})
-        for key, sec in times.seconds.items():
-            if key.startswith(f"method:{NAME}:"):
-                v = key.split(":")[2]
-                per.setdefault(v, {})[NAME] = round(sec + seconds.get(v, 0.0), 3)
-        return pk
-
     n = sum(t.size for t in todo.values())
-    return Work(units_, write, finish, progress=(f"mcir {pk}", n, "slices"), weight=lambda piece: len(piece[0]))
+    return Work(units_, write, lambda times: mc_reconstruct.record_method_seconds(run, pk, NAME, times, seconds),
+                progress=(f"mcir {pk}", n, "slices"), weight=lambda piece: len(piece[0]))

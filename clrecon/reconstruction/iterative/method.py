@@ -77,8 +77,7 @@ def needed_projections(scanner, recon, knobs, object_radius_mm: float, table, sl
     return np.asarray(table.index)[(src >= z.min() - w) & (src <= z.max() + w)]
 
 
-def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n_bins: int, density: bool,
-                 warp: str) -> int:
+def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n_bins: int, density: bool) -> int:
     """Peak bytes of :func:`reconstruct_slab` (a model, not measured): the projections and SART's
     row weights (2 x 4 B per ray), the unknown and its update (K volumes each), SART's column
     weights (K volumes per bin), the warp fields kept per bin (3 volumes per bin, at most
@@ -109,7 +108,7 @@ def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, z_extent_mm
     nz = int(np.ceil((z_extent_mm + 4 * w) / knobs.plane_dz_mm)) + 1
     grid = geo.VolumeGrid(nx=recon.nx * f, ny=recon.ny * f, nz=nz, voxel_mm=recon.voxel_mm / f, z0_mm=0.0,
                           dz_mm=knobs.plane_dz_mm)
-    whole = memory_bytes(grid, n_views, scanner.n_rows, scanner.n_cols, bins, knobs.density, knobs.warp)
+    whole = memory_bytes(grid, n_views, scanner.n_rows, scanner.n_cols, bins, knobs.density)
     return int(min(whole, max(SLAB_BYTES, whole * (4 * w) / (z_extent_mm + 4 * w))))
 
 
@@ -158,3 +157,21 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
             "sart": hist.as_dict(), "seconds": {"setup": round(t1 - t0, 3), "solve": round(t2 - t1, 3),
                                                 "targets": round(time.perf_counter() - t2, 3)}}
     return out, info
+
+
+def reconstruct_slab_from_store(scene, cfg, table, store, slices_z, targets, variant: str, model: MotionModel, *,
+                                rt=None, log=None, times=None) -> tuple[np.ndarray, dict]:
+    """:func:`reconstruct_slab` of a run: the one body of the stage's unit, in the run's process and
+    on a Dask worker. ``scene`` gives the scanner, ``[recon]`` and ``[recon.mcir]``; ``cfg`` the
+    :class:`~clrecon.reconstruction.reconstruct.ReconstructionConfig` (radius, mu_water); ``table``
+    the scan's usable views; ``store`` the projection store (``read_indices``; ``variant`` "noisy"
+    draws the run's noise). ``times``: optional ``StageTimes`` given ``mcir_solve`` and
+    ``method:mcir:<variant>`` seconds."""
+    t0 = time.perf_counter()
+    out = reconstruct_slab(scene.scanner, scene.recon, scene.recon.mcir, cfg.object_radius_mm, cfg.mu_water_per_mm,
+                           table, lambda views: store.read_indices(table.index[views], noisy=variant == "noisy"),
+                           slices_z, targets, model, rt=rt, log=log)
+    if times is not None:
+        times.add("mcir_solve", time.perf_counter() - t0)
+        times.add(f"method:{NAME}:{variant}", time.perf_counter() - t0)
+    return out
