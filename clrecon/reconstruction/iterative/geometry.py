@@ -24,36 +24,17 @@ import numpy as np
 
 from clrecon.core.conventions import voxel_coords
 from clrecon.core.detector import spot_shift_in_frame
+from clrecon.reconstruction.motion.model import FieldGrid
 from clrecon.simulation.projector import spot_frames
 
 
 @dataclass(frozen=True, kw_only=True)
-class VolumeGrid:
-    """``nx`` x ``ny`` voxels of ``voxel_mm`` in-plane, ``nz`` planes ``z0_mm + k dz_mm``."""
+class VolumeGrid(FieldGrid):
+    """``nx`` x ``ny`` voxels of ``voxel_mm`` in-plane, ``nz`` planes ``z0_mm + k dz_mm``: a motion
+    field's grid (:class:`~clrecon.reconstruction.motion.model.FieldGrid`: its checks, ``shape``
+    and ``coords``) that may be one voxel thick, with the projector's origin and spacing."""
 
-    nx: int
-    ny: int
-    nz: int
-    voxel_mm: float
-    z0_mm: float
-    dz_mm: float
-
-    def __post_init__(self):
-        for name in ("nx", "ny", "nz"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
-                raise ValueError(f"{name} = {v!r}: must be an integer >= 1")
-        for name in ("voxel_mm", "dz_mm"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} = {v!r}: must be a finite number > 0")
-        if not math.isfinite(self.z0_mm):
-            raise ValueError(f"z0_mm = {self.z0_mm!r}: must be finite")
-
-    @property
-    def shape(self) -> tuple:
-        """(nz, ny, nx)."""
-        return (self.nz, self.ny, self.nx)
+    MIN_SIZE = 1
 
     @property
     def origin_mm(self) -> tuple:
@@ -68,11 +49,7 @@ class VolumeGrid:
 
     def z_mm(self) -> np.ndarray:
         """Plane centres (nz,) mm."""
-        return self.z0_mm + self.dz_mm * np.arange(self.nz)
-
-    def coords(self) -> tuple:
-        """(x (nx,), y (ny,), z (nz,)) voxel-centre coordinates, mm."""
-        return voxel_coords(self.nx, self.voxel_mm), voxel_coords(self.ny, self.voxel_mm), self.z_mm()
+        return self.coords()[2]
 
 
 def half_cone_mm(scanner, radius_mm: float) -> float:

@@ -85,8 +85,12 @@ class FieldGrid:
     """Grid of a motion field: the reconstruction's in-plane voxel centres and uniform z planes.
 
     ``nx``, ``ny``, ``voxel_mm``: as the reconstruction (``voxel_coords``); ``z0_mm`` and ``dz_mm``:
-    plane k at ``z0_mm + k dz_mm``, ``nz`` planes (``nz >= 2``, ``dz_mm > 0``).
+    plane k at ``z0_mm + k dz_mm``, ``nz`` planes (``nz >= 2``, ``dz_mm > 0``). A subclass may allow
+    fewer voxels per axis (``MIN_SIZE``).
     """
+
+    #: Fewest voxels along each axis (a field is interpolated between two planes at least).
+    MIN_SIZE = 2
 
     nx: int
     ny: int
@@ -96,7 +100,8 @@ class FieldGrid:
     dz_mm: float
 
     def __post_init__(self):
-        for name, lo in (("nx", 2), ("ny", 2), ("nz", 2)):
+        lo = self.MIN_SIZE
+        for name in ("nx", "ny", "nz"):
             v = getattr(self, name)
             if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= lo):
                 raise ValueError(f"{name} = {v!r}: must be an integer >= {lo}")
