@@ -28,16 +28,14 @@ def interleaved_subsets(n_views: int, n_subsets: int) -> list[np.ndarray]:
 
 
 def split_groups(groups, positions) -> list:
-    """The parts of ``groups`` whose ``rows`` are among ``positions`` (sorted): a list of
-    (group slice, positions of its views in the subset's data)."""
+    """The parts of ``groups`` whose ``rows`` are among ``positions``: a list of ViewGroups (each a
+    group's views among them, in the group's order; groups with none left out)."""
     positions = np.asarray(positions, np.int64)
-    out, offset = [], 0
+    out = []
     for g in groups:
         sel = np.flatnonzero(np.isin(g.rows, positions))
         if sel.size:
-            part = g.take(sel)
-            out.append(part)
-            offset += sel.size
+            out.append(g.take(sel))
     return out
 
 

@@ -107,6 +107,11 @@ def os_sart(op, data, x0, cfg: SARTConfig = SARTConfig(), log=None) -> tuple[np.
         raise ValueError("the data are all zero: nothing to reconstruct")
     hist.initial = float(np.sqrt(rr0 / pp))
     rows, cols = {}, {}
+    row_sums = getattr(op, "row_sums", lambda s: op.forward(np.ones(op.unknown_shape, np.float32), s))
+    col_sums = getattr(op, "col_sums", op.adjoint)
+    direction = getattr(op, "update_direction", op.adjoint)
+    constrain = getattr(op, "constrain", None)
+    attenuation = x[0] if x.ndim == 4 else x          # a view: the component kept >= 0
     prev = None
     hist.stop = f"reached {cfg.epochs} epochs"
     for k in range(cfg.epochs):
@@ -116,21 +121,19 @@ def os_sart(op, data, x0, cfg: SARTConfig = SARTConfig(), log=None) -> tuple[np.
         for s in range(op.n_subsets):
             p = np.asarray(data(s), np.float32)
             if s not in rows:
-                R = op.row_sums(s) if hasattr(op, "row_sums") else op.forward(np.ones(op.unknown_shape, np.float32), s)
+                R = row_sums(s)
                 rows[s] = np.where(R > cfg.min_ray_mm, 1.0 / np.maximum(R, 1e-30), 0.0).astype(np.float32)
-                mask = np.where(rows[s] > 0, 1.0, 0.0).astype(np.float32)
-                C = op.col_sums(mask, s) if hasattr(op, "col_sums") else op.adjoint(mask, s)
+                C = col_sums(np.where(rows[s] > 0, 1.0, 0.0).astype(np.float32), s)
                 cols[s] = np.where(C > 0, 1.0 / np.maximum(C, 1e-30), 0.0).astype(np.float32)
             r = p - op.forward(x, s)
             run += float(np.sum(r.astype(np.float64) ** 2))
-            direction = op.update_direction if hasattr(op, "update_direction") else op.adjoint
             x += lam * cols[s] * direction(r * rows[s], s)
             if cfg.nonnegative:
-                np.maximum(x[0] if x.ndim == 4 else x, 0.0, out=x[0] if x.ndim == 4 else x)
-            if hasattr(op, "constrain"):
-                op.constrain(x, epoch_end=False)
-        if hasattr(op, "constrain"):
-            op.constrain(x, epoch_end=True)
+                np.maximum(attenuation, 0.0, out=attenuation)
+            if constrain:
+                constrain(x, epoch_end=False)
+        if constrain:
+            constrain(x, epoch_end=True)
         hist.running.append(float(np.sqrt(run / pp)))
         hist.seconds.append(time.perf_counter() - t0)
         hist.relaxation.append(lam)
