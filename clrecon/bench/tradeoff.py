@@ -110,6 +110,17 @@ class SweepPoint:
         return f"{self.method}-{safe}"
 
 
+def _keep(points: list, wanted, attr: str) -> list:
+    """The points whose ``attr`` (``method`` or ``code``) is in ``wanted``; ClreconError naming the
+    option ``--<attr>s`` for a value no point has."""
+    have = [getattr(p, attr) for p in points]
+    unknown = sorted(set(wanted) - set(have))
+    if unknown:
+        raise ClreconError(f"tradeoff --{attr}s: {unknown[0]!r} has no point in this sweep; allowed: "
+                           f"{', '.join(dict.fromkeys(have))}")
+    return [p for p in points if getattr(p, attr) in wanted]
+
+
 def sweep_points(scene, quick: bool = False) -> list[SweepPoint]:
     """The sweep's points for ``scene`` (see the module docstring); ``quick``: five of them."""
     views = scene.scanner.views_per_rotation
@@ -249,11 +260,7 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
     repeats = max(1, int(repeats if repeats is not None else (1 if quick else 2)))
     points = sweep_points(sc, quick)
     if methods is not None:
-        unknown = sorted(set(methods) - {p.method for p in points})
-        if unknown:
-            raise ClreconError(f"tradeoff --methods: {unknown[0]!r} has no point in this sweep; allowed: "
-                               f"{', '.join(dict.fromkeys(p.method for p in points))}")
-        points = [p for p in points if p.method in methods]
+        points = _keep(points, methods, "method")
     skipped = {}
     if methods is None and any(p.method == "mc" for p in points):
         try:  # the full sweep runs without the motion extra, less mc's points (asked for by name: refused)
@@ -263,11 +270,7 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
             log(f"tradeoff: mc's points skipped: {e}")
             points = [p for p in points if p.method != "mc"]
     if codes is not None:
-        unknown = sorted(set(codes) - {p.code for p in points})
-        if unknown:
-            raise ClreconError(f"tradeoff --codes: {unknown[0]!r} has no point in this sweep; allowed: "
-                               f"{', '.join(dict.fromkeys(p.code for p in points))}")
-        points = [p for p in points if p.code in codes]
+        points = _keep(points, codes, "code")
     base = json.loads(Path(merge).read_text()) if isinstance(merge, (str, Path)) else merge
     rows = []
     t_all = time.perf_counter()

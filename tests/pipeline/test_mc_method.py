@@ -12,7 +12,7 @@ import sys
 import h5py
 import numpy as np
 import pytest
-from run_compare import assert_identical
+from run_compare import assert_identical, run_cli
 
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import ClreconError, SceneError
@@ -25,13 +25,7 @@ METHODS = "barycentric,nearest,mc"
 
 
 def _cli(out, cache, fault=None, extra=()):
-    env = dict(os.environ, CLRECON_NO_PROGRESS="1")
-    env.pop("CLRECON_FAULT", None)
-    if fault:
-        env["CLRECON_FAULT"] = fault
-    cmd = [sys.executable, "-m", "clrecon", "run", "--scene", "tiny", "--methods", METHODS, "--out", str(out),
-           "--cache", str(cache), "--no-progress", "--executor", "serial", *extra]
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    return run_cli(out, cache, METHODS, fault, extra)
 
 
 @pytest.fixture(scope="module")

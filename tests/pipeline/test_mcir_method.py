@@ -3,15 +3,12 @@ makes volumes that land in volumes.h5, the metrics and the report with the solve
 kill -9 at its write resumes to the same bits, the overlapped executor gives the serial bits, and
 its knobs are refused in one line."""
 
-import os
 import signal
-import subprocess
-import sys
 
 import h5py
 import numpy as np
 import pytest
-from run_compare import assert_identical
+from run_compare import assert_identical, run_cli
 
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import SceneError
@@ -23,14 +20,8 @@ QUIET = dict(progress=False, log=lambda *a: None)
 METHODS_RUN = "barycentric,mc,mcir"
 
 
-def _cli(out, cache, fault=None):
-    env = dict(os.environ, CLRECON_NO_PROGRESS="1")
-    env.pop("CLRECON_FAULT", None)
-    if fault:
-        env["CLRECON_FAULT"] = fault
-    cmd = [sys.executable, "-m", "clrecon", "run", "--scene", "tiny", "--methods", METHODS_RUN, "--out", str(out),
-           "--cache", str(cache), "--no-progress", "--executor", "serial"]
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+def _cli(out, cache, fault=None, extra=()):
+    return run_cli(out, cache, METHODS_RUN, fault, extra)
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,9 @@ an uninterrupted single-process run), and the reference run of a setting's compa
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 
 import h5py
 import pytest
@@ -15,6 +18,18 @@ QUIET = dict(progress=False, log=lambda *a: None)
 
 #: results.json entries that must be equal, besides every dataset of volumes.h5
 KEYS = ("metrics", "respiratory_only", "motion", "diagnostics", "sampling")
+
+
+def run_cli(out, cache, methods: str, fault=None, extra=()) -> subprocess.CompletedProcess:
+    """``python -m clrecon run`` of ``tiny`` with ``methods`` (a comma list), serially, without
+    progress, in a child process (``fault``: its ``CLRECON_FAULT``, e.g. ``recon:5`` for a kill -9)."""
+    env = dict(os.environ, CLRECON_NO_PROGRESS="1")
+    env.pop("CLRECON_FAULT", None)
+    if fault:
+        env["CLRECON_FAULT"] = fault
+    cmd = [sys.executable, "-m", "clrecon", "run", "--scene", "tiny", "--methods", methods, "--out", str(out),
+           "--cache", str(cache), "--no-progress", "--executor", "serial", *extra]
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
 
 
 def volumes(path) -> dict:
