@@ -32,7 +32,8 @@ from clrecon.pipeline import preflight
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, reconstruct
 from clrecon.reconstruction.config import IterativeConfig, MotionCompensationConfig
-from clrecon.reconstruction.motion import registration
+from clrecon.reconstruction.iterative import method as mcir_method
+from clrecon.reconstruction.motion import mc_fbp, registration
 from clrecon.reconstruction.reconstruct import Targets
 from clrecon.scan import dicom_ct_pd
 from clrecon.simulation.store import default_cache_dir
@@ -160,6 +161,9 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
         if len(slices_z) < 2:
             raise ClreconError(f"method {m!r} registers the volumes along z: it needs at least 2 slices, the run "
                                f"has {len(slices_z)}")
+        if m == mcir_method.NAME and rc.mcir.init == mc_fbp.NAME and mc_fbp.NAME not in methods:
+            raise ClreconError("recon.mcir.init = 'mc' starts mcir from the mc method's volumes: add 'mc' to "
+                               "recon.methods (or --methods), or set init to 'first_pass' or 'zero'")
         if scene.recon.mc.registration == "lucas_kanade":  # tvl1 runs on the engine's OpenCL runtime
             registration.require("skimage.registration")  # before any work: one line naming the extra
     run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches,

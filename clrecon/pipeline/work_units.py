@@ -145,18 +145,20 @@ def mc_slab(cfg, scene, pitch: float, cache_dir: str, slices_z, a: int, b: int, 
 
 
 def mcir_slab(cfg, scene, pitch: float, cache_dir: str, slices_z, a: int, b: int, targets, variant: str,
-              model) -> tuple[list, dict, dict]:
+              model, start_hu=None) -> tuple[list, dict, dict]:
     """One slab (slices ``a .. b-1`` of ``slices_z``) of the ``mcir`` method for one noise variant with
-    ``mc``'s ``model``: the body of the stage's unit in the run's process,
-    :func:`clrecon.reconstruction.iterative.method.reconstruct_slab_from_store`, on the finished projection
-    store at ``cache_dir``. Pieces: ``(slice indices, variant, (n_c, n_r, s, ny, nx) HU, info)``."""
+    ``mc``'s ``model`` from ``start_hu`` (None: zero; else the slab's start image, (b - a, ny, nx) HU):
+    the body of the stage's unit in the run's process,
+    :func:`clrecon.reconstruction.iterative.method.reconstruct_slab_from_store`, on the finished
+    projection store at ``cache_dir``. Pieces: ``(slice indices, variant, (n_c, n_r, s, ny, nx) HU, info)``."""
     faults.point("worker-unit")
     times = StageTimes()
     table = cached_projection_table(scene, pitch)
     store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table, create=False)
     try:
         hu, info = mcir.reconstruct_slab_from_store(scene, cfg, usable_table(scene, table)[0], store, slices_z[a:b],
-                                                    targets, variant, model, rt=get_runtime(), times=times)
+                                                    targets, variant, model, start_hu=start_hu, rt=get_runtime(),
+                                                    times=times)
     finally:
         store.close()
     return [(np.arange(a, b), variant, hu, info)], times.seconds, times.counts

@@ -7,8 +7,9 @@ Tolerances (one table, with the reason and what was measured):
 import numpy as np
 import pytest
 
-from clrecon.core.conventions import detector_coords, detector_frames
+from clrecon.core.conventions import detector_coords, detector_frames, voxel_coords
 from clrecon.reconstruction.iterative import geometry as geo
+from clrecon.reconstruction.iterative.method import start_volume
 from clrecon.reconstruction.iterative.motion_operator import MotionConeOperator, inverse_field, model_on_grid
 from clrecon.reconstruction.iterative.operators import ConeOperator, interleaved_subsets
 from clrecon.reconstruction.iterative.sart import SARTConfig, os_sart
@@ -211,3 +212,27 @@ def test_density_term_fits_a_lung_whose_attenuation_follows_the_amplitude():
             # smoothing at this 6 x 4-voxel lung's edges and the step's under-relaxation)
             assert -0.12 * mw < found < -0.027 * mw, found / mw
     assert finals[True] < finals[False], finals
+
+
+def test_start_volume_resamples_the_reference_image_onto_the_iterative_grid():
+    """OS-SART's start (method.start_volume): linear in z between slices and in-plane, the nearest
+    slice repeated beyond the slices, HU to attenuation (1/mm) clamped at zero."""
+    mu_w, vox = 0.02, 3.0
+    slices = np.array([-4.0, 0.0, 4.0, 8.0])
+    ny, nx = 6, 8
+    yy, xx = np.meshgrid(voxel_coords(ny, vox), voxel_coords(nx, vox), indexing="ij")
+    # HU linear in (x, y, z) within the image, with a corner below -1000 HU (clamped)
+    hu = np.stack([100.0 * z + 10.0 * xx - 5.0 * yy for z in slices]).astype(np.float32)
+    hu[:, 0, 0] = -1500.0
+    grid = geo.VolumeGrid(nx=4, ny=3, nz=9, voxel_mm=1.5, z0_mm=-10.0, dz_mm=3.0)
+    got = start_volume(hu, grid, slices, vox, mu_w)
+    assert got.shape == grid.shape and got.dtype == np.float32
+    x, y, z = grid.coords()
+    zc = np.clip(z, slices[0], slices[-1])  # the nearest slice beyond the slices
+    want = mu_w * (1.0 + (100.0 * zc[:, None, None] + 10.0 * x[None, None, :] - 5.0 * y[None, :, None]) / 1000.0)
+    assert np.allclose(got, np.maximum(want, 0.0), rtol=0, atol=1e-6 * mu_w), np.abs(got - want).max()
+    corner = start_volume(hu, geo.VolumeGrid(nx=nx, ny=ny, nz=1, voxel_mm=vox, z0_mm=0.0, dz_mm=1.0), slices, vox,
+                          mu_w)
+    assert corner[0, 0, 0] == 0.0 and (corner >= 0).all()
+    with pytest.raises(ValueError, match="start_hu"):
+        start_volume(hu[:3], grid, slices, vox, mu_w)

@@ -24,6 +24,7 @@ from clrecon.pipeline import work_units
 from clrecon.pipeline.executors.base import Idle, Unit, Work
 from clrecon.pipeline.stages import mc_reconstruct
 from clrecon.reconstruction.iterative import method as mcir
+from clrecon.reconstruction.motion import mc_fbp
 
 #: The method this stage makes.
 NAME = mcir.NAME
@@ -51,18 +52,34 @@ def slabs(run, table) -> list[tuple[int, int]]:
     return [(a, a + 1) for a in range(n)]
 
 
+def start_image(run, pk: str, variant: str, model, a: int, b: int) -> np.ndarray | None:
+    """OS-SART's start for slices ``a .. b-1`` (``[recon.mcir] init``): None ('zero'), or the target
+    nearest the model's reference state of the first pass ('first_pass') or of ``mc`` ('mc'), as
+    written by its stage: (b - a, ny, nx) HU float32."""
+    init = run.scene.recon.mcir.init
+    if init == "zero":
+        return None
+    name = mc_fbp.FIRST_PASS if init == "first_pass" else mc_fbp.NAME
+    vol = run.writer.read(recon_path(pk, variant, name), np.arange(a, b))
+    c_ref, a_ref = model.reference
+    i = int(np.argmin(np.abs(np.asarray(run.targets.cardiac) - c_ref))) if vol.shape[0] > 1 else 0
+    j = int(np.argmin(np.abs(np.asarray(run.targets.resp) - a_ref))) if vol.shape[1] > 1 else 0
+    return np.ascontiguousarray(vol[i, j])
+
+
 def _unit(run, pitch: float, table, store, a: int, b: int, variant: str, model) -> Unit:
     pk = pitch_key(pitch)
 
     def here(emit, times):
         hu, info = mcir.reconstruct_slab_from_store(
-            run.scene, run.recon_cfg, table, store, run.slices_z[a:b], run.targets, variant, model, rt=run.rt,
+            run.scene, run.recon_cfg, table, store, run.slices_z[a:b], run.targets, variant, model,
+            start_hu=start_image(run, pk, variant, model, a, b), rt=run.rt,
             log=lambda line: run.log(f"[{pk}] mcir {variant} slices {a}..{b - 1}: {line}"), times=times)
         emit((np.arange(a, b), variant, hu, info))
 
     def remote():
         return work_units.mcir_slab, (run.recon_cfg, run.scene, pitch, str(run.cache_path), run.slices_z, a, b,
-                                      run.targets, variant, model)
+                                      run.targets, variant, model, start_image(run, pk, variant, model, a, b))
 
     return Unit(here, None if run.scene.measured else remote,
                 f"mcir slab of slices {a}..{b - 1} ({variant}) at pitch {pitch:g}")

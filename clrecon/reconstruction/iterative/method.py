@@ -13,7 +13,9 @@ and the run's targets in, the targets' volumes of the slab's slices out. Per sla
 3. **bins**: the views grouped by motion state (``cardiac_bins`` x ``resp_bins``,
    :mod:`state_bins`), one ordered subset per bin;
 4. **solve**: X = (reference attenuation, density term) by OS-SART (:mod:`sart`) through
-   :class:`motion_operator.MotionConeOperator`, from zero, with the data residual per epoch;
+   :class:`motion_operator.MotionConeOperator`, with the data residual per epoch, from zero or from
+   a start image (``[recon.mcir] init``: the reference state's target of the first pass or of ``mc``,
+   :func:`start_volume`);
 5. **targets**: each target's state volume ``W_s (X[0] + (a - a_ref) X[1])`` sampled trilinearly at
    the slab's slices and the reconstruction grid's voxel centres, in HU.
 
@@ -123,15 +125,39 @@ def target_slices(vol, grid: geo.VolumeGrid, slices_z, nx: int, ny: int, voxel_m
     return scipy.ndimage.map_coordinates(np.asarray(vol, np.float64), [Z, Y, X], order=1, mode="nearest")
 
 
+def start_volume(start_hu, grid: geo.VolumeGrid, slices_z, voxel_mm: float, mu_water_per_mm: float) -> np.ndarray:
+    """OS-SART's start on the iterative volume: an image of the reference state on the run's grid,
+    ``start_hu`` (s, ny, nx) HU at slices ``slices_z`` (s,) mm and in-plane voxels of ``voxel_mm``,
+    sampled trilinearly at ``grid``'s voxel centres and converted to attenuation (1/mm, >= 0):
+    (nz, ny', nx') float32. Beyond the slices (the volume reaches the cone's half-width further)
+    and the image's edge the nearest slice's and pixel's values are repeated: the body goes on
+    there, and the solver corrects what the data see."""
+    img = np.asarray(start_hu, np.float64)
+    z = np.asarray(slices_z, np.float64)
+    if img.ndim != 3 or img.shape[0] != z.size:
+        raise ValueError(f"start_hu: expected (s, ny, nx) with s = {z.size} slices, got {img.shape}")
+    ny, nx = img.shape[1:]
+    xs, ys, zs = grid.coords()
+    kz = np.interp(zs, z, np.arange(z.size))  # fractional slice index per plane (a run's slices increase)
+    kx = (xs - voxel_coords(nx, voxel_mm)[0]) / voxel_mm
+    ky = (ys - voxel_coords(ny, voxel_mm)[0]) / voxel_mm
+    Z, Y, X = np.meshgrid(kz, ky, kx, indexing="ij")
+    hu = scipy.ndimage.map_coordinates(img, [Z, Y, X], order=1, mode="nearest")
+    return np.maximum(mu_water_per_mm * (1.0 + hu / 1000.0), 0.0).astype(np.float32)
+
+
 def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_per_mm: float, table, projections,
-                     slices_z, targets, model: MotionModel, *, rt=None, log=None) -> tuple[np.ndarray, dict]:
+                     slices_z, targets, model: MotionModel, *, start_hu=None, rt=None,
+                     log=None) -> tuple[np.ndarray, dict]:
     """``mcir``'s volumes of the slab of slices ``slices_z`` (s,) mm: (n_c, n_r, s, ny, nx) HU float32.
 
     ``table``: the whole scan's :class:`~clrecon.scan.table.ProjectionTable`; ``projections(views)``
     returns the projections (m, n_rows, n_cols) float32 of table positions ``views`` (sorted; the
     noise variant's); ``targets``: the run's ``Targets``; ``model``: ``mc``'s motion model (any grid:
-    resampled to the volume). ``log(line)``: the solver's residual per epoch. Returns (volumes,
-    info: the views, the volume grid, the bins, SART's history, seconds).
+    resampled to the volume); ``start_hu``: None (start from zero) or the reference state's image
+    (s, ny, nx) HU at ``slices_z`` (:func:`start_volume`; the density term starts at zero).
+    ``log(line)``: the solver's residual per epoch. Returns (volumes, info: the views, the volume
+    grid, the bins, SART's history, seconds).
     """
     t0 = time.perf_counter()
     setup = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
@@ -143,7 +169,10 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
                             mu_water_per_mm=mu_water_per_mm, rt=rt)
     cfg = SARTConfig(epochs=knobs.epochs, relaxation=knobs.relaxation, decay=knobs.decay, tol=knobs.tol)
     t1 = time.perf_counter()
-    X, hist = os_sart(op, lambda s: proj[op.subset_rows(s)], np.zeros(op.unknown_shape, np.float32), cfg, log=log)
+    x0 = np.zeros(op.unknown_shape, np.float32)
+    if start_hu is not None:
+        x0[0] = start_volume(start_hu, setup.grid, slices_z, recon.voxel_mm, mu_water_per_mm)
+    X, hist = os_sart(op, lambda s: proj[op.subset_rows(s)], x0, cfg, log=log)
     t2 = time.perf_counter()
     nc, nr = targets.shape
     out = np.empty((nc, nr, len(slices_z), recon.ny, recon.nx), np.float32)
@@ -160,17 +189,17 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
 
 
 def reconstruct_slab_from_store(scene, cfg, table, store, slices_z, targets, variant: str, model: MotionModel, *,
-                                rt=None, log=None, times=None) -> tuple[np.ndarray, dict]:
+                                start_hu=None, rt=None, log=None, times=None) -> tuple[np.ndarray, dict]:
     """:func:`reconstruct_slab` of a run: the one body of the stage's unit, in the run's process and
     on a Dask worker. ``scene`` gives the scanner, ``[recon]`` and ``[recon.mcir]``; ``cfg`` the
     :class:`~clrecon.reconstruction.reconstruct.ReconstructionConfig` (radius, mu_water); ``table``
     the scan's usable views; ``store`` the projection store (``read_indices``; ``variant`` "noisy"
-    draws the run's noise). ``times``: optional ``StageTimes`` given ``mcir_solve`` and
-    ``method:mcir:<variant>`` seconds."""
+    draws the run's noise); ``start_hu`` as :func:`reconstruct_slab`'s. ``times``: optional
+    ``StageTimes`` given ``mcir_solve`` and ``method:mcir:<variant>`` seconds."""
     t0 = time.perf_counter()
     out = reconstruct_slab(scene.scanner, scene.recon, scene.recon.mcir, cfg.object_radius_mm, cfg.mu_water_per_mm,
                            table, lambda views: store.read_indices(table.index[views], noisy=variant == "noisy"),
-                           slices_z, targets, model, rt=rt, log=log)
+                           slices_z, targets, model, start_hu=start_hu, rt=rt, log=log)
     if times is not None:
         times.add("mcir_solve", time.perf_counter() - t0)
         times.add(f"method:{NAME}:{variant}", time.perf_counter() - t0)
