@@ -12,6 +12,12 @@ or ``processes`` spawned here (the benchmarks, the tests). Every accumulator sti
 arrays in the same target order, so its float64 sums, and the results, are bit for bit those of
 one process (tests/evaluation/test_metrics_processes.py). A process that cannot start makes its group run
 here, with the same numbers; an error inside one is raised as that error.
+
+**Two truths.** Table 2 is against the ground-truth CT (the FBP of the frozen phantom's exact
+line integrals: it shares FBP's resolution with the FBP methods). Each FOV's result also has
+``mae_phantom_hu``, the MAE against the phantom itself voxelised at the target (no
+reconstruction's resolution in it), so a method that is not an FBP (``mcir``'s voxel basis) is
+also judged against a truth that does not favour FBP (docs/metrics.md).
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import numpy as np
 from clrecon.core.progress import progress as progress_counter
 from clrecon.core.resources import spawn_is_safe, spawned_pool
 from clrecon.evaluation import groundtruth, metrics, motion
+from clrecon.outputs.rundir import REFERENCE_VOLUMES
 from clrecon.outputs.volumes import pitch_key, read_volume, recon_path
 from clrecon.reconstruction import interpolation, reconstruct
 from clrecon.simulation.phantom_sources import phantom_from_config
@@ -33,6 +40,8 @@ from clrecon.simulation.phantom_sources import phantom_from_config
 #: The 5DCT methods, and those compared in the respiratory-only study (5DCT + the
 #: cardiac-blind, respiratory-grid methods such as r4dct).
 FIVE_D_METHODS = interpolation.five_d_methods()
+#: The reference volumes' datasets: the ground-truth CT (Table 2's truth) and the phantom itself.
+GROUND_TRUTH, PHANTOM_TRUTH = REFERENCE_VOLUMES
 RESP_ONLY_METHODS = FIVE_D_METHODS + interpolation.resp_grid_methods()
 #: Raw bytes of volumes read from which a second process pays for its start-up when none is
 #: warm (the memory model's choice, :mod:`clrecon.pipeline.costs`). Spawning one and importing
@@ -105,13 +114,17 @@ def _accumulate(ctx: _Context, f, keys, bar=None) -> dict:
     mot_gt = motion.MotionMetrics(ctx.mcfg, n_c, n_r)
     lv_gt = np.zeros((n_c, n_r))
     acc = {k: metrics.Table2(ctx.metrics_cfg, n_c, n_r) for k in keys}
+    # the same sums against the phantom itself (voxelised at the target), where the run has it
+    has_phantom = PHANTOM_TRUTH in f
+    acc_ph = {k: metrics.Table2(ctx.metrics_cfg, n_c, n_r) for k in keys} if has_phantom else {}
     macc = {k: motion.MotionMetrics(ctx.mcfg, n_c, n_r) for k in keys} if ctx.want_mot else {}
     ro_mae = {k: np.zeros((n_c, n_r)) for k in keys}
     ro_lv = {k: np.zeros((n_c, n_r)) for k in keys}
     scratch: dict = {}  # the Table-2 differences' arrays, kept for every key and target
     for i in range(n_c):
         for j in range(n_r):
-            truth = read_volume(f, "groundtruth", (i, j))
+            truth = read_volume(f, GROUND_TRUTH, (i, j))
+            phantom = read_volume(f, PHANTOM_TRUTH, (i, j)) if has_phantom else None
             if ctx.want_mot:
                 mot_gt.add(i, j, truth, None, ctx.geoms[i][j])
             if ctx.want_ro:
@@ -120,6 +133,8 @@ def _accumulate(ctx: _Context, f, keys, bar=None) -> dict:
                 pk, v, m = k
                 vol = read_volume(f, recon_path(pk, v, m), (i, j))
                 acc[k].add(i, j, vol, truth, scratch)
+                if has_phantom:
+                    acc_ph[k].add(i, j, vol, phantom, scratch)
                 if ctx.want_mot:
                     macc[k].add(i, j, vol, truth, ctx.geoms[i][j], mot_gt.lv_ml[i, j])
                 if ctx.want_ro and m in RESP_ONLY_METHODS:
@@ -127,8 +142,9 @@ def _accumulate(ctx: _Context, f, keys, bar=None) -> dict:
                     ro_lv[k][i, j] = ctx.lv(vol, i, j)
                 if bar is not None:
                     bar.update(1)
-            del truth
-    return {"acc": acc, "macc": macc, "ro_mae": ro_mae, "ro_lv": ro_lv, "mot_gt": mot_gt, "lv_gt": lv_gt}
+            del truth, phantom
+    return {"acc": acc, "acc_phantom": acc_ph, "macc": macc, "ro_mae": ro_mae, "ro_lv": ro_lv, "mot_gt": mot_gt,
+            "lv_gt": lv_gt}
 
 
 def _accumulate_in_process(path: str, scene, targets, slices_z, methods, keys) -> dict:
@@ -187,7 +203,7 @@ def evaluate(scene, f, targets, slices_z, pitches, variants, methods, phantom, p
             processes += 1
         except BrokenProcessPool:  # the process died or could not start: its group here
             part = _accumulate(ctx, f, g)
-        for name in ("acc", "macc", "ro_mae", "ro_lv"):
+        for name in ("acc", "acc_phantom", "macc", "ro_mae", "ro_lv"):
             res[name].update(part[name])
         bar.update(len(g) * n_c * n_r)
     if pool is not None and own_pool:
@@ -212,7 +228,8 @@ def _tables(ctx: _Context, res: dict, targets, pitches, variants, methods):
         if ctx.want_mot:
             mot[pk] = {}
         for v in variants:
-            met[pk][v] = {m: acc[(pk, v, m)].result() for m in methods}
+            met[pk][v] = {m: _with_phantom(acc[(pk, v, m)].result(), res["acc_phantom"].get((pk, v, m)))
+                          for m in methods}
             if ctx.want_mot:
                 mot[pk][v] = {"groundtruth": mot_ref}
                 mot[pk][v].update({m: macc[(pk, v, m)].result() for m in methods})
@@ -229,6 +246,18 @@ def _tables(ctx: _Context, res: dict, targets, pitches, variants, methods):
                     rows.append(row)
                 resp_only[pk][v] = rows
     return met, resp_only, mot
+
+
+def _with_phantom(table: dict, acc_phantom) -> dict:
+    """Table 2's result with each FOV's ``mae_phantom_hu``: the MAE against the phantom voxelised at
+    the target (:func:`clrecon.evaluation.groundtruth.phantom_truth_volumes`) beside the one against
+    the ground-truth CT, where the run has the phantom truth."""
+    if acc_phantom is not None:
+        ph = acc_phantom.result()
+        for fov in ph:
+            if fov != "per_target":
+                table[fov]["mae_phantom_hu"] = ph[fov]["mae_hu"]
+    return table
 
 
 def _spread(values) -> float:

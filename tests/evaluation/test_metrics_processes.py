@@ -8,6 +8,7 @@ import pytest
 from run_compare import reference_run
 
 from clrecon.config.scene import load_scene
+from clrecon.evaluation.metrics import MetricsConfig, table2
 from clrecon.pipeline import evaluate as evaluate_mod
 from clrecon.pipeline.run import resolve_targets
 from clrecon.simulation.phantom_sources import phantom_from_config
@@ -121,3 +122,33 @@ def test_cropped_lv_regions_count_what_the_full_masks_count():
             assert sub.sum() == full.sum() > 0 and sub.size < full.size
             vol = rng.normal(200.0, 60.0, full.shape).astype(np.float32)
             assert ctx.lv(vol, i, j) == metrics.blood_pool_volume_ml(vol, full, ctx.voxel_ml)
+
+
+def test_each_fov_has_its_mae_against_the_phantom_itself(tiny, tmp_path):
+    """``mae_phantom_hu``: a reconstruction replaced by the phantom truth scores 0 against it (and
+    the phantom's own distance from the ground-truth CT against the CT); the others keep their
+    Table-2 numbers, with a non-zero phantom MAE of their own."""
+    out, ref = tiny
+    name = "recon/p0.100/noise-free/barycentric"
+    with h5py.File(out / "volumes.h5", "r") as src, h5py.File(tmp_path / "volumes.h5", "w") as f:
+        def copy(key, obj):  # every dataset as a plain one (the run's are virtual, over its unit files)
+            if isinstance(obj, h5py.Dataset):
+                f.create_dataset(key, data=obj[()])
+                f[key].attrs.update(dict(obj.attrs))
+        src.visititems(copy)
+        f.attrs.update(dict(src.attrs))
+        assert f[name].shape == f["phantom"].shape, (f[name].shape, f["phantom"].shape)
+        f[name][...] = f["phantom"][()]
+        ph = f["phantom"][()].astype(np.float64)
+        gt = f["groundtruth"][()].astype(np.float64)
+    got, _ = _evaluate(tmp_path, ref)
+    met = got["metrics"]["p0.100"]["noise-free"]
+    for fov in ("large", "small"):
+        assert met["barycentric"][fov]["mae_phantom_hu"] == pytest.approx(0.0, abs=1e-9)
+        assert met["barycentric"][fov]["mae_hu"] > 1.0
+        for m in ("local_linear", "r4dct"):
+            assert met[m][fov]["mae_hu"] == ref["metrics"]["p0.100"]["noise-free"][m][fov]["mae_hu"]
+            assert met[m][fov]["mae_phantom_hu"] > 1.0
+    direct = table2(ph, gt, MetricsConfig.from_scene(load_scene("tiny")))
+    for fov in ("large", "small"):
+        assert met["barycentric"][fov]["mae_hu"] == pytest.approx(direct[fov]["mae_hu"], rel=1e-6)
