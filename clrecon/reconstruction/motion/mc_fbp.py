@@ -98,7 +98,10 @@ class MCScan:
 
     def pool(self, grid: FieldGrid):
         """The process pool the registrations run in (made once per scan), or None: one core, a
-        script without a ``__main__`` guard (:func:`spawn_is_safe`), or memory for one only."""
+        script without a ``__main__`` guard (:func:`spawn_is_safe`), memory for one only, or the
+        TV-L1 registration (it runs on the OpenCL device in this process, which uses every core)."""
+        if self.knobs.registration == "tvl1":
+            return None
         if self._pool is None:
             n = registration_workers(grid.nx * grid.ny * grid.nz)
             self._pool = (spawned_pool(n) if n > 1 and spawn_is_safe() else None) or False
