@@ -141,7 +141,10 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
     """The motion model of one noise variant on the registration's grid, after ``knobs.rounds`` rounds.
 
     Round 1 registers ``first_pass`` ((n_c, n_r, S, ny, nx) HU on the reconstruction grid, or
-    broadcastable to it: downsampled ``knobs.downsample`` times in-plane here) and fits the
+    broadcastable to it: downsampled ``knobs.downsample`` times in-plane here; or a callable
+    ``read(reduce)`` that returns it with ``reduce`` applied to each block of slices as it is read,
+    so that where the registration works coarser the full-resolution first pass is never held
+    whole, e.g. ``VolumeWriter.read``'s ``reduce``) and fits the
     (c, a) model (:func:`method.register`); each further round backprojects every target of every
     slab with that model on the coarse grid (:func:`method.backproject_slab`), registers those
     images and fits again. Where the scan is one slab and every variant's rows fit
@@ -156,7 +159,10 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
     say = log or (lambda line: None)
     nc, nr = scan.shape
     grid = mcm.field_grid(scan.coarse, scan.slices_z)
-    first = mcm.downsample(first_pass, scan.f)
+    if callable(first_pass):
+        first = first_pass(lambda v: mcm.downsample(v, scan.f))
+    else:
+        first = mcm.downsample(first_pass, scan.f)
     first = np.broadcast_to(first, (nc, nr) + first.shape[2:])
     say(f"registering {variant} (round 1 of {knobs.rounds}, "
         f"{nc - 1 + nr - 1} registrations on {grid.nx} x {grid.ny} x {grid.nz})")

@@ -73,15 +73,18 @@ def _slab_slices(rows_per_mm: float, reach_mm: float, slice_mm: float, nz: int) 
 
 def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
                   n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int,
-                  max_projections: int | None = None) -> dict[str, int]:
+                  max_projections: int | None = None, unit_slices: int | None = None) -> dict[str, int]:
     """Modelled bytes of ``mc`` at one pitch beside the process's baseline, by part of its work.
 
     The parts follow one another (the largest is the method's peak, :func:`working_bytes`), except
     ``registration processes``, which runs beside ``fit`` in processes of its own.
 
     - ``fit`` (each round's registration and model fit, :func:`mc_fbp.fit_model`): the first pass
-      read back (targets x slices x ny x nx float32; a downsampled copy where the registration works
-      coarser), the previous round's images on the registration grid (rounds after the first), the
+      on the registration grid (targets x slices x ny x nx float32, ``downsample`` times smaller
+      in-plane where the registration works coarser: read back a unit of ``unit_slices`` slices at
+      a time and block-averaged, so the full-resolution stack is never held), and the larger of that
+      read (one unit twice: its file's bytes and its array; the whole first pass for ``unit_slices``
+      None) and the rest: the previous round's images on the registration grid (rounds after the first), the
       plane rows kept for the final pass (every variant's, where kept), the registration's fields on
       its grid (``estimate.separable_parts``: n_resp + n_cardiac fields of 3 components float32, the
       respiratory averages float32, the cardiac ones float64 and their float32 copy), one
@@ -134,7 +137,9 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     cny, cnx = ny // f, nx // f
     n_reg = nz * cny * cnx
     vox = ny * nx
-    first = n_targets * nz * vox * 4 + (n_targets * n_reg * 4 if f > 1 else 0)
+    first = n_targets * n_reg * 4  # the first pass on the registration grid
+    unit = n_targets * min(nz, unit_slices or nz) * vox * 4  # one unit file of the first pass, full resolution
+    read_first = 2 * unit  # its file's bytes and its array (then its float64 block means, 2 / f**2 of it)
     imgs = n_targets * n_reg * 4 if knobs.rounds > 1 else 0
     fld = 3 * n_reg * 4  # one field on the registration grid
     nb = (1 + 2 * min(knobs.resp_degree, n_resp - 1)
@@ -150,7 +155,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
         per_voxel = FLOW_BYTES_PER_VOXEL
     if workers <= 1:
         registration += per_voxel * n_reg
-    fit = first + imgs + kept + registration + 2 * nb * fld + fit_block
+    fit = first + max(read_first, imgs + kept + registration + 2 * nb * fld + fit_block)
     # while a slab's rows are read, the raw rows of the read; while it is backprojected, their device copy,
     # the model's and the images (never both at once)
     # (the round's images, np.empty, are touched slab by slab: the earlier slabs' and this slab's)
@@ -166,9 +171,10 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
 
 
 def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
-                  n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int, max_projections: int | None = None) -> int:
+                  n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int, max_projections: int | None = None,
+                  unit_slices: int | None = None) -> int:
     """Modelled memory of ``mc`` at one pitch (bytes), beside the process's baseline: the largest
     part of :func:`working_parts` in the process, with the registration processes beside the fit."""
     p = working_parts(scanner, window_mm, knobs, z_extent_mm, feed_mm, n_var, n_cardiac, n_resp, nz, ny, nx,
-                      max_projections)
+                      max_projections, unit_slices)
     return max(p["fit"] + p["registration processes"], p["round backprojection"], p["final pass"])
