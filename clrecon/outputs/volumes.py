@@ -300,13 +300,17 @@ class VolumeWriter:
         self._unit(name, v, {"z": z.tolist()}, "recon", f"{name.replace('/', '~')}.z{z[0]:05d}-{z[-1]:05d}")
         self._done[name][z] = True
 
-    def read(self, name: str, z_index=None) -> np.ndarray:
+    def read(self, name: str, z_index=None, reduce=None) -> np.ndarray:
         """Slices ``z_index`` (default all) of dataset ``name`` read back from its finished unit files:
         ``(n_c, n_r, s, ny, nx)`` float32, a ``broadcast`` axis at length 1 (as written).
 
         For a stage that works on an earlier stage's volumes before ``volumes.h5`` exists (``mc``
         on the barycentric first pass). Every slice asked for must be done (ValueError otherwise);
         each unit's checksum is checked (a damaged one raises :class:`~clrecon.core.errors.StoreError`).
+        ``reduce``: optional in-plane reduction applied to each unit's slices as they are read,
+        ``(n_c, n_r, s, ny, nx)`` float32 -> ``(n_c, n_r, s, my, mx)`` float32, slice by slice
+        independent (``mc``'s block means onto its registration grid): the result is
+        ``(n_c, n_r, s, my, mx)`` and the dataset is never held whole at full resolution (one unit at a time).
         """
         if self._blocks.get(name) != "slices":
             raise ValueError(f"{name}: not a dataset of slabs of slices declared in this run")
@@ -317,7 +321,12 @@ class VolumeWriter:
         full = tuple(1 if (not keep or d in self._broadcast[name]) else n
                      for d, keep, n in zip(DIMS[:2], self.keep, (len(self.axes["cardiac_phase"]),
                                                                   len(self.axes["resp_amplitude"])), strict=True))
-        out = np.empty(full + (z.size,) + tuple(shape[-2:]), np.float32)
+        def fit(v):  # v: (n_c, n_r, s, ny, nx) as read -> float32, reduced where asked
+            v = np.asarray(v, np.float32)
+            return v if reduce is None else reduce(v)
+
+        plane = fit(np.zeros(full + (0,) + tuple(shape[-2:]), np.float32)).shape[-2:]
+        out = np.empty(full + (z.size,) + tuple(plane), np.float32)
         pos = {int(k): i for i, k in enumerate(z)}
         got = np.zeros(z.size, bool)
         for p, m in self._units[name]:
@@ -326,14 +335,16 @@ class VolumeWriter:
                 continue
             data = units.read_unit(p)[0]["data"].reshape(full + (len(m["z"]),) + tuple(shape[-2:]))
             src, dst = zip(*want, strict=True)
-            out[:, :, list(dst)] = data[:, :, list(src)]
+            whole = list(src) == list(range(len(m["z"])))  # the unit's every slice, in order: no copy
+            out[:, :, list(dst)] = fit(data if whole else data[:, :, list(src)])
+            del data
             got[list(dst)] = True
         old = self._old_files.get(name)
         if not got.all() and old is not None:  # slices an earlier version's assembled dataset file holds
             with h5py.File(old[0], "r") as f:
                 for i in np.flatnonzero(~got):
-                    out[:, :, i] = np.asarray(f["volume"][(slice(None),) * (len(shape) - 3) + (int(z[i]),)],
-                                              np.float32).reshape(full + tuple(shape[-2:]))
+                    v = np.asarray(f["volume"][(slice(None),) * (len(shape) - 3) + (int(z[i]),)], np.float32)
+                    out[:, :, i] = fit(v.reshape(full + (1,) + tuple(shape[-2:])))[:, :, 0]
             got[:] = True
         if not got.all():
             raise ValueError(f"{name}: slices {z[~got].tolist()} have no unit file")

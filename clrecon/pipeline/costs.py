@@ -99,8 +99,13 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
         # (docs/results/code-history.md "The mc working set against the measured peak")
         held = plans + (truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx) if overlap
                         else 0)
+        def unit_slices(p):  # slices of the pitch's first-pass unit files (its reconstruction slabs)
+            rows = 2 * window / scene.scan.feed_mm(sc, p) * sc.views_per_rotation
+            return min(nz, slices_per_slab(slab_bytes_per_slice(rows, sc.n_cols, n_var, n_targets, rc.ny, rc.nx)))
+
         peak = max(peak, held + max(mc_memory.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p),
-                                                            n_var, n_c, n_r, nz, rc.ny, rc.nx, n_proj[p])
+                                                            n_var, n_c, n_r, nz, rc.ny, rc.nx, n_proj[p],
+                                                            unit_slices(p))
                                     for p in pitches))
     if mcir.NAME in methods:  # mcir's slabs after the model (the plans and truths still held)
         peak = max(peak, held + max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius, z_extent, n_proj[p],

@@ -140,6 +140,64 @@ def test_writer_reads_a_dataset_back_from_its_units(tmp_path):
     w.abort()
 
 
+def test_writer_reads_a_dataset_reduced_unit_by_unit_to_the_same_bits(tmp_path):
+    """``read(reduce=...)``: mc's block means onto its registration grid applied to each unit as it is
+    read (the first pass never held whole at full resolution) are the bits of the means of the whole
+    dataset read back, for every slice, a subset and a reordering; values over many magnitudes."""
+    from clrecon.reconstruction.motion.method import downsample
+
+    axes = {"cardiac_phase": [0.0, 0.5], "resp_amplitude": [0.25, 0.75, 1.0], "z_mm": [0.0, 1.0, 2.0, 3.0, 4.0],
+            "y_mm": list(range(8)), "x_mm": list(range(12))}
+    w = VolumeWriter(tmp_path / "volumes.h5", axes, True, True, run_key="k")
+    w.create("recon/p/v/m", (2, 3, 5, 8, 12), 5)
+    rng = np.random.default_rng(3)
+    vol = (rng.normal(size=(2, 3, 5, 8, 12)) * 10.0 ** rng.integers(-8, 4, size=(2, 3, 5, 8, 12))).astype(np.float32)
+    w.write("recon/p/v/m", vol[:, :, :2], [0, 1])
+    w.write("recon/p/v/m", vol[:, :, 2:], [2, 3, 4])
+    for f in (2, 4):
+        def reduce(v, f=f):
+            return downsample(v, f)
+
+        assert np.array_equal(w.read("recon/p/v/m", reduce=reduce), downsample(w.read("recon/p/v/m"), f))
+        for z in ([4, 0, 2], [1, 2]):
+            got = w.read("recon/p/v/m", z, reduce=reduce)
+            assert got.shape == (2, 3, len(z), 8 // f, 12 // f)
+            assert np.array_equal(got, downsample(vol[:, :, z], f)), (f, z)
+    w.abort()
+
+
+def test_the_fit_from_a_reader_of_blocks_is_the_same_bits(reference, tmp_path):
+    """mc's fit reads its first pass through ``reduce`` (the stage: unit by unit, onto the registration's
+    grid at ``downsample`` 2): the same model, bit for bit, as the block means of the whole first pass,
+    for blocks of one slice."""
+    from clrecon.api import load_scene as load
+    from clrecon.pipeline.context import resolve_targets
+    from clrecon.reconstruction import reconstruct
+    from clrecon.reconstruction.motion import mc_fbp
+    from clrecon.scan import table as geometry
+    from clrecon.simulation import simulate
+
+    out, _ = reference
+    sc = load("tiny", recon={"mc": {"downsample": 2, "rounds": 1}})
+    pitch = sc.scan.pitches[0]
+    table = geometry.projection_table(sc, pitch)
+    store = simulate.simulate(sc, pitch, cache_dir=tmp_path, progress=False)
+    with h5py.File(out / "volumes.h5", "r") as f:
+        first = f["recon/p0.100/noise-free/barycentric"][()]
+    with mc_fbp.MCScan(reconstruct.ReconstructionConfig.from_scene(sc), sc.recon.mc, sc.scanner, table,
+                       geometry.usable_table(sc, table)[0], store, reconstruct.slice_positions(sc, None),
+                       resolve_targets(sc)) as scan:
+        assert scan.f == 2
+        whole, _ = mc_fbp.fit_model(scan, first, "noise-free")
+
+        def by_slice(reduce):
+            return np.concatenate([reduce(first[:, :, k:k + 1]) for k in range(first.shape[2])], axis=2)
+
+        blocks, _ = mc_fbp.fit_model(scan, by_slice, "noise-free")
+    assert whole.grid == blocks.grid and (whole.grid.nx, whole.grid.ny) == (first.shape[-1] // 2, first.shape[-2] // 2)
+    assert np.array_equal(whole.fields, blocks.fields) and np.abs(whole.fields).max() > 0
+
+
 @pytest.mark.parametrize("table, key", [("rounds = 0", "recon.mc.rounds = 0"),
                                         ("downsample = 9", "recon.mc.downsample = 9"),
                                         ("flow_radius = 1.5", "recon.mc.flow_radius = 1.5"),

@@ -206,3 +206,55 @@ def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
     assert memory.working_parts(*args[0.02][:2], one_round.recon.mc, *args[0.02][3:])["round backprojection"] == 0
     coarse = api.load_scene("demo", recon={"mc": {"downsample": 2}})
     assert run_costs(coarse, methods=(*paper, "mc"))["peak_memory_bytes"] < with_mc
+
+
+def test_the_mc_model_follows_the_registration_it_runs():
+    """Lucas-Kanade registers in a pool of processes (``registration.FLOW_BYTES_PER_VOXEL`` each, in the
+    process below ``POOL_MIN_VOXELS``); TV-L1 runs in the process on the OpenCL device, no pool: its
+    fit holds one registration's ``flow.BYTES_PER_VOXEL`` (64 B a voxel of the registration grid)."""
+    from clrecon.reconstruction.motion import flow, memory, registration
+    from clrecon.reconstruction.rebin import slice_window_mm
+
+    scene = load_scene("demo")
+    sc, rc = scene.scanner, scene.recon
+    w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
+    ext = (rc.nz - 1) * rc.slice_mm
+    n_reg = rc.nz * rc.ny * rc.nx
+
+    def parts(reg):
+        knobs = api.load_scene("demo", recon={"mc": {"registration": reg}}).recon.mc
+        return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
+                                    scene.scan.projection_count(sc, 0.1), 1)
+
+    lk, tv = parts("lucas_kanade"), parts("tvl1")
+    assert tv["registration processes"] == 0
+    pool = registration.registration_workers(n_reg, available_bytes=1 << 62) > 1
+    assert lk["registration processes"] > 0 if pool else lk["registration processes"] == 0
+    in_process = 0 if pool else registration.FLOW_BYTES_PER_VOXEL * n_reg
+    assert tv["fit"] - lk["fit"] == flow.BYTES_PER_VOXEL * n_reg - in_process
+    assert {k: v for k, v in tv.items() if k != "fit"} == {k: v for k, v in lk.items() if k != "fit"} | {
+        "registration processes": 0}
+
+
+def test_the_mc_model_holds_the_first_pass_on_the_registration_grid_only():
+    """With ``downsample`` f the fit holds the first pass f**2 times smaller (read a unit at a time and
+    block-averaged, never whole at full resolution); the read of one unit (its bytes and its array) is
+    what grows with the unit's slices."""
+    from clrecon.reconstruction.motion import memory
+    from clrecon.reconstruction.rebin import slice_window_mm
+
+    scene = load_scene("paper-p010")
+    sc, rc = scene.scanner, scene.recon
+    w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
+    ext = (rc.nz - 1) * rc.slice_mm
+
+    def fit(ds, unit_slices, rounds=2):
+        knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds, "rounds": rounds}}).recon.mc
+        return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
+                                    scene.scan.projection_count(sc, 0.1), unit_slices)["fit"]
+
+    full = 50 * rc.nz * rc.ny * rc.nx * 4  # the first pass at full resolution: 5.77 GB
+    coarse = 50 * rc.nz * (rc.ny // 2) * (rc.nx // 2) * 4
+    assert fit(2, 1) < full + coarse  # the whole fit holds less than the full stack beside its copy did
+    assert fit(2, rc.nz) == coarse + 2 * full  # the whole pass as one unit: its read is the fit's peak
+    assert fit(1, 1) > full

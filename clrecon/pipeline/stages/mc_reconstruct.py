@@ -4,7 +4,8 @@ registered (c, a) motion model, made from the method's first pass (the registry'
 :mod:`clrecon.reconstruction.motion.mc_fbp`'s; this stage wires it to a run.
 
 Per noise variant: the first pass ``recon/<pitch>/<variant>/<first pass>`` is read back from the
-writer's unit files and the model fitted (:func:`mc_fbp.fit_model`); it is saved as its own unit
+writer's unit files (unit by unit, onto the registration's grid) and the model fitted
+(:func:`mc_fbp.fit_model`); it is saved as its own unit
 (``volumes.h5.units/mc/``, atomic, checksummed: :mod:`clrecon.reconstruction.motion.persist`),
 and a resumed run loads it instead of registering again. Then one unit per (slab, variant)
 (:func:`mc_fbp.reconstruct_slab`, in this process or on a Dask worker:
@@ -68,7 +69,11 @@ def motion_model(run, scan: mc_fbp.MCScan, pk: str, variant: str, seconds: dict)
         _note(run, pk, variant, got[1], seconds)
         return got[0]
     t_start = time.perf_counter()
-    first = run.writer.read(recon_path(pk, variant, mc_fbp.FIRST_PASS))
+    path = recon_path(pk, variant, mc_fbp.FIRST_PASS)
+
+    def first(reduce):  # read unit by unit onto the registration's grid: never held whole at full resolution
+        return run.writer.read(path, reduce=reduce)
+
     warning = mc_fbp.thin_warning(pk, run.slices_z)
     if warning:
         run.log(warning)

@@ -98,7 +98,10 @@ class MCScan:
 
     def pool(self, grid: FieldGrid):
         """The process pool the registrations run in (made once per scan), or None: one core, a
-        script without a ``__main__`` guard (:func:`spawn_is_safe`), or memory for one only."""
+        script without a ``__main__`` guard (:func:`spawn_is_safe`), memory for one only, or the
+        TV-L1 registration (it runs on the OpenCL device in this process, which uses every core)."""
+        if self.knobs.registration == "tvl1":
+            return None
         if self._pool is None:
             n = registration_workers(grid.nx * grid.ny * grid.nz)
             self._pool = (spawned_pool(n) if n > 1 and spawn_is_safe() else None) or False
@@ -138,7 +141,10 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
     """The motion model of one noise variant on the registration's grid, after ``knobs.rounds`` rounds.
 
     Round 1 registers ``first_pass`` ((n_c, n_r, S, ny, nx) HU on the reconstruction grid, or
-    broadcastable to it: downsampled ``knobs.downsample`` times in-plane here) and fits the
+    broadcastable to it: downsampled ``knobs.downsample`` times in-plane here; or a callable
+    ``read(reduce)`` that returns it with ``reduce`` applied to each block of slices as it is read,
+    so that where the registration works coarser the full-resolution first pass is never held
+    whole, e.g. ``VolumeWriter.read``'s ``reduce``) and fits the
     (c, a) model (:func:`method.register`); each further round backprojects every target of every
     slab with that model on the coarse grid (:func:`method.backproject_slab`), registers those
     images and fits again. Where the scan is one slab and every variant's rows fit
@@ -153,7 +159,10 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
     say = log or (lambda line: None)
     nc, nr = scan.shape
     grid = mcm.field_grid(scan.coarse, scan.slices_z)
-    first = mcm.downsample(first_pass, scan.f)
+    if callable(first_pass):
+        first = first_pass(lambda v: mcm.downsample(v, scan.f))
+    else:
+        first = mcm.downsample(first_pass, scan.f)
     first = np.broadcast_to(first, (nc, nr) + first.shape[2:])
     say(f"registering {variant} (round 1 of {knobs.rounds}, "
         f"{nc - 1 + nr - 1} registrations on {grid.nx} x {grid.ny} x {grid.nz})")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from clrecon.reconstruction import rebin, reconstruct
+from clrecon.reconstruction.motion import flow
 from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion.model import FIT_BLOCK
 from clrecon.reconstruction.motion.registration import FLOW_BYTES_PER_VOXEL, registration_workers
@@ -72,19 +73,23 @@ def _slab_slices(rows_per_mm: float, reach_mm: float, slice_mm: float, nz: int) 
 
 def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
                   n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int,
-                  max_projections: int | None = None) -> dict[str, int]:
+                  max_projections: int | None = None, unit_slices: int | None = None) -> dict[str, int]:
     """Modelled bytes of ``mc`` at one pitch beside the process's baseline, by part of its work.
 
     The parts follow one another (the largest is the method's peak, :func:`working_bytes`), except
     ``registration processes``, which runs beside ``fit`` in processes of its own.
 
     - ``fit`` (each round's registration and model fit, :func:`mc_fbp.fit_model`): the first pass
-      read back (targets x slices x ny x nx float32; a downsampled copy where the registration works
-      coarser), the previous round's images on the registration grid (rounds after the first), the
+      on the registration grid (targets x slices x ny x nx float32, ``downsample`` times smaller
+      in-plane where the registration works coarser: read back a unit of ``unit_slices`` slices at
+      a time and block-averaged, so the full-resolution stack is never held), and the larger of that
+      read (one unit twice: its file's bytes and its array; the whole first pass for ``unit_slices``
+      None) and the rest: the previous round's images on the registration grid (rounds after the first), the
       plane rows kept for the final pass (every variant's, where kept), the registration's fields on
       its grid (``estimate.separable_parts``: n_resp + n_cardiac fields of 3 components float32, the
-      respiratory averages float32 and the cardiac ones float64), the old and new model (2 x basis
-      size fields) and the fit's float64 block (``model.FIT_BLOCK``; the targets' fields are summed a
+      respiratory averages float32, the cardiac ones float64 and their float32 copy), one
+      registration's own where it runs in this process, the old and new model (2 x basis size
+      fields) and the fit's float64 block (``model.FIT_BLOCK``; the targets' fields are summed a
       block at a time, ``model.fit_separable_model``);
     - ``round backprojection`` (rounds after the first, per slab): the first pass and the earlier slabs' images,
       the rows kept for other variants, the slab's first-pass plan and slots (:data:`PLAN_BYTES`
@@ -96,9 +101,11 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       variant's where kept), the plan and slots, every variant's model, the model refined to the
       reconstruction grid, and the larger of the read (rows not kept) or the device copies of the
       rows and the refined model with two slabs of output (one being written behind);
-    - ``registration processes``: ``FLOW_BYTES_PER_VOXEL`` per voxel of the registration grid and
-      :data:`WORKER_BYTES` in each, one per core up to ``MAX_WORKERS`` (none below ``POOL_MIN_VOXELS``:
-      the registrations then run in the process, and ``fit`` holds one's ``FLOW_BYTES_PER_VOXEL``).
+    - ``registration processes`` (Lucas-Kanade, ``knobs.registration``): ``FLOW_BYTES_PER_VOXEL``
+      per voxel of the registration grid and :data:`WORKER_BYTES` in each, one per core up to
+      ``MAX_WORKERS`` (none below ``POOL_MIN_VOXELS``: the registrations then run in the process,
+      and ``fit`` holds one's ``FLOW_BYTES_PER_VOXEL``). TV-L1 runs in the process on the OpenCL
+      device (no pool): ``fit`` holds one registration's ``flow.BYTES_PER_VOXEL``, and this part is 0.
 
     The plane rows of a slab: (planes, n_cols) float32 per projection its first-pass plan uses (those
     within the SSRB window of its slices; at most ``max_projections``, the scan's);
@@ -130,19 +137,25 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     cny, cnx = ny // f, nx // f
     n_reg = nz * cny * cnx
     vox = ny * nx
-    first = n_targets * nz * vox * 4 + (n_targets * n_reg * 4 if f > 1 else 0)
+    first = n_targets * n_reg * 4  # the first pass on the registration grid
+    unit = n_targets * min(nz, unit_slices or nz) * vox * 4  # one unit file of the first pass, full resolution
+    read_first = 2 * unit  # its file's bytes and its array (then its float64 block means, 2 / f**2 of it)
     imgs = n_targets * n_reg * 4 if knobs.rounds > 1 else 0
     fld = 3 * n_reg * 4  # one field on the registration grid
     nb = (1 + 2 * min(knobs.resp_degree, n_resp - 1)
           + 2 * min(knobs.cardiac_harmonics, (n_cardiac - 1) // 2))
     fit_block = (4 * n_targets + nb) * FIT_BLOCK * 8
-    registration = (n_resp + n_cardiac) * fld + n_resp * n_reg * 4 + n_cardiac * n_reg * 8
+    registration = (n_resp + n_cardiac) * fld + n_resp * n_reg * 4 + n_cardiac * n_reg * (8 + 4)
     plan = PLAN_BYTES * s * scanner.views_per_rotation * n_targets
     read = 3 * min(mcm.READ_CHUNK_BYTES, n_proj * scanner.n_rows * scanner.n_cols * 4)
-    workers = registration_workers(n_reg, available_bytes=1 << 62)  # 1: in this process, no pool
-    if workers == 1:
-        registration += FLOW_BYTES_PER_VOXEL * n_reg
-    fit = first + imgs + kept + registration + 2 * nb * fld + fit_block
+    if knobs.registration == "tvl1":  # on the OpenCL device, in this process: no pool
+        workers, per_voxel = 0, flow.BYTES_PER_VOXEL
+    else:
+        workers = registration_workers(n_reg, available_bytes=1 << 62)  # 1: in this process, no pool
+        per_voxel = FLOW_BYTES_PER_VOXEL
+    if workers <= 1:
+        registration += per_voxel * n_reg
+    fit = first + max(read_first, imgs + kept + registration + 2 * nb * fld + fit_block)
     # while a slab's rows are read, the raw rows of the read; while it is backprojected, their device copy,
     # the model's and the images (never both at once)
     # (the round's images, np.empty, are touched slab by slab: the earlier slabs' and this slab's)
@@ -158,9 +171,10 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
 
 
 def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
-                  n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int, max_projections: int | None = None) -> int:
+                  n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int, max_projections: int | None = None,
+                  unit_slices: int | None = None) -> int:
     """Modelled memory of ``mc`` at one pitch (bytes), beside the process's baseline: the largest
     part of :func:`working_parts` in the process, with the registration processes beside the fit."""
     p = working_parts(scanner, window_mm, knobs, z_extent_mm, feed_mm, n_var, n_cardiac, n_resp, nz, ny, nx,
-                      max_projections)
+                      max_projections, unit_slices)
     return max(p["fit"] + p["registration processes"], p["round backprojection"], p["final pass"])
