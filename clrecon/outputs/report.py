@@ -267,8 +267,10 @@ def iterative_markdown(results: dict) -> list[str]:
     slabs = ((results.get("stages") or {}).get("mcir") or {}).get("slabs") or {}
     if not slabs:
         return []
+    start = ((results.get("stages") or {}).get("mcir") or {}).get("start", "zero")
     lines = ["## mcir: the OS-SART solver", "",
-             "Relative data residual ||p - A x|| / ||p|| over the slab's cone-beam rows: of the start (zero), after "
+             f"Started from: {start if start == 'zero' else f'the {start} volume of the reference state'}. "
+             "Relative data residual ||p - A x|| / ||p|| over the slab's cone-beam rows: of the start, after "
              "each epoch (running: summed as each motion-state bin was visited) and of the final volume; the "
              "solver stops after its epochs or when an epoch gains less than its tolerance, and returns its start "
              "if the final residual is higher (docs/iterative.md).", "",

@@ -125,9 +125,10 @@ class IterativeConfig(Section):
                      "epoch k's relaxation is relaxation / (1 + decay k)")
     tol: float = F(0.01, number_in(0.0, 1.0, "", "relative"),
                    "stop when an epoch lowers the data residual by less than this fraction")
-    init: str = F("zero", one_of(("zero", "first_pass", "mc")),
-                  "OS-SART's start: 'zero', or the reference state's target of the first pass (barycentric) or "
-                  "of the mc method (needs mc among the methods), resampled to the iterative volume")
+    init: str = F("auto", one_of(("auto", "zero", "first_pass", "mc")),
+                  "OS-SART's start: the reference state's target of the first pass (barycentric) or of the mc "
+                  "method (needs mc among the methods), resampled to the iterative volume; 'auto': mc's where the "
+                  "run has mc, else the first pass's; 'zero': from nothing (docs/iterative.md)")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -178,9 +178,9 @@ def test_static_scene_gives_the_same_volume_for_every_method(tmp_path, still):
     voxel_basis = {"mcir"}  # solved on a voxel basis, not from SSRB rows: its own floor (below)
     for m in set(methods) - set(phase_space) - voxel_basis:  # another turn's SSRB rows: same error floor
         assert res["metrics"]["p0.100"]["noise-free"][m]["large"]["mae_hu"] < 15.0, m
-    # mcir (OS-SART on 12-mm voxels) against an FBP truth: the voxel basis's own floor, measured
-    # 67.8 and 72.1 HU large FOV on these two scenes (docs/iterative.md "Coarse grids"); a geometry or sign slip
-    # gives several hundred
+    # mcir (OS-SART on 12-mm voxels, from mc's image) against an FBP truth: the voxel basis's own floor,
+    # measured 64.1 and 57.3 HU large FOV on these two scenes (67.8 and 72.1 from zero; docs/iterative.md
+    # "Coarse grids"); a geometry or sign slip gives several hundred
     for m in voxel_basis & set(methods):
         assert res["metrics"]["p0.100"]["noise-free"][m]["large"]["mae_hu"] < 100.0, m
     # and it matches the ground truth up to SSRB's cone-angle approximation

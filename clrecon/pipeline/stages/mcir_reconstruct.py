@@ -52,14 +52,24 @@ def slabs(run, table) -> list[tuple[int, int]]:
     return [(a, a + 1) for a in range(n)]
 
 
-def start_image(run, pk: str, variant: str, model, a: int, b: int) -> np.ndarray | None:
-    """OS-SART's start for slices ``a .. b-1`` (``[recon.mcir] init``): None ('zero'), or the target
-    nearest the model's reference state of the first pass ('first_pass') or of ``mc`` ('mc'), as
-    written by its stage: (b - a, ny, nx) HU float32."""
+def start_method(run) -> str | None:
+    """The method whose volumes OS-SART starts from (``[recon.mcir] init``): None ('zero'), the first
+    pass ('first_pass'), ``mc`` ('mc'; 'auto' where the run has ``mc``), else the first pass."""
     init = run.scene.recon.mcir.init
     if init == "zero":
         return None
-    name = mc_fbp.FIRST_PASS if init == "first_pass" else mc_fbp.NAME
+    if init == mc_fbp.NAME or (init == "auto" and mc_fbp.NAME in run.methods):
+        return mc_fbp.NAME
+    return mc_fbp.FIRST_PASS
+
+
+def start_image(run, pk: str, variant: str, model, a: int, b: int) -> np.ndarray | None:
+    """OS-SART's start for slices ``a .. b-1``: None (from zero), or the target nearest the model's
+    reference state of :func:`start_method`'s volumes, as its stage wrote them: (b - a, ny, nx) HU
+    float32."""
+    name = start_method(run)
+    if name is None:
+        return None
     vol = run.writer.read(recon_path(pk, variant, name), np.arange(a, b))
     c_ref, a_ref = model.reference
     i = int(np.argmin(np.abs(np.asarray(run.targets.cardiac) - c_ref))) if vol.shape[0] > 1 else 0
@@ -91,6 +101,7 @@ def stage(run, pitch: float, plan, store):
     if isinstance(got, Idle):
         return got
     todo, scan, models, seconds = got
+    run.note("mcir", start=start_method(run) or "zero")
     table = scan.plan_table  # the usable views (a measured scan's excluded ones left out)
     cuts = slabs(run, table)
     units_ = [_unit(run, pitch, table, store, a, b, v, models[v]) for v in run.variants if todo[v].size
