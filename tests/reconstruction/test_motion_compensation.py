@@ -28,6 +28,7 @@ from clrecon.reconstruction.motion.backproject import (
     MCConfig,
     ModelWindow,
     PlaneRows,
+    displacement_margin_mm,
     mc_backproject,
     mc_backproject_reference,
     plane_range,
@@ -275,6 +276,9 @@ def test_refining_a_slabs_planes_is_the_same_bits_as_every_plane(detector, slab_
     if slab_z[0] < 0:
         assert k0 > 0 and k1 < model.grid.nz                # cut on both sides
     assert np.array_equal(win.model.fields, whole.fields[:, :, k0:k1])
+    reach = mcm.reach_mm(model, pairs)  # bounds every target's z field on the refined grid, and not loosely
+    worst = max(float(np.abs(whole.displacement(*t)[2]).max()) for t in pairs)
+    assert worst <= reach < 1.01 * worst
     for tgt in pairs:
         a = mc_backproject(rows, pb, sp, sw, whole, tuple(tgt), zs, geom)
         b = mc_backproject(rows, pb, sp, sw, win, tuple(tgt), zs, geom)
@@ -297,6 +301,14 @@ def test_a_window_narrower_than_the_reach_changes_the_images():
     a = mc_backproject_reference(rows, pb, sp, sw, whole, (0.9, 0.05), zs, geom)
     b = mc_backproject_reference(rows, pb, sp, sw, narrow, (0.9, 0.05), zs, geom)
     assert not np.array_equal(a, b)
+
+
+def test_the_displacement_margin_plane_by_plane_is_the_whole_fields_one():
+    """The curved kernel's build reads the margin: a plane at a time it is the same float as over the
+    whole fields at once (the sum over b runs in the same order per voxel)."""
+    f = (np.random.default_rng(8).normal(size=(7, 3, 9, 13, 11)) * 3).astype(np.float32)
+    assert displacement_margin_mm(f) == float(np.abs(f[1:]).sum(axis=0).max()) * 2.0
+    assert displacement_margin_mm(f[:1]) == 0.0
 
 
 def test_reach_planes_bound_the_slab_and_clamp_to_the_grid():

@@ -113,20 +113,27 @@ def shrink_of(knobs) -> tuple | None:
     return knobs.flow_radius, FlowConfig().hu_window
 
 
-#: Relative slack on :func:`reach_planes`' bound for the float32 rounding of the kernel's sums
-#: and interpolations (each within a few ulps of the exact bound).
+#: Slack on :func:`reach_mm`'s bound for the float32 rounding of the kernel's sums and
+#: interpolations: this share of the bound and of the sum of its terms' magnitudes (the rounding
+#: of sum_b B_b U_b is a few ulps of the latter).
 REACH_SLACK = 1e-4
 
 
 def reach_mm(model: MotionModel, pairs) -> float:
     """A bound (mm) on |z_r - z| of the kernel's reference positions x_r = x - u_t(x_r) for the
-    targets ``pairs`` (T, 2) (c, a): sum over b of max_t |B_b(t)| times max |U_b,z| of ``model``'s
-    fields. It holds on any finer in-plane grid too (:func:`refine`'s trilinear samples lie within
-    the fields' range)."""
+    targets ``pairs`` (T, 2) (c, a): the largest |u_t,z| = |sum_b B_b(t) U_b,z| over the model's grid
+    points and the targets (each step of the inversion moves z by a trilinear sample of u_t,z,
+    within the grid points' range), with :data:`REACH_SLACK`. It holds on any finer in-plane grid
+    too (:func:`refine`'s samples interpolate the same grid points, and u_t is linear in the fields).
+    One target's z field at a time."""
     pairs = np.asarray(pairs, np.float64).reshape(-1, 2)
-    tb = np.abs(model.basis.values(pairs[:, 0], pairs[:, 1])).max(axis=0)
-    uz = np.array([float(np.abs(model.fields[b, 2]).max()) for b in range(model.basis.size)])
-    return float(np.dot(tb, uz)) * (1.0 + REACH_SLACK)
+    tb = model.basis.values(pairs[:, 0], pairs[:, 1]).astype(np.float32)  # (T, NB)
+    uz = model.fields[:, 2]  # (NB, nz, ny, nx)
+    worst = 0.0
+    for b in tb:
+        worst = max(worst, float(np.abs(np.tensordot(b, uz, axes=(0, 0))).max()))
+    terms = float(np.dot(np.abs(tb).max(axis=0), [float(np.abs(uz[k]).max()) for k in range(len(uz))]))
+    return worst * (1.0 + REACH_SLACK) + REACH_SLACK * terms
 
 
 def reach_planes(grid: FieldGrid, slab_z, reach: float) -> tuple[int, int]:
