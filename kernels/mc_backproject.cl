@@ -39,7 +39,10 @@
 // Layouts: rows (P, NPMAX, C) float, plane p of projection q at rows[(q NPMAX + p) C];
 // slot_proj, slot_w (S, V, K) (empty slots: proj -1, at the end of a list); proj_dbasis (P, NB):
 // B_b(p) - B_b(t), formed on the host per target in float32 (the scalar kernel's subtraction);
-// fields (NB, 3, MZ, ny, nx); target_field (3, MZ, ny, nx); out (S, ny, nx). Offsets within
+// fields (NB, 3, MZ_HELD, ny, nx); target_field (3, MZ_HELD, ny, nx): planes mz_first ..
+// mz_first + mz_held - 1 of the model's mz (a slab's window, backproject.ModelWindow: the host holds
+// every plane the slab's reference positions reach; coordinates and clamp are the whole model's);
+// out (S, ny, nx). Offsets within
 // one projection's rows (NPMAX C) and within one field component (MZ ny nx) are int: the host
 // checks they are below 2^31.
 // Work-item (bx, iy, s): voxels ix = LANES bx .. LANES bx + LANES - 1 of row iy of slice s.
@@ -80,6 +83,7 @@ void mc_backproject(__global const float *restrict rows,
                     const float col_centre,
                     const int n_slices, const int n_slots, const int np_max, const float inv_plane_dz,
                     const int mz, const float model_z0, const float inv_model_dz,
+                    const int mz_first, const int mz_held,
                     const float window_mm, const float inv_taper_mm)
 {
     const int ix0 = LANES * get_global_id(0), iy = get_global_id(1), s = get_global_id(2);
@@ -101,9 +105,11 @@ void mc_backproject(__global const float *restrict rows,
     const bool any_fov = row_in && ix0 < nx && xc * xc + y * y <= fov_r2 * 1.0002f;
     const floatL x = fov ? xv : 0.0f;           // lanes outside: the point (0, 0)
     const floatL yv = fov ? (floatL)(y) : 0.0f;
-    const float z = row_in ? slice_z[s] : 0.0f;
+    // a work-item past the image samples the model at its slice's z (s < n_slices: the global size),
+    // within the planes a window holds (backproject.ModelWindow), and stores nothing
+    const float z = slice_z[s < n_slices ? s : n_slices - 1];
     const float inv_voxel = 1.0f / voxel_mm;
-    const size_t fstride = (size_t)mz * ny * nx;   // one component of one field
+    const size_t fstride = (size_t)mz_held * ny * nx;   // one component of one field (the planes held)
 
     // 1.-2. the voxels' reference positions and their basis displacements W_b (b >= 1)
     floatL W[NB][3];

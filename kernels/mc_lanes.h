@@ -118,7 +118,8 @@
 #endif
 
 // motion_grid.h's GRID_CORNERS for LANES points: int offsets o000 within one field component,
-// and the weights tx, ty, tz. Reads the kernel's nx, ny, mz, inv_voxel, model_z0, inv_model_dz.
+// and the weights tx, ty, tz. Reads the kernel's nx, ny, mz, inv_voxel, model_z0, inv_model_dz
+// and mz_first (the first plane the fields hold: offsets count from it).
 #define GRID_CORNERS_L(px, py, pz)                                                            \
     floatL fx = (px) * inv_voxel + 0.5f * (float)(nx - 1);                                    \
     floatL fy = (py) * inv_voxel + 0.5f * (float)(ny - 1);                                    \
@@ -131,7 +132,7 @@
     gy0 = gy0 > ny - 2 ? ny - 2 : gy0;                                                        \
     gz0 = gz0 > mz - 2 ? mz - 2 : gz0;                                                        \
     const floatL tx = fx - TO_FLOAT_L(gx0), ty = fy - TO_FLOAT_L(gy0), tz = fz - TO_FLOAT_L(gz0); \
-    const intL o000 = (gz0 * ny + gy0) * nx + gx0;                                            \
+    const intL o000 = ((gz0 - mz_first) * ny + gy0) * nx + gx0;                               \
     const int sy = nx, sz = nx * ny;
 
 #define TRILINEAR_L(f)                                                                        \

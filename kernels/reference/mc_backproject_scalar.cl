@@ -31,7 +31,8 @@
 //
 // Layouts: rows (P, NPMAX, C) float, plane p of projection q at rows[(q NPMAX + p) C];
 // slot_proj, slot_w (S, V, K) (empty slots: proj -1, at the end of a list); proj_basis (P, NB);
-// fields (NB, 3, MZ, ny, nx); target_field (3, MZ, ny, nx); out (S, ny, nx).
+// fields (NB, 3, MZ_HELD, ny, nx); target_field (3, MZ_HELD, ny, nx): planes mz_first .. of the
+// model's mz, as mc_backproject.cl; out (S, ny, nx).
 // Compile-time: LX, LY (local size), VCHUNK (views per barrier chunk), NB (basis size, >= 1),
 // NINV (inversion steps), CURVED (+ ATAN_TERMS, ATAN_C*: fan_column.h).
 
@@ -46,6 +47,7 @@
 #define COL_CENTRE (0.5f * (float)(n_cols - 1))
 #endif
 
+#define GRID_Z_FIRST mz_first
 #include "motion_grid.h"
 
 __kernel __attribute__((reqd_work_group_size(LX, LY, 1)))
@@ -67,6 +69,7 @@ void mc_backproject(__global const float *restrict rows,
                     const float col_centre,
                     const int n_slices, const int n_slots, const int np_max, const float inv_plane_dz,
                     const int mz, const float model_z0, const float inv_model_dz,
+                    const int mz_first, const int mz_held,
                     const float window_mm, const float inv_taper_mm)
 {
     const int ix = get_global_id(0), iy = get_global_id(1), s = get_global_id(2);
@@ -75,9 +78,9 @@ void mc_backproject(__global const float *restrict rows,
     // no early return: every work-item of the group must reach the barriers
     const bool in_image = ix < nx && iy < ny && s < n_slices;
     const bool in_fov = in_image && x * x + y * y <= fov_r2;
-    const float z = in_image ? slice_z[s] : 0.0f;
+    const float z = slice_z[s < n_slices ? s : n_slices - 1];   // past the image: its slice's (stores nothing)
     const float inv_voxel = 1.0f / voxel_mm;
-    const size_t fstride = (size_t)mz * ny * nx;   // one component of one field
+    const size_t fstride = (size_t)mz_held * ny * nx;   // one component of one field (the planes held)
 
     // 1.-2. the voxel's reference position and its basis displacements W_b (b >= 1)
     float W[NB][3];

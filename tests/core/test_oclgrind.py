@@ -374,6 +374,7 @@ def test_motion_compensation_kernels(grind, clean, detector, monkeypatch):
     from clrecon.bench import reference_kernels
     from clrecon.reconstruction.fbp import FanBeamGeometry
     from clrecon.reconstruction.motion import backproject as mcb
+    from clrecon.reconstruction.motion import method as mcm
     from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel
 
     rng = np.random.default_rng(34)
@@ -404,6 +405,19 @@ def test_motion_compensation_kernels(grind, clean, detector, monkeypatch):
             old = reference_kernels.mc_backproject_scalar(bp, sp, sw, (0.2, 0.7))
         assert np.abs(got - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
         assert np.abs(old - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
+    # a slab's window of a deeper model's planes (method.refine): its reads stay in the planes held
+    deep = dataclasses.replace(grid, nz=16)
+    small = MotionModel(basis=basis, grid=deep, fields=(0.3 * rng.normal(size=(basis.size, 3) + deep.shape))
+                        .astype(np.float32), reference=(0.5, 0.5))
+    win = mcm.refine(small, geom, np.array([12.0, 14.0]), np.array([(0.2, 0.7)]))
+    assert 0 < win.first and win.first + win.model.grid.nz < deep.nz
+    for m in (small, win):
+        with mcb.MCBackprojector(rows, pb, m, [12.0, 14.0], geom, runtime=grind) as bp:
+            got = bp(sp, sw, (0.2, 0.7))
+            old = reference_kernels.mc_backproject_scalar(bp, sp, sw, (0.2, 0.7))
+        if m is small:
+            whole_got, whole_old = got, old
+    assert np.array_equal(got, whole_got) and np.array_equal(old, whole_old)
     vol = rng.normal(size=grid.shape).astype(np.float32)
     got = warp.warp(vol, model, [(0.1, 0.2), (0.9, 0.6)], [-6.0, 1.0, 9.0], runtime=grind)
     ref = warp.warp_reference(vol, model, [(0.1, 0.2), (0.9, 0.6)], [-6.0, 1.0, 9.0])

@@ -258,3 +258,52 @@ def test_the_mc_model_holds_the_first_pass_on_the_registration_grid_only():
     assert fit(2, 1) < full + coarse  # the whole fit holds less than the full stack beside its copy did
     assert fit(2, rc.nz) == coarse + 2 * full  # the whole pass as one unit: its read is the fit's peak
     assert fit(1, 1) > full
+
+
+def test_the_mc_final_pass_counts_only_the_model_planes_a_slab_reaches(monkeypatch):
+    """The final pass refines the model on a slab's planes (its slices and ``margin_mm`` both sides,
+    ``method.reach_planes``), not on every plane of the scan: on a whole paper-p010 (110 slices) each
+    slab's refined model and its device copy are that many planes' bytes, not 110's."""
+    from clrecon.reconstruction.motion import memory
+    from clrecon.reconstruction.motion import method as mcm
+    from clrecon.reconstruction.motion.model import FieldGrid
+    from clrecon.reconstruction.rebin import slice_window_mm
+
+    scene = load_scene("paper-p010")
+    sc, rc = scene.scanner, scene.recon
+    w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
+    ext = (rc.nz - 1) * rc.slice_mm
+    seen = []
+    real = memory.slab_model_planes
+
+    def spy(*a):
+        seen.append(real(*a))
+        return seen[-1]
+
+    def final(ds, planes):
+        knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds}}).recon.mc
+        monkeypatch.setattr(memory, "slab_model_planes", planes)
+        return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny,
+                                    rc.nx, scene.scan.projection_count(sc, 0.1), 1)["final pass"]
+
+    plane_bytes = 7 * 3 * rc.ny * rc.nx * 4  # one plane of the 7 basis fields on the reconstruction grid
+    for ds in (1, 2):
+        seen.clear()
+        now = final(ds, spy)
+        every = final(ds, lambda s, dz, m, nz: nz)
+        assert len(seen) == 1 and 0 < seen[0] < rc.nz
+        if ds > 1:  # the host's refined planes and their device copy
+            assert every - now == 2 * (rc.nz - seen[0]) * plane_bytes
+        else:  # the model itself (no copy) where the slab's planes are half of it or more, else a copy of those
+            assert every - now == (0 if 2 * seen[0] >= rc.nz else (rc.nz - 2 * seen[0]) * plane_bytes)
+    small = final(1, lambda s, dz, m, nz: 20)  # a slab of few planes at ds 1: their copy, not the model's
+    assert final(1, lambda s, dz, m, nz: nz) - small == (rc.nz - 2 * 20) * plane_bytes
+    # the count bounds what refine holds for any slab position when the model moves points <= margin_mm
+    g = FieldGrid(nx=2, ny=2, nz=110, voxel_mm=1.0, z0_mm=-81.75, dz_mm=1.5)
+    for s in (1, 8, 30):
+        for z0 in np.linspace(-100.0, 80.0, 37):
+            k0, k1 = mcm.reach_planes(g, z0 + 1.5 * np.arange(s), 20.0)
+            assert k1 - k0 <= real(s, 1.5, 20.0, 110)
+    assert real(8, 1.5, 20.0, 110) == 8 + 2 * 14 + 4
+    assert real(100, 1.5, 20.0, 110) == 110
+    assert real(1, 0.0, 20.0, 1) == 1

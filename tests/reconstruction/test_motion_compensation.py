@@ -21,11 +21,14 @@ from clrecon.bench import reference_kernels
 from clrecon.core.resources import spawned_pool
 from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
 from clrecon.reconstruction.motion import estimate, registration, slots
+from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion import model as motion_model
 from clrecon.reconstruction.motion.backproject import (
     MCBackprojector,
     MCConfig,
+    ModelWindow,
     PlaneRows,
+    displacement_margin_mm,
     mc_backproject,
     mc_backproject_reference,
     plane_range,
@@ -244,6 +247,79 @@ def test_mc_backproject_fallback_when_every_taper_is_zero():
     ref = mc_backproject_reference(far, pb, sp, sw, model, (0.3, 0.6), zs, geom)
     assert np.abs(got - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
     assert np.abs(ref).max() > 0
+
+
+def _refine_case(detector, slab_z, f=2):
+    """A model on a 7 x 6 x 20 grid (dz 2 mm, z -19 .. 19 mm) with smooth fields of 0.8 mm, to be
+    refined ``f`` times in-plane onto ``geom`` (1: the same grid), and random rows for a slab at ``slab_z``."""
+    geom, _, rows, pb, sp, sw, _ = _random_case(detector, nx=7 * f, seed=5)
+    geom = dataclasses.replace(geom, ny=6 * f, voxel_mm=6.0 / f)
+    basis = MotionBasis(resp_degree=1, cardiac_harmonics=1)
+    coarse = FieldGrid(nx=7, ny=6, nz=20, voxel_mm=6.0, z0_mm=-19.0, dz_mm=2.0)
+    model = _smooth_model(basis, coarse, 0.8, seed=3)
+    S = len(slab_z)
+    return geom, model, rows, pb, sp[:S], sw[:S], np.asarray(slab_z, np.float64)
+
+
+@pytest.mark.parametrize("detector", ["flat", "cylindrical"])
+@pytest.mark.parametrize("slab_z", [[-1.0, 1.0], [17.5, 20.5]])  # mid-model; past its last plane (clamped)
+@pytest.mark.parametrize("f", [1, 2])                           # the model's own grid; refined 2x in-plane
+def test_refining_a_slabs_planes_is_the_same_bits_as_every_plane(detector, slab_z, f):
+    geom, model, rows, pb, sp, sw, zs = _refine_case(detector, slab_z, f)
+    pairs = np.array([(0.3, 0.6), (0.9, 0.05), (0.55, 1.0)])
+    whole = mcm.refine(model, geom)
+    assert (whole is model) == (f == 1)
+    win = mcm.refine(model, geom, zs, pairs)
+    assert isinstance(win, ModelWindow) and win.whole == whole.grid
+    k0, k1 = win.first, win.first + win.model.grid.nz
+    assert 0 < k1 - k0 < model.grid.nz / 2                  # a strict subset (at f = 1 less than half)
+    if slab_z[0] < 0:
+        assert k0 > 0 and k1 < model.grid.nz                # cut on both sides
+    assert np.array_equal(win.model.fields, whole.fields[:, :, k0:k1])
+    reach = mcm.reach_mm(model, pairs)  # bounds every target's z field on the refined grid, and not loosely
+    worst = max(float(np.abs(whole.displacement(*t)[2]).max()) for t in pairs)
+    assert worst <= reach < 1.01 * worst
+    for tgt in pairs:
+        a = mc_backproject(rows, pb, sp, sw, whole, tuple(tgt), zs, geom)
+        b = mc_backproject(rows, pb, sp, sw, win, tuple(tgt), zs, geom)
+        assert np.array_equal(a, b), np.abs(a - b).max()
+        ref = mc_backproject_reference(rows, pb, sp, sw, win, tuple(tgt), zs, geom)
+        assert np.abs(b - ref).max() < TOL["mc_f32"] * np.abs(ref).max()
+
+
+def test_a_window_narrower_than_the_reach_changes_the_images():
+    """The window's bound matters: planes cut to the slab's own (reach 0) read other field values."""
+    geom, model, rows, pb, sp, sw, zs = _refine_case("flat", [-1.0, 1.0])
+    pairs = np.array([(0.3, 0.6), (0.9, 0.05)])
+    whole = mcm.refine(model, geom)
+    assert mcm.reach_mm(model, pairs) > 0.5
+    k0, k1 = mcm.reach_planes(whole.grid, zs, 0.0)
+    k0, k1 = k0 + 1, k1 - 1                                  # no rounding plane either
+    held = dataclasses.replace(whole.grid, nz=k1 - k0, z0_mm=float(whole.grid.coords()[2][k0]))
+    narrow = ModelWindow(model=MotionModel(basis=model.basis, grid=held, fields=whole.fields[:, :, k0:k1].copy(),
+                                           reference=model.reference), whole=whole.grid, first=k0, margin_mm=0.0)
+    a = mc_backproject_reference(rows, pb, sp, sw, whole, (0.9, 0.05), zs, geom)
+    b = mc_backproject_reference(rows, pb, sp, sw, narrow, (0.9, 0.05), zs, geom)
+    assert not np.array_equal(a, b)
+
+
+def test_the_displacement_margin_plane_by_plane_is_the_whole_fields_one():
+    """The curved kernel's build reads the margin: a plane at a time it is the same float as over the
+    whole fields at once (the sum over b runs in the same order per voxel)."""
+    f = (np.random.default_rng(8).normal(size=(7, 3, 9, 13, 11)) * 3).astype(np.float32)
+    assert displacement_margin_mm(f) == float(np.abs(f[1:]).sum(axis=0).max()) * 2.0
+    assert displacement_margin_mm(f[:1]) == 0.0
+
+
+def test_reach_planes_bound_the_slab_and_clamp_to_the_grid():
+    g = FieldGrid(nx=4, ny=4, nz=12, voxel_mm=1.0, z0_mm=-11.0, dz_mm=2.0)
+    assert mcm.reach_planes(g, [-1.0, 1.0], 3.0) == (2, 10)     # planes of z -7 .. 7 read and 1 more each side
+    assert mcm.reach_planes(g, [-1.0, 1.0], 100.0) == (0, 12)
+    assert mcm.reach_planes(g, [30.0, 40.0], 1.0) == (10, 12)   # past the last plane: the clamp's two
+    assert mcm.reach_planes(g, [-40.0, -30.0], 1.0) == (0, 2)
+    with pytest.raises(ValueError, match="first"):
+        ModelWindow(model=_smooth_model(MotionBasis(), dataclasses.replace(g, nz=3), 1.0), whole=g, first=10,
+                    margin_mm=0.0)
 
 
 def test_mc_backproject_is_slab_independent():

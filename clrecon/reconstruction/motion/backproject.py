@@ -11,7 +11,8 @@ the plane through the voxel's moved position. docs/motion-model.md "The method" 
 
 Shapes: volumes (S, ny, nx); rows (P, NPMAX, C) float32; slots (S, V, K) per target; the model's
 fields (NB, 3, MZ, ny, nx) on the reconstruction's in-plane grid
-(:class:`clrecon.reconstruction.motion.model.FieldGrid`).
+(:class:`clrecon.reconstruction.motion.model.FieldGrid`), or a :class:`ModelWindow` of some of
+those planes (a slab's: :func:`clrecon.reconstruction.motion.method.refine`).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from clrecon.core.detector import atan_defines, spot_shift_in_frame
 from clrecon.core.runtime import get_runtime
 from clrecon.reconstruction import rebin
 from clrecon.reconstruction.fbp import FanBeamGeometry, filter_rows, view_table
-from clrecon.reconstruction.motion.model import MotionModel
+from clrecon.reconstruction.motion.model import FieldGrid, MotionModel
 from clrecon.scan.table import ProjectionTable
 
 #: Voxels along x per work-item, the vector lanes of ``kernels/mc_backproject.cl``: None = by the
@@ -147,6 +148,51 @@ def plane_rows(projections, table: ProjectionTable, projection_ids, scanner, geo
                      projection=ids, proj_z_mm=zk, plane_dz_mm=float(plane_dz_mm), window_mm=float(w))
 
 
+def displacement_margin_mm(fields) -> float:
+    """How far the model can move a point between two states (mm), the reach the kernel's atan fit
+    covers (:func:`_defines`): twice the largest sum over b >= 1 of |U_b| components of ``fields``
+    (NB, 3, ...) float32 (0 for the constant alone); (NB, 3, nz, ny, nx) fields a plane at a time."""
+    f = np.asarray(fields)
+    if f.shape[0] < 2:
+        return 0.0
+    if f.ndim == 5:  # (NB, 3, nz, ny, nx): plane by plane, no copy of the whole fields (the same maximum)
+        return max(displacement_margin_mm(f[:, :, k]) for k in range(f.shape[2]))
+    return float(np.abs(f[1:]).sum(axis=0).max()) * 2.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelWindow:
+    """Planes ``first .. first + model.grid.nz - 1`` of a model on the grid ``whole``.
+
+    ``model`` holds only those planes (its grid: theirs, ``nz >= 2``); the kernel samples on
+    ``whole`` (its plane coordinates and its clamp at the end planes) and reads the held planes, so
+    every sample whose two planes are held is the whole model's, bit for bit: the caller holds every
+    plane its voxels' reference positions can reach (:func:`clrecon.reconstruction.motion.method.reach_planes`).
+    ``margin_mm``: the whole model's :func:`displacement_margin_mm` (the kernel's build depends on it).
+    """
+
+    model: MotionModel
+    whole: FieldGrid
+    first: int
+    margin_mm: float
+
+    def __post_init__(self):
+        g, w = self.model.grid, self.whole
+        if (g.nx, g.ny, g.voxel_mm) != (w.nx, w.ny, w.voxel_mm):
+            raise ValueError(f"the window's grid ({g.nx} x {g.ny} at {g.voxel_mm} mm) must be the whole model's "
+                             f"in-plane grid ({w.nx} x {w.ny} at {w.voxel_mm} mm)")
+        if not (isinstance(self.first, (int, np.integer)) and 0 <= self.first <= w.nz - g.nz):
+            raise ValueError(f"first = {self.first!r}: the window's {g.nz} planes must lie within the whole "
+                             f"model's {w.nz}")
+
+    @classmethod
+    def of(cls, model) -> ModelWindow:
+        """``model`` as a window (a :class:`MotionModel`: every plane of it; a window: itself)."""
+        if isinstance(model, ModelWindow):
+            return model
+        return cls(model=model, whole=model.grid, first=0, margin_mm=displacement_margin_mm(model.fields))
+
+
 @dataclass(frozen=True, kw_only=True)
 class MCConfig:
     """Knobs of the kernel: ``taper_mm`` (width of the weight's fall to 0 at the SSRB window, mm,
@@ -186,12 +232,13 @@ def _check(rows: PlaneRows, slot_proj, slot_w, model: MotionModel, target, slice
         raise ValueError(f"target = {target!r}: must be a finite (c, a)")
 
 
-def mc_backproject_reference(rows: PlaneRows, proj_basis, slot_proj, slot_w, model: MotionModel, target,
-                             slices_z, geom: FanBeamGeometry, cfg: MCConfig | None = None) -> np.ndarray:
+def mc_backproject_reference(rows: PlaneRows, proj_basis, slot_proj, slot_w, model: MotionModel | ModelWindow,
+                             target, slices_z, geom: FanBeamGeometry, cfg: MCConfig | None = None) -> np.ndarray:
     """Float64 NumPy reference of :func:`mc_backproject`, step for step as the kernel; (S, ny, nx) mu."""
     cfg = cfg or MCConfig()
+    win = ModelWindow.of(model)
+    model, g, first = win.model, win.whole, win.first
     _check(rows, slot_proj, slot_w, model, target, slices_z, geom)
-    g = model.grid
     F = model.fields.astype(np.float64)
     tb = model.basis.values(*target)[0].astype(np.float32).astype(np.float64)
     u_t = np.tensordot(tb.astype(np.float32), model.fields, axes=(0, 0)).astype(np.float64)
@@ -210,9 +257,9 @@ def mc_backproject_reference(rows: PlaneRows, proj_basis, slot_proj, slot_w, mod
         Z = np.full_like(X, float(slices_z[s]))
         rx, ry, rz = X.copy(), Y.copy(), Z.copy()
         for _ in range(cfg.inversion_steps):
-            u = _trilinear(u_t, g, rx, ry, rz)
+            u = _trilinear(u_t, g, rx, ry, rz, first)
             rx, ry, rz = X - u[0], Y - u[1], Z - u[2]
-        Wb = _trilinear(F.reshape((-1,) + g.shape), g, rx, ry, rz).reshape(F.shape[0], 3, -1)
+        Wb = _trilinear(F.reshape((-1,) + model.grid.shape), g, rx, ry, rz, first).reshape(F.shape[0], 3, -1)
         acc = np.zeros_like(X)
         for j in range(geom.n_views):
             num = np.zeros_like(X)
@@ -254,8 +301,9 @@ def mc_backproject_reference(rows: PlaneRows, proj_basis, slot_proj, slot_w, mod
     return out
 
 
-def _trilinear(f, g, px, py, pz):
-    """Kernel-style trilinear samples of fields (n, nz, ny, nx) at points: (n, m) float64."""
+def _trilinear(f, g, px, py, pz, first: int = 0):
+    """Kernel-style trilinear samples of fields (n, nz, ny, nx) at points: (n, m) float64; the fields
+    hold planes ``first ..`` of grid ``g`` (a :class:`ModelWindow`'s)."""
     fx = np.clip(px / g.voxel_mm + 0.5 * (g.nx - 1), 0, g.nx - 1)
     fy = np.clip(py / g.voxel_mm + 0.5 * (g.ny - 1), 0, g.ny - 1)
     fz = np.clip((pz - g.z0_mm) / g.dz_mm, 0, g.nz - 1)
@@ -263,6 +311,7 @@ def _trilinear(f, g, px, py, pz):
     iy = np.minimum(np.floor(fy).astype(np.int64), g.ny - 2)
     iz = np.minimum(np.floor(fz).astype(np.int64), g.nz - 2)
     tx, ty, tz = fx - ix, fy - iy, fz - iz
+    iz = iz - first
     f = np.asarray(f, np.float64)
     if f.ndim == 3:
         f = f[None]
@@ -339,14 +388,17 @@ class MCBackprojector:
     """The kernel with one set of rows, model and geometry on the device; one call per target.
 
     ``rows`` (:class:`PlaneRows`), ``proj_basis`` (P, NB) the basis at each row's (c, a),
-    ``model``, ``slices_z`` (S,), ``geom``. Device buffers are released by :meth:`release`
+    ``model`` (a :class:`MotionModel`, or a :class:`ModelWindow` of the planes the slices reach:
+    the same images, bit for bit), ``slices_z`` (S,), ``geom``. Device buffers are released by :meth:`release`
     (or ``with``).
     """
 
-    def __init__(self, rows: PlaneRows, proj_basis, model: MotionModel, slices_z, geom: FanBeamGeometry,
-                 cfg: MCConfig | None = None, runtime=None):
+    def __init__(self, rows: PlaneRows, proj_basis, model: MotionModel | ModelWindow, slices_z,
+                 geom: FanBeamGeometry, cfg: MCConfig | None = None, runtime=None):
         self.cfg = cfg or MCConfig()
         self.rt = runtime or get_runtime()
+        self.window = ModelWindow.of(model)
+        model = self.window.model
         self.rows, self.model, self.geom = rows, model, geom
         self.slices_z = np.asarray(slices_z, np.float64)
         pb = np.asarray(proj_basis)
@@ -358,7 +410,7 @@ class MCBackprojector:
                              f"field component ({g.nz} x {g.ny} x {g.nx}) must each hold fewer than 2^31 values "
                              "(the kernel's int offsets)")
         rt = self.rt
-        margin = float(np.abs(model.fields[1:]).sum(axis=0).max()) * 2.0 if model.basis.size > 1 else 0.0
+        margin = self.window.margin_mm
         self.lanes = lanes_for(rt.device)
         self.local_size, self.view_chunk = launch_shape(rt.device)
         self._defines = _defines(geom, model.basis.size, self.cfg, margin, self.lanes, self.local_size,
@@ -385,7 +437,7 @@ class MCBackprojector:
         The kernel takes the basis differences B_b(p) - B_b(t) (P, NB) float32, formed here per
         call; ``scalar``: the reference kernel of kernels/reference/, which takes B(p) (P, NB) and
         B(t) (NB,) and subtracts them itself (the same float32 subtraction)."""
-        geom, rt, g = self.geom, self.rt, self.model.grid
+        geom, rt, g = self.geom, self.rt, self.window.whole
         _check(self.rows, slot_proj, slot_w, self.model, target, self.slices_z, geom)
         tb = self.model.basis.values(*target)[0].astype(np.float32)
         u_t = np.tensordot(tb, self.model.fields, axes=(0, 0)).astype(np.float32)
@@ -408,7 +460,8 @@ class MCBackprojector:
                     np.float32(geom.delta_beta_rad), np.float32(col_centre),
                     np.int32(S), np.int32(K), np.int32(self.rows.rows.shape[1]),
                     np.float32(1.0 / self.rows.plane_dz_mm), np.int32(g.nz), np.float32(g.z0_mm),
-                    np.float32(1.0 / g.dz_mm), np.float32(self.rows.window_mm),
+                    np.float32(1.0 / g.dz_mm), np.int32(self.window.first), np.int32(self.model.grid.nz),
+                    np.float32(self.rows.window_mm),
                     np.float32(1.0 / self.cfg.taper_mm))
         res = rt.from_device(self._out, (S, geom.ny, geom.nx), wait_for=[ev])
         for b in [sp, sw, ut] + basis:
@@ -427,7 +480,7 @@ class MCBackprojector:
         self.release()
 
 
-def mc_backproject(rows: PlaneRows, proj_basis, slot_proj, slot_w, model: MotionModel, target, slices_z,
+def mc_backproject(rows: PlaneRows, proj_basis, slot_proj, slot_w, model: MotionModel | ModelWindow, target, slices_z,
                    geom: FanBeamGeometry, cfg: MCConfig | None = None, runtime=None) -> np.ndarray:
     """Motion-compensated backprojection of one target: mu (S, ny, nx) float32 (1/mm).
 
@@ -437,7 +490,7 @@ def mc_backproject(rows: PlaneRows, proj_basis, slot_proj, slot_w, model: Motion
     proj_basis : (P, NB) basis values at each projection's recorded (c, a)
     slot_proj : (S, V, K) int local projection indices (``rows.local_index``), -1 = empty, at the ends
     slot_w : (S, V, K) float weights >= 0 (normalised per view by the kernel)
-    model : MotionModel on the reconstruction's in-plane grid
+    model : MotionModel on the reconstruction's in-plane grid, or a ModelWindow of its planes
     target : (c, a) of the target state
     slices_z : (S,) slice z (mm)
     geom : FanBeamGeometry

@@ -209,16 +209,19 @@ def reconstruct_slab(scan: MCScan, a: int, b: int, variant: str, model: MotionMo
     """``mc``'s volumes of slices ``a .. b-1`` for one variant: (n_c, n_r, b - a, ny, nx) HU float32.
 
     The slab's first-pass plan, its plane rows (:meth:`MCScan.rows`), ``model`` refined to the
-    reconstruction grid (:func:`method.refine`) and the motion-compensated backprojection of every
-    target. ``times``: optional ``StageTimes`` given ``plane_rows``, ``mc_backproject`` and
-    ``method:mc:<variant>`` seconds. The same bits for any slab cut and in any process.
+    reconstruction grid on the planes the slab's voxels reach (:func:`method.refine`: the same bits
+    as every plane) and the motion-compensated backprojection of every target. ``times``: optional
+    ``StageTimes`` given ``plane_rows``, ``mc_backproject`` and ``method:mc:<variant>`` seconds.
+    The same bits for any slab cut and in any process.
     """
     t0 = time.perf_counter()
     plan = scan.first_pass_plan(a, b)
     rows = scan.rows(a, b, variant, plan)
     t1 = time.perf_counter()
     geom = scan.cfg.fbp
-    hu = mcm.backproject_slab(rows, plan, mcm.refine(model, geom), scan.table, scan.slices_z[a:b], geom, scan.pairs,
+    slab_z = scan.slices_z[a:b]
+    refined = mcm.refine(model, geom, slab_z, scan.pairs)  # the planes the slab reaches
+    hu = mcm.backproject_slab(rows, plan, refined, scan.table, slab_z, geom, scan.pairs,
                               scan.cfg.mu_water_per_mm, scan.knobs, rt=scan.rt)
     t2 = time.perf_counter()
     if times is not None:

@@ -71,6 +71,17 @@ def _slab_slices(rows_per_mm: float, reach_mm: float, slice_mm: float, nz: int) 
     return int(min(nz, max(1, 1 + (limit / rows_per_mm - 2 * reach_mm) // slice_mm)))
 
 
+def slab_model_planes(s: int, slice_mm: float, margin_mm: float, nz: int) -> int:
+    """Model planes :func:`method.refine` holds for a slab of ``s`` slices ``slice_mm`` apart (the model's
+    planes are the slices'): its slices and ``margin_mm`` (the knob that bounds the largest z
+    displacement) on both sides, with :func:`method.reach_planes`' 4 planes of trilinear neighbour
+    and rounding; at most the model's ``nz``. A model that moves points further than ``margin_mm``
+    in z holds more planes than this counts."""
+    if slice_mm <= 0:
+        return nz
+    return int(min(nz, s + 2 * np.ceil(margin_mm / slice_mm) + 4))
+
+
 def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
                   n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int,
                   max_projections: int | None = None, unit_slices: int | None = None) -> dict[str, int]:
@@ -99,8 +110,10 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       model's copies on the device (host memory on a CPU driver) and the slab's images;
     - ``final pass`` (per slab and variant, :func:`mc_fbp.reconstruct_slab`): the plane rows (every
       variant's where kept), the plan and slots, every variant's model, the model refined to the
-      reconstruction grid, and the larger of the read (rows not kept) or the device copies of the
-      rows and the refined model with two slabs of output (one being written behind);
+      reconstruction grid on the planes the slab reaches (:func:`slab_model_planes`; a copy of the
+      model's own planes where the grids coincide, none where those are half its planes or more),
+      and the larger of the read (rows not kept) or the device copies of the rows and the refined
+      planes (the model's where not copied) with two slabs of output (one being written behind);
     - ``registration processes`` (Lucas-Kanade, ``knobs.registration``): ``FLOW_BYTES_PER_VOXEL``
       per voxel of the registration grid and :data:`WORKER_BYTES` in each, one per core up to
       ``MAX_WORKERS`` (none below ``POOL_MIN_VOXELS``: the registrations then run in the process,
@@ -162,9 +175,13 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     slab_imgs = n_targets * s * cny * cnx * 4
     rounds = (first + max(imgs - slab_imgs, 0) + max(kept - rows, 0) + rows + plan + nb * fld
               + max(read, rows + nb * fld + slab_imgs)) if knobs.rounds > 1 else 0
-    refined = nb * 3 * nz * vox * 4  # the model on the reconstruction grid (the model itself where f = 1)
-    final = ((kept if kept else rows) + plan + n_var * nb * fld + (refined if f > 1 else 0)
-             + max(0 if kept else read, rows + refined + 2 * n_targets * s * vox * 4))
+    # the model on the reconstruction grid, on the slab's planes (a copy of the model's own where f = 1)
+    planes = slab_model_planes(s, slice_mm, knobs.margin_mm, nz)
+    refined = device = nb * 3 * planes * vox * 4  # the slab's planes on the host, and their device copy
+    if f == 1 and 2 * planes >= nz:  # the model itself (no copy, method.refine): its device copy is all planes
+        refined, device = 0, nb * fld
+    final = ((kept if kept else rows) + plan + n_var * nb * fld + refined
+             + max(0 if kept else read, rows + device + 2 * n_targets * s * vox * 4))
     flows = workers * (FLOW_BYTES_PER_VOXEL * n_reg + WORKER_BYTES) if workers > 1 else 0
     return {"fit": int(fit), "round backprojection": int(rounds), "final pass": int(final),
             "registration processes": int(flows)}

@@ -11,9 +11,10 @@ scan (pitch) and noise variant:
    (c, a) motion model (:func:`model.fit_separable_model`); for each further round it backprojects
    every target with that model on the coarse grid (:func:`backproject_slab`), registers those
    images and fits again;
-2. ``mc_fbp.reconstruct_slab``: :func:`refine` samples the model's basis fields onto the
-   reconstruction grid; per slab, :func:`slab_rows` rebins and filters every projection the
-   slab's first-pass plan uses onto global z planes (:func:`backproject.plane_rows`: the
+2. ``mc_fbp.reconstruct_slab``: per slab, :func:`refine` samples the model's basis fields onto the
+   reconstruction grid on the planes the slab's voxels can reach (:func:`reach_planes`);
+   :func:`slab_rows` rebins and filters every projection the slab's first-pass plan uses onto
+   global z planes (:func:`backproject.plane_rows`: the
    pipeline's SSRB on every detector and focal-spot mode) and :func:`backproject_slab` runs the
    kernel per target.
 
@@ -112,20 +113,90 @@ def shrink_of(knobs) -> tuple | None:
     return knobs.flow_radius, FlowConfig().hu_window
 
 
-def refine(model: MotionModel, geom: FanBeamGeometry) -> MotionModel:
-    """The model's basis fields sampled (trilinearly, edge-extended) onto ``geom``'s in-plane grid."""
+#: Slack on :func:`reach_mm`'s bound for the float32 rounding of the kernel's sums and
+#: interpolations: this share of the bound and of the sum of its terms' magnitudes (the rounding
+#: of sum_b B_b U_b is a few ulps of the latter).
+REACH_SLACK = 1e-4
+
+
+def reach_mm(model: MotionModel, pairs) -> float:
+    """A bound (mm) on |z_r - z| of the kernel's reference positions x_r = x - u_t(x_r) for the
+    targets ``pairs`` (T, 2) (c, a): the largest |u_t,z| = |sum_b B_b(t) U_b,z| over the model's grid
+    points and the targets (each step of the inversion moves z by a trilinear sample of u_t,z,
+    within the grid points' range), with :data:`REACH_SLACK`. It holds on any finer in-plane grid
+    too (:func:`refine`'s samples interpolate the same grid points, and u_t is linear in the fields).
+    One target's z field at a time."""
+    pairs = np.asarray(pairs, np.float64).reshape(-1, 2)
+    tb = model.basis.values(pairs[:, 0], pairs[:, 1]).astype(np.float32)  # (T, NB)
+    uz = model.fields[:, 2]  # (NB, nz, ny, nx)
+    worst = 0.0
+    for b in tb:
+        worst = max(worst, float(np.abs(np.tensordot(b, uz, axes=(0, 0))).max()))
+    terms = float(np.dot(np.abs(tb).max(axis=0), [float(np.abs(uz[k]).max()) for k in range(len(uz))]))
+    return worst * (1.0 + REACH_SLACK) + REACH_SLACK * terms
+
+
+def reach_planes(grid: FieldGrid, slab_z, reach: float) -> tuple[int, int]:
+    """Planes ``[k0, k1)`` of ``grid`` the kernel reads for slices ``slab_z`` whose reference
+    positions lie within ``reach`` mm of them in z: the planes around ``z +- reach`` that its
+    trilinear reads (floor and floor + 1, with the grid's clamp to its end planes), one more on
+    each side for the float32 rounding of the plane coordinate; at least 2 planes."""
+    z = np.asarray(slab_z, np.float64)
+    lo = (float(z.min()) - reach - grid.z0_mm) / grid.dz_mm
+    hi = (float(z.max()) + reach - grid.z0_mm) / grid.dz_mm
+    k0 = min(max(int(np.floor(lo)) - 1, 0), grid.nz - 2)
+    k1 = min(max(int(np.floor(hi)) + 3, k0 + 2), grid.nz)
+    return k0, k1
+
+
+def refine(model: MotionModel, geom: FanBeamGeometry, slab_z=None, pairs=None) -> MotionModel | mcb.ModelWindow:
+    """The model's basis fields sampled (trilinearly, edge-extended) onto ``geom``'s in-plane grid.
+
+    With ``slab_z`` (the slab's slice z, mm) and ``pairs`` (its targets (c, a)), only the planes
+    their voxels can reach (:func:`reach_planes` of :func:`reach_mm`), as a
+    :class:`~clrecon.reconstruction.motion.backproject.ModelWindow` of the whole refined model
+    (where the grids coincide: a copy of those planes of the model itself, or the model where they
+    are half its planes or more: the copy and its device copy would hold more than the device's copy
+    of the model): the kernel's images are the same bits as with every plane. Without
+    ``slab_z``, every plane (the model itself where the grids coincide: nothing is copied). Refined
+    plane by plane: a plane depends on the model only, not on the planes kept; every plane is
+    sampled for the whole model's displacement margin (curved detectors' kernel build), one plane
+    held at a time.
+    """
     g = model.grid
-    if (g.nx, g.ny) == (geom.nx, geom.ny):
+    same = (g.nx, g.ny) == (geom.nx, geom.ny)
+    if same and slab_z is None:
         return model
-    fine = FieldGrid(nx=geom.nx, ny=geom.ny, nz=g.nz, voxel_mm=geom.voxel_mm, z0_mm=g.z0_mm, dz_mm=g.dz_mm)
+    fine = g if same else FieldGrid(nx=geom.nx, ny=geom.ny, nz=g.nz, voxel_mm=geom.voxel_mm, z0_mm=g.z0_mm,
+                                    dz_mm=g.dz_mm)
+    k0, k1 = (0, g.nz) if slab_z is None else reach_planes(fine, slab_z, reach_mm(model, pairs))
+    if same and 2 * (k1 - k0) >= g.nz:  # the model itself: a copy beside its device copy would hold more
+        return model
+    if same:  # the slab's planes of the model itself
+        held = dataclasses.replace(g, nz=k1 - k0, z0_mm=float(g.coords()[2][k0]))
+        return mcb.ModelWindow(model=MotionModel(basis=model.basis, grid=held, fields=model.fields[:, :, k0:k1].copy(),
+                                                 reference=model.reference),
+                               whole=g, first=k0, margin_mm=mcb.displacement_margin_mm(model.fields))
     x, y, z = fine.coords()
     Y, X = np.meshgrid(y, x, indexing="ij")
-    out = np.empty((model.basis.size, 3) + fine.shape, np.float32)
+    out = np.empty((model.basis.size, 3, k1 - k0, geom.ny, geom.nx), np.float32)
     flat = model.fields.reshape((-1,) + g.shape)
+    margin = 0.0
+    need_margin = slab_z is not None and geom.curved and model.basis.size > 1
     for k, zk in enumerate(z):  # slice by slice: the points of a paper-scale grid would be GBs
+        if not (k0 <= k < k1 or need_margin):
+            continue
         pts = np.stack([X, Y, np.full_like(X, zk)], -1)
-        out[:, :, k] = sample(flat, g, pts).reshape(model.basis.size, 3, geom.ny, geom.nx)
-    return MotionModel(basis=model.basis, grid=fine, fields=out, reference=model.reference)
+        plane = sample(flat, g, pts).reshape(model.basis.size, 3, geom.ny, geom.nx).astype(np.float32)
+        if need_margin:
+            margin = max(margin, mcb.displacement_margin_mm(plane))
+        if k0 <= k < k1:
+            out[:, :, k - k0] = plane
+    if slab_z is None:
+        return MotionModel(basis=model.basis, grid=fine, fields=out, reference=model.reference)
+    held = dataclasses.replace(fine, nz=k1 - k0, z0_mm=float(z[k0]))
+    return mcb.ModelWindow(model=MotionModel(basis=model.basis, grid=held, fields=out, reference=model.reference),
+                           whole=fine, first=k0, margin_mm=margin)
 
 
 def slab_projections(bary_plan) -> np.ndarray:
@@ -168,16 +239,18 @@ def slab_rows(store, table, scanner, cfg, variant: str, slab_z, proj_ids, knobs,
                          projection=ids, proj_z_mm=table.source_z_mm[ids], plane_dz_mm=float(dz), window_mm=float(w))
 
 
-def backproject_slab(rows: mcb.PlaneRows, bary_plan, model: MotionModel, table, slab_z, geom: FanBeamGeometry,
-                     pairs, mu_water: float, knobs, rt=None, progress=None) -> np.ndarray:
+def backproject_slab(rows: mcb.PlaneRows, bary_plan, model: MotionModel | mcb.ModelWindow, table, slab_z,
+                     geom: FanBeamGeometry, pairs, mu_water: float, knobs, rt=None, progress=None) -> np.ndarray:
     """Motion-compensated FBP of every target of one slab: HU (T, s, ny, nx) float32.
 
     ``bary_plan``: the slab's barycentric ``MethodWeights`` (S, V, T, K) (the rows and weights each
     target uses); ``model`` on ``geom``'s in-plane grid (a coarse ``geom`` for the rounds before
-    the last); ``pairs`` (T, 2) the targets (c, a); ``progress``: optional ``update(n)``, one step per target.
+    the last), or a ``ModelWindow`` of it (:func:`refine` of the slab); ``pairs`` (T, 2) the
+    targets (c, a); ``progress``: optional ``update(n)``, one step per target.
     """
     sp, sw = msl.plan_slots(bary_plan.proj_index, bary_plan.weight, rows)
-    pb = model.basis.values(table.cardiac_phase[rows.projection], table.resp_amplitude[rows.projection])
+    basis = model.model.basis if isinstance(model, mcb.ModelWindow) else model.basis
+    pb = basis.values(table.cardiac_phase[rows.projection], table.resp_amplitude[rows.projection])
     out = np.empty((len(pairs), len(slab_z), geom.ny, geom.nx), np.float32)
     cfg = mcb.MCConfig(taper_mm=knobs.taper_mm)
     with mcb.MCBackprojector(rows, pb, model, slab_z, geom, cfg, runtime=rt) as bp:
