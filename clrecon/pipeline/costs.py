@@ -70,10 +70,12 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     # to at most SLAB_BYTES; the plan is part of that budget there, not modelled here), the plans
     # kept between the planning pass and the reconstruction (at most KEEP_PLANS_BYTES, about
     # 40 bytes per (slice, view, target, neighbour)), one launch of sinograms, and the truth
-    feed = min(scene.scan.feed_mm(sc, p) for p in pitches)
-    rows_per_slice = 2 * window / feed * sc.views_per_rotation
-    per_slice = slab_bytes_per_slice(rows_per_slice, sc.n_cols, n_var, n_targets, rc.ny, rc.nx)
-    slab = min(nz, slices_per_slab(per_slice))
+    def slab_of(feed_mm):  # the rebinned rows per slice and the reconstruction's slab (slices) at a feed
+        rows = 2 * window / feed_mm * sc.views_per_rotation
+        per = slab_bytes_per_slice(rows, sc.n_cols, n_var, n_targets, rc.ny, rc.nx)
+        return rows, per, min(nz, slices_per_slab(per))
+
+    rows_per_slice, per_slice, slab = slab_of(min(scene.scan.feed_mm(sc, p) for p in pitches))
     chunk = 512 * proj_bytes * (1 + n_var)
     plans = min(KEEP_PLANS_BYTES, 40.0 * nz * sc.views_per_rotation * n_targets * 8 * len(methods))
     slab_sinos = 2 * 32 * sc.views_per_rotation * sc.n_cols * 4
@@ -99,13 +101,10 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
         # (docs/results/code-history.md "The mc working set against the measured peak")
         held = plans + (truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx) if overlap
                         else 0)
-        def unit_slices(p):  # slices of the pitch's first-pass unit files (its reconstruction slabs)
-            rows = 2 * window / scene.scan.feed_mm(sc, p) * sc.views_per_rotation
-            return min(nz, slices_per_slab(slab_bytes_per_slice(rows, sc.n_cols, n_var, n_targets, rc.ny, rc.nx)))
-
+        # the first pass's unit files hold the pitch's reconstruction slabs
         peak = max(peak, held + max(mc_memory.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p),
                                                             n_var, n_c, n_r, nz, rc.ny, rc.nx, n_proj[p],
-                                                            unit_slices(p))
+                                                            slab_of(scene.scan.feed_mm(sc, p))[2])
                                     for p in pitches))
     if mcir.NAME in methods:  # mcir's slabs after the model (the plans and truths still held)
         peak = max(peak, held + max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius, z_extent, n_proj[p],
