@@ -307,10 +307,10 @@ class VolumeWriter:
         For a stage that works on an earlier stage's volumes before ``volumes.h5`` exists (``mc``
         on the barycentric first pass). Every slice asked for must be done (ValueError otherwise);
         each unit's checksum is checked (a damaged one raises :class:`~clrecon.core.errors.StoreError`).
-        ``reduce``: optional in-plane reduction applied to each unit's slices as they are read,
-        ``(n_c, n_r, s, ny, nx)`` float32 -> ``(n_c, n_r, s, my, mx)`` float32, slice by slice
-        independent (``mc``'s block means onto its registration grid): the result is
-        ``(n_c, n_r, s, my, mx)`` and the dataset is never held whole at full resolution (one unit at a time).
+        ``reduce``: optional reduction applied to each unit's slices as they are read,
+        ``(n_c, n_r, s, ny, nx)`` float32 -> ``(m_c, m_r, s, my, mx)`` float32, slice by slice
+        independent (``mc``'s block means onto its registration grid; ``mcir``'s one target): the
+        result is ``(m_c, m_r, s, my, mx)`` and the dataset is never held whole (one unit at a time).
         """
         if self._blocks.get(name) != "slices":
             raise ValueError(f"{name}: not a dataset of slabs of slices declared in this run")
@@ -325,8 +325,8 @@ class VolumeWriter:
             v = np.asarray(v, np.float32)
             return v if reduce is None else reduce(v)
 
-        plane = fit(np.zeros(full + (0,) + tuple(shape[-2:]), np.float32)).shape[-2:]
-        out = np.empty(full + (z.size,) + tuple(plane), np.float32)
+        kept = fit(np.zeros(full + (0,) + tuple(shape[-2:]), np.float32)).shape  # the reduced shape, no slice
+        out = np.empty(kept[:2] + (z.size,) + kept[3:], np.float32)
         pos = {int(k): i for i, k in enumerate(z)}
         got = np.zeros(z.size, bool)
         for p, m in self._units[name]:

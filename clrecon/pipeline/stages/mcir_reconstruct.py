@@ -63,33 +63,33 @@ def start_method(run) -> str | None:
     return mc_fbp.FIRST_PASS
 
 
-def start_image(run, pk: str, variant: str, model, a: int, b: int) -> np.ndarray | None:
-    """OS-SART's start for slices ``a .. b-1``: None (from zero), or the target nearest the model's
-    reference state of :func:`start_method`'s volumes, as its stage wrote them: (b - a, ny, nx) HU
-    float32."""
+def start_image(run, pk: str, variant: str, ref_ij, a: int, b: int) -> np.ndarray | None:
+    """OS-SART's start for slices ``a .. b-1``: None (from zero), or the motion model's reference
+    target ``ref_ij`` (:attr:`mc_fbp.MCScan.ref_ij`) of :func:`start_method`'s volumes, as its stage
+    wrote them (read a unit at a time, only that target kept): (b - a, ny, nx) HU float32."""
     name = start_method(run)
     if name is None:
         return None
-    vol = run.writer.read(recon_path(pk, variant, name), np.arange(a, b))
-    c_ref, a_ref = model.reference
-    i = int(np.argmin(np.abs(np.asarray(run.targets.cardiac) - c_ref))) if vol.shape[0] > 1 else 0
-    j = int(np.argmin(np.abs(np.asarray(run.targets.resp) - a_ref))) if vol.shape[1] > 1 else 0
-    return np.ascontiguousarray(vol[i, j])
+
+    def target(v):  # (n_c, n_r, s, ny, nx) -> (1, 1, s, ny, nx); a broadcast axis has length 1
+        return v[min(ref_ij[0], v.shape[0] - 1), min(ref_ij[1], v.shape[1] - 1)][None, None]
+
+    return run.writer.read(recon_path(pk, variant, name), np.arange(a, b), reduce=target)[0, 0]
 
 
-def _unit(run, pitch: float, table, store, a: int, b: int, variant: str, model) -> Unit:
+def _unit(run, pitch: float, table, store, a: int, b: int, variant: str, model, ref_ij) -> Unit:
     pk = pitch_key(pitch)
 
     def here(emit, times):
         hu, info = mcir.reconstruct_slab_from_store(
             run.scene, run.recon_cfg, table, store, run.slices_z[a:b], run.targets, variant, model,
-            start_hu=start_image(run, pk, variant, model, a, b), rt=run.rt,
+            start_hu=start_image(run, pk, variant, ref_ij, a, b), rt=run.rt,
             log=lambda line: run.log(f"[{pk}] mcir {variant} slices {a}..{b - 1}: {line}"), times=times)
         emit((np.arange(a, b), variant, hu, info))
 
     def remote():
         return work_units.mcir_slab, (run.recon_cfg, run.scene, pitch, str(run.cache_path), run.slices_z, a, b,
-                                      run.targets, variant, model, start_image(run, pk, variant, model, a, b))
+                                      run.targets, variant, model, start_image(run, pk, variant, ref_ij, a, b))
 
     return Unit(here, None if run.scene.measured else remote,
                 f"mcir slab of slices {a}..{b - 1} ({variant}) at pitch {pitch:g}")
@@ -104,7 +104,7 @@ def stage(run, pitch: float, plan, store):
     run.note("mcir", start=start_method(run) or "zero")
     table = scan.plan_table  # the usable views (a measured scan's excluded ones left out)
     cuts = slabs(run, table)
-    units_ = [_unit(run, pitch, table, store, a, b, v, models[v]) for v in run.variants if todo[v].size
+    units_ = [_unit(run, pitch, table, store, a, b, v, models[v], scan.ref_ij) for v in run.variants if todo[v].size
               for a, b in cuts if (~run.writer.done(recon_path(pk, v, NAME))[a:b]).any()]
 
     def write(piece) -> None:
