@@ -212,7 +212,9 @@ def reconstruct_slab(scan: MCScan, a: int, b: int, variant: str, model: MotionMo
     reconstruction grid on the planes the slab's voxels reach (:func:`method.refine`: the same bits
     as every plane) and the motion-compensated backprojection of every target. ``times``: optional
     ``StageTimes`` given ``plane_rows``, ``mc_backproject`` and ``method:mc:<variant>`` seconds.
-    The same bits for any slab cut and in any process.
+    The same bits in any process. Not for any slab cut: a run cut into other slabs (its rounds and
+    its final pass) gives other volumes on ``demo`` (not located; docs/results/code-history.md "The
+    mc working set against the measured peak"); the cut is the scene's (:attr:`MCScan.slabs`).
     """
     t0 = time.perf_counter()
     plan = scan.first_pass_plan(a, b)
