@@ -89,7 +89,7 @@ class MotionCompensationConfig(Section):
     taper_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "within the SSRB window"),
                         "width of the row weight's fall to 0 at the end of its SSRB window")
     margin_mm: float = F(20.0, number_in(0.0, 200.0, "mm", "beyond the largest displacement along z"),
-                         "planes kept beyond a slab's first and last slice (a voxel the model moves is read there)")
+                         "planes kept beyond the run's first and last slice (a voxel the model moves is read there)")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -121,11 +121,12 @@ class MCScan:
 
     def rows(self, a: int, b: int, variant: str, plan) -> PlaneRows:
         """The plane rows of slices ``a .. b-1`` that ``plan`` (:meth:`first_pass_plan`) uses: kept
-        from the last round (and handed over once), or read, noised and rebinned now."""
+        from the last round (and handed over once), or read, noised and rebinned now, on the planes
+        within the margin of the run's slices (:func:`method.slab_rows`: the same for any cut)."""
         kept = self.kept.pop((a, b, variant), None)
         if kept is not None:
             return kept
-        return mcm.slab_rows(self.store, self.table, self.scanner, self.cfg, variant, self.slices_z[a:b],
+        return mcm.slab_rows(self.store, self.table, self.scanner, self.cfg, variant, self.slices_z,
                              mcm.slab_projections(plan), self.knobs, rt=self.rt)
 
 
@@ -212,9 +213,8 @@ def reconstruct_slab(scan: MCScan, a: int, b: int, variant: str, model: MotionMo
     reconstruction grid on the planes the slab's voxels reach (:func:`method.refine`: the same bits
     as every plane) and the motion-compensated backprojection of every target. ``times``: optional
     ``StageTimes`` given ``plane_rows``, ``mc_backproject`` and ``method:mc:<variant>`` seconds.
-    The same bits in any process. Not for any slab cut: a run cut into other slabs (its rounds and
-    its final pass) gives other volumes on ``demo`` (not located; docs/results/code-history.md "The
-    mc working set against the measured peak"); the cut is the scene's (:attr:`MCScan.slabs`).
+    The same bits for any slab cut and in any process: a projection's plane rows are on the planes
+    within the margin of the run's slices, whatever the slab (:meth:`MCScan.rows`).
     """
     t0 = time.perf_counter()
     plan = scan.first_pass_plan(a, b)

@@ -210,9 +210,15 @@ def slab_projections(bary_plan) -> np.ndarray:
 READ_CHUNK_BYTES = 128 << 20
 
 
-def slab_rows(store, table, scanner, cfg, variant: str, slab_z, proj_ids, knobs, rt=None) -> mcb.PlaneRows:
-    """Filtered SSRB rows of ``proj_ids`` on the global planes within ``knobs.margin_mm`` of the slab.
+def slab_rows(store, table, scanner, cfg, variant: str, run_z, proj_ids, knobs, rt=None) -> mcb.PlaneRows:
+    """Filtered SSRB rows of ``proj_ids`` (a slab's projections) on the global planes within their
+    SSRB windows and within ``knobs.margin_mm`` of the run's slices ``run_z`` (mm).
 
+    The run's slices, not the slab's: a projection then has the same planes (``plane_first``,
+    ``plane_count``) in every slab of any cut, and so the kernel's plane coordinate (relative to
+    ``plane_first``, rounded in float32) and its clamp are the same bits; planes cut to a slab's
+    own margin made a run cut into other slabs give other volumes. At most a whole window of planes
+    a projection either way (what the memory model counts, ``memory.working_parts``).
     ``store``: the scan's projection store (``read_indices``; a noisy variant draws the run's
     noise); ``table``: the scan's whole projection table; ``cfg``: the ReconstructionConfig.
     Read and rebinned :data:`READ_CHUNK_BYTES` of raw rows at a time; a projection's rows do not
@@ -222,7 +228,7 @@ def slab_rows(store, table, scanner, cfg, variant: str, slab_z, proj_ids, knobs,
     w = rebin.slice_window_mm(scanner, cfg.object_radius_mm)
     dz = knobs.plane_dz_mm
     lo, hi = rebin.ssrb_row_range(np.array([-w - dz, w + dz]), scanner)
-    z = np.asarray(slab_z, np.float64)
+    z = np.asarray(run_z, np.float64)
     z_lo, z_hi = float(z.min()) - knobs.margin_mm, float(z.max()) + knobs.margin_mm
     ids = np.asarray(proj_ids, np.int64)
     first, count = mcb.plane_range(table.source_z_mm[ids], w, dz, z_lo, z_hi)
