@@ -43,6 +43,10 @@ VOXEL_MM = number_in(0.005, 100.0, "mm", "micro-CT 0.005-0.1 mm, clinical 0.3-1 
 MAX_GRID_MM = 2000.0
 
 
+#: The ``mc`` method's registrations (``[recon.mc] registration``, ``beat_registration``).
+REGISTRATIONS = ("lucas_kanade", "tvl1")
+
+
 @dataclass(frozen=True, kw_only=True)
 class MotionCompensationConfig(Section):
     """``[recon.mc]``: knobs of the ``mc`` method (motion-compensated FBP, docs/motion-model.md "Knobs").
@@ -61,11 +65,15 @@ class MotionCompensationConfig(Section):
                         "in-plane factor the registration (and the rounds before the last) works at: 1 = the "
                         "reconstruction grid (the study's A2), 2 = half its voxels along x and y (about 3x cheaper, "
                         "MAE 8-11 % higher on demo: docs/motion-model.md); the last pass is always on the full grid")
-    registration: str = F("lucas_kanade", one_of(("lucas_kanade", "tvl1")),
-                          "the registration: 'lucas_kanade' (scikit-image's iterative Lucas-Kanade, windows of "
-                          "flow_radius, flow_warps warps) or 'tvl1' (multi-resolution Huber-TV-L1 optical flow on the "
-                          "engine's OpenCL runtime, clrecon.reconstruction.motion.flow; not the default until it "
-                          "measures better in mc)")
+    registration: str = F("lucas_kanade", one_of(REGISTRATIONS),
+                          "the breathing step's registration: 'lucas_kanade' (scikit-image's iterative "
+                          "Lucas-Kanade, windows of flow_radius, flow_warps warps) or 'tvl1' (multi-resolution "
+                          "Huber-TV-L1 optical flow on the engine's OpenCL runtime, "
+                          "clrecon.reconstruction.motion.flow)")
+    beat_registration: str = F("tvl1", one_of(REGISTRATIONS),
+                               "the beat step's registration (the same choices): TV-L1 by default, whose "
+                               "edge-preserving regulariser lets the heart slide against its surroundings "
+                               "(docs/motion-model.md \"Knobs\")")
     flow_radius: int = F(7, integer_in(1, 30, "voxels of the registration grid; the window is 2 r + 1 wide"),
                          "Lucas-Kanade window radius in voxels of the registration grid")
     flow_warps: int = F(10, integer_in(1, 50, "warps per pyramid level; 10 converged on demo"),

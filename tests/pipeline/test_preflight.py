@@ -221,12 +221,12 @@ def test_the_mc_model_follows_the_registration_it_runs():
     ext = (rc.nz - 1) * rc.slice_mm
     n_reg = rc.nz * rc.ny * rc.nx
 
-    def parts(reg):
-        knobs = api.load_scene("demo", recon={"mc": {"registration": reg}}).recon.mc
+    def parts(reg, beat):
+        knobs = api.load_scene("demo", recon={"mc": {"registration": reg, "beat_registration": beat}}).recon.mc
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
                                     scene.scan.projection_count(sc, 0.1), 1)
 
-    lk, tv = parts("lucas_kanade"), parts("tvl1")
+    lk, tv = parts("lucas_kanade", "lucas_kanade"), parts("tvl1", "tvl1")
     assert tv["registration processes"] == 0
     pool = registration.registration_workers(n_reg, available_bytes=1 << 62) > 1
     assert lk["registration processes"] > 0 if pool else lk["registration processes"] == 0
@@ -234,6 +234,11 @@ def test_the_mc_model_follows_the_registration_it_runs():
     assert tv["fit"] - lk["fit"] == flow.BYTES_PER_VOXEL * n_reg - in_process
     assert {k: v for k, v in tv.items() if k != "fit"} == {k: v for k, v in lk.items() if k != "fit"} | {
         "registration processes": 0}
+    # the default: Lucas-Kanade's pool for the breathing, then TV-L1 in the process for the beat (one after
+    # the other: the process holds the larger of the two steps' own)
+    both = parts("lucas_kanade", "tvl1")
+    assert both["registration processes"] == lk["registration processes"]
+    assert both["fit"] - lk["fit"] == max(flow.BYTES_PER_VOXEL * n_reg, in_process) - in_process
 
 
 def test_the_mc_model_holds_the_first_pass_on_the_registration_grid_only():

@@ -206,8 +206,10 @@ def test_recon_mc_registration_selects_the_method():
     from clrecon.core.errors import SceneError
     from clrecon.reconstruction.motion import method
 
-    assert isinstance(method.flow_of(load_scene("demo").recon.mc), registration.FlowConfig)  # the default
+    assert isinstance(method.flow_of(load_scene("demo").recon.mc), registration.FlowConfig)  # the default (breathing)
     assert isinstance(method.flow_of(load_scene("demo", recon__mc__registration="tvl1").recon.mc), flow.TVL1Config)
+    assert isinstance(method.flow_of(load_scene("demo", recon__mc__registration="tvl1").recon.mc, "beat"),
+                      flow.TVL1Config)
     with pytest.raises(SceneError, match="recon.mc.registration = 'tv': must be one of lucas_kanade, tvl1"):
         load_scene("demo", recon__mc__registration="tv")
 

@@ -586,6 +586,52 @@ def test_separable_fields_add_breathing_and_beat():
             assert np.allclose(med, [cx, 0.0, rz], atol=TOL["flow_mm"]), (i, j, med)
 
 
+class _ConstantShift:
+    """A plugged-in registration (``register()``) that reports one shift everywhere, to see which step used it."""
+
+    def __init__(self, dx_mm):
+        self.dx_mm = dx_mm
+
+    def register(self, fixed, moving, spacing_mm, origin_mm, initial):
+        u = np.zeros((3,) + fixed.shape, np.float32)
+        u[0] = self.dx_mm
+        return u
+
+
+def test_the_beat_step_uses_its_own_registration():
+    """``beat_cfg`` registers the beat step, ``cfg`` the breathing step (mc's registration and
+    beat_registration); without ``beat_cfg`` both steps use ``cfg``."""
+    vols = np.zeros((3, 2, 4, 6, 6), np.float32)
+    grid = FieldGrid(nx=6, ny=6, nz=4, voxel_mm=3.0, z0_mm=0.0, dz_mm=4.0)
+    parts = estimate.separable_parts(vols, (0, 1), grid, _ConstantShift(1.0), beat_cfg=_ConstantShift(2.0))
+    assert np.all(parts["resp"][0, 0] == 1.0) and np.all(parts["resp"][1] == 0.0)  # amplitude 1 is the reference
+    assert np.all(parts["cardiac"][1:, 0] == 2.0) and np.all(parts["cardiac"][0] == 0.0)
+    same = estimate.separable_parts(vols, (0, 1), grid, _ConstantShift(1.0))
+    assert np.all(same["cardiac"][1:, 0] == 1.0)
+
+
+def test_recon_mc_registrations_select_each_steps_method():
+    """The default registers the breathing with Lucas-Kanade and the beat with TV-L1; either knob may
+    name either registration; only a Lucas-Kanade step needs the library and the process pool."""
+    from clrecon.config.overrides import load_scene
+    from clrecon.core.errors import SceneError
+    from clrecon.reconstruction.motion import flow, method
+
+    knobs = load_scene("demo").recon.mc
+    assert isinstance(method.flow_of(knobs, "breathing"), registration.FlowConfig)
+    assert isinstance(method.flow_of(knobs, "beat"), flow.TVL1Config)
+    assert method.registrations(knobs) == {"breathing": "lucas_kanade", "beat": "tvl1"}
+    assert method.uses_library(knobs) and method.uses_pool(knobs)
+    tv = load_scene("demo", recon__mc__registration="tvl1").recon.mc
+    assert not method.uses_library(tv) and not method.uses_pool(tv)
+    lk = load_scene("demo", recon__mc__beat_registration="lucas_kanade").recon.mc
+    assert isinstance(method.flow_of(lk, "beat"), registration.FlowConfig)
+    with pytest.raises(ValueError, match="step = 'heart'"):
+        method.flow_of(knobs, "heart")
+    with pytest.raises(SceneError, match="recon.mc.beat_registration = 'tv': must be one of lucas_kanade, tvl1"):
+        load_scene("demo", recon__mc__beat_registration="tv")
+
+
 def test_registrations_in_a_process_pool_are_the_same_bits():
     """The run registers each step's volumes at once in spawned processes: the same fields as one
     after the other, bit for bit (the same call on the same arrays)."""

@@ -14,6 +14,9 @@ same; registering one streaked target to another follows the streaks as well as 
 3. u(x; c_i, a_j) = u_resp(x; a_j) + u_card(x; c_i) -- the additive model of
    :mod:`clrecon.reconstruction.motion.model`, which is then fitted to these fields.
 
+Each step may use its own registration (``cfg`` and ``beat_cfg``): the ``mc`` method registers the
+breathing with Lucas-Kanade and the beat with TV-L1 by default (docs/motion-model.md "Knobs").
+
 (n_resp - 1) + (n_cardiac - 1) registrations instead of n_cardiac n_resp - 1 (13 against 49 for the
 50 targets). Shapes: volumes (n_c, n_r, nz, ny, nx) HU on the model grid; fields (n_c n_r, 3, nz,
 ny, nx) float32 mm, target order cardiac-major as ``Targets.pairs``.
@@ -58,7 +61,8 @@ def shrunk(fields, images, reference: int, grid: FieldGrid, shrink) -> tuple[np.
 
 
 def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig | None = None,
-                     progress=None, pool=None, shrink: tuple | None = None) -> tuple[np.ndarray, dict]:
+                     progress=None, pool=None, shrink: tuple | None = None,
+                     beat_cfg: FlowConfig | None = None) -> tuple[np.ndarray, dict]:
     """Fields u(x_ref; c_i, a_j) of every target from the two registration steps (module docstring).
 
     Parameters
@@ -66,7 +70,8 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig
     volumes : (n_c, n_r, nz, ny, nx) first-pass HU volumes on ``grid``
     reference : (i_ref, j_ref) indices of the reference target (cardiac, amplitude)
     grid : FieldGrid of the volumes (uniform slices)
-    cfg : FlowConfig, or a plugged-in registration's config (:mod:`clrecon.reconstruction.motion.registration`)
+    cfg : FlowConfig, or a plugged-in registration's config (:mod:`clrecon.reconstruction.motion.registration`):
+        the breathing step's, and the beat's unless ``beat_cfg`` is given
     progress : optional ``update(n)`` counter, one step per registration
     pool : optional process pool running each step's registrations at once (same bits)
     shrink : optional (window radius, (lo, hi) HU): each step's fields shrunk towards zero where its
@@ -85,7 +90,8 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig
 
 
 def separable_parts(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig | None = None,
-                    progress=None, pool=None, shrink: tuple | None = None) -> dict:
+                    progress=None, pool=None, shrink: tuple | None = None,
+                    beat_cfg: FlowConfig | None = None) -> dict:
     """The two steps' fields of :func:`separable_fields`, not summed: ``{"resp": (n_r, 3, nz, ny, nx),
     "cardiac": (n_c, 3, nz, ny, nx)}`` float32 mm (the target (i, j)'s field is ``cardiac[i] + resp[j]``;
     :func:`clrecon.reconstruction.motion.model.fit_separable_model` fits them without that sum's
@@ -108,8 +114,8 @@ def separable_parts(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig 
         for i in range(nc):
             card_avg[i] += to_reference(v[i, j], resp[j], grid) if j != j_ref else v[i, j]
     card_avg /= nr
-    card = register_to_reference(card_avg.astype(np.float32), i_ref, spacing, cfg=cfg, progress=progress,
-                                pool=pool)
+    card = register_to_reference(card_avg.astype(np.float32), i_ref, spacing,
+                                 cfg=cfg if beat_cfg is None else beat_cfg, progress=progress, pool=pool)
     parts = {"resp": resp, "cardiac": card}
     if shrink is not None:
         card, more = shrunk(card, card_avg.astype(np.float32), i_ref, grid, shrink)

@@ -1,7 +1,8 @@
 """Multi-resolution 3D TV-L1 optical flow on the engine's OpenCL runtime (``kernels/flow.cl``).
 
-A registration for the ``mc`` motion model (``recon.mc.registration = "tvl1"``;
-docs/results/mc-study.md "TV-L1 registration"): the displacement u (mm) minimising
+A registration for the ``mc`` motion model (the beat step's by default, ``recon.mc.beat_registration``;
+both steps' with ``recon.mc.registration = "tvl1"``; docs/results/mc-study.md "TV-L1 registration" and
+"Which registration for which step"): the displacement u (mm) minimising
 
     E(u) = sum_c integral |grad u_c| dx  +  lambda integral |I1(x + u(x)) - I0(x)| dx
 

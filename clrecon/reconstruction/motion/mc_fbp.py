@@ -98,9 +98,9 @@ class MCScan:
 
     def pool(self, grid: FieldGrid):
         """The process pool the registrations run in (made once per scan), or None: one core, a
-        script without a ``__main__`` guard (:func:`spawn_is_safe`), memory for one only, or the
-        TV-L1 registration (it runs on the OpenCL device in this process, which uses every core)."""
-        if self.knobs.registration == "tvl1":
+        script without a ``__main__`` guard (:func:`spawn_is_safe`), memory for one only, or no step
+        registering with Lucas-Kanade (:func:`method.uses_pool`)."""
+        if not mcm.uses_pool(self.knobs):
             return None
         if self._pool is None:
             n = registration_workers(grid.nx * grid.ny * grid.nz)
@@ -152,7 +152,7 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
     ``memory.ROWS_BYTES``, the last round's rows are kept for :func:`reconstruct_slab`.
     ``log(line)``: one line per round; ``progress``: show a counter of :func:`fit_steps` steps
     labelled ``label``. Returns (model, info: per-round seconds and fit residuals, the reference
-    state, the registration grid and workers, the basis, the total seconds).
+    state, each step's registration, the registration grid and workers, the basis, the total seconds).
     """
     t_start = time.perf_counter()
     rss_mark(f"mc {variant}: before the fit")
@@ -193,7 +193,8 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
         rounds.append(dict(info, backproject_seconds=t_bp))
     bar.close()
     info = {"rounds": [{k: round(v, 3) for k, v in x.items()} for x in rounds],
-            "reference": list(model.reference), "registration_grid": [grid.nz, grid.ny, grid.nx],
+            "reference": list(model.reference), "registrations": mcm.registrations(knobs),
+            "registration_grid": [grid.nz, grid.ny, grid.nx],
             "registration_workers": scan.workers,
             "basis": list(model.basis.names),
             "seconds": round(time.perf_counter() - t_start, 3)}

@@ -114,11 +114,12 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       model's own planes where the grids coincide, none where those are half its planes or more),
       and the larger of the read (rows not kept) or the device copies of the rows and the refined
       planes (the model's where not copied) with two slabs of output (one being written behind);
-    - ``registration processes`` (Lucas-Kanade, ``knobs.registration``): ``FLOW_BYTES_PER_VOXEL``
+    - ``registration processes`` (a Lucas-Kanade step, :func:`method.uses_pool`): ``FLOW_BYTES_PER_VOXEL``
       per voxel of the registration grid and :data:`WORKER_BYTES` in each, one per core up to
       ``MAX_WORKERS`` (none below ``POOL_MIN_VOXELS``: the registrations then run in the process,
-      and ``fit`` holds one's ``FLOW_BYTES_PER_VOXEL``). TV-L1 runs in the process on the OpenCL
-      device (no pool): ``fit`` holds one registration's ``flow.BYTES_PER_VOXEL``, and this part is 0.
+      and ``fit`` holds one's ``FLOW_BYTES_PER_VOXEL``). A TV-L1 step runs in the process on the OpenCL
+      device (no pool): ``fit`` holds one registration's ``flow.BYTES_PER_VOXEL`` (the larger of the
+      two where the other step runs in the process too); with no Lucas-Kanade step this part is 0.
 
     The plane rows of a slab: (planes, n_cols) float32 per projection its first-pass plan uses (those
     within the SSRB window of its slices; at most ``max_projections``, the scan's);
@@ -161,13 +162,13 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     registration = (n_resp + n_cardiac) * fld + n_resp * n_reg * 4 + n_cardiac * n_reg * (8 + 4)
     plan = PLAN_BYTES * s * scanner.views_per_rotation * n_targets
     read = 3 * min(mcm.READ_CHUNK_BYTES, n_proj * scanner.n_rows * scanner.n_cols * 4)
-    if knobs.registration == "tvl1":  # on the OpenCL device, in this process: no pool
-        workers, per_voxel = 0, flow.BYTES_PER_VOXEL
-    else:
-        workers = registration_workers(n_reg, available_bytes=1 << 62)  # 1: in this process, no pool
-        per_voxel = FLOW_BYTES_PER_VOXEL
-    if workers <= 1:
-        registration += per_voxel * n_reg
+    # a Lucas-Kanade step runs in a pool (1 worker: in this process); a TV-L1 step in this process on the
+    # OpenCL device. The steps run one after the other: the process holds the larger of its steps' own.
+    workers = registration_workers(n_reg, available_bytes=1 << 62) if mcm.uses_pool(knobs) else 0
+    own = [flow.BYTES_PER_VOXEL] if "tvl1" in mcm.registrations(knobs).values() else []
+    if mcm.uses_pool(knobs) and workers <= 1:
+        own.append(FLOW_BYTES_PER_VOXEL)
+    registration += max(own, default=0) * n_reg
     fit = first + max(read_first, imgs + kept + registration + 2 * nb * fld + fit_block)
     # while a slab's rows are read, the raw rows of the read; while it is backprojected, their device copy,
     # the model's and the images (never both at once)

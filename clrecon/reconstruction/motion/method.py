@@ -76,11 +76,35 @@ def basis_of(knobs, n_cardiac: int, n_resp: int) -> MotionBasis:
                        cardiac_harmonics=min(knobs.cardiac_harmonics, (n_cardiac - 1) // 2))
 
 
-def flow_of(knobs) -> FlowConfig | TVL1Config:
-    """The registration ``knobs.registration`` names, with its knobs."""
-    if knobs.registration == "tvl1":
+def flow_of(knobs, step: str = "breathing") -> FlowConfig | TVL1Config:
+    """The registration of the separable scheme's ``step`` (``"breathing"``: ``knobs.registration``;
+    ``"beat"``: ``knobs.beat_registration``), with its knobs."""
+    if step not in STEPS:
+        raise ValueError(f"step = {step!r}: one of {STEPS}")
+    if registrations(knobs)[step] == "tvl1":
         return TVL1Config()
     return FlowConfig(radius=knobs.flow_radius, num_warp=knobs.flow_warps)
+
+
+#: The separable registration's steps (:mod:`clrecon.reconstruction.motion.estimate`), in their order.
+STEPS = ("breathing", "beat")
+
+
+def registrations(knobs) -> dict:
+    """``{step: registration name}`` of :data:`STEPS` (``knobs.registration``, ``knobs.beat_registration``)."""
+    return {"breathing": knobs.registration, "beat": knobs.beat_registration}
+
+
+def uses_library(knobs) -> bool:
+    """Whether a step registers with Lucas-Kanade (scikit-image, the ``motion`` extra); TV-L1 runs on
+    the engine's OpenCL runtime."""
+    return any(isinstance(flow_of(knobs, s), FlowConfig) for s in STEPS)
+
+
+def uses_pool(knobs) -> bool:
+    """Whether a step's registrations may run in a process pool: Lucas-Kanade's do (one per core);
+    TV-L1's run in the run's process on the OpenCL device, which uses every core itself."""
+    return uses_library(knobs)
 
 
 def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs, progress=None, pool=None) -> tuple[MotionModel, dict]:
@@ -89,8 +113,8 @@ def register(volumes, ref_ij, grid: FieldGrid, pairs, knobs, progress=None, pool
     ``progress``: optional ``update(n)`` counter, one step per registration; ``pool``: optional
     process pool running each step's registrations at once (the same fields, bit for bit)."""
     t0 = time.perf_counter()
-    parts = estimate.separable_parts(volumes, tuple(ref_ij), grid, flow_of(knobs), progress=progress, pool=pool,
-                                     shrink=shrink_of(knobs))
+    parts = estimate.separable_parts(volumes, tuple(ref_ij), grid, flow_of(knobs, "breathing"), progress=progress,
+                                     pool=pool, shrink=shrink_of(knobs), beat_cfg=flow_of(knobs, "beat"))
     rss_mark("mc: the registrations (separable_parts)")
     t1 = time.perf_counter()
     nr = volumes.shape[1]
