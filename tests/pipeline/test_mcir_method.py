@@ -103,15 +103,26 @@ def test_mcir_on_two_dask_workers_is_bit_identical(tmp_path, reference):
 def test_mcir_on_a_measured_scan_reconstructs_what_it_does_on_the_simulation(tmp_path, reference):
     """The reference run's noisy projections written as DICOM-CT-PD and read back as a measured scan:
     mcir solves them to the simulated run's noisy mcir volumes within the import's quantisation
-    carried through the solver (measured below), and it is mcir's image, not its first pass."""
+    carried through the solver (measured below), and it is mcir's image, not its first pass.
+
+    Both runs register the beat with Lucas-Kanade, as the breathing: the default TV-L1 beat carries
+    the import's quantisation (0.25 HU) further into the motion model, and mcir's forward model and
+    start then differ by up to 0.79 HU (measured; ``mc``'s own volumes stay within 0.25 HU,
+    test_mc_method.py). What is tested here is mcir's reading of a measured scan, not the
+    registration's sensitivity."""
     from clrecon.outputs.export import export
 
     out, _ = reference
     export(out, "dicom-ct-pd", out=tmp_path / "exp")
-    res = run(load_scene(tmp_path / "exp" / "measured.toml"), tmp_path / "meas", methods=METHODS_RUN.split(","),
-              cache_dir=tmp_path / "c", report=False, **QUIET)  # mcir starts from mc's volumes, as in the reference
+    lk = {"mc": {"beat_registration": "lucas_kanade"}}
+    sim_run = tmp_path / "sim"
+    run(load_scene("tiny", recon=lk), sim_run, methods=METHODS_RUN.split(","), cache_dir=tmp_path / "cs",
+        executor="serial", report=False, **QUIET)
+    res = run(load_scene(tmp_path / "exp" / "measured.toml", recon=lk), tmp_path / "meas",
+              methods=METHODS_RUN.split(","), cache_dir=tmp_path / "c", report=False,
+              **QUIET)  # mcir starts from mc's volumes, as in the simulation
     assert res["stages"]["mcir"]["slabs"]["p0.100"]["measured"]
-    with h5py.File(out / "volumes.h5") as a, h5py.File(tmp_path / "meas" / "volumes.h5") as b:
+    with h5py.File(sim_run / "volumes.h5") as a, h5py.File(tmp_path / "meas" / "volumes.h5") as b:
         sim, meas = a["recon/p0.100/noisy/mcir"][()].astype(float), b["recon/p0.100/measured/mcir"][()].astype(float)
         bary = b["recon/p0.100/measured/barycentric"][()].astype(float)
     assert np.all(np.isfinite(meas))

@@ -124,7 +124,7 @@ def main():
         run_dir = out / f"{breathing}-{beat}"
         KEPT.clear()
         res = clrecon.run(scene, run_dir, methods=["barycentric", "mc"], pitches=[args.pitch], progress=False,
-                          executor="serial")
+                          executor="serial").results
         pk = next(iter(res["metrics"]))
         for variant, ms in res["metrics"][pk].items():
             model = KEPT[f"model~{pk}~{variant}"]
