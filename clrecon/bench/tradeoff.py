@@ -65,7 +65,7 @@ average sampled during the sweep; a sweep of some methods merged into an earlier
 the registry's marker per method, each method's Pareto front as a step line, every point
 labelled by its knob code). ``python -m clrecon bench --only
 tradeoff`` runs it (not part of the default bench set: about 50 minutes on 2 cores, mc's five
-points about 20 of them); ``python -m
+points about 20 of them, and each mcir point tens of minutes more: docs/performance.md); ``python -m
 clrecon.bench.tradeoff --methods mc --merge docs/figures/tradeoff.json --out DIR`` sweeps some
 methods and merges them into an earlier sweep.
 """
@@ -551,8 +551,8 @@ def _log_seconds_axis(ax):
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.tick_params(labelsize=8)
     ax.grid(alpha=0.3, which="both")
-    ax.set_xlabel("seconds of the method: plan + interpolation + FBP; mc: + its first pass, registration, model "
-                  "fit, MC backprojection; mcir: + OS-SART (and mc where it starts from it) (log)", fontsize=8)
+    ax.set_xlabel("seconds (log): plan + interpolation + FBP; mc, mcir: + first pass, model fit, MC backprojection "
+                  "(+ OS-SART)", fontsize=8)
     ax.set_ylabel("MAE vs ground truth, small FOV (HU)", fontsize=8)
 
 
@@ -576,7 +576,7 @@ def plot_tradeoff(result: dict, path) -> Path:
     fig, axes = plt.subplots(2, nv, figsize=(6.6 * nv + 1.6, 10.0), squeeze=False, layout="constrained", dpi=110,
                              height_ratios=(1.0, 1.25))
     secs = [_sec(r) for r in rows]
-    lo, hi = min(secs) / 1.25, max(secs) * 1.25
+    lo, hi = min(secs) / 1.25, max(secs) * 2.0  # room for the slowest point's label on its right
     boxes = {}
     for k, v in enumerate(variants):
         rv = [r for r in rows if r["variant"] == v]
