@@ -24,6 +24,20 @@ not recover the motion (the row keeps the warning); such a point measures ``mc``
 error on a run of these slices, not its motion model; the ``z`` point gives it the scene's
 whole z.
 
+``mcir`` (OS-SART through mc's motion model, made from the registry's ``first_pass``) runs with
+its first pass and, where it starts from mc's image (``[recon.mcir] init`` 'auto' with mc in the
+run), with mc too (:attr:`SweepPoint.also`): ``methods = (barycentric, mc, mcir)``. Its point's
+seconds are the run's whole cost of the three (:func:`point_seconds`): their ``method_seconds``
+summed with the motion model's fit counted once. The one model is fitted by the first of the
+two second-pass stages (mc's) and loaded by the other, and each one's ``method_seconds`` holds
+the fit's seconds, so one copy is taken off; what is left is the first pass + the model's fit +
+mc's final pass + mcir's OS-SART (per slab: its setup, the epochs with their residuals, the
+targets' sampling). ``seconds_parts`` keeps the three ``method_seconds`` as the run recorded
+them, ``model_seconds`` the fit, ``solver`` each slab's epochs run, residuals and why it
+stopped. Not counted, as for mc: reading the start image and the first pass back from
+``volumes.h5``, the model's error against the phantom's motion. A point from ``zero`` needs no mc
+image: its run is (barycentric, mcir), the mcir stage fitting the model.
+
 Knobs (one changed at a time from the scene's setting, the *base*):
 
 - local linear: points per quadrant ``q1``, ``q2`` (base), ``q3``; the nearest points overall
@@ -37,6 +51,9 @@ Knobs (one changed at a time from the scene's setting, the *base*):
   ``THIN_Z_MM`` of slices, the base knobs on a run of every slice (``z64`` on demo: 64 mm of
   z for the registration), scored on the sweep's slices, its seconds the whole run's (the
   pipeline reconstructs every slice it registers); not in the quick sweep;
+- mcir: OS-SART epochs at most ``e4`` (base), ``e2``, ``e1`` (``recon.mcir.epochs``; ``tol`` may
+  stop it sooner: ``solver`` says), from mc's image (base) or from ``zero`` (``init``), on mc's
+  base model; not in the quick sweep;
 - every method except mc: views per rotation N (base) and N/2 (``v180`` on demo), the image grid nx = ny
   (base) and nx/2 with the voxel doubled (same FOV; ``64²`` on demo), and both halved. The
   ground truth is made on the same grid, so a coarser grid's MAE is against a coarser truth.
@@ -48,7 +65,7 @@ average sampled during the sweep; a sweep of some methods merged into an earlier
 the registry's marker per method, each method's Pareto front as a step line, every point
 labelled by its knob code). ``python -m clrecon bench --only
 tradeoff`` runs it (not part of the default bench set: about 50 minutes on 2 cores, mc's five
-points about 20 of them); ``python -m
+points about 20 of them, and each mcir point tens of minutes more: docs/performance.md); ``python -m
 clrecon.bench.tradeoff --methods mc --merge docs/figures/tradeoff.json --out DIR`` sweeps some
 methods and merges them into an earlier sweep.
 """
@@ -76,6 +93,7 @@ from clrecon.outputs.figures import _plt
 from clrecon.outputs.volumes import open_volumes, pitch_key, read_part, recon_path
 from clrecon.pipeline.run import run as run_pipeline
 from clrecon.reconstruction import interpolation as _methods
+from clrecon.reconstruction.iterative import method as mcir
 from clrecon.reconstruction.motion import mc_fbp, registration
 from clrecon.reconstruction.reconstruct import slice_positions
 
@@ -88,13 +106,20 @@ MAX_TURNS = (0, 4, 2)
 #: mc's points: (code, knob, ``recon.mc`` overrides); the first is the scene's setting.
 MC_POINTS = (("r2", "base", {}), ("r1", "rounds", {"rounds": 1}), ("ds2", "downsample", {"downsample": 2}),
              ("tvl1", "registration", {"registration": "tvl1"}))
+#: mcir's points: (code, knob, ``recon.mcir`` overrides, whether the run makes mc's volumes too); the first
+#: is the scene's setting with mc in the run (``init`` 'auto': OS-SART starts from mc's reference target).
+#: 'zero' starts from nothing, so its run has no mc pass (the mcir stage fits the motion model itself).
+MCIR_POINTS = (("e4", "base", {}, True), ("e2", "epochs", {"epochs": 2}, True), ("e1", "epochs", {"epochs": 1}, True),
+               ("zero", "init", {"init": "zero"}, False))
 
 
 @dataclass(frozen=True)
 class SweepPoint:
     """One run: ``method`` with ``recon`` / ``scanner`` overrides; ``code`` labels it in the figure.
     ``run_slices``: the run's slice range (start, stop) where it is wider than the slices the
-    point is scored on (the sweep's): the MAE is of the sweep's slices, the seconds the run's."""
+    point is scored on (the sweep's): the MAE is of the sweep's slices, the seconds the run's.
+    ``also``: methods the run makes besides ``method`` and its first pass, because ``method`` starts
+    from their volumes (mcir from mc's); their seconds are part of the point's (:func:`run_methods`)."""
 
     method: str
     code: str
@@ -102,6 +127,7 @@ class SweepPoint:
     recon: dict = field(default_factory=dict)
     scanner: dict = field(default_factory=dict)
     run_slices: tuple | None = None
+    also: tuple = ()
 
     @property
     def name(self) -> str:
@@ -149,17 +175,30 @@ def sweep_points(scene, quick: bool = False) -> list[SweepPoint]:
                 SweepPoint(m, cg, "grid", recon=half_g),
                 SweepPoint(m, f"{cv} {cg}", "views_per_rotation+grid", recon=half_g, scanner=half_v)]
     pts += [SweepPoint("mc", code, knob, {"mc": mc} if mc else {}) for code, knob, mc in MC_POINTS]
+    pts += [SweepPoint(mcir.NAME, code, knob, {"mcir": kn} if kn else {}, also=(mc_fbp.NAME,) if with_mc else ())
+            for code, knob, kn, with_mc in MCIR_POINTS]
     z_mm = scene.recon.nz * scene.recon.slice_mm
     if z_mm >= mc_fbp.THIN_Z_MM and scene.recon.nz > FULL_SLICES[1] - FULL_SLICES[0]:
         pts.append(SweepPoint("mc", f"z{z_mm:g}", "registration_z", run_slices=(0, scene.recon.nz)))
     return pts
 
 
-def run_methods(method: str) -> tuple[str, ...]:
-    """The methods one point of ``method`` runs: a second-pass method with its first pass before it."""
+def run_methods(method: str, also: tuple = ()) -> tuple[str, ...]:
+    """The methods one point of ``method`` runs: a second-pass method with its first pass before it,
+    then ``also`` (:attr:`SweepPoint.also`), then the method."""
     if method in _methods.second_pass_methods((method,)):
-        return (_methods.first_pass(method), method)
+        return tuple(dict.fromkeys((_methods.first_pass(method), *also, method)))
     return (method,)
+
+
+def point_seconds(parts: dict, model_seconds: float | None) -> float:
+    """A point's seconds from its run's ``method_seconds`` per method (``parts``): their sum, with the
+    motion model's fit counted once. Each second-pass method's ``method_seconds`` holds the model's
+    seconds (``model_seconds``, the one model of the run, fitted by the first of them and loaded by
+    the others: :func:`clrecon.pipeline.stages.mc_reconstruct.motion_model`), so where ``k`` of
+    them ran, ``k - 1`` copies are taken off."""
+    k = len(_methods.second_pass_methods(tuple(parts)))
+    return round(sum(parts.values()) - max(0, k - 1) * float(model_seconds or 0.0), 3)
 
 
 def pareto_front(seconds, mae) -> list[int]:
@@ -262,13 +301,15 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
     if methods is not None:
         points = _keep(points, methods, "method")
     skipped = {}
-    if methods is None and any(p.method == "mc" for p in points):
-        try:  # the full sweep runs without the motion extra, less mc's points (asked for by name: refused)
+    model_users = set(_methods.second_pass_methods(tuple(dict.fromkeys(p.method for p in points))))
+    if methods is None and model_users:
+        try:  # the full sweep runs without the motion extra, less mc's and mcir's points (by name: refused)
             registration.require("skimage.registration")
         except ClreconError as e:
-            skipped["mc"] = str(e)
-            log(f"tradeoff: mc's points skipped: {e}")
-            points = [p for p in points if p.method != "mc"]
+            for m in sorted(model_users):
+                skipped[m] = str(e)
+            log(f"tradeoff: {', '.join(sorted(model_users))}'s points skipped: {e}")
+            points = [p for p in points if p.method not in model_users]
     if codes is not None:
         points = _keep(points, codes, "code")
     base = json.loads(Path(merge).read_text()) if isinstance(merge, (str, Path)) else merge
@@ -278,7 +319,7 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
         for k, p in enumerate(points):
             s_i = sc.replace(**{sec: vals for sec, vals in (("recon", p.recon), ("scanner", p.scanner)) if vals})
             run_dir = out / "runs" / p.name
-            ms = run_methods(p.method)
+            ms = run_methods(p.method, p.also)
             span = tuple(p.run_slices) if p.run_slices else slices
             scored = None  # {variant: {fov: mae}} of the sweep's slices, where the run is wider
             if warmup:
@@ -306,7 +347,8 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
             for v, bym in res["metrics"][pk].items():
                 met = bym[p.method]
                 parts = [{m: r_["method_seconds"][pk][v][m] for m in ms} for r_, _ in reps]
-                secs = [round(sum(pt.values()), 3) for pt in parts]
+                secs = [point_seconds(pt, _model_notes(r_, pk, v)["model_seconds"]) for pt, (r_, _) in
+                        zip(parts, reps, strict=True)]
                 i_best = int(np.argmin(secs))
                 best = reps[i_best][0]
                 plan = best.get("method_plan_seconds", {}).get(pk, {})
@@ -321,7 +363,9 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
                        "simulated": res["stages"]["simulate"]["per_pitch"][pk]["projections_simulated"]}
                 if len(ms) > 1:
                     row["seconds_parts"] = parts[i_best]
-                    row.update(_model_notes(best, p.method, pk, v))
+                    row.update(_model_notes(best, pk, v))
+                if p.method == mcir.NAME:
+                    row["solver"] = _solver_notes(best, pk, v)
                 if scored:  # the run's own pooled MAE, over all its slices
                     row["mae_run_slices_hu"] = {fov: met[fov]["mae_hu"] for fov in ("small", "large")}
                 rows.append(row)
@@ -347,16 +391,32 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
 SECONDS_DEFINITION = ("results.json method_seconds: the method's plan (weights + candidate search) + interpolation "
                       "+ FBP of that variant, this machine's OpenCL device; mc: its method_seconds (every round's "
                       "registration, model fit and motion-compensated backprojection, then the final pass) + its "
-                      "first pass's (barycentric's), seconds_parts each; the fastest of `repeats` timed runs")
+                      "first pass's (barycentric's), seconds_parts each; mcir: the method_seconds of its first pass, "
+                      "of mc where it starts from mc's image, and its own (OS-SART's setup, epochs and target "
+                      "sampling), the motion model's fit (in both mc's and mcir's) counted once, seconds_parts as "
+                      "recorded and model_seconds; the fastest of `repeats` timed runs")
 
 
-def _model_notes(res: dict, method: str, pk: str, variant: str) -> dict:
-    """A second-pass point's model figures from its ``results.json``: ``model_error`` (heart and
-    body, mm RMS against the phantom's motion), ``model_seconds`` and the run's thin-z ``warning``."""
-    info = res.get("stages", {}).get("registration", {}).get(method, {}).get(pk, {}).get(variant, {})
+def _model_notes(res: dict, pk: str, variant: str) -> dict:
+    """A second-pass point's model figures from its ``results.json`` (the run's one motion model,
+    noted under mc's name whichever stage fitted it): ``model_error`` (heart and body, mm RMS
+    against the phantom's motion), ``model_seconds`` and the run's thin-z ``warning``."""
+    info = res.get("stages", {}).get("registration", {}).get(mc_fbp.NAME, {}).get(pk, {}).get(variant, {})
     err = info.get("error_against_phantom_motion", {})
     return {"model_error": {k: err[k] for k in ("heart", "body_outside_lungs") if k in err},
             "model_seconds": info.get("seconds"), "warning": info.get("warning")}
+
+
+def _solver_notes(res: dict, pk: str, variant: str) -> dict:
+    """An mcir point's OS-SART figures per slab from its ``results.json``: the start, the epochs run
+    (residual after each), the relative residual at the start and the end, why it stopped."""
+    info = res.get("stages", {}).get(mcir.NAME, {})
+    out = {"start": info.get("start")}
+    for slab, s in info.get("slabs", {}).get(pk, {}).get(variant, {}).items():
+        h = s.get("sart", {})
+        out[slab] = {"epochs": len(h.get("running", [])), "initial": h.get("initial"), "final": h.get("final"),
+                     "stop": h.get("stop")}
+    return out
 
 
 #: Keys that must agree for two sweeps to share a figure.
@@ -491,8 +551,8 @@ def _log_seconds_axis(ax):
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.tick_params(labelsize=8)
     ax.grid(alpha=0.3, which="both")
-    ax.set_xlabel("seconds of the method: plan + interpolation + FBP; mc: + its first pass, registration, model "
-                  "fit, MC backprojection (log)", fontsize=8)
+    ax.set_xlabel("seconds (log): plan + interpolation + FBP; mc, mcir: + first pass, model fit, MC backprojection "
+                  "(+ OS-SART)", fontsize=8)
     ax.set_ylabel("MAE vs ground truth, small FOV (HU)", fontsize=8)
 
 
@@ -516,7 +576,7 @@ def plot_tradeoff(result: dict, path) -> Path:
     fig, axes = plt.subplots(2, nv, figsize=(6.6 * nv + 1.6, 10.0), squeeze=False, layout="constrained", dpi=110,
                              height_ratios=(1.0, 1.25))
     secs = [_sec(r) for r in rows]
-    lo, hi = min(secs) / 1.25, max(secs) * 1.25
+    lo, hi = min(secs) / 1.25, max(secs) * 2.0  # room for the slowest point's label on its right
     boxes = {}
     for k, v in enumerate(variants):
         rv = [r for r in rows if r["variant"] == v]
@@ -556,7 +616,8 @@ def plot_tradeoff(result: dict, path) -> Path:
                   "widths; all / tN = every / the N nearest-in-z candidate turns; vN = N views per rotation; N² = "
                   "N x N image grid (same FOV);\nmc (base r2): rN = N registration rounds, ds2 = registration "
                   "at half the in-plane voxels, tvl1 = TV-L1 registration (base Lucas-Kanade), zN = the base on a "
-                  "run of N mm of slices scored on these", fontsize=6.5)
+                  "run of N mm of slices scored on these; mcir (base e4): eN = N OS-SART epochs from mc's image, "
+                  "zero = 4 epochs from zero", fontsize=6.5)
     fig.canvas.draw()  # lay out once, then place the labels in the final display coordinates
     fig.set_layout_engine("none")
     for k, v in enumerate(variants):

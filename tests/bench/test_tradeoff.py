@@ -171,3 +171,63 @@ def test_the_full_sweep_runs_without_the_motion_extra_less_mcs_points(tmp_path, 
     with pytest.raises(ClreconError, match="not installed"):
         tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path / "mc", methods=("mc",), warmup=False, repeats=1,
                         log=lambda *a, **k: None)
+
+
+def test_mcir_points_run_with_their_first_pass_and_mc_and_count_the_motion_model_once(tmp_path, monkeypatch):
+    """mcir's points (stubbed runs, no reconstruction): the epochs and init knobs reach the run's
+    scene; a point with mc's start runs (first pass, mc, mcir), the 'zero' point (first pass, mcir);
+    a point's seconds are its methods' method_seconds with the motion model's fit, which every
+    second-pass method's method_seconds holds, counted once; the solver's figures are kept."""
+    demo = load_scene("demo")
+    pts = {p.code: p for p in tr.sweep_points(demo) if p.method == tr.mcir.NAME}
+    assert set(pts) == {"e4", "e2", "e1", "zero"} and pts["e4"].knob == "base" and not pts["e4"].recon
+    fp = tr._methods.first_pass(tr.mcir.NAME)
+    assert tr.run_methods(tr.mcir.NAME, pts["e1"].also) == (fp, tr.mc_fbp.NAME, tr.mcir.NAME)
+    assert tr.run_methods(tr.mcir.NAME, pts["zero"].also) == (fp, tr.mcir.NAME)
+    assert tr.run_methods(tr.mc_fbp.NAME, (tr.mc_fbp.NAME,)) == (fp, tr.mc_fbp.NAME)
+    assert not any(p.method == tr.mcir.NAME for p in tr.sweep_points(demo, quick=True))
+    # seconds: the model (6 s) is inside both mc's (10 s) and mcir's (20 s) method_seconds
+    assert tr.point_seconds({fp: 1.0, "mc": 10.0, "mcir": 20.0}, 6.0) == 25.0
+    assert tr.point_seconds({fp: 1.0, "mcir": 20.0}, 6.0) == 21.0          # one model user: nothing off
+    assert tr.point_seconds({fp: 1.0, "mc": 10.0}, None) == 11.0
+
+    calls = []
+    model_s = {"noise-free": 6.0, "noisy": 7.0}
+
+    def fake_run(scene, run_dir, methods, pitches, slice_range, **kw):
+        pk = tr.pitch_key(pitches[0])
+        ep = scene.recon.mcir.epochs
+        zero = scene.recon.mcir.init == "zero"
+        calls.append((tuple(methods), ep, scene.recon.mcir.init, tuple(slice_range)))
+        own = {fp: 1.0, "mc": 4.0, "mcir": 3.0 * ep}        # each method's own work, s
+        secs = {v: {m: own[m] + (model_s[v] if m in ("mc", "mcir") else 0.0) for m in methods} for v in model_s}
+        mae = {v: {m: {fov: {"mae_hu": 30.0 - ep - (5.0 if zero else 0.0) + (v == "noisy") + (fov == "large")}
+                       for fov in ("small", "large")} for m in methods} for v in model_s}
+        slab = {"sart": {"initial": 0.5, "final": 0.1, "running": [0.2] * ep, "stop": "epochs"}}
+        return {"metrics": {pk: mae}, "method_seconds": {pk: secs}, "method_plan_seconds": {pk: {fp: 0.25}},
+                "stages": {"simulate": {"per_pitch": {pk: {"projections_simulated": 0}}},
+                           "registration": {"mc": {pk: {v: {"seconds": s, "warning": "thin"}
+                                                        for v, s in model_s.items()}}},
+                           "mcir": {"start": "zero" if zero else "mc", "slabs": {pk: {v: {"0..3": slab}
+                                                                                         for v in model_s}}}}}
+
+    monkeypatch.setattr(tr, "run_pipeline", fake_run)
+    monkeypatch.setattr(tr, "plot_tradeoff", lambda result, path: path)
+    res = tr.run_tradeoff(scene=demo, out_dir=tmp_path, methods=(tr.mcir.NAME,), warmup=False, repeats=2,
+                          log=lambda *a, **k: None)
+    assert sorted(c[:3] for c in calls) == sorted(
+        [((fp, "mc", "mcir"), e, "auto") for e in (4, 2, 1) for _ in range(2)]
+        + [((fp, "mcir"), 4, "zero")] * 2)
+    assert {c[3] for c in calls} == {tr.FULL_SLICES}
+    rows = {(r["code"], r["variant"]): r for r in res["points"]}
+    assert len(rows) == 8 and {r["method"] for r in rows.values()} == {tr.mcir.NAME}
+    for (code, v), r in rows.items():
+        ep = 4 if code in ("e4", "zero") else int(code[1])
+        want = 1.0 + 3.0 * ep + model_s[v] + (0.0 if code == "zero" else 4.0)   # first pass + model once (+ mc)
+        assert r["seconds"] == pytest.approx(want) and r["seconds_repeats"] == [r["seconds"]] * 2
+        assert r["seconds_parts"][tr.mcir.NAME] == pytest.approx(3.0 * ep + model_s[v])
+        assert r["model_seconds"] == model_s[v] and r["warning"] == "thin"
+        assert r["solver"]["start"] == ("zero" if code == "zero" else "mc")
+        assert r["solver"]["0..3"] == {"epochs": ep, "initial": 0.5, "final": 0.1, "stop": "epochs"}
+        assert r["mae_small_hu"] == 30.0 - ep - (5.0 if code == "zero" else 0.0) + (v == "noisy")
+    assert res["fronts"]["noise-free"][tr.mcir.NAME][0] == "e1"
