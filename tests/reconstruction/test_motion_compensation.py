@@ -11,16 +11,17 @@ estimate, and the analytic phantom's true motion.
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 import pytest
 import scipy.ndimage
-from motion_study import correction, demons, warp
+from motion_study import correction, demons, registration_memory, warp
 
 from clrecon.bench import reference_kernels
 from clrecon.core.resources import spawned_pool
 from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
-from clrecon.reconstruction.motion import estimate, registration, slots
+from clrecon.reconstruction.motion import estimate, memory, registration, slots
 from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion import model as motion_model
 from clrecon.reconstruction.motion.backproject import (
@@ -612,6 +613,22 @@ def test_registration_workers_follow_cores_and_memory():
     assert registration.registration_workers(n_vox, cores=8, available_bytes=5 * per) == 2  # half the memory
     assert registration.registration_workers(n_vox, cores=8, available_bytes=0) == 1
     assert registration.registration_workers(registration.POOL_MIN_VOXELS - 1, cores=8, available_bytes=100 * per) == 1
+
+
+def test_one_lucas_kanade_registration_peaks_within_its_modelled_bytes():
+    """The pre-flight counts ``FLOW_BYTES_PER_VOXEL`` per voxel for one Lucas-Kanade registration in a
+    worker of ``mc``'s pool, above the worker's own ``memory.WORKER_BYTES``: measured as the constants
+    were (``benchmarks/studies/motion-model/registration_memory.py``: a spawned worker's VmHWM above
+    its resident set after the imports, a first and a second registration) on ``demo``'s registration
+    grid, the peak is at most the modelled bytes and within 15 % of them, and the worker's own set,
+    after its imports and between registrations, at most ``WORKER_BYTES``."""
+    if not os.path.exists("/proc/self/clear_refs"):
+        pytest.skip("needs Linux's /proc/<pid>/status and clear_refs")
+    m = registration_memory.measure((16, 128, 128))
+    above = max(m["peak_bytes"], m["second_peak_bytes"]) - m["baseline_bytes"]
+    modelled = registration.FLOW_BYTES_PER_VOXEL * m["voxels"]
+    assert 0.85 * modelled <= above <= modelled, m
+    assert max(m["baseline_bytes"], m["idle_bytes"]) <= memory.WORKER_BYTES, m
 
 
 # ---------------------------------------------------------------------------------------

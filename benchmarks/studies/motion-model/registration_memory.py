@@ -1,0 +1,90 @@
+"""Peak memory of one Lucas-Kanade registration in a spawned process, as ``mc``'s pool runs it.
+
+For each volume shape: a fresh pool of one spawned worker (``core.resources.spawned_pool``, the
+run's), a warm-up registration of a small volume (imports scikit-image), then the worker's resident
+set as its baseline (``/proc/<pid>/status`` VmRSS, its high-water mark reset through
+``/proc/<pid>/clear_refs``), then one ``registration.register`` of the shape with the default
+``FlowConfig`` and the worker's VmHWM after it, its VmRSS then (an idle worker of the pool), and
+its VmHWM after a second registration in the same worker (the run's pool repeats them). Prints
+per shape: voxels, the baseline, the peak above it and that per voxel, the idle resident set,
+the second peak, the wall seconds; and ``resource.getrusage(RUSAGE_CHILDREN)`` (the largest
+child's peak, baseline included) as a cross-check. The volumes are smoothed random texture in HU
+and its copy shifted by a few voxels (the work does not depend on the content: fixed pyramid
+levels and warps). One registration runs at a time. The pool's workers import the worktree's
+``clrecon`` only with it on ``PYTHONPATH`` (the script's folder is ``sys.path[0]``):
+
+    PYTHONPATH=. nice -n 10 python benchmarks/studies/motion-model/registration_memory.py [--shape NZ NY NX ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import time
+
+import numpy as np
+import scipy.ndimage
+
+from clrecon.core.resources import spawned_pool
+from clrecon.reconstruction.motion import registration
+
+#: demo's registration grid at downsample 1 and 2, a paper-p010 slab's (8 slices) and 40 slices at both.
+SHAPES = [(16, 64, 64), (16, 128, 128), (8, 512, 512), (40, 256, 256), (40, 512, 512)]
+
+
+def _status(pid: int) -> dict[str, int]:
+    """VmRSS and VmHWM of ``pid`` (bytes)."""
+    out = {}
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            k, _, v = line.partition(":")
+            if k in ("VmRSS", "VmHWM"):
+                out[k] = int(v.split()[0]) * 1024
+    return out
+
+
+def _pair(shape, rng):
+    fixed = scipy.ndimage.gaussian_filter(rng.normal(0, 300, shape), 2.0).astype(np.float32) - 200
+    moving = np.roll(fixed, (1, 3, -2), axis=(0, 1, 2))
+    return fixed, moving
+
+
+def measure(shape, spacing_mm=(0.98, 0.98, 1.0)) -> dict:
+    rng = np.random.default_rng(0)
+    fixed, moving = _pair(shape, rng)
+    pool = spawned_pool(1)
+    try:
+        small = _pair((8, 32, 32), rng)
+        pool.submit(registration.register, *small, spacing_mm).result()
+        (pid,) = list(pool._processes)
+        with open(f"/proc/{pid}/clear_refs", "w") as f:
+            f.write("5")  # reset VmHWM to the current resident set
+        base = _status(pid)["VmRSS"]
+        t = time.perf_counter()
+        pool.submit(registration.register, fixed, moving, spacing_mm).result()
+        wall = time.perf_counter() - t
+        peak, idle = _status(pid)["VmHWM"], _status(pid)["VmRSS"]
+        pool.submit(registration.register, moving, fixed, spacing_mm).result()
+        again = _status(pid)["VmHWM"]
+    finally:
+        pool.shutdown()
+    n = int(np.prod(shape))
+    return {"shape": list(shape), "voxels": n, "baseline_bytes": base, "peak_bytes": peak,
+            "above_baseline_bytes": peak - base, "bytes_per_voxel": round((peak - base) / n, 1),
+            "second_peak_bytes": again, "idle_bytes": idle, "wall_s": round(wall, 1)}
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--shape", type=int, nargs=3, action="append", help="NZ NY NX (repeatable)")
+    args = ap.parse_args()
+    for shape in (args.shape or SHAPES):
+        print(json.dumps(measure(tuple(shape))), flush=True)
+    print(json.dumps({"children_maxrss_bytes": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024,
+                      "load": os.getloadavg()}))
+
+
+if __name__ == "__main__":
+    main()
