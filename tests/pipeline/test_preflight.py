@@ -246,22 +246,31 @@ def test_the_mc_model_follows_the_registration_it_runs():
 
 def test_the_mc_model_counts_the_registration_processes_beside_the_registrations_only():
     """The fit's new model (its basis's fields on the registration grid) and its float64 block are made
-    after a step's registrations, so the registration processes at their peak sit beside the fit less
-    those; the process pool is idle (each worker's own set) beside the whole fit."""
-    from clrecon.reconstruction.motion import memory
+    after a step's registrations, and so is the shrinking of its fields (``knobs.shrink``): the
+    registration processes at their peak sit beside the fit less those; the process pool is idle
+    (each worker's own set) beside the whole fit."""
+    from clrecon.reconstruction.motion import confidence, memory
     from clrecon.reconstruction.motion import method as mcm
     from clrecon.reconstruction.motion.model import FIT_BLOCK
     from clrecon.reconstruction.rebin import slice_window_mm
 
-    scene = load_scene("demo")
-    sc, rc = scene.scanner, scene.recon
-    w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
-    p = memory.working_parts(sc, w, rc.mc, (rc.nz - 1) * rc.slice_mm, scene.scan.feed_mm(sc, 0.1), 2, 5, 10,
-                             rc.nz, rc.ny, rc.nx, scene.scan.projection_count(sc, 0.1), 1)
+    def parts(shrink):
+        scene = api.load_scene("demo", recon={"mc": {"shrink": shrink}})
+        sc, rc = scene.scanner, scene.recon
+        w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
+        return rc, memory.working_parts(sc, w, rc.mc, (rc.nz - 1) * rc.slice_mm, scene.scan.feed_mm(sc, 0.1), 2, 5,
+                                        10, rc.nz, rc.ny, rc.nx, scene.scan.projection_count(sc, 0.1), 1)
+
+    rc, p = parts(False)
     nb = len(mcm.basis_of(rc.mc, 5, 10).names)
     n_reg = rc.nz * (rc.ny // rc.mc.downsample) * (rc.nx // rc.mc.downsample)
-    assert p["fit"] - p["registering"] == nb * 3 * n_reg * 4 + (4 * 50 + nb) * FIT_BLOCK * 8
+    fld = 3 * n_reg * 4
+    assert p["fit"] - p["registering"] == nb * fld + (4 * 50 + nb) * FIT_BLOCK * 8
     assert p["registration processes"] > p["idle registration processes"] > 0  # demo's grid registers in a pool
+    _, q = parts(True)  # the shrinking: the 10 respiratory fields' copy and one field's shrink_field
+    shrink = 10 * fld + confidence.SHRINK_BYTES_PER_VOXEL * n_reg + confidence.SHRINK_CHUNK_BYTES
+    assert q["fit"] == max(p["fit"], p["registering"] + shrink)
+    assert {k: v for k, v in q.items() if k != "fit"} == {k: v for k, v in p.items() if k != "fit"}
 
 
 def test_the_mc_model_holds_the_first_pass_on_the_registration_grid_only():
@@ -277,7 +286,9 @@ def test_the_mc_model_holds_the_first_pass_on_the_registration_grid_only():
     ext = (rc.nz - 1) * rc.slice_mm
 
     def fit(ds, unit_slices, rounds=2):
-        knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds, "rounds": rounds}}).recon.mc
+        # without the fields' shrinking (its own part of the fit, counted in the test above)
+        knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds, "rounds": rounds,
+                                                           "shrink": False}}).recon.mc
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
                                     scene.scan.projection_count(sc, 0.1), unit_slices)["fit"]
 

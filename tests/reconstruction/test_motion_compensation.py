@@ -21,7 +21,7 @@ from motion_study import correction, demons, registration_memory, warp
 from clrecon.bench import reference_kernels
 from clrecon.core.resources import spawned_pool
 from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
-from clrecon.reconstruction.motion import estimate, memory, registration, slots
+from clrecon.reconstruction.motion import confidence, estimate, memory, registration, slots
 from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion import model as motion_model
 from clrecon.reconstruction.motion.backproject import (
@@ -629,6 +629,20 @@ def test_one_lucas_kanade_registration_peaks_within_its_modelled_bytes():
     modelled = registration.FLOW_BYTES_PER_VOXEL * m["voxels"]
     assert 0.85 * modelled <= above <= modelled, m
     assert max(m["baseline_bytes"], m["idle_bytes"]) <= memory.WORKER_BYTES, m
+
+
+def test_shrinking_a_field_peaks_within_its_modelled_bytes():
+    """``estimate.shrunk`` (``knobs.shrink``) holds a copy of the step's fields and shrinks one field at a
+    time: measured as ``confidence.SHRINK_BYTES_PER_VOXEL`` and ``SHRINK_CHUNK_BYTES`` were (a spawned
+    process's peak above its baseline, the call's inputs taken off) on ``demo``'s registration grid, at
+    most the modelled bytes and within 15 % of them."""
+    if not os.path.exists("/proc/self/clear_refs"):
+        pytest.skip("needs Linux's /proc/<pid>/status and clear_refs")
+    m = registration_memory.measure_shrink((16, 128, 128))
+    vox = m["voxels"]
+    modelled = (m["fields"] * 3 * vox * 4 + confidence.SHRINK_BYTES_PER_VOXEL * vox
+                + confidence.SHRINK_CHUNK_BYTES)
+    assert 0.85 * modelled <= m["above_baseline_less_inputs_bytes"] <= modelled, m
 
 
 # ---------------------------------------------------------------------------------------

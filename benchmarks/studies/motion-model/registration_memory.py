@@ -28,7 +28,10 @@ import numpy as np
 import scipy.ndimage
 
 from clrecon.core.resources import spawned_pool
-from clrecon.reconstruction.motion import registration
+from clrecon.reconstruction.config import ReconConfig
+from clrecon.reconstruction.motion import estimate, registration
+from clrecon.reconstruction.motion import method as mcm
+from clrecon.reconstruction.motion.model import FieldGrid
 
 #: demo's registration grid at downsample 1 and 2, a paper-p010 slab's (8 slices) and 40 slices at both.
 SHAPES = [(16, 64, 64), (16, 128, 128), (8, 512, 512), (40, 256, 256), (40, 512, 512)]
@@ -76,12 +79,49 @@ def measure(shape, spacing_mm=(0.98, 0.98, 1.0)) -> dict:
             "second_peak_bytes": again, "idle_bytes": idle, "wall_s": round(wall, 1)}
 
 
+def _shrink(fields, images, grid):
+    """``estimate.shrunk`` as ``method.register`` calls it (the default knobs' window), in the worker."""
+    estimate.shrunk(fields, images, 0, grid, mcm.shrink_of(ReconConfig().mc))
+
+
+def measure_shrink(shape, n: int = 2) -> dict:
+    """The worker's peak above its baseline while ``estimate.shrunk`` shrinks ``n`` - 1 fields (the run's
+    process does this after each step's registrations, ``knobs.shrink``): the copy of the ``n`` fields
+    and one field's :func:`confidence.shrink_field`, with the moving image seen through it."""
+    rng = np.random.default_rng(0)
+    images = np.stack(_pair(shape, rng))[np.arange(n) % 2]
+    fields = scipy.ndimage.gaussian_filter(rng.normal(0, 2, (n, 3) + shape), (0, 0, 1, 4, 4)).astype(np.float32)
+    grid = FieldGrid(nx=shape[2], ny=shape[1], nz=shape[0], voxel_mm=0.98, z0_mm=0.0, dz_mm=1.0)
+    pool = spawned_pool(1)
+    try:
+        small = (8, 32, 32)
+        sg = FieldGrid(nx=32, ny=32, nz=8, voxel_mm=0.98, z0_mm=0.0, dz_mm=1.0)
+        pool.submit(_shrink, fields[:, :, :8, :32, :32].copy(), images[:, :8, :32, :32].copy(), sg).result()
+        (pid,) = list(pool._processes)
+        with open(f"/proc/{pid}/clear_refs", "w") as f:
+            f.write("5")
+        base = _status(pid)["VmRSS"]
+        t = time.perf_counter()
+        pool.submit(_shrink, fields, images, grid).result()
+        wall = time.perf_counter() - t
+        peak = _status(pid)["VmHWM"]
+    finally:
+        pool.shutdown()
+    vox = int(np.prod(shape))
+    inputs = fields.nbytes + images.nbytes  # the call's arrays, unpickled in the worker
+    return {"shrink_shape": list(shape), "fields": n, "voxels": vox, "baseline_bytes": base, "peak_bytes": peak,
+            "above_baseline_less_inputs_bytes": peak - base - inputs,
+            "bytes_per_voxel_less_inputs": round((peak - base - inputs) / vox, 1), "wall_s": round(wall, 1),
+            "small": list(small)}
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--shape", type=int, nargs=3, action="append", help="NZ NY NX (repeatable)")
+    ap.add_argument("--shrink", action="store_true", help="measure estimate.shrunk instead of a registration")
     args = ap.parse_args()
     for shape in (args.shape or SHAPES):
-        print(json.dumps(measure(tuple(shape))), flush=True)
+        print(json.dumps(measure_shrink(tuple(shape)) if args.shrink else measure(tuple(shape))), flush=True)
     print(json.dumps({"children_maxrss_bytes": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024,
                       "load": os.getloadavg()}))
 

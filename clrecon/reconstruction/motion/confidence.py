@@ -37,6 +37,17 @@ import scipy.ndimage
 
 #: MAD to standard deviation of a normal distribution.
 MAD_TO_STD = 1.4826
+#: Peak bytes of one field's shrinking per voxel beside its inputs (``estimate.shrunk``: the moving
+#: image seen through the field, float32, then :func:`shrink_field` in float64: the field in mm and
+#: in voxels, the normalised images, the residual and its box mean, the gradients, the (3, 3)
+#: structure tensor per voxel, the shrunk field), and beside those the bytes of :func:`shrink_voxels`'
+#: per-voxel eigen-solve over one chunk of 2**18 voxels (at most; fewer on a smaller grid). A line
+#: through a spawned process's peak above its baseline while ``estimate.shrunk`` shrinks one of two
+#: fields (its copy of the fields, 24 bytes a voxel, taken off) on 16 x 128 x 128 and 8 x 256 x 256
+#: voxels (256 bytes a voxel and 87 MB), rounded up (``benchmarks/studies/motion-model/registration_memory.py
+#: --shrink``; docs/results/code-history.md "One Lucas-Kanade registration's memory").
+SHRINK_BYTES_PER_VOXEL = 260
+SHRINK_CHUNK_BYTES = 90_000_000
 
 
 def _robust_std(x: np.ndarray) -> float:

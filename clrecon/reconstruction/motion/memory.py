@@ -12,6 +12,7 @@ import numpy as np
 from clrecon.reconstruction import rebin, reconstruct
 from clrecon.reconstruction.motion import flow
 from clrecon.reconstruction.motion import method as mcm
+from clrecon.reconstruction.motion.confidence import SHRINK_BYTES_PER_VOXEL, SHRINK_CHUNK_BYTES
 from clrecon.reconstruction.motion.model import FIT_BLOCK
 from clrecon.reconstruction.motion.registration import FLOW_BYTES_PER_VOXEL, registration_workers
 
@@ -107,9 +108,14 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       respiratory averages float32, the cardiac ones float64 and their float32 copy), one
       registration's own where it runs in this process, the old and new model (2 x basis size
       fields) and the fit's float64 block (``model.FIT_BLOCK``; the targets' fields are summed a
-      block at a time, ``model.fit_separable_model``);
-    - ``registering`` (while the registration processes run): ``fit`` but the new model and the fit's
-      block, which are made once the registrations are done (the previous round's model is held);
+      block at a time, ``model.fit_separable_model``); or, where larger, ``registering`` and the
+      shrinking of a step's fields towards zero (``knobs.shrink``, :func:`estimate.shrunk`, after the
+      step's registrations: a copy of its fields, the cardiac step's averages once more in float32,
+      and one field's ``confidence.shrink_field``: ``SHRINK_BYTES_PER_VOXEL`` per voxel of the
+      registration grid and ``SHRINK_CHUNK_BYTES``);
+    - ``registering`` (while the registration processes run): the first pass, the round's images, the
+      kept rows, the registration's fields and averages, the previous round's model (the new model
+      and the fit's block are made once the registrations are done);
     - ``round backprojection`` (rounds after the first, per slab): the first pass and the earlier slabs' images,
       the rows kept for other variants, the slab's first-pass plan and slots (:data:`PLAN_BYTES`
       per (slice, view, target)), the model, the slab's plane rows, and the
@@ -180,6 +186,10 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
         registration += per_voxel * n_reg
     fit = first + max(read_first, imgs + kept + registration + 2 * nb * fld + fit_block)
     registering = first + imgs + kept + registration + nb * fld  # the new model and the block come after
+    # after a step's registrations (the pool idle), estimate.shrunk: a copy of the step's fields (the
+    # cardiac step also its averages' float32 copy) and one field's confidence.shrink_field at a time
+    shrink = (max(n_resp * fld, n_cardiac * (fld + n_reg * 4)) + SHRINK_BYTES_PER_VOXEL * n_reg
+              + SHRINK_CHUNK_BYTES) if knobs.shrink else 0
     # while a slab's rows are read, the raw rows of the read; while it is backprojected, their device copy,
     # the model's and the images (never both at once)
     # (the round's images, np.empty, are touched slab by slab: the earlier slabs' and this slab's)
@@ -194,7 +204,8 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     final = ((kept if kept else rows) + plan + n_var * nb * fld + refined
              + max(0 if kept else read, rows + device + 2 * n_targets * s * vox * 4))
     pool = workers if workers > 1 else 0
-    return {"fit": int(fit), "registering": int(registering), "round backprojection": int(rounds),
+    return {"fit": int(max(fit, registering + shrink)), "registering": int(registering),
+            "round backprojection": int(rounds),
             "final pass": int(final),
             "registration processes": int(pool * (FLOW_BYTES_PER_VOXEL * n_reg + WORKER_BYTES)),
             "idle registration processes": int(pool * WORKER_BYTES)}
