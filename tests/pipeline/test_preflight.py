@@ -268,7 +268,8 @@ def test_the_mc_model_counts_the_registration_processes_beside_the_registrations
     assert p["fit"] - p["registering"] == nb * fld + (4 * 50 + nb) * FIT_BLOCK * 8
     assert p["registration processes"] > p["idle registration processes"] > 0  # demo's grid registers in a pool
     _, q = parts(True)  # the shrinking: the 10 respiratory fields' copy and one field's shrink_field
-    shrink = 10 * fld + confidence.SHRINK_BYTES_PER_VOXEL * n_reg + confidence.SHRINK_CHUNK_BYTES
+    shrink = (10 * fld + confidence.SHRINK_BYTES_PER_VOXEL * n_reg
+              + confidence.SHRINK_CHUNK_BYTES_PER_VOXEL * min(n_reg, confidence.CHUNK_VOXELS))
     assert q["fit"] == max(p["fit"], p["registering"] + shrink)
     assert {k: v for k, v in q.items() if k != "fit"} == {k: v for k, v in p.items() if k != "fit"}
 

@@ -633,15 +633,15 @@ def test_one_lucas_kanade_registration_peaks_within_its_modelled_bytes():
 
 def test_shrinking_a_field_peaks_within_its_modelled_bytes():
     """``estimate.shrunk`` (``knobs.shrink``) holds a copy of the step's fields and shrinks one field at a
-    time: measured as ``confidence.SHRINK_BYTES_PER_VOXEL`` and ``SHRINK_CHUNK_BYTES`` were (a spawned
-    process's peak above its baseline, the call's inputs taken off) on ``demo``'s registration grid, at
-    most the modelled bytes and within 15 % of them."""
+    time: measured as ``confidence.SHRINK_BYTES_PER_VOXEL`` and ``SHRINK_CHUNK_BYTES_PER_VOXEL`` were
+    (a spawned process's peak above its baseline, the call's inputs taken off) on ``demo``'s
+    registration grid, at most the modelled bytes and within 15 % of them."""
     if not os.path.exists("/proc/self/clear_refs"):
         pytest.skip("needs Linux's /proc/<pid>/status and clear_refs")
     m = registration_memory.measure_shrink((16, 128, 128))
     vox = m["voxels"]
     modelled = (m["fields"] * 3 * vox * 4 + confidence.SHRINK_BYTES_PER_VOXEL * vox
-                + confidence.SHRINK_CHUNK_BYTES)
+                + confidence.SHRINK_CHUNK_BYTES_PER_VOXEL * min(vox, confidence.CHUNK_VOXELS))
     assert 0.85 * modelled <= m["above_baseline_less_inputs_bytes"] <= modelled, m
 
 

@@ -12,7 +12,11 @@ import numpy as np
 from clrecon.reconstruction import rebin, reconstruct
 from clrecon.reconstruction.motion import flow
 from clrecon.reconstruction.motion import method as mcm
-from clrecon.reconstruction.motion.confidence import SHRINK_BYTES_PER_VOXEL, SHRINK_CHUNK_BYTES
+from clrecon.reconstruction.motion.confidence import (
+    CHUNK_VOXELS,
+    SHRINK_BYTES_PER_VOXEL,
+    SHRINK_CHUNK_BYTES_PER_VOXEL,
+)
 from clrecon.reconstruction.motion.model import FIT_BLOCK
 from clrecon.reconstruction.motion.registration import FLOW_BYTES_PER_VOXEL, registration_workers
 
@@ -112,7 +116,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       shrinking of a step's fields towards zero (``knobs.shrink``, :func:`estimate.shrunk`, after the
       step's registrations: a copy of its fields, the cardiac step's averages once more in float32,
       and one field's ``confidence.shrink_field``: ``SHRINK_BYTES_PER_VOXEL`` per voxel of the
-      registration grid and ``SHRINK_CHUNK_BYTES``);
+      registration grid and ``SHRINK_CHUNK_BYTES_PER_VOXEL`` per voxel of one chunk);
     - ``registering`` (while the registration processes run): the first pass, the round's images, the
       kept rows, the registration's fields and averages, the previous round's model (the new model
       and the fit's block are made once the registrations are done);
@@ -189,7 +193,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     # after a step's registrations (the pool idle), estimate.shrunk: a copy of the step's fields (the
     # cardiac step also its averages' float32 copy) and one field's confidence.shrink_field at a time
     shrink = (max(n_resp * fld, n_cardiac * (fld + n_reg * 4)) + SHRINK_BYTES_PER_VOXEL * n_reg
-              + SHRINK_CHUNK_BYTES) if knobs.shrink else 0
+              + SHRINK_CHUNK_BYTES_PER_VOXEL * min(n_reg, CHUNK_VOXELS)) if knobs.shrink else 0
     # while a slab's rows are read, the raw rows of the read; while it is backprojected, their device copy,
     # the model's and the images (never both at once)
     # (the round's images, np.empty, are touched slab by slab: the earlier slabs' and this slab's)
