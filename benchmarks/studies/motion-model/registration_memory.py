@@ -11,9 +11,11 @@ the second peak, the wall seconds; and ``resource.getrusage(RUSAGE_CHILDREN)`` (
 child's peak, baseline included) as a cross-check. The volumes are smoothed random texture in HU
 and its copy shifted by a few voxels (the work does not depend on the content: fixed pyramid
 levels and warps). One registration runs at a time. The pool's workers import the worktree's
-``clrecon`` only with it on ``PYTHONPATH`` (the script's folder is ``sys.path[0]``):
+``clrecon`` only with it on ``PYTHONPATH`` (the script's folder is ``sys.path[0]``). With
+``--shrink``: the same for ``estimate.shrunk`` shrinking one of two fields (:func:`measure_shrink`;
+``confidence.SHRINK_BYTES_PER_VOXEL``).
 
-    PYTHONPATH=. nice -n 10 python benchmarks/studies/motion-model/registration_memory.py [--shape NZ NY NX ...]
+    PYTHONPATH=. nice -n 10 python benchmarks/studies/motion-model/registration_memory.py [--shrink] [--shape NZ NY NX ...]
 """
 
 from __future__ import annotations

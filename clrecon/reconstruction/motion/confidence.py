@@ -43,14 +43,15 @@ CHUNK_VOXELS = 1 << 18
 #: image seen through the field, float32, then :func:`shrink_field` in float64: the field in mm and
 #: in voxels, the normalised images, the residual and its box mean, the gradients, the (3, 3)
 #: structure tensor per voxel, the shrunk field), and beside those the bytes per voxel of one chunk
-#: of :func:`shrink_voxels`' eigen-solve (:data:`CHUNK_VOXELS`, or the grid where smaller). A line
-#: through a spawned process's peak above its baseline while ``estimate.shrunk`` shrinks one of two
-#: fields (its copy of the fields, 24 bytes a voxel, taken off) on 16 x 128 x 128 and 8 x 256 x 256
-#: voxels (one and two full chunks): 256 bytes a voxel and 87 MB a chunk (333 bytes a chunk voxel),
-#: rounded up (``benchmarks/studies/motion-model/registration_memory.py --shrink``;
-#: docs/results/code-history.md "One Lucas-Kanade registration's memory").
-SHRINK_BYTES_PER_VOXEL = 260
-SHRINK_CHUNK_BYTES_PER_VOXEL = 340
+#: of :func:`shrink_voxels`' eigen-solve (:data:`CHUNK_VOXELS`, or the grid where smaller). From a
+#: spawned process's peak above its baseline while ``estimate.shrunk`` shrinks one of two fields (its
+#: copy of the fields, 24 bytes a voxel, taken off): 154, 222 and 525 MB on 16 x 128 x 128,
+#: 8 x 256 x 256 and 8 x 512 x 512 voxels (1, 2 and 8 full chunks); the line through the two larger,
+#: 193 bytes a voxel and 121 MB a chunk (459 bytes a chunk voxel), rounded up, which errs high by 4 %
+#: on those and by 15 % on the smallest (``benchmarks/studies/motion-model/registration_memory.py
+#: --shrink``; docs/results/code-history.md "One Lucas-Kanade registration's memory").
+SHRINK_BYTES_PER_VOXEL = 200
+SHRINK_CHUNK_BYTES_PER_VOXEL = 480
 
 
 def _robust_std(x: np.ndarray) -> float:
