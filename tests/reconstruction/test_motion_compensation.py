@@ -620,14 +620,16 @@ def test_one_lucas_kanade_registration_peaks_within_its_modelled_bytes():
     worker of ``mc``'s pool, above the worker's own ``memory.WORKER_BYTES``: measured as the constants
     were (``benchmarks/studies/motion-model/registration_memory.py``: a spawned worker's VmHWM above
     its resident set after the imports, a first and a second registration) on ``demo``'s registration
-    grid, the peak is at most the modelled bytes and within 15 % of them, and the worker's own set,
-    after its imports and between registrations, at most ``WORKER_BYTES``."""
+    grid, the peak is at most the modelled bytes, and the worker's own set, after its imports and
+    between registrations, at most ``WORKER_BYTES``. No lower bound: the same call peaked 265 B a
+    voxel in a fresh interpreter and 226 B after tests/pipeline/test_mc_method.py in one session
+    (docs/results/code-history.md "One Lucas-Kanade registration's memory")."""
     if not os.path.exists("/proc/self/clear_refs"):
         pytest.skip("needs Linux's /proc/<pid>/status and clear_refs")
     m = registration_memory.measure((16, 128, 128))
     above = max(m["peak_bytes"], m["second_peak_bytes"]) - m["baseline_bytes"]
     modelled = registration.FLOW_BYTES_PER_VOXEL * m["voxels"]
-    assert 0.85 * modelled <= above <= modelled, m
+    assert above <= modelled, m
     assert max(m["baseline_bytes"], m["idle_bytes"]) <= memory.WORKER_BYTES, m
 
 
@@ -635,14 +637,15 @@ def test_shrinking_a_field_peaks_within_its_modelled_bytes():
     """``estimate.shrunk`` (``knobs.shrink``) holds a copy of the step's fields and shrinks one field at a
     time: measured as ``confidence.SHRINK_BYTES_PER_VOXEL`` and ``SHRINK_CHUNK_BYTES_PER_VOXEL`` were
     (a spawned process's peak above its baseline, the call's inputs taken off) on ``demo``'s
-    registration grid, at most the modelled bytes and within 15 % of them."""
+    registration grid, at most the modelled bytes (no lower bound: 161 MB in a fresh interpreter,
+    146 MB after tests/pipeline/test_mc_method.py in one session)."""
     if not os.path.exists("/proc/self/clear_refs"):
         pytest.skip("needs Linux's /proc/<pid>/status and clear_refs")
     m = registration_memory.measure_shrink((16, 128, 128))
     vox = m["voxels"]
     modelled = (m["fields"] * 3 * vox * 4 + confidence.SHRINK_BYTES_PER_VOXEL * vox
                 + confidence.SHRINK_CHUNK_BYTES_PER_VOXEL * min(vox, confidence.CHUNK_VOXELS))
-    assert 0.85 * modelled <= m["above_baseline_less_inputs_bytes"] <= modelled, m
+    assert m["above_baseline_less_inputs_bytes"] <= modelled, m
 
 
 # ---------------------------------------------------------------------------------------
