@@ -182,8 +182,9 @@ def test_slabs_are_sized_by_each_slices_candidates_not_the_first_slices():
 
 def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
     """mc's working set (the largest of its parts: the fit, the rounds' backprojections, the final
-    pass, with the registration processes beside the fit) after the reconstruction, sized at the
-    pitch whose slabs use the most projections; the knobs it depends on move it."""
+    pass; the registration processes at their peak beside the fit's registrations, idle beside the
+    fit and the rounds' backprojections) after the reconstruction, sized at the pitch whose slabs use
+    the most projections; the knobs it depends on move it."""
     from clrecon.reconstruction.motion import memory
     from clrecon.reconstruction.rebin import slice_window_mm
 
@@ -200,8 +201,9 @@ def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
     assert per_pitch[0.02] > per_pitch[0.1] > 0   # the lower pitch: more projections per slab
     assert with_mc > base and with_mc >= per_pitch[0.02]
     parts = memory.working_parts(*args[0.02])
-    assert per_pitch[0.02] == max(parts["fit"] + parts["registration processes"], parts["round backprojection"],
-                                  parts["final pass"])
+    idle = parts["idle registration processes"]
+    assert per_pitch[0.02] == max(parts["registering"] + parts["registration processes"], parts["fit"] + idle,
+                                  parts["round backprojection"] + idle, parts["final pass"])
     one_round = api.load_scene("demo", recon={"mc": {"rounds": 1}})
     assert memory.working_parts(*args[0.02][:2], one_round.recon.mc, *args[0.02][3:])["round backprojection"] == 0
     coarse = api.load_scene("demo", recon={"mc": {"downsample": 2}})
@@ -227,18 +229,55 @@ def test_the_mc_model_follows_the_registration_it_runs():
                                     scene.scan.projection_count(sc, 0.1), 1)
 
     lk, tv = parts("lucas_kanade", "lucas_kanade"), parts("tvl1", "tvl1")
-    assert tv["registration processes"] == 0
-    pool = registration.registration_workers(n_reg, available_bytes=1 << 62) > 1
-    assert lk["registration processes"] > 0 if pool else lk["registration processes"] == 0
-    in_process = 0 if pool else registration.FLOW_BYTES_PER_VOXEL * n_reg
-    assert tv["fit"] - lk["fit"] == flow.BYTES_PER_VOXEL * n_reg - in_process
-    assert {k: v for k, v in tv.items() if k != "fit"} == {k: v for k, v in lk.items() if k != "fit"} | {
-        "registration processes": 0}
+    assert tv["registration processes"] == tv["idle registration processes"] == 0
+    workers = registration.registration_workers(n_reg, available_bytes=1 << 62)
+    if workers > 1:  # each at its peak (its own set and its registration's), or idle (its own set)
+        assert lk["registration processes"] == workers * (registration.FLOW_BYTES_PER_VOXEL * n_reg
+                                                          + memory.WORKER_BYTES)
+        assert lk["idle registration processes"] == workers * memory.WORKER_BYTES
+    else:
+        assert lk["registration processes"] == lk["idle registration processes"] == 0
+    in_process = 0 if workers > 1 else registration.FLOW_BYTES_PER_VOXEL * n_reg
+    for part in ("fit", "registering"):
+        assert tv[part] - lk[part] == flow.BYTES_PER_VOXEL * n_reg - in_process
+    pool = {"fit", "registering", "registration processes", "idle registration processes"}
+    assert {k: v for k, v in tv.items() if k not in pool} == {k: v for k, v in lk.items() if k not in pool}
     # the default: Lucas-Kanade's pool for the breathing, then TV-L1 in the process for the beat (one after
-    # the other: the process holds the larger of the two steps' own)
+    # the other: the process holds the larger of the two steps' own, counted beside the pool's peak)
     both = parts("lucas_kanade", "tvl1")
     assert both["registration processes"] == lk["registration processes"]
-    assert both["fit"] - lk["fit"] == max(flow.BYTES_PER_VOXEL * n_reg, in_process) - in_process
+    for part in ("fit", "registering"):
+        assert both[part] - lk[part] == max(flow.BYTES_PER_VOXEL * n_reg, in_process) - in_process
+
+
+def test_the_mc_model_counts_the_registration_processes_beside_the_registrations_only():
+    """The fit's new model (its basis's fields on the registration grid) and its float64 block are made
+    after a step's registrations, and so is the shrinking of its fields (``knobs.shrink``): the
+    registration processes at their peak sit beside the fit less those; the process pool is idle
+    (each worker's own set) beside the whole fit."""
+    from clrecon.reconstruction.motion import confidence, memory
+    from clrecon.reconstruction.motion import method as mcm
+    from clrecon.reconstruction.motion.model import FIT_BLOCK
+    from clrecon.reconstruction.rebin import slice_window_mm
+
+    def parts(shrink):
+        scene = api.load_scene("demo", recon={"mc": {"shrink": shrink}})
+        sc, rc = scene.scanner, scene.recon
+        w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
+        return rc, memory.working_parts(sc, w, rc.mc, (rc.nz - 1) * rc.slice_mm, scene.scan.feed_mm(sc, 0.1), 2, 5,
+                                        10, rc.nz, rc.ny, rc.nx, scene.scan.projection_count(sc, 0.1), 1)
+
+    rc, p = parts(False)
+    nb = len(mcm.basis_of(rc.mc, 5, 10).names)
+    n_reg = rc.nz * (rc.ny // rc.mc.downsample) * (rc.nx // rc.mc.downsample)
+    fld = 3 * n_reg * 4
+    assert p["fit"] - p["registering"] == nb * fld + (4 * 50 + nb) * FIT_BLOCK * 8
+    assert p["registration processes"] > p["idle registration processes"] > 0  # demo's grid registers in a pool
+    _, q = parts(True)  # the shrinking: the 10 respiratory fields' copy and one field's shrink_field
+    shrink = (10 * fld + confidence.SHRINK_BYTES_PER_VOXEL * n_reg
+              + confidence.SHRINK_CHUNK_BYTES_PER_VOXEL * min(n_reg, confidence.CHUNK_VOXELS))
+    assert q["fit"] == max(p["fit"], p["registering"] + shrink)
+    assert {k: v for k, v in q.items() if k != "fit"} == {k: v for k, v in p.items() if k != "fit"}
 
 
 def test_the_mc_model_holds_the_first_pass_on_the_registration_grid_only():
@@ -254,7 +293,9 @@ def test_the_mc_model_holds_the_first_pass_on_the_registration_grid_only():
     ext = (rc.nz - 1) * rc.slice_mm
 
     def fit(ds, unit_slices, rounds=2):
-        knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds, "rounds": rounds}}).recon.mc
+        # without the fields' shrinking (its own part of the fit, counted in the test above)
+        knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds, "rounds": rounds,
+                                                           "shrink": False}}).recon.mc
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
                                     scene.scan.projection_count(sc, 0.1), unit_slices)["fit"]
 
@@ -291,7 +332,8 @@ def test_the_mc_final_pass_counts_only_the_model_planes_a_slab_reaches(monkeypat
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny,
                                     rc.nx, scene.scan.projection_count(sc, 0.1), 1)["final pass"]
 
-    plane_bytes = 7 * 3 * rc.ny * rc.nx * 4  # one plane of the 7 basis fields on the reconstruction grid
+    nb = len(mcm.basis_of(rc.mc, 5, 10).names)  # the model's basis fields (1 + resp_degree + 2 harmonics: 6)
+    plane_bytes = nb * 3 * rc.ny * rc.nx * 4  # one plane of the basis fields on the reconstruction grid
     for ds in (1, 2):
         seen.clear()
         now = final(ds, spy)

@@ -11,16 +11,17 @@ estimate, and the analytic phantom's true motion.
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 import pytest
 import scipy.ndimage
-from motion_study import correction, demons, warp
+from motion_study import correction, demons, registration_memory, warp
 
 from clrecon.bench import reference_kernels
 from clrecon.core.resources import spawned_pool
 from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
-from clrecon.reconstruction.motion import estimate, registration, slots
+from clrecon.reconstruction.motion import confidence, estimate, memory, registration, slots
 from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion import model as motion_model
 from clrecon.reconstruction.motion.backproject import (
@@ -658,6 +659,39 @@ def test_registration_workers_follow_cores_and_memory():
     assert registration.registration_workers(n_vox, cores=8, available_bytes=5 * per) == 2  # half the memory
     assert registration.registration_workers(n_vox, cores=8, available_bytes=0) == 1
     assert registration.registration_workers(registration.POOL_MIN_VOXELS - 1, cores=8, available_bytes=100 * per) == 1
+
+
+def test_one_lucas_kanade_registration_peaks_within_its_modelled_bytes():
+    """The pre-flight counts ``FLOW_BYTES_PER_VOXEL`` per voxel for one Lucas-Kanade registration in a
+    worker of ``mc``'s pool, above the worker's own ``memory.WORKER_BYTES``: measured as the constants
+    were (``benchmarks/studies/motion-model/registration_memory.py``: a spawned worker's VmHWM above
+    its resident set after the imports, a first and a second registration) on ``demo``'s registration
+    grid, the peak is at most the modelled bytes, and the worker's own set, after its imports and
+    between registrations, at most ``WORKER_BYTES``. No lower bound: the same call peaked 265 B a
+    voxel in a fresh interpreter and 226 B after tests/pipeline/test_mc_method.py in one session
+    (docs/results/code-history.md "One Lucas-Kanade registration's memory")."""
+    if not os.path.exists("/proc/self/clear_refs"):
+        pytest.skip("needs Linux's /proc/<pid>/status and clear_refs")
+    m = registration_memory.measure((16, 128, 128))
+    above = max(m["peak_bytes"], m["second_peak_bytes"]) - m["baseline_bytes"]
+    modelled = registration.FLOW_BYTES_PER_VOXEL * m["voxels"]
+    assert above <= modelled, m
+    assert max(m["baseline_bytes"], m["idle_bytes"]) <= memory.WORKER_BYTES, m
+
+
+def test_shrinking_a_field_peaks_within_its_modelled_bytes():
+    """``estimate.shrunk`` (``knobs.shrink``) holds a copy of the step's fields and shrinks one field at a
+    time: measured as ``confidence.SHRINK_BYTES_PER_VOXEL`` and ``SHRINK_CHUNK_BYTES_PER_VOXEL`` were
+    (a spawned process's peak above its baseline, the call's inputs taken off) on ``demo``'s
+    registration grid, at most the modelled bytes (no lower bound: 161 MB in a fresh interpreter,
+    146 MB after tests/pipeline/test_mc_method.py in one session)."""
+    if not os.path.exists("/proc/self/clear_refs"):
+        pytest.skip("needs Linux's /proc/<pid>/status and clear_refs")
+    m = registration_memory.measure_shrink((16, 128, 128))
+    vox = m["voxels"]
+    modelled = (m["fields"] * 3 * vox * 4 + confidence.SHRINK_BYTES_PER_VOXEL * vox
+                + confidence.SHRINK_CHUNK_BYTES_PER_VOXEL * min(vox, confidence.CHUNK_VOXELS))
+    assert m["above_baseline_less_inputs_bytes"] <= modelled, m
 
 
 # ---------------------------------------------------------------------------------------

@@ -3,7 +3,8 @@ importable by the tests: the study's scripts put their folder first on ``sys.pat
 them by name (``import correction``), and so does this module.
 
 ``correction``: the model-based correction variant (B); ``warp``: its OpenCL warp
-(``mc_warp.cl`` there); ``demons``: ITK's demons as a plugged-in registration.
+(``mc_warp.cl`` there); ``demons``: ITK's demons as a plugged-in registration;
+``registration_memory``: one Lucas-Kanade registration's peak in a spawned worker.
 """
 
 import sys
@@ -15,6 +16,7 @@ if str(FOLDER) not in sys.path:
 
 import correction  # noqa: E402
 import demons  # noqa: E402
+import registration_memory  # noqa: E402
 import warp  # noqa: E402
 
-__all__ = ["FOLDER", "correction", "demons", "warp"]
+__all__ = ["FOLDER", "correction", "demons", "registration_memory", "warp"]

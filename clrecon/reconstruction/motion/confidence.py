@@ -37,6 +37,21 @@ import scipy.ndimage
 
 #: MAD to standard deviation of a normal distribution.
 MAD_TO_STD = 1.4826
+#: Voxels of one chunk of :func:`shrink_voxels`' per-voxel eigen-solve.
+CHUNK_VOXELS = 1 << 18
+#: Peak bytes of one field's shrinking per voxel beside its inputs (``estimate.shrunk``: the moving
+#: image seen through the field, float32, then :func:`shrink_field` in float64: the field in mm and
+#: in voxels, the normalised images, the residual and its box mean, the gradients, the (3, 3)
+#: structure tensor per voxel, the shrunk field), and beside those the bytes per voxel of one chunk
+#: of :func:`shrink_voxels`' eigen-solve (:data:`CHUNK_VOXELS`, or the grid where smaller). From a
+#: spawned process's peak above its baseline while ``estimate.shrunk`` shrinks one of two fields (its
+#: copy of the fields, 24 bytes a voxel, taken off): 154, 222 and 525 MB on 16 x 128 x 128,
+#: 8 x 256 x 256 and 8 x 512 x 512 voxels (1, 2 and 8 full chunks); the line through the two larger,
+#: 193 bytes a voxel and 121 MB a chunk (459 bytes a chunk voxel), rounded up, which errs high by 4 %
+#: on those and by 15 % on the smallest (``benchmarks/studies/motion-model/registration_memory.py
+#: --shrink``; docs/results/code-history.md "One Lucas-Kanade registration's memory").
+SHRINK_BYTES_PER_VOXEL = 200
+SHRINK_CHUNK_BYTES_PER_VOXEL = 480
 
 
 def _robust_std(x: np.ndarray) -> float:
@@ -52,7 +67,8 @@ def normalise(volume, hu_window: tuple) -> np.ndarray:
     return np.clip(np.asarray(volume, np.float64), lo, hi) / (hi - lo)
 
 
-def shrink_voxels(fixed, residual, field_vox, radius: int, inside, chunk: int = 1 << 18) -> tuple[np.ndarray, dict]:
+def shrink_voxels(fixed, residual, field_vox, radius: int, inside,
+                  chunk: int = CHUNK_VOXELS) -> tuple[np.ndarray, dict]:
     """``field_vox`` times the per-voxel 3 x 3 shrinkage ``(A_s + c P^-1)^-1 A_s`` (module docstring).
 
     Parameters

@@ -12,13 +12,22 @@ import numpy as np
 from clrecon.reconstruction import rebin, reconstruct
 from clrecon.reconstruction.motion import flow
 from clrecon.reconstruction.motion import method as mcm
+from clrecon.reconstruction.motion.confidence import (
+    CHUNK_VOXELS,
+    SHRINK_BYTES_PER_VOXEL,
+    SHRINK_CHUNK_BYTES_PER_VOXEL,
+)
 from clrecon.reconstruction.motion.model import FIT_BLOCK
 from clrecon.reconstruction.motion.registration import FLOW_BYTES_PER_VOXEL, registration_workers
 
-#: A registration process's own resident set (interpreter, NumPy, SciPy, scikit-image) beside its
-#: registration's ``FLOW_BYTES_PER_VOXEL`` (docs/results/code-history.md "The mc working set against
-#: the measured peak").
-WORKER_BYTES = 60_000_000
+#: A registration process's own resident set (interpreter, NumPy, SciPy, scikit-image), beside its
+#: registration's ``FLOW_BYTES_PER_VOXEL`` while it registers and alone while it waits: a spawned
+#: worker of the pool measured 72.6-72.8 MB after its imports and a small first registration, and
+#: 72-91 MB between two registrations (what the allocator keeps of the last; the most on ``demo``'s
+#: 16 x 128 x 128 grid), hence the most of those rounded up
+#: (``benchmarks/studies/motion-model/registration_memory.py``; docs/results/code-history.md "One
+#: Lucas-Kanade registration's memory").
+WORKER_BYTES = 95_000_000
 #: Bytes per (slice, view, target) of a slab's first-pass plan (barycentric: 3 neighbours of int64
 #: index and float64 weight, 48 bytes), its slots and the planning's transients (measured on
 #: ``demo``: docs/results/code-history.md "The mc working set against the measured peak").
@@ -87,8 +96,10 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
                   max_projections: int | None = None, unit_slices: int | None = None) -> dict[str, int]:
     """Modelled bytes of ``mc`` at one pitch beside the process's baseline, by part of its work.
 
-    The parts follow one another (the largest is the method's peak, :func:`working_bytes`), except
-    ``registration processes``, which runs beside ``fit`` in processes of its own.
+    The parts in the process follow one another (the largest, with what runs beside it in other
+    processes, is the method's peak, :func:`working_bytes`): ``registering`` with ``registration
+    processes`` at their peak beside it, ``fit`` and ``round backprojection`` with ``idle registration
+    processes`` (the pool lives until every variant's model is fitted), ``final pass`` alone.
 
     - ``fit`` (each round's registration and model fit, :func:`mc_fbp.fit_model`): the first pass
       on the registration grid (targets x slices x ny x nx float32, ``downsample`` times smaller
@@ -101,7 +112,14 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       respiratory averages float32, the cardiac ones float64 and their float32 copy), one
       registration's own where it runs in this process, the old and new model (2 x basis size
       fields) and the fit's float64 block (``model.FIT_BLOCK``; the targets' fields are summed a
-      block at a time, ``model.fit_separable_model``);
+      block at a time, ``model.fit_separable_model``); or, where larger, ``registering`` and the
+      shrinking of a step's fields towards zero (``knobs.shrink``, :func:`estimate.shrunk`, after the
+      step's registrations: a copy of its fields, the cardiac step's averages once more in float32,
+      and one field's ``confidence.shrink_field``: ``SHRINK_BYTES_PER_VOXEL`` per voxel of the
+      registration grid and ``SHRINK_CHUNK_BYTES_PER_VOXEL`` per voxel of one chunk);
+    - ``registering`` (while the registration processes run): the first pass, the round's images, the
+      kept rows, the registration's fields and averages, the previous round's model (the new model
+      and the fit's block are made once the registrations are done);
     - ``round backprojection`` (rounds after the first, per slab): the first pass and the earlier slabs' images,
       the rows kept for other variants, the slab's first-pass plan and slots (:data:`PLAN_BYTES`
       per (slice, view, target)), the model, the slab's plane rows, and the
@@ -116,10 +134,13 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       planes (the model's where not copied) with two slabs of output (one being written behind);
     - ``registration processes`` (a Lucas-Kanade step, :func:`method.uses_pool`): ``FLOW_BYTES_PER_VOXEL``
       per voxel of the registration grid and :data:`WORKER_BYTES` in each, one per core up to
-      ``MAX_WORKERS`` (none below ``POOL_MIN_VOXELS``: the registrations then run in the process,
-      and ``fit`` holds one's ``FLOW_BYTES_PER_VOXEL``). A TV-L1 step runs in the process on the OpenCL
-      device (no pool): ``fit`` holds one registration's ``flow.BYTES_PER_VOXEL`` (the larger of the
-      two where the other step runs in the process too); with no Lucas-Kanade step this part is 0.
+      ``MAX_WORKERS``, all at their peak at once (a step's registrations start together and are of
+      one size) (none below ``POOL_MIN_VOXELS``: the registrations then run in the process, and
+      ``fit`` and ``registering`` hold one's ``FLOW_BYTES_PER_VOXEL``). A TV-L1 step runs in the
+      process on the OpenCL device (no pool): ``fit`` holds one registration's ``flow.BYTES_PER_VOXEL``
+      (the larger of the two where the other step runs in the process too); with no Lucas-Kanade
+      step this part is 0;
+    - ``idle registration processes``: :data:`WORKER_BYTES` in each, between registrations.
 
     The plane rows of a slab: (planes, n_cols) float32 per projection its first-pass plan uses (those
     within the SSRB window of its slices; at most ``max_projections``, the scan's);
@@ -156,8 +177,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     read_first = 2 * unit  # its file's bytes and its array (then its float64 block means, 2 / f**2 of it)
     imgs = n_targets * n_reg * 4 if knobs.rounds > 1 else 0
     fld = 3 * n_reg * 4  # one field on the registration grid
-    nb = (1 + 2 * min(knobs.resp_degree, n_resp - 1)
-          + 2 * min(knobs.cardiac_harmonics, (n_cardiac - 1) // 2))
+    nb = mcm.basis_of(knobs, n_cardiac, n_resp).size  # the model's basis fields
     fit_block = (4 * n_targets + nb) * FIT_BLOCK * 8
     registration = (n_resp + n_cardiac) * fld + n_resp * n_reg * 4 + n_cardiac * n_reg * (8 + 4)
     plan = PLAN_BYTES * s * scanner.views_per_rotation * n_targets
@@ -170,6 +190,11 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
         own.append(FLOW_BYTES_PER_VOXEL)
     registration += max(own, default=0) * n_reg
     fit = first + max(read_first, imgs + kept + registration + 2 * nb * fld + fit_block)
+    registering = first + imgs + kept + registration + nb * fld  # the new model and the block come after
+    # after a step's registrations (the pool idle), estimate.shrunk: a copy of the step's fields (the
+    # cardiac step also its averages' float32 copy) and one field's confidence.shrink_field at a time
+    shrink = (max(n_resp * fld, n_cardiac * (fld + n_reg * 4)) + SHRINK_BYTES_PER_VOXEL * n_reg
+              + SHRINK_CHUNK_BYTES_PER_VOXEL * min(n_reg, CHUNK_VOXELS)) if knobs.shrink else 0
     # while a slab's rows are read, the raw rows of the read; while it is backprojected, their device copy,
     # the model's and the images (never both at once)
     # (the round's images, np.empty, are touched slab by slab: the earlier slabs' and this slab's)
@@ -183,16 +208,22 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
         refined, device = 0, nb * fld
     final = ((kept if kept else rows) + plan + n_var * nb * fld + refined
              + max(0 if kept else read, rows + device + 2 * n_targets * s * vox * 4))
-    flows = workers * (FLOW_BYTES_PER_VOXEL * n_reg + WORKER_BYTES) if workers > 1 else 0
-    return {"fit": int(fit), "round backprojection": int(rounds), "final pass": int(final),
-            "registration processes": int(flows)}
+    pool = workers if workers > 1 else 0
+    return {"fit": int(max(fit, registering + shrink)), "registering": int(registering),
+            "round backprojection": int(rounds),
+            "final pass": int(final),
+            "registration processes": int(pool * (FLOW_BYTES_PER_VOXEL * n_reg + WORKER_BYTES)),
+            "idle registration processes": int(pool * WORKER_BYTES)}
 
 
 def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
                   n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int, max_projections: int | None = None,
                   unit_slices: int | None = None) -> int:
     """Modelled memory of ``mc`` at one pitch (bytes), beside the process's baseline: the largest
-    part of :func:`working_parts` in the process, with the registration processes beside the fit."""
+    part of :func:`working_parts` in the process with its registration processes beside it (at their
+    peak beside ``registering``, idle beside ``fit`` and ``round backprojection``)."""
     p = working_parts(scanner, window_mm, knobs, z_extent_mm, feed_mm, n_var, n_cardiac, n_resp, nz, ny, nx,
                       max_projections, unit_slices)
-    return max(p["fit"] + p["registration processes"], p["round backprojection"], p["final pass"])
+    idle = p["idle registration processes"]
+    return max(p["registering"] + p["registration processes"], p["fit"] + idle, p["round backprojection"] + idle,
+               p["final pass"])

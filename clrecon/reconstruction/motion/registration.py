@@ -140,10 +140,15 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
     return cfg.register(f, m, tuple(float(s) for s in spacing_mm), tuple(float(o) for o in origin_mm), initial)
 
 
-#: Peak bytes of one Lucas-Kanade registration per voxel of its volumes: ``optical_flow_ilk``
-#: works in float64 with its pyramid and warps: about 70 float32 volumes (measured:
-#: docs/results/code-history.md "One Lucas-Kanade registration's memory").
-FLOW_BYTES_PER_VOXEL = 300
+#: Peak bytes of one Lucas-Kanade registration per voxel of its volumes, above its process's
+#: resident set after the imports (:func:`register` in a spawned worker of ``mc``'s pool: the
+#: clipped float64 copies, then ``optical_flow_ilk``'s pyramid, warped image, gradients and the
+#: (3, 3) systems per voxel in float32, about 70 float32 volumes). The largest of the worker's
+#: high-water marks measured above its baseline on 64 x 64 x 16 to 512 x 512 x 40 voxels
+#: (``benchmarks/studies/motion-model/registration_memory.py``: 245-283 bytes per voxel, a second
+#: registration in the same worker no more), rounded up; it errs high by up to 18 % on the largest
+#: (docs/results/code-history.md "One Lucas-Kanade registration's memory").
+FLOW_BYTES_PER_VOXEL = 290
 #: At most this many registration processes (each needs FLOW_BYTES_PER_VOXEL per voxel).
 MAX_WORKERS = 4
 #: Volumes smaller than this (voxels) register in the run's process: starting a spawned worker
