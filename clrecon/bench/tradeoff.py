@@ -46,8 +46,9 @@ Knobs (one changed at a time from the scene's setting, the *base*):
 - barycentric, nearest, bin, helical, r4dct: the candidate turns used, ``recon.max_turns`` 0
   (all, base), 4, 2;
 - mc: registration rounds ``r2`` (base), ``r1``; the registration's in-plane factor ``ds1``
-  (base, in the base point), ``ds2``; the registration ``lucas_kanade`` (base), ``tvl1``
-  (``recon.mc.rounds``, ``downsample``, ``registration``); and, where the scene has at least
+  (base, in the base point), ``ds2``; TV-L1 for both registration steps ``tvl1`` (base: the scene's
+  ``registration`` and ``beat_registration``) (``recon.mc.rounds``, ``downsample``,
+  ``registration``, ``beat_registration``); and, where the scene has at least
   ``THIN_Z_MM`` of slices, the base knobs on a run of every slice (``z64`` on demo: 64 mm of
   z for the registration), scored on the sweep's slices, its seconds the whole run's (the
   pipeline reconstructs every slice it registers); not in the quick sweep;
@@ -105,7 +106,7 @@ TURN_METHODS = ("barycentric", "nearest", "bin", "helical", "r4dct")
 MAX_TURNS = (0, 4, 2)
 #: mc's points: (code, knob, ``recon.mc`` overrides); the first is the scene's setting.
 MC_POINTS = (("r2", "base", {}), ("r1", "rounds", {"rounds": 1}), ("ds2", "downsample", {"downsample": 2}),
-             ("tvl1", "registration", {"registration": "tvl1"}))
+             ("tvl1", "registration", {"registration": "tvl1", "beat_registration": "tvl1"}))
 #: mcir's points: (code, knob, ``recon.mcir`` overrides, whether the run makes mc's volumes too); the first
 #: is the scene's setting with mc in the run (``init`` 'auto': OS-SART starts from mc's reference target).
 #: 'zero' starts from nothing, so its run has no mc pass (the mcir stage fits the motion model itself).
@@ -615,7 +616,7 @@ def plot_tradeoff(result: dict, path) -> Path:
     fig.supxlabel("labels: qN = N nearest per quadrant, nN = N nearest (local linear; base q2 κ1 σ0.15); κ, σ: kernel "
                   "widths; all / tN = every / the N nearest-in-z candidate turns; vN = N views per rotation; N² = "
                   "N x N image grid (same FOV);\nmc (base r2): rN = N registration rounds, ds2 = registration "
-                  "at half the in-plane voxels, tvl1 = TV-L1 registration (base Lucas-Kanade), zN = the base on a "
+                  "at half the in-plane voxels, tvl1 = TV-L1 for both registration steps, zN = the base on a "
                   "run of N mm of slices scored on these; mcir (base e4): eN = N OS-SART epochs from mc's image, "
                   "zero = 4 epochs from zero", fontsize=6.5)
     fig.canvas.draw()  # lay out once, then place the labels in the final display coordinates

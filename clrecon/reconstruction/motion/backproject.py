@@ -185,6 +185,11 @@ class ModelWindow:
             raise ValueError(f"first = {self.first!r}: the window's {g.nz} planes must lie within the whole "
                              f"model's {w.nz}")
 
+    @property
+    def basis(self):
+        """The model's :class:`~clrecon.reconstruction.motion.model.MotionBasis` (a window holds all of it)."""
+        return self.model.basis
+
     @classmethod
     def of(cls, model) -> ModelWindow:
         """``model`` as a window (a :class:`MotionModel`: every plane of it; a window: itself)."""

@@ -279,8 +279,7 @@ def backproject_slab(rows: mcb.PlaneRows, bary_plan, model: MotionModel | mcb.Mo
     targets (c, a); ``progress``: optional ``update(n)``, one step per target.
     """
     sp, sw = msl.plan_slots(bary_plan.proj_index, bary_plan.weight, rows)
-    basis = model.model.basis if isinstance(model, mcb.ModelWindow) else model.basis
-    pb = basis.values(table.cardiac_phase[rows.projection], table.resp_amplitude[rows.projection])
+    pb = model.basis.values(table.cardiac_phase[rows.projection], table.resp_amplitude[rows.projection])
     out = np.empty((len(pairs), len(slab_z), geom.ny, geom.nx), np.float32)
     cfg = mcb.MCConfig(taper_mm=knobs.taper_mm)
     with mcb.MCBackprojector(rows, pb, model, slab_z, geom, cfg, runtime=rt) as bp:
