@@ -107,6 +107,25 @@ def _release_semaphores(names) -> None:
             pass
 
 
+def _release_own_semaphores() -> None:
+    """Run this process's multiprocessing at-exit finalizers (exit priority >= 0), as a normal exit would.
+
+    A spawned worker runs with the spawn start method as its default, so a ``multiprocessing``
+    lock made in it without a context (tqdm's write lock, made by the first progress counter)
+    is a named semaphore registered with the resource tracker; its finalizer unlinks it at a
+    normal exit, which ``os._exit`` skips: the tracker then reports it leaked. This is the
+    first step of multiprocessing's own exit handler (``util._exit_function``)."""
+    try:
+        from multiprocessing import util
+        run_finalizers = util._run_finalizers
+    except (ImportError, AttributeError):  # pragma: no cover - a Python without it
+        return
+    try:
+        run_finalizers(0)
+    except Exception:  # noqa: BLE001 - best effort on the way out
+        pass
+
+
 def _watch_parent(parent_pid: int, semaphores=()) -> None:
     """Pool worker initializer: a daemon thread that ends this worker once its parent is gone.
 
@@ -115,11 +134,13 @@ def _watch_parent(parent_pid: int, semaphores=()) -> None:
     and stderr open, so that whatever waits for the run's output (a shell pipe, a batch
     system, a test) waited for ever. So each worker checks its parent's pid every
     :data:`PARENT_CHECK_S` and exits when it has changed, releasing the pool's named
-    ``semaphores`` first (:func:`_release_semaphores`)."""
+    ``semaphores`` first (:func:`_release_semaphores`) and those it made itself
+    (:func:`_release_own_semaphores`)."""
     def watch():
         while os.getppid() == parent_pid:
             time.sleep(PARENT_CHECK_S)
         _release_semaphores(semaphores)
+        _release_own_semaphores()
         os._exit(0)
 
     threading.Thread(target=watch, name="clrecon-parent-watch", daemon=True).start()
@@ -146,7 +167,7 @@ def spawned_pool(n: int):
     run's helper process (the plans made ahead, the metrics' second group, the figures);
     whether a child is safe to start at all is :func:`spawn_is_safe`'s question, asked by each
     caller. Each worker ends itself when this process dies (:func:`_watch_parent`), and releases
-    the pool's named semaphores then, so that a kill -9 leaves none for the resource tracker.
+    the pool's named semaphores and its own then, so that a kill -9 leaves none for the resource tracker.
     """
     try:
         import multiprocessing

@@ -4,7 +4,9 @@ A ``ProcessPoolExecutor`` of spawned workers makes named POSIX semaphores (its q
 registers them with Python's resource tracker, a process of its own that outlives a kill -9 of
 the run: it unlinked them and printed "There appear to be 5 leaked semaphore objects to clean up
 at shutdown" per pool as the terminal's last line. The workers now release them when they notice
-their parent is gone, so the tracker has nothing left to complain about.
+their parent is gone, so the tracker has nothing left to complain about; and the semaphores a
+worker made itself (a ``multiprocessing`` lock made without a context, as tqdm's write lock is:
+a spawned worker's default start method is spawn, so it is named and registered too).
 """
 
 from __future__ import annotations
@@ -49,3 +51,37 @@ def test_kill_9_leaves_no_leaked_semaphore_and_no_warning():
     if shm.is_dir():  # the semaphores themselves are gone (Linux keeps them as /dev/shm/sem.<name>)
         left = [n for n in names if (shm / f"sem.{n.lstrip('/')}").exists()]
         assert left == [], left
+
+
+OWN_LOCK = textwrap.dedent("""
+    import time
+    from clrecon.core import resources
+    pool = resources.spawned_pool(1)
+    # in the worker, what tqdm's first progress counter does: a lock of the default context, kept
+    pool.submit(exec, "import builtins, multiprocessing; builtins.kept = multiprocessing.RLock()").result()
+    print(pool.submit(eval, "__import__('builtins').kept._semlock.name").result(), flush=True)
+    time.sleep(120)  # killed here, the pool open
+""")
+
+
+def test_kill_9_releases_a_semaphore_the_worker_made():
+    """The worker's own named semaphore is unlinked and unregistered too: before, the tracker printed
+    "There appear to be 1 leaked semaphore objects" (the flaky end of
+    tests/pipeline/test_executors.py::test_a_killed_run_leaves_no_helper_behind, where the helper's
+    plan made tqdm's lock)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", OWN_LOCK], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env, cwd=str(ROOT))
+    try:
+        name = proc.stdout.readline().strip()
+        assert name.startswith("/"), (name, proc.stderr.read())  # a named semaphore, not unlinked at birth
+        os.kill(proc.pid, signal.SIGKILL)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    assert "leaked semaphore" not in err and "resource_tracker" not in err, err
+    shm = Path("/dev/shm")
+    if shm.is_dir():
+        assert not (shm / f"sem.{name.lstrip('/')}").exists()
