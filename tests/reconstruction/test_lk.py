@@ -42,6 +42,9 @@ TOL = {
     # the known shift recovered (voxels, median over the inner part): LK's own error on this texture
     "shift_vox": 0.05,
 }
+#: The OpenCL driver's own allocations in a process's first registration of a size, beside the
+#: modelled bytes per voxel: up to 2.9 MB above the 16 volumes on Intel's CPU runtime (16 x 128 x 128; none later).
+DRIVER_BYTES = 8 << 20
 RNG = np.random.default_rng(41)
 SHAPES = [(5, 7, 9), (2, 3, 2), (2, 2, 17)]
 
@@ -220,10 +223,12 @@ def test_registration_is_deterministic_and_reached_through_register():
 
 def test_registration_peaks_within_its_modelled_bytes():
     """``lk.BYTES_PER_VOXEL`` per voxel above the resident set at the call (VmHWM after clear_refs), on
-    demo's registration grid (measured 69 B a voxel there and at 512 x 512 x 110)."""
+    demo's registration grid, and :data:`DRIVER_BYTES` for the driver's own. Measured at 512 x 512 x 110:
+    65.8 B a voxel (the 68 modelled); on 16 x 128 x 128: 55-56 B a voxel on a process's later calls,
+    65-75 on its first (a few MB that do not grow with the volume)."""
     if not os.path.exists("/proc/self/clear_refs"):
         pytest.skip("needs Linux's /proc/self/status and clear_refs")
-    fixed, moving, _ = _shift_pair((16, 128, 128))
+    fixed, moving = _deform_pair((16, 128, 128))
     lk.register_lk(fixed[:4, :32, :32], moving[:4, :32, :32], (3.0, 3.0, 4.0))  # build the kernels
 
     def status(key):
@@ -234,7 +239,7 @@ def test_registration_peaks_within_its_modelled_bytes():
         fh.write("5")
     base = status("VmRSS")
     lk.register_lk(fixed, moving, (3.0, 3.0, 4.0))
-    assert status("VmHWM") - base <= lk.BYTES_PER_VOXEL * fixed.size
+    assert status("VmHWM") - base <= lk.BYTES_PER_VOXEL * fixed.size + DRIVER_BYTES
 
 
 def test_recon_mc_registration_selects_the_opencl_lucas_kanade():
