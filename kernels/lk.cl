@@ -3,8 +3,8 @@
 // x fastest; flows (3, nz, ny, nx) in voxels, components in axis order (z, y, x) as scikit-image's.
 // The float64 NumPy references are the *_reference functions of clrecon.reconstruction.motion.lk.
 //
-// Work-item (ix, iy, iz): one voxel; one owner per output, no reductions (the same bits for any
-// work-group size). Outside-grid work-items return.
+// Work-item (ix, iy, iz): one voxel (lk_box: one line along its axis); one owner per output, no
+// reductions (the same bits for any work-group size). Outside-grid work-items return.
 //
 // No contraction of a * b + c into fma: NumPy rounds the product and the sum separately, and
 // these kernels follow its order of operations where they can (the gradient, the error image,

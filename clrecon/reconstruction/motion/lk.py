@@ -37,9 +37,10 @@ nx)`` HU, spacing ``(dx, dy, dz)`` mm, result u ``(3, nz, ny, nx)`` float32 mm w
 voxels with components in axis order (z, y, x), as scikit-image's.
 
 Memory at the finest level: :data:`BYTES_PER_VOXEL`. Deterministic: no random sampling and no
-reductions in the kernels (one work-item per output), so a repeated call gives the same bits on
-one device. Each kernel has a float64 NumPy reference here (``*_reference``), checked in
-tests/reconstruction/test_lk.py and run under Oclgrind in tests/core/test_oclgrind.py.
+reductions in the kernels (one owner per output: a work-item per voxel, or per line for the box
+filter, in a fixed order), so a repeated call gives the same bits on one device. Each kernel has a
+float64 NumPy reference here (``*_reference``), checked in tests/reconstruction/test_lk.py and run
+under Oclgrind in tests/core/test_oclgrind.py.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ from clrecon.core.runtime import aligned_empty, get_runtime
 #: pyramids (2 x (1/8 + 1/64 + ...) of a volume, 1.1 bytes per voxel), rounded up. The result
 #: (3 volumes) is read back after the work buffers are released.
 BYTES_PER_VOXEL = 4 * 17
-#: |det A| below this: no flow at the voxel (scikit-image's guard, compared in float32).
+#: |det A| below this: no flow at the voxel (scikit-image's guard, compared in float32; ``lk_solve``'s literal).
 DET_MIN = 1e-14
 #: The pyramid of scikit-image's ``_coarse_to_fine``: downscale 2, at most 10 levels, a new level
 #: while the smallest side exceeds ``DOWNSCALE * MIN_SIZE``.
