@@ -44,7 +44,7 @@ MAX_GRID_MM = 2000.0
 
 
 #: The ``mc`` method's registrations (``[recon.mc] registration``, ``beat_registration``).
-REGISTRATIONS = ("lucas_kanade", "tvl1")
+REGISTRATIONS = ("lucas_kanade", "tvl1", "lucas_kanade_cl")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -69,7 +69,8 @@ class MotionCompensationConfig(Section):
                           "the breathing step's registration: 'lucas_kanade' (scikit-image's iterative "
                           "Lucas-Kanade, windows of flow_radius, flow_warps warps) or 'tvl1' (multi-resolution "
                           "Huber-TV-L1 optical flow on the engine's OpenCL runtime, "
-                          "clrecon.reconstruction.motion.flow)")
+                          "clrecon.reconstruction.motion.flow) or 'lucas_kanade_cl' (the same Lucas-Kanade on the "
+                          "engine's OpenCL runtime, in the run's process: clrecon.reconstruction.motion.lk)")
     beat_registration: str = F("tvl1", one_of(REGISTRATIONS),
                                "the beat step's registration (the same choices): TV-L1 by default, whose "
                                "edge-preserving regulariser lets the heart slide against its surroundings "

@@ -452,6 +452,31 @@ def test_flow_kernels(grind, clean):
 
 
 # ---------------------------------------------------------------------------------------
+# kernels/lk.cl (the OpenCL Lucas-Kanade registration, clrecon.reconstruction.motion.lk)
+def test_lk_kernels(grind, clean):
+    from clrecon.reconstruction.motion import lk
+
+    rng = np.random.default_rng(41)
+    shape = (3, 5, 7)                             # no axis a multiple of another
+    img, ref = rng.uniform(0, 1, shape), rng.uniform(0, 1, shape)
+    v = rng.normal(0, 2.0, (3,) + shape)          # past the edges: clamped reads
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    a = q @ np.diag([1.0, 0.5, 0.2]) @ q.T        # one well-conditioned system everywhere, one singular voxel
+    terms = np.stack([np.full(shape, a[i, j]) for i, j in lk.A_PAIRS] + [rng.normal(0, 1, shape) for _ in range(3)])
+    terms[:6, 0, 0, 0] = 0.0
+    scale = TOL["f32"]                            # O(1) data, a few dozen float32 operations per output
+    checks = [(lk.warp_cl(img, v, runtime=grind), lk.warp_reference(img, v)),
+              (lk.solve_cl(terms, runtime=grind), lk.solve_reference(terms)),
+              (lk.resize_cl(v, (5, 9, 13), runtime=grind), lk.resize_reference(v, (5, 9, 13)))]
+    checks += [(lk.term_cl(img, ref, v, t, runtime=grind), lk.term_reference(img, ref, v, t)) for t in (0, 4, 8)]
+    checks += [(lk.box_cl(img, axis, 4, runtime=grind, double=d), lk.box_reference(img, axis, 4))
+               for axis in range(3) for d in (True, False)]     # the float64 sum and the float32 fallback
+    for got, want in checks:
+        assert np.abs(got - want).max() <= scale * max(1.0, np.abs(want).max())
+    clean()
+
+
+# ---------------------------------------------------------------------------------------
 # kernels/voxel_backproject.cl and kernels/warp.cl (the iterative operators' transposes: fixed-point atomics)
 def test_iterative_operator_kernels(grind, clean):
     from clrecon.core.conventions import detector_coords, detector_frames

@@ -215,6 +215,7 @@ def test_the_mc_model_follows_the_registration_it_runs():
     process below ``POOL_MIN_VOXELS``); TV-L1 runs in the process on the OpenCL device, no pool: its
     fit holds one registration's ``flow.BYTES_PER_VOXEL`` (64 B a voxel of the registration grid)."""
     from clrecon.reconstruction.motion import flow, memory, registration
+    from clrecon.reconstruction.motion import lk as lkcl
     from clrecon.reconstruction.rebin import slice_window_mm
 
     scene = load_scene("demo")
@@ -248,6 +249,11 @@ def test_the_mc_model_follows_the_registration_it_runs():
     assert both["registration processes"] == lk["registration processes"]
     for part in ("fit", "registering"):
         assert both[part] - lk[part] == max(flow.BYTES_PER_VOXEL * n_reg, in_process) - in_process
+    # the OpenCL Lucas-Kanade runs in the process like TV-L1: its own lk.BYTES_PER_VOXEL, no pool
+    cl = parts("lucas_kanade_cl", "tvl1")
+    assert cl["registration processes"] == cl["idle registration processes"] == 0
+    for part in ("fit", "registering"):
+        assert cl[part] - tv[part] == (max(lkcl.BYTES_PER_VOXEL, flow.BYTES_PER_VOXEL) - flow.BYTES_PER_VOXEL) * n_reg
 
 
 def test_the_mc_model_counts_the_registration_processes_beside_the_registrations_only():

@@ -629,7 +629,7 @@ def test_recon_mc_registrations_select_each_steps_method():
     assert isinstance(method.flow_of(lk, "beat"), registration.FlowConfig)
     with pytest.raises(ValueError, match="step = 'heart'"):
         method.flow_of(knobs, "heart")
-    with pytest.raises(SceneError, match="recon.mc.beat_registration = 'tv': must be one of lucas_kanade, tvl1"):
+    with pytest.raises(SceneError, match="recon.mc.beat_registration = 'tv': must be one of lucas_kanade, tvl1, lucas_kanade_cl"):
         load_scene("demo", recon__mc__beat_registration="tv")
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from clrecon.reconstruction import rebin, reconstruct
-from clrecon.reconstruction.motion import flow
+from clrecon.reconstruction.motion import flow, lk
 from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.motion.confidence import (
     CHUNK_VOXELS,
@@ -138,6 +138,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       one size) (none below ``POOL_MIN_VOXELS``: the registrations then run in the process, and
       ``fit`` and ``registering`` hold one's ``FLOW_BYTES_PER_VOXEL``). A TV-L1 step runs in the
       process on the OpenCL device (no pool): ``fit`` holds one registration's ``flow.BYTES_PER_VOXEL``
+      (an OpenCL Lucas-Kanade step, ``lucas_kanade_cl``, likewise its ``lk.BYTES_PER_VOXEL``)
       (the larger of the two where the other step runs in the process too); with no Lucas-Kanade
       step this part is 0;
     - ``idle registration processes``: :data:`WORKER_BYTES` in each, between registrations.
@@ -185,7 +186,8 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     # a Lucas-Kanade step runs in a pool (1 worker: in this process); a TV-L1 step in this process on the
     # OpenCL device. The steps run one after the other: the process holds the larger of its steps' own.
     workers = registration_workers(n_reg, available_bytes=1 << 62) if mcm.uses_pool(knobs) else 0
-    own = [flow.BYTES_PER_VOXEL] if "tvl1" in mcm.registrations(knobs).values() else []
+    names = mcm.registrations(knobs).values()
+    own = [b for name, b in (("tvl1", flow.BYTES_PER_VOXEL), ("lucas_kanade_cl", lk.BYTES_PER_VOXEL)) if name in names]
     if mcm.uses_pool(knobs) and workers <= 1:
         own.append(FLOW_BYTES_PER_VOXEL)
     registration += max(own, default=0) * n_reg

@@ -35,6 +35,7 @@ from clrecon.reconstruction.motion import backproject as mcb
 from clrecon.reconstruction.motion import estimate
 from clrecon.reconstruction.motion import slots as msl
 from clrecon.reconstruction.motion.flow import TVL1Config
+from clrecon.reconstruction.motion.lk import LKConfig
 from clrecon.reconstruction.motion.model import FieldGrid, MotionBasis, MotionModel, fit_separable_model, sample
 from clrecon.reconstruction.motion.registration import FlowConfig
 
@@ -76,13 +77,17 @@ def basis_of(knobs, n_cardiac: int, n_resp: int) -> MotionBasis:
                        cardiac_harmonics=min(knobs.cardiac_harmonics, (n_cardiac - 1) // 2))
 
 
-def flow_of(knobs, step: str = "breathing") -> FlowConfig | TVL1Config:
+def flow_of(knobs, step: str = "breathing") -> FlowConfig | TVL1Config | LKConfig:
     """The registration of the separable scheme's ``step`` (``"breathing"``: ``knobs.registration``;
-    ``"beat"``: ``knobs.beat_registration``), with its knobs."""
+    ``"beat"``: ``knobs.beat_registration``), with its knobs (``lucas_kanade_cl``: the Lucas-Kanade
+    knobs ``flow_radius`` and ``flow_warps``, as ``lucas_kanade``)."""
     if step not in STEPS:
         raise ValueError(f"step = {step!r}: one of {STEPS}")
-    if registrations(knobs)[step] == "tvl1":
+    name = registrations(knobs)[step]
+    if name == "tvl1":
         return TVL1Config()
+    if name == "lucas_kanade_cl":
+        return LKConfig(radius=knobs.flow_radius, num_warp=knobs.flow_warps)
     return FlowConfig(radius=knobs.flow_radius, num_warp=knobs.flow_warps)
 
 
@@ -96,14 +101,15 @@ def registrations(knobs) -> dict:
 
 
 def uses_library(knobs) -> bool:
-    """Whether a step registers with Lucas-Kanade (scikit-image, the ``motion`` extra); TV-L1 runs on
-    the engine's OpenCL runtime."""
+    """Whether a step registers with scikit-image's Lucas-Kanade (the ``motion`` extra); TV-L1 and the
+    OpenCL Lucas-Kanade (``lucas_kanade_cl``) run on the engine's OpenCL runtime."""
     return any(isinstance(flow_of(knobs, s), FlowConfig) for s in STEPS)
 
 
 def uses_pool(knobs) -> bool:
-    """Whether a step's registrations may run in a process pool: Lucas-Kanade's do (one per core);
-    TV-L1's run in the run's process on the OpenCL device, which uses every core itself."""
+    """Whether a step's registrations may run in a process pool: scikit-image's Lucas-Kanade's do (one
+    per core); TV-L1's and the OpenCL Lucas-Kanade's run in the run's process on the OpenCL device,
+    which uses every core itself."""
     return uses_library(knobs)
 
 

@@ -35,6 +35,7 @@ import scipy.ndimage
 
 from clrecon.core.errors import ClreconError
 from clrecon.reconstruction.motion.flow import TVL1Config, register_tvl1
+from clrecon.reconstruction.motion.lk import LKConfig, register_lk
 
 #: The extra that installs the registration libraries (pyproject.toml ``[project.optional-dependencies]``).
 EXTRA = "pip install 'clrecon[motion]'"
@@ -108,8 +109,8 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
         Voxel spacing (mm) along x, y, z.
     origin_mm : (x0, y0, z0)
         Centre of voxel (0, 0, 0) (mm); handed to a plugged-in registration (fields are relative).
-    cfg : FlowConfig (default), TVL1Config (:mod:`clrecon.reconstruction.motion.flow`), or a config with a
-        ``register`` method (module docstring)
+    cfg : FlowConfig (default), TVL1Config (:mod:`clrecon.reconstruction.motion.flow`), LKConfig
+        (:mod:`clrecon.reconstruction.motion.lk`), or a config with a ``register`` method (module docstring)
     initial : (3, nz, ny, nx) array, optional
         Starting field (mm), e.g. a neighbouring state's (a plugged-in registration only).
 
@@ -130,13 +131,17 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
         if initial is not None:
             raise ValueError("initial: the TV-L1 registration starts from zero")
         return register_tvl1(f, m, tuple(float(s) for s in spacing_mm), cfg)
+    if isinstance(cfg, LKConfig):
+        if initial is not None:
+            raise ValueError("initial: the Lucas-Kanade registration starts from zero")
+        return register_lk(f, m, tuple(float(s) for s in spacing_mm), cfg)
     if isinstance(cfg, FlowConfig):
         if initial is not None:
             raise ValueError("initial: the Lucas-Kanade registration starts from zero")
         return _flow(f, m, tuple(float(s) for s in spacing_mm), cfg)
     if not callable(getattr(cfg, "register", None)):
-        raise TypeError(f"cfg: expected a FlowConfig, a TVL1Config or a registration config with a register() "
-                        f"method, got {type(cfg).__name__}")
+        raise TypeError(f"cfg: expected a FlowConfig, a TVL1Config, an LKConfig or a registration config with a "
+                        f"register() method, got {type(cfg).__name__}")
     return cfg.register(f, m, tuple(float(s) for s in spacing_mm), tuple(float(o) for o in origin_mm), initial)
 
 
@@ -193,7 +198,7 @@ def register_to_reference(volumes, reference: int, spacing_mm: tuple, cfg: FlowC
     if not 0 <= reference < n:
         raise ValueError(f"reference = {reference}: must index one of the {n} volumes")
     out = np.zeros((n, 3) + v.shape[1:], np.float32)
-    if pool is not None and order is None and not isinstance(cfg, TVL1Config):  # OpenCL uses every core itself
+    if pool is not None and order is None and not isinstance(cfg, (TVL1Config, LKConfig)):  # OpenCL uses every core
         futures = {pool.submit(register, v[reference], v[i], spacing_mm, cfg=cfg): i
                    for i in range(n) if i != reference}
         for fut in as_completed(futures):
