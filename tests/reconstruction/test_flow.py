@@ -210,7 +210,8 @@ def test_recon_mc_registration_selects_the_method():
     assert isinstance(method.flow_of(load_scene("demo", recon__mc__registration="tvl1").recon.mc), flow.TVL1Config)
     assert isinstance(method.flow_of(load_scene("demo", recon__mc__registration="tvl1").recon.mc, "beat"),
                       flow.TVL1Config)
-    with pytest.raises(SceneError, match="recon.mc.registration = 'tv': must be one of lucas_kanade, tvl1, lucas_kanade_cl"):
+    with pytest.raises(SceneError, match="recon.mc.registration = 'tv': must be one of "
+                       "lucas_kanade, tvl1, lucas_kanade_cl"):
         load_scene("demo", recon__mc__registration="tv")
 
 

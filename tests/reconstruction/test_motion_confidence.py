@@ -90,3 +90,66 @@ def test_separable_fields_with_the_shrinkage_are_the_same_bits_in_a_process_pool
         pool.shutdown()
     assert np.array_equal(serial, pooled)
     assert len(parts["shrink"]) == 2 and not np.array_equal(serial, plain)
+
+
+def _half_moving_pair(seed: int = 3):
+    """Along x: a textured band moved by one voxel (3 mm) in ``moving``, a textured band that stays
+    where it is but differs by smooth 30-HU "streaks", and a flat half with 5 HU of noise (most of a
+    CT volume is flat, which is where the shrinkage measures the gradient noise); a field of -3 mm
+    along x in the first band (the truth), an invented +2 mm in the second, 0 in the flat half.
+    Returns (fixed, moving, field, first band (nz, ny, nx2) bool, second band bool)."""
+    nx = 2 * NX
+    rng = np.random.default_rng(seed)
+    tex = scipy.ndimage.gaussian_filter(rng.standard_normal((NZ, NY, nx + 8)), [1.5, 2, 2]) * 2000.0
+    x = np.arange(nx + 8) - 4
+    tex[:, :, x >= NX] = 0.0
+    moved = scipy.ndimage.shift(tex, (0, 0, -1.0), order=3, mode="nearest")
+    streaks = scipy.ndimage.gaussian_filter(rng.standard_normal(tex.shape), [2, 4, 4]) * 30.0 / 0.05
+    moving = np.where(x < NX // 2, moved, tex + np.where(x < NX, streaks, 0.0))
+    fixed = tex + 5.0 * rng.standard_normal(tex.shape)
+    moving = moving + 5.0 * rng.standard_normal(tex.shape)
+    xs = np.arange(nx)
+    first = np.broadcast_to((xs >= 6) & (xs < NX // 2 - 6), (NZ, NY, nx))
+    second = np.broadcast_to((xs >= NX // 2 + 6) & (xs < NX - 6), (NZ, NY, nx))
+    field = np.zeros((3, NZ, NY, nx), np.float32)
+    field[0] = np.where(xs < NX // 2, -3.0, np.where(xs < NX, 2.0, 0.0))
+    return fixed[:, :, 4:4 + nx].astype(np.float32), moving[:, :, 4:4 + nx].astype(np.float32), field, first, second
+
+
+def test_the_local_prior_takes_back_a_field_that_explains_nothing_where_the_global_one_keeps_it():
+    """Both halves are textured, so the global prior keeps both halves' fields; only the left half's
+    explains the images' difference, and the local prior keeps that one and takes the other back."""
+    fixed, moving, u, left, right = _half_moving_pair()
+    grid = FieldGrid(nx=2 * NX, ny=NY, nz=NZ, voxel_mm=3.0, z0_mm=0.0, dz_mm=4.0)
+    at_ref = estimate.to_reference(moving, u, grid)
+    glob, _ = confidence.shrink_field(fixed, at_ref, u, SPACING, 4, HU)
+    loc, info = confidence.shrink_field(fixed, at_ref, u, SPACING, 4, HU, moving=moving)
+    mean_x = lambda f, m: float(f[0][m].mean())  # noqa: E731
+    assert mean_x(glob, right) > 1.5 and mean_x(glob, left) < -2.7     # the global prior keeps both
+    assert abs(mean_x(loc, right)) < 0.1 * 2.0                         # the invented field is taken back
+    assert mean_x(loc, left) == pytest.approx(mean_x(glob, left), rel=0.05)  # the seen one is kept
+    assert 0.0 <= info["mean_prior_scale"] <= 1.0
+
+
+def test_the_local_prior_scale_is_zero_where_the_field_explains_nothing_and_at_most_one():
+    rng = np.random.default_rng(4)
+    shape = (6, 10, 12)
+    r0 = rng.standard_normal(shape)
+    A = np.abs(rng.standard_normal((3, 3) + shape))
+    q = confidence.local_prior_scale(r0, r0, A, np.zeros(3), np.ones(3), 3)
+    assert np.array_equal(q, np.zeros(shape))
+    q = confidence.local_prior_scale(r0 * 100.0, r0, A, np.zeros(3), np.ones(3), 3)
+    assert q.max() == 1.0 and q.min() >= 0.0
+
+
+def test_the_local_prior_is_the_same_bits_for_any_chunk():
+    fixed, moving, u, _, _ = _half_moving_pair(seed=5)
+    grid = FieldGrid(nx=2 * NX, ny=NY, nz=NZ, voxel_mm=3.0, z0_mm=0.0, dz_mm=4.0)
+    f = confidence.normalise(fixed, HU)
+    r = f - confidence.normalise(estimate.to_reference(moving, u, grid), HU)
+    r0 = f - confidence.normalise(moving, HU)
+    vox = np.stack([u[2] / SPACING[2], u[1] / SPACING[1], u[0] / SPACING[0]])
+    inside = np.ones(f.shape, bool)
+    a, _ = confidence.shrink_voxels(f, r, vox, 4, inside, unregistered=r0)
+    b, _ = confidence.shrink_voxels(f, r, vox, 4, inside, chunk=997, unregistered=r0)
+    assert np.array_equal(a, b)

@@ -81,12 +81,13 @@ def measure(shape, spacing_mm=(0.98, 0.98, 1.0)) -> dict:
             "second_peak_bytes": again, "idle_bytes": idle, "wall_s": round(wall, 1)}
 
 
-def _shrink(fields, images, grid):
-    """``estimate.shrunk`` as ``method.register`` calls it (the default knobs' window), in the worker."""
-    estimate.shrunk(fields, images, 0, grid, mcm.shrink_of(ReconConfig().mc))
+def _shrink(fields, images, grid, local=False):
+    """``estimate.shrunk`` as ``method.register`` calls it (the default knobs' window), in the worker;
+    ``local``: the beat step's (the local prior)."""
+    estimate.shrunk(fields, images, 0, grid, mcm.shrink_of(ReconConfig().mc), local=local)
 
 
-def measure_shrink(shape, n: int = 2) -> dict:
+def measure_shrink(shape, n: int = 2, local: bool = False) -> dict:
     """The worker's peak above its baseline while ``estimate.shrunk`` shrinks ``n`` - 1 fields (the run's
     process does this after each step's registrations, ``knobs.shrink``): the copy of the ``n`` fields
     and one field's :func:`confidence.shrink_field`, with the moving image seen through it."""
@@ -104,7 +105,7 @@ def measure_shrink(shape, n: int = 2) -> dict:
             f.write("5")
         base = _status(pid)["VmRSS"]
         t = time.perf_counter()
-        pool.submit(_shrink, fields, images, grid).result()
+        pool.submit(_shrink, fields, images, grid, local).result()
         wall = time.perf_counter() - t
         peak = _status(pid)["VmHWM"]
     finally:
@@ -114,16 +115,17 @@ def measure_shrink(shape, n: int = 2) -> dict:
     return {"shrink_shape": list(shape), "fields": n, "voxels": vox, "baseline_bytes": base, "peak_bytes": peak,
             "above_baseline_less_inputs_bytes": peak - base - inputs,
             "bytes_per_voxel_less_inputs": round((peak - base - inputs) / vox, 1), "wall_s": round(wall, 1),
-            "small": list(small)}
+            "small": list(small), "local_prior": local}
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--shape", type=int, nargs=3, action="append", help="NZ NY NX (repeatable)")
     ap.add_argument("--shrink", action="store_true", help="measure estimate.shrunk instead of a registration")
+    ap.add_argument("--local", action="store_true", help="with --shrink: the beat step's local prior")
     args = ap.parse_args()
     for shape in (args.shape or SHAPES):
-        print(json.dumps(measure_shrink(tuple(shape)) if args.shrink else measure(tuple(shape))), flush=True)
+        print(json.dumps(measure_shrink(tuple(shape), local=args.local) if args.shrink else measure(tuple(shape))), flush=True)
     print(json.dumps({"children_maxrss_bytes": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024,
                       "load": os.getloadavg()}))
 

@@ -42,11 +42,13 @@ def to_reference(volume, field, grid: FieldGrid) -> np.ndarray:
     return out
 
 
-def shrunk(fields, images, reference: int, grid: FieldGrid, shrink) -> tuple[np.ndarray, list]:
+def shrunk(fields, images, reference: int, grid: FieldGrid, shrink, local: bool = False) -> tuple[np.ndarray, list]:
     """Each of ``fields`` (n, 3, nz, ny, nx), registered from ``images[reference]`` to ``images[i]``
     (n, nz, ny, nx) HU, shrunk towards zero where the fixed image cannot show it
     (:func:`clrecon.reconstruction.motion.confidence.shrink_field`); ``shrink``: (window radius,
-    HU window). Returns (fields, one info dict per non-reference field)."""
+    HU window); ``local``: under the local prior (the share of the images' difference the field
+    explains, :func:`clrecon.reconstruction.motion.confidence.local_prior_scale`). Returns (fields,
+    one info dict per non-reference field)."""
     radius, hu_window = shrink
     spacing = (grid.voxel_mm, grid.voxel_mm, grid.dz_mm)
     out = np.array(fields, np.float32)
@@ -55,7 +57,7 @@ def shrunk(fields, images, reference: int, grid: FieldGrid, shrink) -> tuple[np.
         if i == reference:
             continue
         out[i], info = shrink_field(images[reference], to_reference(images[i], out[i], grid), out[i], spacing,
-                                    radius, hu_window)
+                                    radius, hu_window, moving=images[i] if local else None)
         infos.append(info)
     return out, infos
 
@@ -75,7 +77,8 @@ def separable_fields(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig
     progress : optional ``update(n)`` counter, one step per registration
     pool : optional process pool running each step's registrations at once (same bits)
     shrink : optional (window radius, (lo, hi) HU): each step's fields shrunk towards zero where its
-        fixed image cannot show the motion (:func:`shrunk`), before the next step uses them
+        fixed image cannot show the motion (:func:`shrunk`), before the next step uses them; the
+        beat's under the local prior (module docstring)
 
     Returns
     -------
@@ -118,6 +121,6 @@ def separable_parts(volumes, reference: tuple, grid: FieldGrid, cfg: FlowConfig 
                                  cfg=cfg if beat_cfg is None else beat_cfg, progress=progress, pool=pool)
     parts = {"resp": resp, "cardiac": card}
     if shrink is not None:
-        card, more = shrunk(card, card_avg.astype(np.float32), i_ref, grid, shrink)
+        card, more = shrunk(card, card_avg.astype(np.float32), i_ref, grid, shrink, local=True)
         parts.update(cardiac=card, shrink=infos + more)
     return parts
