@@ -300,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "end-to-end,memory,scaling,measured and the paper-scale paper-projector,noise,paper-fbp,"
                    "groundtruth; also, only when named: tradeoff (error against run time, ~50 min), truth_free "
                    "(cost of recon.truth_free against the reconstruction, ~2 min), drivers, mc (the mc method's cost "
-                   "against the paper methods' on demo at pitch 0.10, ~5 min; needs clrecon[motion]), iterative (the "
+                   "against the paper methods' on demo at pitch 0.10, ~5 min), iterative (the "
                    "voxel projector beside its matched transpose, the warp beside its transpose, ~10 s). The A/B "
                    "benchmarks of the code's own levers are in a checkout's benchmarks/ folder (benchmarks/README.md)")
     b.add_argument("--drivers", action="store_true",

@@ -7,11 +7,13 @@ folder with a fresh projection cache. From its ``results.json``: the paper metho
 reconstruction (read + noise + rebin + interpolate + FBP, every variant and method) against
 ``mc``'s own parts (registration with the rounds' backprojections, plane rows, the final
 motion-compensated backprojection), and ``mc``'s MAE beside min(barycentric, local linear).
-Then, on the run's own noisy first pass, one registration round (13 Lucas-Kanade registrations
-on ``demo``) one after the other and in the run's process pool, alternating, ``repeats`` times:
-the pool's speed-up, with the fields' bit-identity checked. Last, the motion-compensated
-backprojection kernel against the static backprojector on the same geometry, in the same process
-(:mod:`clrecon.bench.mc_kernel`: G updates/s, their ratio, medians, the load).
+Then, on the run's own noisy first pass, one registration round (13 registrations on ``demo``) with
+the scene's registrations (``steps``: by default the OpenCL Lucas-Kanade for the breathing
+and TV-L1 for the beat, in the run's process), ``repeats`` times; where a step registers in a
+process pool (scikit-image's Lucas-Kanade, ``[recon.mc] registration = "lucas_kanade"``) one after
+the other and in the pool, alternating: the pool's speed-up, with the fields' bit-identity checked.
+Last, the motion-compensated backprojection kernel against the static backprojector on the same
+geometry, in the same process (:mod:`clrecon.bench.mc_kernel`: G updates/s, their ratio, medians, the load).
 """
 
 from __future__ import annotations
@@ -50,14 +52,15 @@ def _first_pass(run_dir: Path, pk: str, variant: str) -> np.ndarray:
 
 
 def _registration_round(first, sc, slices_z, repeats: int) -> dict:
-    """One registration round on ``first`` one after the other and in a pool, alternating."""
+    """One registration round on ``first`` with ``sc``'s registrations: one after the other, and where a
+    step registers in a process pool (:func:`method.uses_pool`) in the pool too, alternating."""
     cfg = reconstruct.ReconstructionConfig.from_scene(sc)
     knobs = sc.recon.mc
     targets = resolve_targets(sc)
     pairs = targets.pairs
     ref_ij = mcm.reference_index(targets.cardiac, targets.resp, knobs)
     grid = mcm.field_grid(cfg.fbp, slices_z)
-    workers = registration_workers(grid.nx * grid.ny * grid.nz)
+    workers = registration_workers(grid.nx * grid.ny * grid.nz) if mcm.uses_pool(knobs) else 1
     pool = spawned_pool(workers) if workers > 1 else None
     serial_s, pooled_s, same = [], [], True
     try:
@@ -77,7 +80,8 @@ def _registration_round(first, sc, slices_z, repeats: int) -> dict:
             pool.shutdown()
     s = float(np.median(serial_s))
     p = float(np.median(pooled_s)) if pooled_s else None
-    return {"registrations": (first.shape[0] - 1) + (first.shape[1] - 1), "grid": [grid.nz, grid.ny, grid.nx],
+    return {"registrations": (first.shape[0] - 1) + (first.shape[1] - 1), "steps": mcm.registrations(knobs),
+            "grid": [grid.nz, grid.ny, grid.nx],
             "workers": workers, "serial_s": s, "pool_s": p, "speedup": (s / p) if p else None,
             "same_bits": same, "repeats": repeats}
 
@@ -135,12 +139,14 @@ def report_lines(r: dict | None) -> list[str]:
         out.append(f"   {v}: mc MAE {m['mc'][0]:.1f} / {m['mc'][1]:.1f} HU (large / small FOV), "
                    f"x{m['ratio'][0]:.3f} / x{m['ratio'][1]:.3f} min(barycentric, local linear)")
     g = r["registration_round"]
+    steps = ", ".join(f"{k} {v}" for k, v in g.get("steps", {}).items())
+    what = (f"one registration round ({g['registrations']} registrations on {g['grid'][2]} x {g['grid'][1]} "
+            f"x {g['grid'][0]}{'; ' + steps if steps else ''})")
     if g["pool_s"]:
-        out.append(f"   one registration round ({g['registrations']} registrations on {g['grid'][2]} x {g['grid'][1]} "
-                   f"x {g['grid'][0]}): {g['serial_s']:.1f} s one after the other, {g['pool_s']:.1f} s in "
+        out.append(f"   {what}: {g['serial_s']:.1f} s one after the other, {g['pool_s']:.1f} s in "
                    f"{g['workers']} processes (x{g['speedup']:.2f}; same bits: {g['same_bits']}; median of "
                    f"{g['repeats']})")
     else:
-        out.append(f"   one registration round: {g['serial_s']:.1f} s (one core: no pool)")
+        out.append(f"   {what}: {g['serial_s']:.1f} s in the run's process (median of {g['repeats']})")
     out.extend(mc_kernel.report_lines(r.get("kernel")))
     return out

@@ -53,8 +53,9 @@ Sections (``--only`` picks some):
     the same files' bytes; goal >= 200 views/s.
 ``mc`` (only when named; :mod:`clrecon.bench.mc`, :mod:`clrecon.bench.mc_kernel`)
     The cost of the ``mc`` method against the paper methods' reconstruction of the same ``demo``
-    run at pitch 0.10 (``--quick``: 4 slices), its MAE ratio, one registration round one
-    after the other against the run's process pool, and the motion-compensated backprojection
+    run at pitch 0.10 (``--quick``: 4 slices), its MAE ratio, one registration round with the
+    scene's registrations (in the run's process by default; one after the other against the process
+    pool where a step uses scikit-image's Lucas-Kanade), and the motion-compensated backprojection
     kernel's G updates/s against the static backprojector's on the same geometry (goal >= 1/4).
 
 The A/B benchmarks of the code's own levers and options, and the studies (levers, backprojector

@@ -46,9 +46,11 @@ Knobs (one changed at a time from the scene's setting, the *base*):
 - barycentric, nearest, bin, helical, r4dct: the candidate turns used, ``recon.max_turns`` 0
   (all, base), 4, 2;
 - mc: registration rounds ``r2`` (base), ``r1``; the registration's in-plane factor ``ds1``
-  (base, in the base point), ``ds2``; TV-L1 for both registration steps ``tvl1`` (base: the scene's
-  ``registration`` and ``beat_registration``) (``recon.mc.rounds``, ``downsample``,
-  ``registration``, ``beat_registration``); and, where the scene has at least
+  (base, in the base point), ``ds2``; TV-L1 for both registration steps ``tvl1`` and scikit-image's
+  Lucas-Kanade for the breathing ``skimage`` (base: the scene's ``registration`` and
+  ``beat_registration``, by default the OpenCL Lucas-Kanade and TV-L1) (``recon.mc.rounds``,
+  ``downsample``, ``registration``, ``beat_registration``); every mc and mcir row keeps the
+  registrations its run used (``registrations``, from ``results.json``); and, where the scene has at least
   ``THIN_Z_MM`` of slices, the base knobs on a run of every slice (``z64`` on demo: 64 mm of
   z for the registration), scored on the sweep's slices, its seconds the whole run's (the
   pipeline reconstructs every slice it registers); not in the quick sweep;
@@ -66,7 +68,8 @@ average sampled during the sweep; a sweep of some methods merged into an earlier
 the registry's marker per method, each method's Pareto front as a step line, every point
 labelled by its knob code). ``python -m clrecon bench --only
 tradeoff`` runs it (not part of the default bench set: about 50 minutes on 2 cores, mc's five
-points about 20 of them, and each mcir point tens of minutes more: docs/performance.md); ``python -m
+points before ``skimage`` about 20 of them, and each mcir point tens of minutes more:
+docs/performance.md); ``python -m
 clrecon.bench.tradeoff --methods mc --merge docs/figures/tradeoff.json --out DIR`` sweeps some
 methods and merges them into an earlier sweep.
 """
@@ -96,6 +99,7 @@ from clrecon.pipeline.run import run as run_pipeline
 from clrecon.reconstruction import interpolation as _methods
 from clrecon.reconstruction.iterative import method as mcir
 from clrecon.reconstruction.motion import mc_fbp, registration
+from clrecon.reconstruction.motion import method as mcm
 from clrecon.reconstruction.reconstruct import slice_positions
 
 #: Sweep pitch and the slices of a full sweep ([start, stop) of demo's 16: z = -6, -2, 2, 6 mm).
@@ -104,9 +108,12 @@ FULL_SLICES = (6, 10)
 #: Methods whose knob is the number of candidate turns, and its values (0 = all).
 TURN_METHODS = ("barycentric", "nearest", "bin", "helical", "r4dct")
 MAX_TURNS = (0, 4, 2)
-#: mc's points: (code, knob, ``recon.mc`` overrides); the first is the scene's setting.
+#: mc's points: (code, knob, ``recon.mc`` overrides); the first is the scene's setting (by default the
+#: OpenCL Lucas-Kanade for the breathing, TV-L1 for the beat); ``skimage``: scikit-image's Lucas-Kanade
+#: for the breathing (the same algorithm in a process pool; needs the motion extra).
 MC_POINTS = (("r2", "base", {}), ("r1", "rounds", {"rounds": 1}), ("ds2", "downsample", {"downsample": 2}),
-             ("tvl1", "registration", {"registration": "tvl1", "beat_registration": "tvl1"}))
+             ("tvl1", "registration", {"registration": "tvl1", "beat_registration": "tvl1"}),
+             ("skimage", "registration", {"registration": "lucas_kanade"}))
 #: mcir's points: (code, knob, ``recon.mcir`` overrides, whether the run makes mc's volumes too); the first
 #: is the scene's setting with mc in the run (``init`` 'auto': OS-SART starts from mc's reference target).
 #: 'zero' starts from nothing, so its run has no mc pass (the mcir stage fits the motion model itself).
@@ -182,6 +189,15 @@ def sweep_points(scene, quick: bool = False) -> list[SweepPoint]:
     if z_mm >= mc_fbp.THIN_Z_MM and scene.recon.nz > FULL_SLICES[1] - FULL_SLICES[0]:
         pts.append(SweepPoint("mc", f"z{z_mm:g}", "registration_z", run_slices=(0, scene.recon.nz)))
     return pts
+
+
+def needs_motion_extra(scene, point: SweepPoint) -> bool:
+    """Whether ``point``'s run registers with scikit-image (the motion extra): a second-pass method's
+    point whose ``recon.mc`` (the scene's with the point's overrides) names ``lucas_kanade`` for a step."""
+    if not _methods.second_pass_methods((point.method,)):
+        return False
+    knobs = scene.replace(recon=point.recon).recon.mc if point.recon else scene.recon.mc
+    return mcm.uses_library(knobs)
 
 
 def run_methods(method: str, also: tuple = ()) -> tuple[str, ...]:
@@ -274,8 +290,9 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
         (``seconds_repeats`` keeps them all): on a shared machine the load inflates a single
         timing by tens of percent. The MAE is the same in every repeat (deterministic).
     methods : sequence of str, optional
-        Only the points of these methods (default: every point of the sweep, less mc's where the
-        motion extra is not installed: ``skipped`` says so).
+        Only the points of these methods (default: every point of the sweep, less those that register
+        with scikit-image (:func:`needs_motion_extra`) where the motion extra is not installed:
+        ``skipped`` says so; asked for by name, such a point's run is refused in one line).
     codes : sequence of str, optional
         Only the points with these knob codes (of ``methods`` where given), e.g. ``("z64",)``.
     merge : path-like or dict, optional
@@ -302,15 +319,15 @@ def run_tradeoff(quick: bool = False, out_dir=None, cache_dir=None, scene="demo"
     if methods is not None:
         points = _keep(points, methods, "method")
     skipped = {}
-    model_users = set(_methods.second_pass_methods(tuple(dict.fromkeys(p.method for p in points))))
-    if methods is None and model_users:
-        try:  # the full sweep runs without the motion extra, less mc's and mcir's points (by name: refused)
+    extra = [p for p in points if needs_motion_extra(sc, p)]
+    if methods is None and extra:
+        try:  # the full sweep runs without the motion extra, less the points registering with scikit-image
             registration.require("skimage.registration")
         except ClreconError as e:
-            for m in sorted(model_users):
-                skipped[m] = str(e)
-            log(f"tradeoff: {', '.join(sorted(model_users))}'s points skipped: {e}")
-            points = [p for p in points if p.method not in model_users]
+            for m in dict.fromkeys(p.method for p in extra):
+                skipped[m] = f"{', '.join(p.code for p in extra if p.method == m)}: {e}"
+            log(f"tradeoff: {', '.join(p.name for p in extra)} skipped: {e}")
+            points = [p for p in points if p not in extra]
     if codes is not None:
         points = _keep(points, codes, "code")
     base = json.loads(Path(merge).read_text()) if isinstance(merge, (str, Path)) else merge
@@ -401,11 +418,13 @@ SECONDS_DEFINITION = ("results.json method_seconds: the method's plan (weights +
 def _model_notes(res: dict, pk: str, variant: str) -> dict:
     """A second-pass point's model figures from its ``results.json`` (the run's one motion model,
     noted under mc's name whichever stage fitted it): ``model_error`` (heart and body, mm RMS
-    against the phantom's motion), ``model_seconds`` and the run's thin-z ``warning``."""
+    against the phantom's motion), ``model_seconds``, the run's thin-z ``warning`` and the
+    ``registrations`` it ran (each step's: ``breathing``, ``beat``)."""
     info = res.get("stages", {}).get("registration", {}).get(mc_fbp.NAME, {}).get(pk, {}).get(variant, {})
     err = info.get("error_against_phantom_motion", {})
     return {"model_error": {k: err[k] for k in ("heart", "body_outside_lungs") if k in err},
-            "model_seconds": info.get("seconds"), "warning": info.get("warning")}
+            "model_seconds": info.get("seconds"), "warning": info.get("warning"),
+            "registrations": info.get("registrations")}
 
 
 def _solver_notes(res: dict, pk: str, variant: str) -> dict:

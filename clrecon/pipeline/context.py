@@ -165,7 +165,7 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
         if m == mcir_method.NAME and rc.mcir.init == mc_fbp.NAME and mc_fbp.NAME not in methods:
             raise ClreconError("recon.mcir.init = 'mc' starts mcir from the mc method's volumes: add 'mc' to "
                                "recon.methods (or --methods), or set init to 'first_pass' or 'zero'")
-        if mc_method.uses_library(scene.recon.mc):  # tvl1 runs on the engine's OpenCL runtime
+        if mc_method.uses_library(scene.recon.mc):  # only 'lucas_kanade' (scikit-image); the others run on OpenCL
             registration.require("skimage.registration")  # before any work: one line naming the extra
     run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches,
                                     overlap=executor_kind != "serial")

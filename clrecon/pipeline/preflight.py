@@ -36,9 +36,9 @@ from clrecon.pipeline.costs import disk_model
 
 #: What the process grows by after the pre-flight beyond the arrays :func:`clrecon.pipeline.costs.run_costs`
 #: models: kernels built or loaded from the cache, modules imported on first use (scikit-image for
-#: ``mc``, matplotlib for the report's figures), the allocator's small blocks (measured on ``tiny``
-#: with ``mc``, warm kernel cache: docs/results/code-history.md "The mc working set against the
-#: measured peak").
+#: ``mc``'s ``lucas_kanade``, matplotlib for the report's figures), the allocator's small blocks
+#: (measured on ``tiny`` with ``mc``, scikit-image's Lucas-Kanade then, warm kernel cache:
+#: docs/results/code-history.md "The mc working set against the measured peak").
 PROCESS_GROWTH_BYTES = 100_000_000
 
 

@@ -65,12 +65,12 @@ class MotionCompensationConfig(Section):
                         "in-plane factor the registration (and the rounds before the last) works at: 1 = the "
                         "reconstruction grid (the study's A2), 2 = half its voxels along x and y (about 3x cheaper, "
                         "MAE 8-11 % higher on demo: docs/motion-model.md); the last pass is always on the full grid")
-    registration: str = F("lucas_kanade", one_of(REGISTRATIONS),
-                          "the breathing step's registration: 'lucas_kanade' (scikit-image's iterative "
-                          "Lucas-Kanade, windows of flow_radius, flow_warps warps) or 'tvl1' (multi-resolution "
-                          "Huber-TV-L1 optical flow on the engine's OpenCL runtime, "
-                          "clrecon.reconstruction.motion.flow) or 'lucas_kanade_cl' (the same Lucas-Kanade on the "
-                          "engine's OpenCL runtime, in the run's process: clrecon.reconstruction.motion.lk)")
+    registration: str = F("lucas_kanade_cl", one_of(REGISTRATIONS),
+                          "the breathing step's registration: 'lucas_kanade_cl' (iterative Lucas-Kanade, windows "
+                          "of flow_radius, flow_warps warps, on the engine's OpenCL runtime in the run's process: "
+                          "clrecon.reconstruction.motion.lk), 'lucas_kanade' (the same algorithm by scikit-image, "
+                          "in a process pool; needs the motion extra) or 'tvl1' (multi-resolution Huber-TV-L1 "
+                          "optical flow on the engine's OpenCL runtime, clrecon.reconstruction.motion.flow)")
     beat_registration: str = F("tvl1", one_of(REGISTRATIONS),
                                "the beat step's registration (the same choices): TV-L1 by default, whose "
                                "edge-preserving regulariser lets the heart slide against its surroundings "

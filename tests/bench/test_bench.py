@@ -160,18 +160,21 @@ def test_iterative_section_tiny():
 
 
 def test_mc_section_tiny(monkeypatch):
-    """The mc section's run, its cost split and ratio, and the registration round in a pool (forced
-    on tiny's small volumes) giving the serial round's bits."""
+    """The mc section's run, its cost split and ratio, and, with scikit-image's Lucas-Kanade
+    (``registration = "lucas_kanade"``, the registration that runs in a pool), the registration round
+    in a pool (forced on tiny's small volumes) giving the serial round's bits."""
     from clrecon.bench.mc import bench_mc_section, report_lines
+    from clrecon.config.overrides import load_scene
     from clrecon.reconstruction.motion import registration
 
     monkeypatch.setattr(registration, "POOL_MIN_VOXELS", 0)
-    r = bench_mc_section(quick=True, repeats=1, scene="tiny")
+    r = bench_mc_section(quick=True, repeats=1, scene=load_scene("tiny", recon__mc__registration="lucas_kanade"))
     assert r["pitch"] == 0.1 and r["reconstruction_s"] > 0 and r["mc_s"] > 0
     assert set(r["mc_parts_s"]) == {"registration", "plane_rows", "mc_backproject"}
     assert r["ratio"] == pytest.approx(r["mc_s"] / r["reconstruction_s"])
     assert set(r["mae"]) == {"noisy", "noise-free"} and all(m["mc"][0] > 0 for m in r["mae"].values())
     g = r["registration_round"]
+    assert g["steps"] == {"breathing": "lucas_kanade", "beat": "tvl1"}
     cores = len(os.sched_getaffinity(0))
     assert g["workers"] == min(cores, registration.MAX_WORKERS)
     if cores > 1:
@@ -183,6 +186,32 @@ def test_mc_section_tiny(monkeypatch):
     assert k["ratio"] == pytest.approx(k["mc_gups"] / k["static_gups"]) and k["mc_updates"] > 0
     text = "\n".join(report_lines(r))
     assert "registration round" in text and "motion-compensated" in text and "static" in text
+
+
+def test_mc_sections_registration_round_with_the_default_runs_in_the_process(monkeypatch):
+    """The default registrations (OpenCL Lucas-Kanade, then TV-L1) run in the run's process: the round
+    makes no pool (even where one would be allowed) and says which registrations it timed."""
+    from clrecon.bench import mc as bench_mc
+    from clrecon.config.scene import load_scene
+    from clrecon.pipeline.context import resolve_targets
+    from clrecon.reconstruction import reconstruct
+    from clrecon.reconstruction.motion import registration
+
+    monkeypatch.setattr(registration, "POOL_MIN_VOXELS", 0)
+    monkeypatch.setattr(bench_mc, "spawned_pool", lambda n: pytest.fail(f"a pool of {n} for the default"))
+    sc = load_scene("tiny")
+    t = resolve_targets(sc)
+    z = reconstruct.slice_positions(sc, None)
+    rng = np.random.default_rng(0)
+    first = rng.normal(0.0, 50.0, (len(t.cardiac), len(t.resp), len(z), sc.recon.ny, sc.recon.nx)).astype(np.float32)
+    g = bench_mc._registration_round(first, sc, z, 1)
+    assert g["steps"] == {"breathing": "lucas_kanade_cl", "beat": "tvl1"}
+    assert g["workers"] == 1 and g["pool_s"] is None and g["serial_s"] > 0
+    text = "\n".join(bench_mc.report_lines({"scene": "tiny", "pitch": 0.1, "slices": [0, len(z)], "variants": ["noisy"],
+                                             "load_average_1min_before": 0.0, "run_s": 1.0, "reconstruction_s": 1.0,
+                                             "mc_s": 1.0, "mc_parts_s": {}, "ratio": 1.0, "mae": {},
+                                             "registration_round": g}))
+    assert "breathing lucas_kanade_cl, beat tvl1" in text and "in the run's process" in text
 
 
 def test_the_ab_benchmarks_are_not_sections_of_the_users_bench():

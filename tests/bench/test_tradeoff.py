@@ -39,12 +39,15 @@ def test_sweep_points_cover_the_knobs_once_each():
     for m in tr.TURN_METHODS:
         assert {p.code for p in pts if p.method == m} == {"all", "t4", "t2", "v180", "64²", "v180 64²"}
     mc = {p.code: p for p in pts if p.method == "mc"}
-    assert set(mc) == {"r2", "r1", "ds2", "tvl1", "z64"} and mc["r2"].knob == "base"
+    assert set(mc) == {"r2", "r1", "ds2", "tvl1", "skimage", "z64"} and mc["r2"].knob == "base"
     assert mc["z64"].run_slices == (0, demo.recon.nz) and not mc["z64"].recon   # base knobs, every slice
     knobs = {c: demo.replace(recon=p.recon).recon.mc if p.recon else demo.recon.mc for c, p in mc.items()}
     assert all(p.run_slices is None for p in pts if p.code != "z64")
-    assert (knobs["r2"].rounds, knobs["r2"].downsample, knobs["r2"].registration) == (2, 1, "lucas_kanade")
+    assert (knobs["r2"].rounds, knobs["r2"].downsample, knobs["r2"].registration) == (2, 1, "lucas_kanade_cl")
     assert knobs["r1"].rounds == 1 and knobs["ds2"].downsample == 2 and knobs["tvl1"].registration == "tvl1"
+    assert (knobs["skimage"].registration, knobs["skimage"].beat_registration) == ("lucas_kanade", "tvl1")
+    # only the scikit-image point needs the motion extra (mcir's points use the base's registrations)
+    assert [p.name for p in pts if tr.needs_motion_extra(demo, p)] == ["mc-skimage"]
     assert tr.run_methods("mc") == ("barycentric", "mc") and tr.run_methods("nearest") == ("nearest",)
     assert not any(p.method == "mc" for p in tr.sweep_points(demo, quick=True))
     g = next(p for p in pts if p.code == "64²")
@@ -101,23 +104,32 @@ def test_quick_sweep_on_tiny(tmp_path, quick):
 
 
 def test_mc_points_on_tiny_are_made_with_their_first_pass_merged_and_labelled(tmp_path, monkeypatch):
-    """mc's four points run (barycentric first pass + mc), each with its knob reaching the run;
-    a point's seconds are the two methods' method_seconds together; merged into an earlier
-    sweep they replace only its mc points, and the figure labels them by knob code."""
+    """mc's five points run (barycentric first pass + mc), each with its knob reaching the run (its
+    registrations kept in the row); a point's seconds are the two methods' method_seconds together;
+    scikit-image's Lucas-Kanade (``skimage``) makes the base's (the OpenCL Lucas-Kanade's) MAE to the
+    hundredth of a HU; merged into an earlier sweep they replace only its mc points, and the figure
+    labels them by knob code."""
     res = tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path, methods=("mc",), warmup=False, repeats=1,
                           log=lambda *a, **k: None)
     rows = res["points"]
     assert {r["method"] for r in rows} == {"mc"} and res["methods"] == ["mc"]
     assert sorted((r["code"], r["variant"]) for r in rows) == sorted(
-        (c, v) for c in ("r2", "r1", "ds2", "tvl1") for v in ("noise-free", "noisy"))
+        (c, v) for c in ("r2", "r1", "ds2", "tvl1", "skimage") for v in ("noise-free", "noisy"))
+    breathing = {"tvl1": "tvl1", "skimage": "lucas_kanade"}
     for r in rows:
         parts = r["seconds_parts"]
         assert list(parts) == ["barycentric", "mc"] and min(parts.values()) > 0
         assert r["seconds"] == pytest.approx(sum(parts.values()), abs=1.5e-3) and r["seconds"] > parts["mc"]
         assert r["model_error"]["heart"]["rms_mm"] > 0 and r["model_seconds"] > 0
         assert "cover 10 mm of z" in r["warning"]    # tiny's 2 slices: thinner than mc's THIN_Z_MM
+        assert r["registrations"]["breathing"] == breathing.get(r["code"], "lucas_kanade_cl"), r["registrations"]
     nf = {r["code"]: r["mae_small_hu"] for r in rows if r["variant"] == "noise-free"}
-    assert len(set(nf.values())) == 4               # each knob changed what the run made
+    assert len({nf[c] for c in ("r2", "r1", "ds2", "tvl1")}) == 4   # each knob changed what the run made
+    for r in rows:   # the same Lucas-Kanade by scikit-image: the base's MAE to the hundredth
+        base_row = next(b for b in rows if b["code"] == "r2" and b["variant"] == r["variant"])
+        if r["code"] == "skimage":
+            for fov in ("small", "large"):
+                assert abs(r[f"mae_{fov}_hu"] - base_row[f"mae_{fov}_hu"]) < 0.01, (r, base_row)
     # merged into an earlier sweep: its other methods kept, its mc points replaced
     base = _fake_result()
     for r in base["points"]:
@@ -139,7 +151,7 @@ def test_mc_points_on_tiny_are_made_with_their_first_pass_merged_and_labelled(tm
     monkeypatch.setattr(tr, "_place_labels", lambda fig, ax, items, **kw: labels.extend(items))
     tr.plot_tradeoff(merged, tmp_path / "merged.png")
     mc_colour = tr._method_style()["mc"][0]
-    assert sorted(t for _, _, t, c in labels if c == mc_colour) == sorted(["r2", "r1", "ds2", "tvl1"] * 2)
+    assert sorted(t for _, _, t, c in labels if c == mc_colour) == sorted(["r2", "r1", "ds2", "tvl1", "skimage"] * 2)
 
 
 def test_a_point_run_on_more_slices_is_scored_on_the_sweeps_slices(tmp_path, monkeypatch):
@@ -158,16 +170,20 @@ def test_a_point_run_on_more_slices_is_scored_on_the_sweeps_slices(tmp_path, mon
             assert wide["mae_run_slices_hu"][fov] != pytest.approx(one[f"mae_{fov}_hu"], rel=1e-3)
 
 
-def test_the_full_sweep_runs_without_the_motion_extra_less_mcs_points(tmp_path, monkeypatch):
-    """Without scikit-image the full sweep leaves mc's points out and says so; asked for by name, mc is refused."""
+def test_the_full_sweep_runs_without_the_motion_extra_less_the_scikit_image_points(tmp_path, monkeypatch):
+    """Without scikit-image the full sweep leaves out the points registering with it (``registration =
+    "lucas_kanade"``) and says so; asked for by name, such a point is refused. (The default
+    registrations need no extra: tests/pipeline/test_mc_method.py runs mc without it.)"""
     def missing(module="skimage"):
         raise ClreconError(f"{module} is not installed")
 
     monkeypatch.setattr(tr.registration, "require", missing)
-    monkeypatch.setattr(tr, "sweep_points", lambda scene, quick=False: [tr.SweepPoint("nearest", "all", "base"),
-                                                                        tr.SweepPoint("mc", "r2", "base")])
+    sk = tr.SweepPoint("mc", "skimage", "registration", {"mc": {"registration": "lucas_kanade"}})
+    monkeypatch.setattr(tr, "sweep_points", lambda scene, quick=False: [tr.SweepPoint("nearest", "all", "base"), sk])
     res = tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path, warmup=False, repeats=1, log=lambda *a, **k: None)
-    assert {r["method"] for r in res["points"]} == {"nearest"} and "not installed" in res["skipped"]["mc"]
+    assert {r["method"] for r in res["points"]} == {"nearest"}
+    assert res["skipped"]["mc"].startswith("skimage: ") and "not installed" in res["skipped"]["mc"]
+    assert res["run_points"] == ["nearest-all"]
     with pytest.raises(ClreconError, match="not installed"):
         tr.run_tradeoff(scene="tiny", pitch=0.1, out_dir=tmp_path / "mc", methods=("mc",), warmup=False, repeats=1,
                         log=lambda *a, **k: None)

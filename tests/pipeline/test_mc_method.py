@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from run_compare import assert_identical, run_cli
 
-from clrecon.config.scene import load_scene
+from clrecon.config.scene import SCENE_DIR, load_scene
 from clrecon.core.errors import ClreconError, SceneError
 from clrecon.outputs.volumes import VolumeWriter
 from clrecon.pipeline.run import run
@@ -222,15 +222,19 @@ def test_mc_needs_its_first_pass(tmp_path):
 
 def test_without_the_motion_extra_clrecon_runs_and_mc_says_what_to_install(tmp_path):
     """The registration libraries are an extra: importing the run pulls neither in, and asking for
-    mc without them is one line naming the extra, before any file is written."""
+    mc with scikit-image's Lucas-Kanade (``registration = "lucas_kanade"``) without them is one line
+    naming the extra, before any file is written."""
     code = ("import sys; import clrecon.cli, clrecon.pipeline.run, clrecon.pipeline.graph; "
             "print(sorted(m for m in ('skimage', 'SimpleITK') if m in sys.modules))")
     got = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert got.returncode == 0 and got.stdout.strip() == "[]", got.stderr
+    scene = tmp_path / "tiny-skimage.toml"
+    scene.write_text((SCENE_DIR / "tiny.toml").read_text() + '\n[recon.mc]\nregistration = "lucas_kanade"\n')
+    assert load_scene(str(scene)).recon.mc.registration == "lucas_kanade"
     hide = ("import sys; sys.modules['skimage'] = None; sys.modules['skimage.registration'] = None; "
             "from clrecon.cli import main; sys.exit(main())")
-    cmd = [sys.executable, "-c", hide, "run", "--scene", "tiny", "--methods", METHODS, "--out", str(tmp_path / "o"),
-           "--cache", str(tmp_path / "c"), "--no-progress"]
+    cmd = [sys.executable, "-c", hide, "run", "--scene", str(scene), "--methods", METHODS, "--out",
+           str(tmp_path / "o"), "--cache", str(tmp_path / "c"), "--no-progress"]
     got = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     lines = got.stderr.strip().splitlines()
     assert got.returncode != 0 and len(lines) == 1 and "pip install 'clrecon[motion]'" in lines[0], got.stderr
@@ -461,17 +465,22 @@ def test_on_a_static_scene_the_verdict_says_no_clear_difference(tmp_path):
     assert res["consistency"]["p0.100"]["config"]["min_effect"] == consistency.MIN_EFFECT
 
 
-def test_mc_with_tvl1_runs_without_the_motion_extra(tmp_path):
-    """``recon.mc.registration = "tvl1"`` registers on the engine's OpenCL runtime: a run asking for
-    mc with it needs neither scikit-image nor SimpleITK, and makes mc's volumes."""
+@pytest.mark.parametrize("registration", [None, "tvl1"])
+def test_mc_by_default_or_with_tvl1_runs_without_the_motion_extra(tmp_path, registration):
+    """The default registrations (the OpenCL Lucas-Kanade for the breathing, TV-L1 for the beat) and
+    ``recon.mc.registration = "tvl1"`` register on the engine's OpenCL runtime: a run asking for mc with
+    them needs neither scikit-image nor SimpleITK, and makes mc's volumes with the registrations asked for."""
+    knob = "" if registration is None else f", recon__mc__registration={registration!r}"
     code = ("import sys; sys.modules['skimage'] = None; sys.modules['skimage.registration'] = None; "
             "sys.modules['SimpleITK'] = None; import clrecon; "
-            f"r = clrecon.run(clrecon.load_scene('tiny', recon__mc__registration='tvl1'), {str(tmp_path / 'o')!r}, "
+            f"r = clrecon.run(clrecon.load_scene('tiny'{knob}), {str(tmp_path / 'o')!r}, "
             f"methods={METHODS!r}.split(','), cache={str(tmp_path / 'c')!r}, report=False); "
-            "print(sorted(r.results['stages']['registration']['mc']))")
+            "print([v['registrations']['breathing'] for per in r.results['stages']['registration']['mc'].values() "
+            "for v in per.values()])")
     got = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert got.returncode == 0, got.stderr[-3000:]
-    assert got.stdout.strip().splitlines()[-1].startswith("['p"), got.stdout
+    breathing = json.loads(got.stdout.strip().splitlines()[-1].replace("'", '"'))
+    assert breathing and set(breathing) == {registration or "lucas_kanade_cl"}, got.stdout
 
 
 def test_the_memory_model_is_not_below_the_measured_peak(tmp_path, reference):

@@ -211,9 +211,11 @@ def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
 
 
 def test_the_mc_model_follows_the_registration_it_runs():
-    """Lucas-Kanade registers in a pool of processes (``registration.FLOW_BYTES_PER_VOXEL`` each, in the
-    process below ``POOL_MIN_VOXELS``); TV-L1 runs in the process on the OpenCL device, no pool: its
-    fit holds one registration's ``flow.BYTES_PER_VOXEL`` (64 B a voxel of the registration grid)."""
+    """scikit-image's Lucas-Kanade (``lucas_kanade``) registers in a pool of processes
+    (``registration.FLOW_BYTES_PER_VOXEL`` each, in the process below ``POOL_MIN_VOXELS``); TV-L1 runs in
+    the process on the OpenCL device, no pool: its fit holds one registration's ``flow.BYTES_PER_VOXEL``
+    (64 B a voxel of the registration grid); the default (OpenCL Lucas-Kanade, then TV-L1) likewise,
+    the larger of the two steps' own."""
     from clrecon.reconstruction.motion import flow, memory, registration
     from clrecon.reconstruction.motion import lk as lkcl
     from clrecon.reconstruction.rebin import slice_window_mm
@@ -243,31 +245,35 @@ def test_the_mc_model_follows_the_registration_it_runs():
         assert tv[part] - lk[part] == flow.BYTES_PER_VOXEL * n_reg - in_process
     pool = {"fit", "registering", "registration processes", "idle registration processes"}
     assert {k: v for k, v in tv.items() if k not in pool} == {k: v for k, v in lk.items() if k not in pool}
-    # the default: Lucas-Kanade's pool for the breathing, then TV-L1 in the process for the beat (one after
-    # the other: the process holds the larger of the two steps' own, counted beside the pool's peak)
+    # scikit-image's pool for the breathing, then TV-L1 in the process for the beat (one after the other:
+    # the process holds the larger of the two steps' own, counted beside the pool's peak)
     both = parts("lucas_kanade", "tvl1")
     assert both["registration processes"] == lk["registration processes"]
     for part in ("fit", "registering"):
         assert both[part] - lk[part] == max(flow.BYTES_PER_VOXEL * n_reg, in_process) - in_process
-    # the OpenCL Lucas-Kanade runs in the process like TV-L1: its own lk.BYTES_PER_VOXEL, no pool
+    # the default: the OpenCL Lucas-Kanade runs in the process like TV-L1: its own lk.BYTES_PER_VOXEL, no pool
     cl = parts("lucas_kanade_cl", "tvl1")
     assert cl["registration processes"] == cl["idle registration processes"] == 0
     for part in ("fit", "registering"):
         assert cl[part] - tv[part] == (max(lkcl.BYTES_PER_VOXEL, flow.BYTES_PER_VOXEL) - flow.BYTES_PER_VOXEL) * n_reg
+    default = memory.working_parts(sc, w, rc.mc, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
+                                   scene.scan.projection_count(sc, 0.1), 1)
+    assert default == cl
 
 
 def test_the_mc_model_counts_the_registration_processes_beside_the_registrations_only():
     """The fit's new model (its basis's fields on the registration grid) and its float64 block are made
     after a step's registrations, and so is the shrinking of its fields (``knobs.shrink``): the
     registration processes at their peak sit beside the fit less those; the process pool is idle
-    (each worker's own set) beside the whole fit."""
+    (each worker's own set) beside the whole fit. With scikit-image's Lucas-Kanade (``lucas_kanade``),
+    the registration that runs in a pool."""
     from clrecon.reconstruction.motion import confidence, memory
     from clrecon.reconstruction.motion import method as mcm
     from clrecon.reconstruction.motion.model import FIT_BLOCK
     from clrecon.reconstruction.rebin import slice_window_mm
 
     def parts(shrink):
-        scene = api.load_scene("demo", recon={"mc": {"shrink": shrink}})
+        scene = api.load_scene("demo", recon={"mc": {"shrink": shrink, "registration": "lucas_kanade"}})
         sc, rc = scene.scanner, scene.recon
         w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
         return rc, memory.working_parts(sc, w, rc.mc, (rc.nz - 1) * rc.slice_mm, scene.scan.feed_mm(sc, 0.1), 2, 5,

@@ -204,9 +204,11 @@ def test_bad_inputs_are_refused_in_one_line():
 def test_recon_mc_registration_selects_the_method():
     from clrecon.config.overrides import load_scene
     from clrecon.core.errors import SceneError
-    from clrecon.reconstruction.motion import method
+    from clrecon.reconstruction.motion import lk, method
 
-    assert isinstance(method.flow_of(load_scene("demo").recon.mc), registration.FlowConfig)  # the default (breathing)
+    assert isinstance(method.flow_of(load_scene("demo").recon.mc), lk.LKConfig)  # the default (breathing)
+    assert isinstance(method.flow_of(load_scene("demo", recon__mc__registration="lucas_kanade").recon.mc),
+                      registration.FlowConfig)
     assert isinstance(method.flow_of(load_scene("demo", recon__mc__registration="tvl1").recon.mc), flow.TVL1Config)
     assert isinstance(method.flow_of(load_scene("demo", recon__mc__registration="tvl1").recon.mc, "beat"),
                       flow.TVL1Config)

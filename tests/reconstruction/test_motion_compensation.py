@@ -612,21 +612,27 @@ def test_the_beat_step_uses_its_own_registration():
 
 
 def test_recon_mc_registrations_select_each_steps_method():
-    """The default registers the breathing with Lucas-Kanade and the beat with TV-L1; either knob may
-    name either registration; only a Lucas-Kanade step needs the library and the process pool."""
+    """The default registers the breathing with the OpenCL Lucas-Kanade and the beat with TV-L1, both in
+    the run's process; either knob may name any registration; only a scikit-image Lucas-Kanade step
+    (``lucas_kanade``) needs the library and the process pool."""
     from clrecon.config.overrides import load_scene
     from clrecon.core.errors import SceneError
     from clrecon.reconstruction.motion import flow, method
+    from clrecon.reconstruction.motion.lk import LKConfig
 
     knobs = load_scene("demo").recon.mc
-    assert isinstance(method.flow_of(knobs, "breathing"), registration.FlowConfig)
+    assert isinstance(method.flow_of(knobs, "breathing"), LKConfig)
     assert isinstance(method.flow_of(knobs, "beat"), flow.TVL1Config)
-    assert method.registrations(knobs) == {"breathing": "lucas_kanade", "beat": "tvl1"}
-    assert method.uses_library(knobs) and method.uses_pool(knobs)
+    assert method.registrations(knobs) == {"breathing": "lucas_kanade_cl", "beat": "tvl1"}
+    assert not method.uses_library(knobs) and not method.uses_pool(knobs)
+    sk = load_scene("demo", recon__mc__registration="lucas_kanade").recon.mc
+    assert isinstance(method.flow_of(sk, "breathing"), registration.FlowConfig)
+    assert method.uses_library(sk) and method.uses_pool(sk)
     tv = load_scene("demo", recon__mc__registration="tvl1").recon.mc
     assert not method.uses_library(tv) and not method.uses_pool(tv)
     lk = load_scene("demo", recon__mc__beat_registration="lucas_kanade").recon.mc
     assert isinstance(method.flow_of(lk, "beat"), registration.FlowConfig)
+    assert method.uses_library(lk) and method.uses_pool(lk)  # a scikit-image beat step alone needs them too
     with pytest.raises(ValueError, match="step = 'heart'"):
         method.flow_of(knobs, "heart")
     with pytest.raises(SceneError, match="recon.mc.beat_registration = 'tv': must be one of "

@@ -2,7 +2,7 @@
 
 An OpenCL port of scikit-image's ``optical_flow_ilk`` (Le Besnerais & Champagnat, ICIP 2005;
 ``skimage/registration/_optical_flow.py``, ``_optical_flow_utils.py``) with a flat window and no
-prefilter -- the ``mc`` method's Lucas-Kanade registration (``recon.mc.registration =
+prefilter -- the ``mc`` method's default breathing registration (``recon.mc.registration =
 "lucas_kanade_cl"``) -- followed step for step so that its fields are scikit-image's to float32
 rounding where the algorithm allows:
 

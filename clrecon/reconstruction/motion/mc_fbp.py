@@ -99,7 +99,8 @@ class MCScan:
     def pool(self, grid: FieldGrid):
         """The process pool the registrations run in (made once per scan), or None: one core, a
         script without a ``__main__`` guard (:func:`spawn_is_safe`), memory for one only, or no step
-        registering with Lucas-Kanade (:func:`method.uses_pool`)."""
+        registering with scikit-image's Lucas-Kanade (:func:`method.uses_pool`; the default's steps run
+        in the process)."""
         if not mcm.uses_pool(self.knobs):
             return None
         if self._pool is None:

@@ -132,15 +132,16 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       model's own planes where the grids coincide, none where those are half its planes or more),
       and the larger of the read (rows not kept) or the device copies of the rows and the refined
       planes (the model's where not copied) with two slabs of output (one being written behind);
-    - ``registration processes`` (a Lucas-Kanade step, :func:`method.uses_pool`): ``FLOW_BYTES_PER_VOXEL``
-      per voxel of the registration grid and :data:`WORKER_BYTES` in each, one per core up to
+    - ``registration processes`` (a scikit-image Lucas-Kanade step, ``lucas_kanade``,
+      :func:`method.uses_pool`): ``FLOW_BYTES_PER_VOXEL`` per voxel of the registration grid and
+      :data:`WORKER_BYTES` in each, one per core up to
       ``MAX_WORKERS``, all at their peak at once (a step's registrations start together and are of
       one size) (none below ``POOL_MIN_VOXELS``: the registrations then run in the process, and
       ``fit`` and ``registering`` hold one's ``FLOW_BYTES_PER_VOXEL``). A TV-L1 step runs in the
       process on the OpenCL device (no pool): ``fit`` holds one registration's ``flow.BYTES_PER_VOXEL``
       (an OpenCL Lucas-Kanade step, ``lucas_kanade_cl``, likewise its ``lk.BYTES_PER_VOXEL``)
-      (the larger of the two where the other step runs in the process too); with no Lucas-Kanade
-      step this part is 0;
+      (the larger of the two where the other step runs in the process too); with no scikit-image
+      step (the default: OpenCL Lucas-Kanade and TV-L1) this part is 0;
     - ``idle registration processes``: :data:`WORKER_BYTES` in each, between registrations.
 
     The plane rows of a slab: (planes, n_cols) float32 per projection its first-pass plan uses (those
@@ -183,8 +184,9 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     registration = (n_resp + n_cardiac) * fld + n_resp * n_reg * 4 + n_cardiac * n_reg * (8 + 4)
     plan = PLAN_BYTES * s * scanner.views_per_rotation * n_targets
     read = 3 * min(mcm.READ_CHUNK_BYTES, n_proj * scanner.n_rows * scanner.n_cols * 4)
-    # a Lucas-Kanade step runs in a pool (1 worker: in this process); a TV-L1 step in this process on the
-    # OpenCL device. The steps run one after the other: the process holds the larger of its steps' own.
+    # a scikit-image Lucas-Kanade step runs in a pool (1 worker: in this process); a TV-L1 or OpenCL
+    # Lucas-Kanade step in this process on the OpenCL device. The steps run one after the other: the
+    # process holds the larger of its steps' own.
     workers = registration_workers(n_reg, available_bytes=1 << 62) if mcm.uses_pool(knobs) else 0
     names = mcm.registrations(knobs).values()
     own = [b for name, b in (("tvl1", flow.BYTES_PER_VOXEL), ("lucas_kanade_cl", lk.BYTES_PER_VOXEL)) if name in names]

@@ -2,8 +2,9 @@
 
 A thin wrapper: NumPy volumes in, displacement fields out, in the package's conventions
 (volumes ``(nz, ny, nx)`` in HU on the reconstruction grid, fields ``(3, nz, ny, nx)`` float32
-mm with components (dx, dy, dz)). The registration of the ``mc`` method is :class:`FlowConfig`:
-scikit-image's iterative Lucas-Kanade optical flow (``skimage.registration.optical_flow_ilk``;
+mm with components (dx, dy, dz)). :class:`FlowConfig` (``[recon.mc] registration = "lucas_kanade"``;
+the default, ``"lucas_kanade_cl"``, is the same algorithm on OpenCL, :mod:`~clrecon.reconstruction.motion.lk`)
+is scikit-image's iterative Lucas-Kanade optical flow (``skimage.registration.optical_flow_ilk``;
 Le Besnerais & Champagnat, ICIP 2005), a least-squares flow in a window around each voxel,
 coarse to fine with warps, on images clipped to a HU window (and optionally pre-smoothed: the
 streaks of a first-pass 5D image and the lung's density change then pull less). Its window
