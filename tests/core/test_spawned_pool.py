@@ -33,24 +33,35 @@ CHILD = textwrap.dedent("""
 """)
 
 
-def test_kill_9_leaves_no_leaked_semaphore_and_no_warning():
+def _killed(script: str) -> tuple[str, str]:
+    """``script`` run in a child Python, killed with SIGKILL once it has printed its first line:
+    (that line, the child's stderr once the workers and the tracker have ended too)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-c", CHILD], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=env, cwd=str(ROOT))
     try:
-        names = proc.stdout.readline().split()
-        assert names, proc.stderr.read()
+        line = proc.stdout.readline()
         os.kill(proc.pid, signal.SIGKILL)
         _, err = proc.communicate(timeout=60)  # EOF once the workers and the tracker have ended too
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == -signal.SIGKILL
-    assert "leaked semaphore" not in err and "resource_tracker" not in err, err
+    assert proc.returncode == -signal.SIGKILL, (line, err)  # not ended on its own
+    return line, err
+
+
+def _left_in_shm(names) -> list:
+    """Those of the named semaphores ``names`` still in /dev/shm (Linux keeps them as sem.<name>)."""
     shm = Path("/dev/shm")
-    if shm.is_dir():  # the semaphores themselves are gone (Linux keeps them as /dev/shm/sem.<name>)
-        left = [n for n in names if (shm / f"sem.{n.lstrip('/')}").exists()]
-        assert left == [], left
+    return [n for n in names if shm.is_dir() and (shm / f"sem.{n.lstrip('/')}").exists()]
+
+
+def test_kill_9_leaves_no_leaked_semaphore_and_no_warning():
+    line, err = _killed(CHILD)
+    names = line.split()
+    assert names, err
+    assert "leaked semaphore" not in err and "resource_tracker" not in err, err
+    assert _left_in_shm(names) == []  # the semaphores themselves are gone
 
 
 OWN_LOCK = textwrap.dedent("""
@@ -69,19 +80,8 @@ def test_kill_9_releases_a_semaphore_the_worker_made():
     "There appear to be 1 leaked semaphore objects" (the flaky end of
     tests/pipeline/test_executors.py::test_a_killed_run_leaves_no_helper_behind, where the helper's
     plan made tqdm's lock)."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-c", OWN_LOCK], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env, cwd=str(ROOT))
-    try:
-        name = proc.stdout.readline().strip()
-        assert name.startswith("/"), (name, proc.stderr.read())  # a named semaphore, not unlinked at birth
-        os.kill(proc.pid, signal.SIGKILL)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == -signal.SIGKILL
+    line, err = _killed(OWN_LOCK)
+    name = line.strip()
+    assert name.startswith("/"), (name, err)  # a named semaphore, not unlinked at birth
     assert "leaked semaphore" not in err and "resource_tracker" not in err, err
-    shm = Path("/dev/shm")
-    if shm.is_dir():
-        assert not (shm / f"sem.{name.lstrip('/')}").exists()
+    assert _left_in_shm([name]) == []

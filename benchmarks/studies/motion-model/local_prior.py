@@ -27,19 +27,17 @@ import json
 import sys
 from pathlib import Path
 
-import h5py
 import numpy as np
 import scipy.ndimage
 
-import clrecon
 from clrecon.config.overrides import load_scene
 from clrecon.evaluation.motion_model import HEART
-from clrecon.reconstruction.motion import confidence, estimate, method, persist
+from clrecon.reconstruction.motion import confidence, estimate, persist
 from clrecon.simulation.phantom_sources import phantom_from_config
 from clrecon.simulation.phantoms import motion_field
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from step_registrations import KEPT, _keeping, model_errors, per_object_mae
+from step_registrations import _keeping, measure_run
 
 VARIANTS = ("global", "local", "local-beat", "oracle-mask", "gain", "gain-beat")
 
@@ -117,23 +115,7 @@ def main():
                 confidence.local_prior_scale = _noise_floor
             estimate.shrunk = _steps_local(original, {"global": "none", "local": "both", "local-beat": "beat",
                                                       "gain": "both", "gain-beat": "beat"}[variant_name])
-        run_dir = out / variant_name
-        KEPT.clear()
-        res = clrecon.run(scene, run_dir, methods=["barycentric", "mc"], pitches=[args.pitch], progress=False,
-                          executor="serial").results
-        pk = next(iter(res["metrics"]))
-        for variant, ms in res["metrics"][pk].items():
-            model = KEPT[f"model~{pk}~{variant}"]
-            with h5py.File(run_dir / "volumes.h5") as f:
-                cs, rs = f["axes/cardiac_phase"][...], f["axes/resp_amplitude"][...]
-            pairs = np.array([(c, a) for c in cs for a in rs])
-            row = {"scene": args.scene, "pitch": args.pitch, "variant": variant, "prior": variant_name,
-                   "registrations": method.registrations(scene.recon.mc),
-                   "mae_hu": {m: [round(v["large"]["mae_hu"], 2), round(v["small"]["mae_hu"], 2)] for m, v in ms.items()},
-                   "model_error_mm": model_errors(model, scene, pairs, len(cs), len(rs)),
-                   "per_object_mae_hu": per_object_mae(run_dir, scene, pk, variant)}
-            rows.append(row)
-            print(json.dumps({k: v for k, v in row.items() if k != "per_object_mae_hu"}), flush=True)
+        rows += measure_run(scene, args.scene, args.pitch, out / variant_name, prior=variant_name)
     (out / "local_prior.json").write_text(json.dumps(rows, indent=1))
 
 

@@ -104,6 +104,34 @@ def model_errors(model, scene, pairs, n_c: int, n_r: int, stride: int = 2) -> di
     return out
 
 
+def measure_run(scene, scene_name: str, pitch: float, run_dir: Path, **labels) -> list[dict]:
+    """One ``barycentric,mc`` run of ``scene`` at ``pitch`` in ``run_dir`` (in this process, so that
+    a study's patches apply), and one row per noise variant: ``labels``, each step's registration,
+    ``mc``'s MAE (against the ground truth and the phantom), the kept model's errors
+    (:func:`model_errors`) and the MAE per object (:func:`per_object_mae`); each row printed as a JSON
+    line (without the per-object MAE)."""
+    KEPT.clear()
+    res = clrecon.run(scene, run_dir, methods=["barycentric", "mc"], pitches=[pitch], progress=False,
+                      executor="serial").results
+    pk = next(iter(res["metrics"]))
+    rows = []
+    for variant, ms in res["metrics"][pk].items():
+        model = KEPT[f"model~{pk}~{variant}"]
+        with h5py.File(run_dir / "volumes.h5") as f:
+            cs, rs = f["axes/cardiac_phase"][...], f["axes/resp_amplitude"][...]
+        pairs = np.array([(c, a) for c in cs for a in rs])
+        row = {"scene": scene_name, "pitch": pitch, "variant": variant, **labels,
+               "registrations": method.registrations(scene.recon.mc),
+               "mae_hu": {m: [round(v["large"]["mae_hu"], 2), round(v["small"]["mae_hu"], 2)] for m, v in ms.items()},
+               "mae_phantom_hu": {m: [round(v["large"]["mae_phantom_hu"], 2), round(v["small"]["mae_phantom_hu"], 2)]
+                                  for m, v in ms.items()},
+               "model_error_mm": model_errors(model, scene, pairs, len(cs), len(rs)),
+               "per_object_mae_hu": per_object_mae(run_dir, scene, pk, variant)}
+        rows.append(row)
+        print(json.dumps({k: v for k, v in row.items() if k != "per_object_mae_hu"}), flush=True)
+    return rows
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", required=True)
@@ -121,25 +149,7 @@ def main():
         if not args.noise:
             over["noise__enabled"] = False
         scene = load_scene(args.scene, **over)
-        run_dir = out / f"{breathing}-{beat}"
-        KEPT.clear()
-        res = clrecon.run(scene, run_dir, methods=["barycentric", "mc"], pitches=[args.pitch], progress=False,
-                          executor="serial").results
-        pk = next(iter(res["metrics"]))
-        for variant, ms in res["metrics"][pk].items():
-            model = KEPT[f"model~{pk}~{variant}"]
-            with h5py.File(run_dir / "volumes.h5") as f:
-                cs, rs = f["axes/cardiac_phase"][...], f["axes/resp_amplitude"][...]
-            pairs = np.array([(c, a) for c in cs for a in rs])
-            row = {"scene": args.scene, "pitch": args.pitch, "variant": variant,
-                   "registrations": method.registrations(scene.recon.mc),
-                   "mae_hu": {m: [round(v["large"]["mae_hu"], 2), round(v["small"]["mae_hu"], 2)] for m, v in ms.items()},
-                   "mae_phantom_hu": {m: [round(v["large"]["mae_phantom_hu"], 2), round(v["small"]["mae_phantom_hu"], 2)]
-                                      for m, v in ms.items()},
-                   "model_error_mm": model_errors(model, scene, pairs, len(cs), len(rs)),
-                   "per_object_mae_hu": per_object_mae(run_dir, scene, pk, variant)}
-            rows.append(row)
-            print(json.dumps({k: v for k, v in row.items() if k != "per_object_mae_hu"}), flush=True)
+        rows += measure_run(scene, args.scene, args.pitch, out / f"{breathing}-{beat}")
     (out / "steps.json").write_text(json.dumps(rows, indent=1))
 
 

@@ -294,13 +294,17 @@ def register_reference(fixed, moving, spacing_mm: tuple, cfg: TVL1Config | None 
 
 
 # -- the OpenCL registration ---------------------------------------------------------------------
-def _check(fixed, moving, spacing_mm):
+def check_pair(fixed, moving, spacing_mm, axes=(1, 2), too_small: str = "need at least 2 voxels along y and x"):
+    """``(fixed, moving, spacing)`` of a registration, checked: two finite (nz, ny, nx) volumes of one
+    shape with at least 2 voxels along each of ``axes`` (else ``too_small`` in the error) and three
+    finite spacings > 0 (mm, x y z); one line naming what is wrong. Shared by this module and
+    :mod:`clrecon.reconstruction.motion.lk`."""
     f = np.asarray(fixed)
     m = np.asarray(moving)
     if f.ndim != 3 or m.shape != f.shape:
         raise ValueError(f"fixed {f.shape} and moving {m.shape}: expected two (nz, ny, nx) volumes of one shape")
-    if min(f.shape[1:]) < 2:
-        raise ValueError(f"fixed {f.shape}: need at least 2 voxels along y and x")
+    if min(f.shape[a] for a in axes) < 2:
+        raise ValueError(f"fixed {f.shape}: {too_small}")
     if not (np.all(np.isfinite(f)) and np.all(np.isfinite(m))):
         raise ValueError("fixed and moving must be finite")
     if len(spacing_mm) != 3 or not all(math.isfinite(s) and s > 0 for s in spacing_mm):
@@ -337,7 +341,7 @@ def register_tvl1(fixed, moving, spacing_mm: tuple, cfg: TVL1Config | None = Non
     mm; ``cfg``: :class:`TVL1Config`; ``runtime``: the OpenCL runtime (default :func:`get_runtime`).
     """
     cfg = cfg or TVL1Config()
-    f, m, h0 = _check(fixed, moving, spacing_mm)
+    f, m, h0 = check_pair(fixed, moving, spacing_mm)
     rt = runtime or get_runtime()
     k = _Kernels(rt)
     shape = f.shape

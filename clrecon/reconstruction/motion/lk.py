@@ -52,6 +52,7 @@ import numpy as np
 import scipy.ndimage
 
 from clrecon.core.runtime import aligned_empty, get_runtime
+from clrecon.reconstruction.motion.flow import check_pair
 
 #: Peak bytes per voxel of the finest level, host and device together on a CPU device: 16 float32
 #: volumes -- the reference and moving images (shared with the device, not copied), the flow (3),
@@ -210,20 +211,6 @@ def resize_reference(v, shape: tuple) -> np.ndarray:
 
 
 # -- the OpenCL registration ---------------------------------------------------------------------------
-def _check(fixed, moving, spacing_mm):
-    f = np.asarray(fixed)
-    m = np.asarray(moving)
-    if f.ndim != 3 or m.shape != f.shape:
-        raise ValueError(f"fixed {f.shape} and moving {m.shape}: expected two (nz, ny, nx) volumes of one shape")
-    if min(f.shape) < 2:
-        raise ValueError(f"fixed {f.shape}: Lucas-Kanade needs at least 2 voxels along every axis (its gradient)")
-    if not (np.all(np.isfinite(f)) and np.all(np.isfinite(m))):
-        raise ValueError("fixed and moving must be finite")
-    if len(spacing_mm) != 3 or not all(math.isfinite(s) and s > 0 for s in spacing_mm):
-        raise ValueError(f"spacing_mm = {spacing_mm!r}: three finite spacings > 0 (x, y, z)")
-    return f, m, tuple(float(s) for s in spacing_mm)
-
-
 def has_fp64(rt) -> bool:
     """Whether the device sums the box filter in float64 as SciPy does (``LK_DOUBLE``; else the
     compensated float32 sum)."""
@@ -290,7 +277,8 @@ def register_lk(fixed, moving, spacing_mm: tuple, cfg: LKConfig | None = None, r
     :func:`get_runtime`).
     """
     cfg = cfg or LKConfig()
-    f, m, h = _check(fixed, moving, spacing_mm)
+    f, m, h = check_pair(fixed, moving, spacing_mm, axes=(0, 1, 2),
+                         too_small="Lucas-Kanade needs at least 2 voxels along every axis (its gradient)")
     rt = runtime or get_runtime()
     k = _Kernels(rt)
     ref, mov = prepare(f, cfg.hu_window), prepare(m, cfg.hu_window)

@@ -188,8 +188,8 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     # Lucas-Kanade step in this process on the OpenCL device. The steps run one after the other: the
     # process holds the larger of its steps' own.
     workers = registration_workers(n_reg, available_bytes=1 << 62) if mcm.uses_pool(knobs) else 0
-    names = mcm.registrations(knobs).values()
-    own = [b for name, b in (("tvl1", flow.BYTES_PER_VOXEL), ("lucas_kanade_cl", lk.BYTES_PER_VOXEL)) if name in names]
+    in_process = {flow.TVL1Config: flow.BYTES_PER_VOXEL, lk.LKConfig: lk.BYTES_PER_VOXEL}
+    own = [in_process[type(c)] for c in (mcm.flow_of(knobs, s) for s in mcm.STEPS) if type(c) in in_process]
     if mcm.uses_pool(knobs) and workers <= 1:
         own.append(FLOW_BYTES_PER_VOXEL)
     registration += max(own, default=0) * n_reg
