@@ -55,14 +55,11 @@ CHUNK_VOXELS = 1 << 18
 #: structure tensor per voxel, the shrunk field; under the beat's local prior also the unregistered
 #: difference, two more box means and the prior's scale), and beside those the bytes per voxel of
 #: one chunk of :func:`shrink_voxels`' eigen-solve (:data:`CHUNK_VOXELS`, or the grid where smaller).
-#: From a spawned process's peak above its baseline while ``estimate.shrunk`` shrinks one of two
-#: fields under the local prior, the larger of the two steps' (its copy of the fields, 24 bytes a
-#: voxel, taken off): 165, 235 and 561 MB on 16 x 128 x 128, 8 x 256 x 256 and 8 x 512 x 512 voxels
-#: (1, 2 and 8 full chunks; the global prior 525 MB on the largest); the line through the two
-#: larger, 207 bytes a voxel and 127 MB a chunk (483 bytes a chunk voxel), rounded up, which errs
-#: high by 1 % on the largest and by 11 % on the smallest (``benchmarks/studies/motion-model/
-#: registration_memory.py --shrink --local``; docs/results/code-history.md "One Lucas-Kanade
-#: registration's memory").
+#: Both from a spawned process's peak above its baseline while ``estimate.shrunk`` shrinks one of two
+#: fields under the local prior, the larger of the two steps' (its copy of the fields taken off): the
+#: line through the peaks on two grids of two and eight full chunks, rounded up; one pair for both
+#: steps (measured with ``benchmarks/studies/motion-model/registration_memory.py --shrink --local``;
+#: the figures: docs/results/code-history.md "One Lucas-Kanade registration's memory").
 SHRINK_BYTES_PER_VOXEL = 210
 SHRINK_CHUNK_BYTES_PER_VOXEL = 490
 
