@@ -13,7 +13,6 @@ the context but its records, notes and the caches named below (``unfinished``, `
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 from collections.abc import Callable, Sequence
@@ -31,7 +30,6 @@ from clrecon.pipeline import costs as costs_mod
 from clrecon.pipeline import preflight
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, reconstruct
-from clrecon.reconstruction.config import IterativeConfig, MotionCompensationConfig
 from clrecon.reconstruction.iterative import method as mcir_method
 from clrecon.reconstruction.motion import mc_fbp, registration
 from clrecon.reconstruction.motion import method as mc_method
@@ -44,8 +42,27 @@ RESULTS_FORMAT = 1
 TUNED = "cv_tuned"
 #: recon keys added after run directories existed: left out of the run key at these defaults.
 _RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False, "volume_compression": "auto",
-                "cardiac_distance_scale": 1.0, "mc": dataclasses.asdict(MotionCompensationConfig()),
-                "mcir": dataclasses.asdict(IterativeConfig())}
+                "cardiac_distance_scale": 1.0}
+#: recon tables of the registered methods: in the run key whole (defaults included) where a method
+#: of the run reads them, left out where none does.
+_METHOD_KNOBS = {"mc": (mc_fbp.NAME, mcir_method.NAME), "mcir": (mcir_method.NAME,)}
+
+
+def hashed_recon(recon: dict, methods) -> dict:
+    """The scene's ``recon`` table as the run key hashes it: :data:`_RECON_LATER`'s keys left out at
+    their fixed defaults (run directories made before those keys existed keep their key), and each
+    registered method's table (:data:`_METHOD_KNOBS`) whole where a method of the run reads it, left
+    out where none does. Whole, not "away from its defaults": a default that changes between
+    versions (e.g. ``mc``'s registration) must not let an interrupted run resume with volumes and a
+    saved motion model made under the old one."""
+    out = dict(recon)
+    for k, v in _RECON_LATER.items():
+        if out.get(k) == v:
+            out.pop(k)
+    for k, readers in _METHOD_KNOBS.items():
+        if not set(readers) & set(methods):
+            out.pop(k, None)
+    return out
 
 
 @dataclass
@@ -176,9 +193,7 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
     axes = {"cardiac_phase": targets.cardiac, "resp_amplitude": targets.resp, "z_mm": slices_z,
             "y_mm": reconstruct.voxel_coords(rc.ny, rc.voxel_mm), "x_mm": reconstruct.voxel_coords(rc.nx, rc.voxel_mm)}
     scene_d = scene.to_dict()
-    for k, v in _RECON_LATER.items():  # keys added later hash only away from their defaults
-        if scene_d["recon"].get(k) == v:
-            scene_d["recon"].pop(k)
+    scene_d["recon"] = hashed_recon(scene_d["recon"], methods)
     run_key = hashlib.sha256(json.dumps(
         {"scene": scene_d, "methods": methods, "pitches": pitches, "variants": variants,
          "targets": [targets.cardiac, targets.resp], "slices": slices_z.tolist(), "format": RESULTS_FORMAT,
