@@ -39,7 +39,7 @@ from clrecon.simulation.store import default_cache_dir
 
 RESULTS_FORMAT = 1
 #: The self-tuning method: planned after the truth-free cross-validation chose its kernel.
-TUNED = "cv_tuned"
+TUNED = interpolation.cv_tuned.NAME
 #: recon keys added after run directories existed: left out of the run key at these defaults.
 _RECON_LATER = {"candidate_window_mm": 0.0, "truth_free": False, "volume_compression": "auto",
                 "cardiac_distance_scale": 1.0}
@@ -185,7 +185,7 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
         if mc_method.uses_library(scene.recon.mc):  # only 'lucas_kanade' (scikit-image); the others run on OpenCL
             registration.require("skimage.registration")  # before any work: one line naming the extra
     run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches,
-                                    overlap=executor_kind != "serial")
+                                    overlap=executor_kind != "serial", targets=targets)
     cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     need = (preflight.needs(scene, run_costs, cache_path, out) if force
             else preflight.check(scene, run_costs, cache_path, out, rt=rt))

@@ -2,19 +2,22 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from clrecon.config.scene import builtin_scene_names, load_scene
 from clrecon.core import write_behind
 from clrecon.core.errors import SceneError
 from clrecon.outputs.volumes import resolve_compression
-from clrecon.pipeline import evaluate
+from clrecon.pipeline import evaluate, slabs
 from clrecon.pipeline.stages import truth as truth_stage
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import fbp as fbp_mod
+from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.iterative import method as mcir
 from clrecon.reconstruction.motion import memory as mc_memory
 from clrecon.reconstruction.rebin import slice_window_mm
-from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, slab_bytes_per_slice, slices_per_slab
+from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, Targets, slab_bytes_per_slice, slices_per_slab
 from clrecon.scan.table import cached_projection_table
 from clrecon.simulation.measured import memory_bytes as measured_memory_bytes
 
@@ -35,9 +38,33 @@ def scene_costs(scene) -> dict:
     return run_costs(scene)
 
 
+def kept_plans_bytes(scene, methods, targets: Targets, slices_z, pitches) -> int:
+    """Bytes of the plans the planning pass keeps for one pitch's reconstruction (the larger pitch's),
+    at most ``KEEP_PLANS_BYTES``: the plan of the slice with the most candidate rows
+    (:func:`clrecon.pipeline.slabs.candidates_per_slice`, the probe of ``plan_slabs``), made for the
+    methods the run plans (:func:`clrecon.pipeline.slabs.planned_methods`), times the slices (a plan's
+    arrays are as wide as its widest slice's; measured against the plans of whole runs in
+    docs/results/code-history.md "The plans the pre-flight counts"). Planning one slice per pitch
+    costs 0.1-1 s."""
+    fixed = slabs.planned_methods(methods)
+    z = np.asarray(slices_z, np.float64)
+    if not fixed or not z.size:
+        return 0
+    cfg = reconstruct.ReconstructionConfig.from_scene(scene)
+    worst = 0
+    for p in pitches:
+        table = cached_projection_table(scene, p)
+        d = int(np.argmax(slabs.candidates_per_slice(table, z, cfg)))
+        worst = max(worst, reconstruct.plan_bytes(reconstruct.plan(cfg, table, z[d:d + 1], targets, fixed)) * z.size)
+    return int(min(KEEP_PLANS_BYTES, worst))
+
+
 def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, pitches=None,
-              overlap: bool = True) -> dict:
+              overlap: bool = True, targets: Targets | None = None) -> dict:
     """:func:`scene_costs` of one run: the scene narrowed to ``methods``, targets, slices, ``pitches``.
+
+    ``targets``: the run's (default: the scene's first ``n_cardiac`` phases and ``n_resp``
+    amplitudes); the plans it keeps are probed with them (:func:`kept_plans_bytes`).
 
     ``projections_needed`` models the projections the slices use (those within the SSRB slice
     window of a slice, plus one rotation); ``volume_bytes`` is what ``volumes.h5`` holds: the
@@ -68,8 +95,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     # peak, as run.py walks it: one 512-projection read chunk (+ its noisy copy), one slab (its
     # rebinned rows of every variant and one method's images, sized by reconstruct.slab_slices
     # to at most SLAB_BYTES; the plan is part of that budget there, not modelled here), the plans
-    # kept between the planning pass and the reconstruction (at most KEEP_PLANS_BYTES, about
-    # 40 bytes per (slice, view, target, neighbour)), one launch of sinograms, and the truth
+    # kept between the planning pass and the reconstruction (kept_plans_bytes), one launch of
+    # sinograms, and the truth
     def slab_of(feed_mm):  # the rebinned rows per slice and the reconstruction's slab (slices) at a feed
         rows = 2 * window / feed_mm * sc.views_per_rotation
         per = slab_bytes_per_slice(rows, sc.n_cols, n_var, n_targets, rc.ny, rc.nx)
@@ -77,7 +104,10 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
 
     rows_per_slice, per_slice, slab = slab_of(min(scene.scan.feed_mm(sc, p) for p in pitches))
     chunk = 512 * proj_bytes * (1 + n_var)
-    plans = min(KEEP_PLANS_BYTES, 40.0 * nz * sc.views_per_rotation * n_targets * 8 * len(methods))
+    if targets is None:
+        targets = Targets(cardiac=tuple(scene.cardiac_targets)[:n_c], resp=tuple(scene.resp_targets)[:n_r])
+    plans = kept_plans_bytes(scene, methods, targets,
+                             reconstruct.slice_positions(scene) if slices_z is None else slices_z, pitches)
     slab_sinos = 2 * 32 * sc.views_per_rotation * sc.n_cols * 4
     buffers = device_buffers(scene, rows_per_slice)
     # one launch's images twice: the device buffer (host memory on a CPU device) and its host copy

@@ -41,17 +41,6 @@ class PitchTodo:
         return tuple(m for m in self.methods if m != TUNED and m not in interpolation.second_pass_methods())
 
 
-def planned_methods(methods) -> tuple:
-    """The methods a pitch's plan is made for: the fixed ones, and the first pass of a second-pass
-    method (``mc``: barycentric, ``Method.first_pass``) still to do (its rows and weights, and the
-    projections it reads)."""
-    fixed = tuple(m for m in methods if m != TUNED and m not in interpolation.second_pass_methods())
-    for m in interpolation.second_pass_methods(methods):
-        if interpolation.first_pass(m) not in fixed:
-            fixed += (interpolation.first_pass(m),)
-    return fixed
-
-
 def todo(run, pitch: float) -> tuple[tuple, np.ndarray]:
     """(methods with an unfinished unit, slice indices one of them lacks); declares the pitch's datasets."""
     pk = pitch_key(pitch)
@@ -68,7 +57,7 @@ def ahead(run, pitch: float):
     if run.scene.measured or run.want_truth_free:
         return None
     methods, slices = todo(run, pitch)
-    fixed = planned_methods(methods)
+    fixed = slabs_mod.planned_methods(methods)
     if not slices.size or not fixed:
         return None
     return slabs_mod.plan_pitch, (run.scene, run.recon_cfg, pitch, run.slices_z, slices, run.targets, fixed,
@@ -82,7 +71,7 @@ def stage(run, pitch: float, ahead=None) -> PitchTodo | Idle:
         run.log(f"[{pk}] already reconstructed (resumed run)")
         return Idle(PitchTodo(pitch, methods, slices, None))
     run.log(f"[{pk}] planning {slices.size} slices x {run.n_targets} targets x {len(methods)} methods")
-    fixed = planned_methods(methods)
+    fixed = slabs_mod.planned_methods(methods)
     pp = ahead
     if pp is None:
         pp = slabs_mod.plan_pitch(run.scene, run.recon_cfg, pitch, run.slices_z, slices, run.targets, fixed,

@@ -14,10 +14,10 @@ import time
 
 from clrecon.evaluation import truth_free
 from clrecon.outputs.volumes import pitch_key, recon_path
+from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline import work_units
 from clrecon.pipeline.context import TUNED
 from clrecon.pipeline.executors.base import Idle, Unit, Work
-from clrecon.pipeline.stages.plan import planned_methods
 from clrecon.reconstruction import reconstruct
 
 
@@ -40,7 +40,7 @@ def _slab(run, plan, store, tuning, k: int, sel):
         if plan_k is None:  # not kept (the plans of the whole scan were over the budget): made again
             t0 = time.perf_counter()
             plan_k = reconstruct.plan(cfg, pp.plan_table, run.slices_z[sel], run.targets,
-                                      planned_methods(plan.methods))
+                                      slabs_mod.planned_methods(plan.methods))
             times.add("plan", time.perf_counter() - t0)
             for m, sec in plan_k.method_seconds.items():
                 plan.plan_seconds[m] = plan.plan_seconds.get(m, 0.0) + sec
@@ -60,7 +60,7 @@ def _slab(run, plan, store, tuning, k: int, sel):
     def remote():
         plan_k, pp.plans[k] = pp.plans[k], None
         return work_units.reconstruct_slab, (cfg, run.scene, plan.pitch, str(run.cache_path), plan_k,
-                                             run.slices_z[sel], run.targets, planned_methods(plan.methods),
+                                             run.slices_z[sel], run.targets, slabs_mod.planned_methods(plan.methods),
                                              run.variants, sel)
 
     return Unit(here, None if TUNED in plan.methods else remote,

@@ -15,15 +15,17 @@ from dataclasses import replace
 
 from clrecon.reconstruction.interpolation.registry import METHODS, register_method
 
+#: The method's name (the run plans it apart, after the cross-validation: ``clrecon.pipeline.context.TUNED``).
+NAME = "cv_tuned"
 #: The kernel used when no cross-validation chose one.
 FALLBACK = ("barycentric", ())
 
 
-@register_method(name="cv_tuned", label="CV-tuned", neighbours=None, target_grid="5d", axes=("cardiac", "resp"),
+@register_method(name=NAME, label="CV-tuned", neighbours=None, target_grid="5d", axes=("cardiac", "resp"),
                  five_d=True, marker="*", rank=6, opt_in=True)
 def weights(ch, targets, dc, da, d2, opts):
     name, knobs = opts.tuned if opts.tuned is not None else FALLBACK
-    if name == "cv_tuned" or METHODS[name].target_grid != "5d" or set(METHODS[name].axes) != {"cardiac", "resp"}:
+    if name == NAME or METHODS[name].target_grid != "5d" or set(METHODS[name].axes) != {"cardiac", "resp"}:
         raise ValueError(f"cv_tuned: cannot use {name!r} (a 5-D method with both axes other than cv_tuned)")
     sub = replace(opts, tuned=None, **dict(knobs))
     return METHODS[name].weights(ch, targets, dc, da, d2, sub)
