@@ -10,9 +10,12 @@ from clrecon.cli import main
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import ClreconError
 from clrecon.core.resources import format_bytes
-from clrecon.pipeline import preflight
-from clrecon.pipeline.costs import PROJECTION_RATIO, VOLUME_RATIO, disk_model, run_costs, scene_costs
+from clrecon.pipeline import preflight, slabs
+from clrecon.pipeline.context import resolve_targets
+from clrecon.pipeline.costs import PROJECTION_RATIO, VOLUME_RATIO, disk_model, kept_plans_bytes, run_costs, scene_costs
 from clrecon.pipeline.run import run
+from clrecon.reconstruction import reconstruct
+from clrecon.scan.table import cached_projection_table
 
 GiB = 1024 ** 3
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -366,3 +369,21 @@ def test_the_mc_final_pass_counts_only_the_model_planes_a_slab_reaches(monkeypat
     assert real(8, 1.5, 20.0, 110) == 8 + 2 * 14 + 4
     assert real(100, 1.5, 20.0, 110) == 110
     assert real(1, 0.0, 20.0, 1) == 1
+
+
+@pytest.mark.parametrize("scene_name", ["tiny", "demo"])
+def test_the_kept_plans_are_counted_from_a_planned_slice_not_above_a_quarter_more(scene_name):
+    """``kept_plans_bytes`` (one planned slice per pitch, times the slices) against the bytes of the
+    plan of every slice, as the planning pass keeps it: not below, at most 25 % above (a slice at the
+    scan's end holds fewer rows than the widest one the probe plans)."""
+    scene = load_scene(scene_name)
+    methods = ("barycentric", "local_linear", "r4dct", "nearest", "bin", "helical", "mc")
+    targets, z = resolve_targets(scene), reconstruct.slice_positions(scene)
+    cfg = reconstruct.ReconstructionConfig.from_scene(scene)
+    held = max(reconstruct.plan_bytes(reconstruct.plan(cfg, cached_projection_table(scene, p), z, targets,
+                                                       slabs.planned_methods(methods)))
+               for p in scene.scan.pitches)
+    got = kept_plans_bytes(scene, methods, targets, z, scene.scan.pitches)
+    assert held <= got <= 1.25 * held, (got, held)
+    assert kept_plans_bytes(scene, ("mc",), targets, z, scene.scan.pitches) > 0  # mc's first pass is planned
+    assert kept_plans_bytes(scene, ("cv_tuned",), targets, z, scene.scan.pitches) == 0  # planned apart, later
