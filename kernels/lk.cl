@@ -159,8 +159,9 @@ __kernel void lk_box(__global const float *restrict src, __global float *restric
 
 // The new flow v from the window sums: terms (9, nz, ny, nx) as lk_term's q (A's six, then b's three),
 // v = A^-1 b by LU with partial pivoting (LAPACK's getrf / getrs order: the first largest pivot,
-// multipliers by the pivot's reciprocal, column-oriented substitutions); v = 0 where
-// |det A| < 1e-14 (scikit-image's guard against badly conditioned systems).
+// multipliers by the pivot's reciprocal, or by division below FLT_MIN as sgetf2, column-oriented
+// substitutions); v = 0 where |det A| < 1e-14 (scikit-image's guard against badly conditioned
+// systems) or det A is not a number.
 __kernel void lk_solve(__global const float *restrict terms, __global float *restrict v,
                        const int nx, const int ny, const int nz)
 {
@@ -182,10 +183,18 @@ __kernel void lk_solve(__global const float *restrict terms, __global float *res
         t = r0, r0 = r2, r2 = t, sg = -sg;
     }
     float l10 = 0.0f, l20 = 0.0f, l21 = 0.0f;
+    // multipliers by the pivot's reciprocal where it is representable (|pivot| >= FLT_MIN), else by
+    // division (LAPACK's sgetf2 and its sfmin): a pivot that underflowed to a subnormal has an
+    // infinite reciprocal, and 0 * inf would be NaN where the quotient is 0
     if (r0.x != 0.0f) {
-        const float inv = 1.0f / r0.x;
-        l10 = r1.x * inv;
-        l20 = r2.x * inv;
+        if (fabs(r0.x) >= FLT_MIN) {
+            const float inv = 1.0f / r0.x;
+            l10 = r1.x * inv;
+            l20 = r2.x * inv;
+        } else {
+            l10 = r1.x / r0.x;
+            l20 = r2.x / r0.x;
+        }
         r1.y = r1.y - l10 * r0.y, r1.z = r1.z - l10 * r0.z;
         r2.y = r2.y - l20 * r0.y, r2.z = r2.z - l20 * r0.z;
     }
@@ -195,11 +204,11 @@ __kernel void lk_solve(__global const float *restrict terms, __global float *res
         l10 = l20, l20 = u;
     }
     if (r1.y != 0.0f) {
-        l21 = r2.y * (1.0f / r1.y);
+        l21 = fabs(r1.y) >= FLT_MIN ? r2.y * (1.0f / r1.y) : r2.y / r1.y;
         r2.z = r2.z - l21 * r1.z;
     }
     const float det = sg * (r0.x * r1.y * r2.z);
-    if (fabs(det) < 1e-14f) {
+    if (!(fabs(det) >= 1e-14f)) {  // also where a product overflowed into NaN: no flow there
         v[o] = 0.0f;
         v[n + o] = 0.0f;
         v[2 * n + o] = 0.0f;

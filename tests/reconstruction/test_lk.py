@@ -136,8 +136,8 @@ def test_solve_kernel_matches_the_reference_within_the_conditioning():
 
 
 def test_solve_kernel_guards_singular_systems_and_pivots():
-    """|det A| < 1e-14: v = 0 (a zero and a rank-one matrix; det 1e-15); a zero first pivot and a
-    zero second pivot solved by row swaps; det 1e-13 solved."""
+    """|det A| < 1e-14: v = 0 (a zero and a rank-one matrix; det 1e-15; a pivot that underflows to a
+    subnormal, not NaN); a zero first pivot and a zero second pivot solved by row swaps; det 1e-13 solved."""
     cases = [  # (A, b)
         (np.zeros((3, 3)), [1.0, 2.0, 3.0]),
         (np.outer([1.0, 2.0, 0.5], [1.0, 2.0, 0.5]), [1.0, 2.0, 0.5]),
@@ -146,16 +146,20 @@ def test_solve_kernel_guards_singular_systems_and_pivots():
         (np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0], [0.0, 1.0, 1.0]]), [1.0, -1.0, 2.0]),
         (np.diag([1e-4, 1e-4, 1e-5]), [1e-4, 2e-4, 3e-5]),
     ]
+    # a window with no gradient along one axis (met on a paper-p010 slab's first pass, where the kernel
+    # returned NaN): the second pivot underflows to a subnormal (-1.6e-41), whose reciprocal overflows
+    cases.insert(3, (np.array([[5.6549638e-08, 9.4114774e-25, 0.0], [9.4114774e-25, 0.0, 0.0],
+                               [0.0, 0.0, 6.3292802e-09]]), [0.0, 0.0, -2.2587546e-23]))
     terms = np.zeros((9, 1, 1, len(cases)))
     for c, (a, b) in enumerate(cases):
         for q, (i, j) in enumerate(lk.A_PAIRS):
             terms[q, 0, 0, c] = a[i, j]
         terms[6:9, 0, 0, c] = b
     got, ref = lk.solve_cl(terms)[:, 0, 0], lk.solve_reference(terms)[:, 0, 0]
-    assert np.all(got[:, :3] == 0.0) and np.all(ref[:, :3] == 0.0)
-    np.testing.assert_allclose(got[:, 3:], ref[:, 3:], rtol=1e-6)
-    np.testing.assert_allclose(ref[:, 3], [2.0, 1.0, 1.5])
-    np.testing.assert_allclose(ref[:, 5], [1.0, 2.0, 3.0])
+    assert np.all(got[:, :4] == 0.0) and np.all(ref[:, :4] == 0.0)
+    np.testing.assert_allclose(got[:, 4:], ref[:, 4:], rtol=1e-6)
+    np.testing.assert_allclose(ref[:, 4], [2.0, 1.0, 1.5])
+    np.testing.assert_allclose(ref[:, 6], [1.0, 2.0, 3.0])
 
 
 @pytest.mark.parametrize("src,dst", [((3, 4, 5), (5, 8, 9)), ((2, 2, 2), (3, 4, 3)), ((28, 9, 16), (55, 17, 32))])
