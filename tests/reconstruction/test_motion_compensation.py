@@ -611,6 +611,16 @@ def test_the_beat_step_uses_its_own_registration():
     assert np.all(same["cardiac"][1:, 0] == 1.0)
 
 
+def test_a_registration_that_returns_nan_stops_the_run_naming_it():
+    """A field with a NaN is never handed to the next step (the beat step would fail on "finite"
+    inputs, far from the cause): ``register`` raises naming the registration and the voxels."""
+    vols = np.zeros((3, 2, 4, 6, 6), np.float32)
+    grid = FieldGrid(nx=6, ny=6, nz=4, voxel_mm=3.0, z0_mm=0.0, dz_mm=4.0)
+    with pytest.raises(RuntimeError, match=r"registration _ConstantShift returned non-finite displacements in "
+                                           r"144 of 144 voxels of a 6x6x4 pair"):
+        estimate.separable_parts(vols, (0, 1), grid, _ConstantShift(float("nan")))
+
+
 def test_recon_mc_registrations_select_each_steps_method():
     """The default registers the breathing with the OpenCL Lucas-Kanade and the beat with TV-L1, both in
     the run's process; either knob may name any registration; only a scikit-image Lucas-Kanade step
