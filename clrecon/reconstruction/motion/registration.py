@@ -117,7 +117,8 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
 
     Returns
     -------
-    (3, nz, ny, nx) float32: (dx, dy, dz) mm.
+    (3, nz, ny, nx) float32: (dx, dy, dz) mm, finite: a registration that returns a non-finite value
+    raises RuntimeError naming it (a defect of the registration; its inputs were checked finite).
     """
     cfg = cfg or FlowConfig()
     f = np.asarray(fixed)
