@@ -134,7 +134,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
         # the first pass's unit files hold the pitch's reconstruction slabs
         peak = max(peak, held + max(mc_memory.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p),
                                                             n_var, n_c, n_r, nz, rc.ny, rc.nx, n_proj[p],
-                                                            slab_of(scene.scan.feed_mm(sc, p))[2])
+                                                            slab_of(scene.scan.feed_mm(sc, p))[2],
+                                                            voxel_mm=rc.voxel_mm)
                                     for p in pitches))
     if mcir.NAME in methods:  # mcir's slabs after the model (the plans and truths still held)
         peak = max(peak, held + max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius, z_extent, n_proj[p],

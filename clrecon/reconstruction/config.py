@@ -61,10 +61,12 @@ class MotionCompensationConfig(Section):
                                      "registration and a backprojection pass"),
                     "registration rounds: 1 registers the barycentric first pass; each further round registers "
                     "the previous round's motion-compensated images")
-    downsample: int = F(1, integer_in(1, 4, "the registration window must still hold the heart's walls"),
-                        "in-plane factor the registration (and the rounds before the last) works at: 1 = the "
-                        "reconstruction grid (the study's A2), 2 = half its voxels along x and y (about 3x cheaper, "
-                        "MAE 8-11 % higher on demo: docs/motion-model.md); the last pass is always on the full grid")
+    downsample: int = F(0, integer_in(0, 4, "0 = auto; the registration window must still hold the heart's walls"),
+                        "in-plane factor the registration (and the rounds before the last) works at: 0 (auto) = the "
+                        "coarsest grid whose voxels are at most 3 mm, the grid the registrations' knobs were chosen "
+                        "on (demo's: 1 there, 2 on the paper scenes' 1-mm grid); 1 = the reconstruction grid, 2 = "
+                        "half its voxels along x and y, ...; the last pass is always on the full grid "
+                        "(docs/motion-model.md \"Knobs\")")
     registration: str = F("lucas_kanade_cl", one_of(REGISTRATIONS),
                           "the breathing step's registration: 'lucas_kanade_cl' (iterative Lucas-Kanade, windows "
                           "of flow_radius, flow_warps warps, on the engine's OpenCL runtime in the run's process: "

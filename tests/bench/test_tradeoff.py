@@ -12,6 +12,7 @@ from clrecon.bench import suite as bench
 from clrecon.bench import tradeoff as tr
 from clrecon.config.scene import load_scene
 from clrecon.core.errors import ClreconError
+from clrecon.reconstruction.motion import method as mcm
 
 
 def _dominated(i, s, e):
@@ -43,7 +44,8 @@ def test_sweep_points_cover_the_knobs_once_each():
     assert mc["z64"].run_slices == (0, demo.recon.nz) and not mc["z64"].recon   # base knobs, every slice
     knobs = {c: demo.replace(recon=p.recon).recon.mc if p.recon else demo.recon.mc for c, p in mc.items()}
     assert all(p.run_slices is None for p in pts if p.code != "z64")
-    assert (knobs["r2"].rounds, knobs["r2"].downsample, knobs["r2"].registration) == (2, 1, "lucas_kanade_cl")
+    assert (knobs["r2"].rounds, knobs["r2"].downsample, knobs["r2"].registration) == (2, 0, "lucas_kanade_cl")
+    assert mcm.factor_of(demo.recon.nx, demo.recon.ny, demo.recon.voxel_mm, knobs["r2"]) == 1  # auto: demo's 3 mm
     assert knobs["r1"].rounds == 1 and knobs["ds2"].downsample == 2 and knobs["tvl1"].registration == "tvl1"
     assert (knobs["skimage"].registration, knobs["skimage"].beat_registration) == ("lucas_kanade", "tvl1")
     # only the scikit-image point needs the motion extra (mcir's points use the base's registrations)

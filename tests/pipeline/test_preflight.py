@@ -200,15 +200,16 @@ def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
     ext = (rc.nz - 1) * rc.slice_mm
     args = {p: (sc, w, rc.mc, ext, scene.scan.feed_mm(sc, p), 2, 5, 10, rc.nz, rc.ny, rc.nx,
                 scene.scan.projection_count(sc, p)) for p in scene.scan.pitches}
-    per_pitch = {p: memory.working_bytes(*a) for p, a in args.items()}
+    per_pitch = {p: memory.working_bytes(*a, voxel_mm=rc.voxel_mm) for p, a in args.items()}
     assert per_pitch[0.02] > per_pitch[0.1] > 0   # the lower pitch: more projections per slab
     assert with_mc > base and with_mc >= per_pitch[0.02]
-    parts = memory.working_parts(*args[0.02])
+    parts = memory.working_parts(*args[0.02], voxel_mm=rc.voxel_mm)
     idle = parts["idle registration processes"]
     assert per_pitch[0.02] == max(parts["registering"] + parts["registration processes"], parts["fit"] + idle,
                                   parts["round backprojection"] + idle, parts["final pass"])
     one_round = api.load_scene("demo", recon={"mc": {"rounds": 1}})
-    assert memory.working_parts(*args[0.02][:2], one_round.recon.mc, *args[0.02][3:])["round backprojection"] == 0
+    assert memory.working_parts(*args[0.02][:2], one_round.recon.mc, *args[0.02][3:],
+                                voxel_mm=rc.voxel_mm)["round backprojection"] == 0
     coarse = api.load_scene("demo", recon={"mc": {"downsample": 2}})
     assert run_costs(coarse, methods=(*paper, "mc"))["peak_memory_bytes"] < with_mc
 
@@ -232,7 +233,7 @@ def test_the_mc_model_follows_the_registration_it_runs():
     def parts(reg, beat):
         knobs = api.load_scene("demo", recon={"mc": {"registration": reg, "beat_registration": beat}}).recon.mc
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
-                                    scene.scan.projection_count(sc, 0.1), 1)
+                                    scene.scan.projection_count(sc, 0.1), 1, voxel_mm=rc.voxel_mm)
 
     lk, tv = parts("lucas_kanade", "lucas_kanade"), parts("tvl1", "tvl1")
     assert tv["registration processes"] == tv["idle registration processes"] == 0
@@ -260,7 +261,7 @@ def test_the_mc_model_follows_the_registration_it_runs():
     for part in ("fit", "registering"):
         assert cl[part] - tv[part] == (max(lkcl.BYTES_PER_VOXEL, flow.BYTES_PER_VOXEL) - flow.BYTES_PER_VOXEL) * n_reg
     default = memory.working_parts(sc, w, rc.mc, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
-                                   scene.scan.projection_count(sc, 0.1), 1)
+                                   scene.scan.projection_count(sc, 0.1), 1, voxel_mm=rc.voxel_mm)
     assert default == cl
 
 
@@ -280,11 +281,13 @@ def test_the_mc_model_counts_the_registration_processes_beside_the_registrations
         sc, rc = scene.scanner, scene.recon
         w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
         return rc, memory.working_parts(sc, w, rc.mc, (rc.nz - 1) * rc.slice_mm, scene.scan.feed_mm(sc, 0.1), 2, 5,
-                                        10, rc.nz, rc.ny, rc.nx, scene.scan.projection_count(sc, 0.1), 1)
+                                        10, rc.nz, rc.ny, rc.nx, scene.scan.projection_count(sc, 0.1), 1,
+                                        voxel_mm=rc.voxel_mm)
 
     rc, p = parts(False)
     nb = len(mcm.basis_of(rc.mc, 5, 10).names)
-    n_reg = rc.nz * (rc.ny // rc.mc.downsample) * (rc.nx // rc.mc.downsample)
+    f = mcm.factor_of(rc.nx, rc.ny, rc.voxel_mm, rc.mc)
+    n_reg = rc.nz * (rc.ny // f) * (rc.nx // f)
     fld = 3 * n_reg * 4
     assert p["fit"] - p["registering"] == nb * fld + (4 * 50 + nb) * FIT_BLOCK * 8
     assert p["registration processes"] > p["idle registration processes"] > 0  # demo's grid registers in a pool
@@ -312,7 +315,7 @@ def test_the_mc_model_holds_the_first_pass_on_the_registration_grid_only():
         knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds, "rounds": rounds,
                                                            "shrink": False}}).recon.mc
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
-                                    scene.scan.projection_count(sc, 0.1), unit_slices)["fit"]
+                                    scene.scan.projection_count(sc, 0.1), unit_slices, voxel_mm=rc.voxel_mm)["fit"]
 
     full = 50 * rc.nz * rc.ny * rc.nx * 4  # the first pass at full resolution: 5.77 GB
     coarse = 50 * rc.nz * (rc.ny // 2) * (rc.nx // 2) * 4
@@ -345,7 +348,7 @@ def test_the_mc_final_pass_counts_only_the_model_planes_a_slab_reaches(monkeypat
         knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds}}).recon.mc
         monkeypatch.setattr(memory, "slab_model_planes", planes)
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny,
-                                    rc.nx, scene.scan.projection_count(sc, 0.1), 1)["final pass"]
+                                    rc.nx, scene.scan.projection_count(sc, 0.1), 1, voxel_mm=rc.voxel_mm)["final pass"]
 
     nb = len(mcm.basis_of(rc.mc, 5, 10).names)  # the model's basis fields (1 + resp_degree + 2 harmonics: 6)
     plane_bytes = nb * 3 * rc.ny * rc.nx * 4  # one plane of the basis fields on the reconstruction grid

@@ -20,6 +20,7 @@ from motion_study import correction, demons, registration_memory, warp
 
 from clrecon.bench import reference_kernels
 from clrecon.core.resources import spawned_pool
+from clrecon.reconstruction.config import MotionCompensationConfig
 from clrecon.reconstruction.fbp import FanBeamGeometry, backproject
 from clrecon.reconstruction.motion import confidence, estimate, memory, registration, slots
 from clrecon.reconstruction.motion import method as mcm
@@ -757,3 +758,22 @@ def test_true_fields_fill_textureless_points(phantom):
     assert np.abs(f[0, 2][lung]).max() > 1.0                        # filled from the heart and diaphragm
     kept = (own >= 0) & ~np.isin(own, [phantom.names.index(n) for n in motion_field.TEXTURELESS])
     assert np.array_equal(f[0][:, kept], raw[0][:, kept])
+
+
+@pytest.mark.parametrize("nx,voxel_mm,downsample,want", [
+    (128, 3.0, 0, 1),   # demo's grid: the knobs' own
+    (512, 1.0, 0, 2),   # the paper scenes: 3 / 1 = 3, the largest factor <= 3 dividing 512
+    (512, 0.7, 0, 4),   # a clinical 512^2 of 0.7 mm: 2.8 mm
+    (500, 0.7, 0, 4),   # 4 divides 500
+    (30, 12.0, 0, 1),   # tiny: coarser than 3 mm already
+    (512, 1.0, 1, 1),   # an explicit factor wins
+    (128, 3.0, 2, 2),
+    (126, 3.0, 4, 3),   # the largest <= 4 dividing 126
+])
+def test_the_registration_factor_keeps_the_grid_near_the_knobs_3_mm(nx, voxel_mm, downsample, want):
+    """``downsample = 0`` (auto, the default) registers on the coarsest grid whose voxels are at most
+    ``REGISTRATION_VOXEL_MM`` (demo's 3 mm, where the registrations' knobs were chosen), with a factor
+    that divides the grid; an explicit factor is the largest dividing the grid up to it."""
+    knobs = MotionCompensationConfig(downsample=downsample)
+    assert mcm.factor_of(nx, nx, voxel_mm, knobs) == want
+    assert nx % want == 0 and (downsample or want == 1 or want * voxel_mm <= mcm.REGISTRATION_VOXEL_MM + 1e-9)

@@ -93,8 +93,12 @@ def slab_model_planes(s: int, slice_mm: float, margin_mm: float, nz: int) -> int
 
 def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
                   n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int,
-                  max_projections: int | None = None, unit_slices: int | None = None) -> dict[str, int]:
+                  max_projections: int | None = None, unit_slices: int | None = None, *,
+                  voxel_mm: float) -> dict[str, int]:
     """Modelled bytes of ``mc`` at one pitch beside the process's baseline, by part of its work.
+
+    ``voxel_mm``: the reconstruction grid's in-plane voxel (the registration grid's factor,
+    :func:`method.factor_of`, depends on it where ``knobs.downsample`` is 0, auto).
 
     The parts in the process follow one another (the largest, with what runs beside it in other
     processes, is the method's peak, :func:`working_bytes`): ``registering`` with ``registration
@@ -170,7 +174,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     # kept for the final pass where the scan is one slab and every variant's rows fit ROWS_BYTES: at most
     # that (the modelled rows err high by up to a rotation's, so a run near the limit counts it)
     kept = min(n_var * rows, ROWS_BYTES) if one_slab else 0.0
-    f = max(1, knobs.downsample)
+    f = mcm.factor_of(nx, ny, voxel_mm, knobs)
     cny, cnx = ny // f, nx // f
     n_reg = nz * cny * cnx
     vox = ny * nx
@@ -222,12 +226,12 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
 
 def working_bytes(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
                   n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int, max_projections: int | None = None,
-                  unit_slices: int | None = None) -> int:
+                  unit_slices: int | None = None, *, voxel_mm: float) -> int:
     """Modelled memory of ``mc`` at one pitch (bytes), beside the process's baseline: the largest
     part of :func:`working_parts` in the process with its registration processes beside it (at their
     peak beside ``registering``, idle beside ``fit`` and ``round backprojection``)."""
     p = working_parts(scanner, window_mm, knobs, z_extent_mm, feed_mm, n_var, n_cardiac, n_resp, nz, ny, nx,
-                      max_projections, unit_slices)
+                      max_projections, unit_slices, voxel_mm=voxel_mm)
     idle = p["idle registration processes"]
     return max(p["registering"] + p["registration processes"], p["fit"] + idle, p["round backprojection"] + idle,
                p["final pass"])

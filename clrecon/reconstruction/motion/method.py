@@ -47,9 +47,22 @@ def reference_index(cardiac, resp, knobs) -> tuple[int, int]:
     return int(np.argmin(dc)), int(np.argmin(np.abs(np.asarray(resp, np.float64) - knobs.reference_amplitude)))
 
 
+#: The in-plane voxel (mm) of the grid the registrations' knobs were chosen on (``demo``'s): with
+#: ``downsample = 0`` (auto) the registration works on the coarsest grid whose voxels are at most this.
+REGISTRATION_VOXEL_MM = 3.0
+
+
+def factor_of(nx: int, ny: int, voxel_mm: float, knobs) -> int:
+    """The in-plane factor the registration works at on an (ny, nx) grid of ``voxel_mm`` voxels: the
+    largest f <= ``knobs.downsample`` dividing nx and ny; ``downsample = 0`` (auto): the largest
+    f <= min(4, :data:`REGISTRATION_VOXEL_MM` / voxel_mm) dividing them (at least 1)."""
+    most = knobs.downsample or max(1, min(4, int(REGISTRATION_VOXEL_MM / voxel_mm + 1e-9)))
+    return max(f for f in range(1, most + 1) if nx % f == 0 and ny % f == 0)
+
+
 def factor(geom: FanBeamGeometry, knobs) -> int:
-    """The in-plane factor the registration works at: the largest <= ``knobs.downsample`` dividing nx and ny."""
-    return max(f for f in range(1, knobs.downsample + 1) if geom.nx % f == 0 and geom.ny % f == 0)
+    """:func:`factor_of` the reconstruction grid ``geom``."""
+    return factor_of(geom.nx, geom.ny, geom.voxel_mm, knobs)
 
 
 def coarse_geometry(geom: FanBeamGeometry, f: int) -> FanBeamGeometry:
