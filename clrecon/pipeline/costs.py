@@ -44,8 +44,8 @@ def kept_plans_bytes(scene, methods, targets: Targets, slices_z, pitches) -> int
     (:func:`clrecon.pipeline.slabs.candidates_per_slice`, the probe of ``plan_slabs``), made for the
     methods the run plans (:func:`clrecon.pipeline.slabs.planned_methods`), times the slices (a plan's
     arrays are as wide as its widest slice's; measured against the plans of whole runs in
-    docs/results/code-history.md "The plans the pre-flight counts"). Planning one slice per pitch
-    costs 0.1-1 s."""
+    docs/results/code-history.md "The plans the pre-flight counts"). The scan's whole table: on a
+    measured scan a slice may plan fewer rows (those with usable traces), never more."""
     fixed = slabs.planned_methods(methods)
     z = np.asarray(slices_z, np.float64)
     if not fixed or not z.size:
