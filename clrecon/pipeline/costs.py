@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from clrecon.config.scene import builtin_scene_names, load_scene
@@ -18,7 +20,7 @@ from clrecon.reconstruction.iterative import method as mcir
 from clrecon.reconstruction.motion import memory as mc_memory
 from clrecon.reconstruction.rebin import slice_window_mm
 from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, Targets, slab_bytes_per_slice, slices_per_slab
-from clrecon.scan.table import cached_projection_table
+from clrecon.scan.table import cached_projection_table, recorded_content
 from clrecon.simulation.measured import memory_bytes as measured_memory_bytes
 
 GiB = 1024 ** 3
@@ -47,16 +49,25 @@ def kept_plans_bytes(scene, methods, targets: Targets, slices_z, pitches) -> int
     docs/results/code-history.md "The plans the pre-flight counts"). The scan's whole table: on a
     measured scan a slice may plan fewer rows (those with usable traces), never more."""
     fixed = slabs.planned_methods(methods)
-    z = np.asarray(slices_z, np.float64)
-    if not fixed or not z.size:
+    z = tuple(float(v) for v in np.asarray(slices_z, np.float64).ravel())
+    if not fixed or not z:
         return 0
+    content = tuple(sorted(recorded_content(scene).items()))
+    worst = max(_widest_plan_bytes(scene, float(p), fixed, targets, z, content) for p in pitches)
+    return int(min(KEEP_PLANS_BYTES, worst * len(z)))
+
+
+@functools.lru_cache(maxsize=8)
+def _widest_plan_bytes(scene, pitch: float, fixed: tuple, targets: Targets, z: tuple, content: tuple) -> int:
+    """:func:`kept_plans_bytes`' probe at one pitch: the plan bytes of the slice of ``z`` (mm) with the
+    most candidate rows. Kept per process: a run's driver choice and its pre-flight ask for the same
+    (``content``, the recorded inputs' digests, is only part of the key, as in
+    :func:`clrecon.scan.table.cached_projection_table`)."""
     cfg = reconstruct.ReconstructionConfig.from_scene(scene)
-    worst = 0
-    for p in pitches:
-        table = cached_projection_table(scene, p)
-        d = int(np.argmax(slabs.candidates_per_slice(table, z, cfg)))
-        worst = max(worst, reconstruct.plan_bytes(reconstruct.plan(cfg, table, z[d:d + 1], targets, fixed)) * z.size)
-    return int(min(KEEP_PLANS_BYTES, worst))
+    table = cached_projection_table(scene, pitch)
+    zs = np.asarray(z, np.float64)
+    d = int(np.argmax(slabs.candidates_per_slice(table, zs, cfg)))
+    return reconstruct.plan_bytes(reconstruct.plan(cfg, table, zs[d:d + 1], targets, fixed))
 
 
 def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, pitches=None,

@@ -81,17 +81,20 @@ class Decision:
 
 # -- the run's work ---------------------------------------------------------------------------
 
-def run_work(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, pitches=None) -> dict[str, float]:
+def run_work(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, pitches=None,
+             targets=None) -> dict[str, float]:
     """Units of work of each kernel family in a run (first run: the projections simulated too).
 
     Units are those of :mod:`clrecon.pipeline.driver_timing`: rays (projector), detector cells
     (noise, SSRB, interpolation) and voxel updates (backprojection). The mc method's second pass
-    is counted as one more 5D method's first pass (its own kernels are not timed).
+    is counted as one more 5D method's first pass (its own kernels are not timed). ``targets``: the
+    run's :class:`~clrecon.reconstruction.reconstruct.Targets` (``run_costs``' default: the scene's first
+    ``n_cardiac`` / ``n_resp``), so that its plan probe is the pre-flight's, made once.
     """
     sc, rc = scene.scanner, scene.recon
     methods = tuple(methods or rc.methods)
     pitches = tuple(pitches or scene.scan.pitches)
-    costs = run_costs(scene, methods, n_cardiac, n_resp, slices_z, pitches)
+    costs = run_costs(scene, methods, n_cardiac, n_resp, slices_z, pitches, targets=targets)
     n_targets = costs["n_targets"]
     n_c = len(scene.cardiac_targets) if n_cardiac is None else n_cardiac
     nz = rc.nz if slices_z is None else len(slices_z)
@@ -214,7 +217,7 @@ def decide(work: dict, timings: list[DriverTiming]) -> Decision:
 
 
 def choose_for_run(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, pitches=None,
-                   cache_dir: Path | None = None) -> Decision | None:
+                   cache_dir: Path | None = None, targets=None) -> Decision | None:
     """The run's driver :class:`Decision`; None where ``CLRECON_DEVICE`` names the device (nothing timed)."""
     if os.environ.get("CLRECON_DEVICE"):
         return None
@@ -226,7 +229,7 @@ def choose_for_run(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=No
         return Decision(timings[0].key if timings else None,
                         "the only CPU driver that passes the probe" if timings else "no CPU driver passes the probe",
                         {}, tuple(timings))
-    return decide(run_work(scene, methods, n_cardiac, n_resp, slices_z, pitches), timings)
+    return decide(run_work(scene, methods, n_cardiac, n_resp, slices_z, pitches, targets=targets), timings)
 
 
 def apply(decision: Decision | None) -> None:

@@ -100,7 +100,7 @@ def _choose_driver(scene, methods, cardiac, resp, slice_range, pitches) -> drive
         return None  # open_run says what is wrong, in its one line
     known = [m for m in (methods or scene.recon.methods) if m in interpolation.METHODS]
     decision = driver_choice.choose_for_run(scene, known or None, len(targets.cardiac), len(targets.resp),
-                                            slices_z, pitches)
+                                            slices_z, pitches, targets=targets)
     driver_choice.apply(decision)
     return decision
 
