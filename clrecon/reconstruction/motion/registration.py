@@ -130,10 +130,11 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
     if len(spacing_mm) != 3 or min(spacing_mm) <= 0:
         raise ValueError(f"spacing_mm = {spacing_mm!r}: three spacings > 0 (x, y, z)")
     spacing = tuple(float(s) for s in spacing_mm)
-    if isinstance(cfg, (TVL1Config, LKConfig, FlowConfig)):
+    kind = next((k for k in _BUILT_IN if isinstance(cfg, k)), None)
+    if kind is not None:
         if initial is not None:
-            raise ValueError(f"initial: the {_NAMES[type(cfg)]} registration starts from zero")
-        u = {TVL1Config: register_tvl1, LKConfig: register_lk, FlowConfig: _flow}[type(cfg)](f, m, spacing, cfg)
+            raise ValueError(f"initial: the {_BUILT_IN[kind]} registration starts from zero")
+        u = {TVL1Config: register_tvl1, LKConfig: register_lk, FlowConfig: _flow}[kind](f, m, spacing, cfg)
     elif callable(getattr(cfg, "register", None)):
         u = cfg.register(f, m, spacing, tuple(float(o) for o in origin_mm), initial)
     else:
@@ -141,15 +142,15 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
                         f"register() method, got {type(cfg).__name__}")
     bad = ~np.isfinite(u)
     if bad.any():  # never hand a later step NaN: a field is finite or the run stops here, naming the registration
-        raise RuntimeError(f"registration {_NAMES.get(type(cfg), type(cfg).__name__)} returned non-finite "
+        raise RuntimeError(f"registration {_BUILT_IN.get(kind, type(cfg).__name__)} returned non-finite "
                            f"displacements in {int(bad.any(axis=0).sum())} of {bad[0].size} voxels of a "
                            f"{'x'.join(map(str, f.shape[::-1]))} pair: a defect of that registration, not of the "
                            f"data (its inputs were finite); please report it with the scene")
     return u
 
 
-#: The built-in registrations' names in messages.
-_NAMES = {TVL1Config: "TV-L1", LKConfig: "Lucas-Kanade (OpenCL)", FlowConfig: "Lucas-Kanade (scikit-image)"}
+#: The built-in registrations' config types (a subclass counts as its base) and their names in messages.
+_BUILT_IN = {TVL1Config: "TV-L1", LKConfig: "Lucas-Kanade (OpenCL)", FlowConfig: "Lucas-Kanade (scikit-image)"}
 
 
 #: Peak bytes of one Lucas-Kanade registration per voxel of its volumes, above its process's
