@@ -46,12 +46,18 @@ def unfinished(writer: VolumeWriter, pk: str, variants, methods) -> tuple[tuple,
     return run_methods, todo
 
 
-def planned_methods(methods) -> tuple:
-    """The methods a pitch's plan is made for: the fixed ones, and the first pass of a second-pass
-    method (``mc``: barycentric, ``Method.first_pass``) still to do (its rows and weights, and the
-    projections it reads); not ``cv_tuned``, planned apart once its kernel is chosen."""
+def fixed_methods(methods) -> tuple:
+    """Of ``methods``, those ``reconstruct`` makes with a pitch's plan: not ``cv_tuned`` (planned apart
+    once its kernel is chosen), not a second-pass method (``mc``, ``mcir``)."""
     tuned = interpolation.cv_tuned.NAME
-    fixed = tuple(m for m in methods if m != tuned and m not in interpolation.second_pass_methods())
+    return tuple(m for m in methods if m != tuned and m not in interpolation.second_pass_methods())
+
+
+def planned_methods(methods) -> tuple:
+    """The methods a pitch's plan is made for: :func:`fixed_methods`, and the first pass of a
+    second-pass method (``mc``: barycentric, ``Method.first_pass``) still to do (its rows and weights,
+    and the projections it reads)."""
+    fixed = fixed_methods(methods)
     for m in interpolation.second_pass_methods(methods):
         if interpolation.first_pass(m) not in fixed:
             fixed += (interpolation.first_pass(m),)

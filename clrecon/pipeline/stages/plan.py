@@ -19,7 +19,7 @@ from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline.context import TUNED
 from clrecon.pipeline.executors.base import Idle
 from clrecon.pipeline.stages import consistency as consistency_stage
-from clrecon.reconstruction import interpolation, reconstruct
+from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.iterative import method as mcir
 
 
@@ -38,7 +38,7 @@ class PitchTodo:
     @property
     def fixed_methods(self) -> tuple:
         """The methods ``reconstruct`` makes with the plan (not cv_tuned, planned apart; not a second-pass method)."""
-        return tuple(m for m in self.methods if m != TUNED and m not in interpolation.second_pass_methods())
+        return slabs_mod.fixed_methods(self.methods)
 
 
 def todo(run, pitch: float) -> tuple[tuple, np.ndarray]:
