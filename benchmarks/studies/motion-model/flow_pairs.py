@@ -38,6 +38,17 @@ def errors(u, true, heart, body):
     return out
 
 
+def phantom_pair(phantom, mu_water_per_mm, x, y, z, state0, state1):
+    """Two noise-free states of ``phantom`` voxelised on the grid (x, y, z) mm (3^3 sub-samples):
+    (fixed at ``state0``, moving at ``state1``, HU float32 (nz, ny, nx); the phantom's own motion from
+    the first to the second, (3, nz, ny, nx) mm; the owner of each voxel centre at ``state0``)."""
+    fixed, moving = (mu_to_hu(phantom.voxelise(c, a, x, y, z, supersample=3), mu_water_per_mm).astype(np.float32)
+                     for c, a in (state0, state1))
+    true = motion_field.displacement_fields(phantom, x, y, z, state0, [state1])[0]
+    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
+    return fixed, moving, true, motion_field.owner(phantom, np.stack([X, Y, Z], -1), *state0)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scene", default="demo")
@@ -59,11 +70,7 @@ def main():
     rows = []
     for pair in args.pairs:
         (c0, a0), (c1, a1) = (tuple(map(float, s.split(","))) for s in pair.split(":"))
-        vols = [mu_to_hu(phantom.voxelise(c, a, x, y, z, supersample=3), scene.phantom.mu_water_per_mm)
-                .astype(np.float32) for c, a in ((c0, a0), (c1, a1))]
-        true = motion_field.displacement_fields(phantom, x, y, z, (c0, a0), [(c1, a1)])[0]
-        Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
-        own = motion_field.owner(phantom, np.stack([X, Y, Z], -1), c0, a0)
+        *vols, true, own = phantom_pair(phantom, scene.phantom.mu_water_per_mm, x, y, z, (c0, a0), (c1, a1))
         names = phantom.names
         heart = np.isin(own, [names.index(n) for n in HEART if n in names])
         body = (own >= 0) & ~np.isin(own, [names.index(n) for n in LUNGS if n in names])

@@ -28,15 +28,15 @@ import argparse
 import json
 
 import numpy as np
+from flow_pairs import phantom_pair
 
 from clrecon.config.overrides import load_scene
-from clrecon.core.conventions import mu_to_hu, voxel_coords
+from clrecon.core.conventions import voxel_coords
 from clrecon.evaluation.motion_model import HEART
 from clrecon.reconstruction.motion import flow, registration
 from clrecon.reconstruction.motion.estimate import to_reference
 from clrecon.reconstruction.motion.model import FieldGrid
 from clrecon.simulation.phantom_sources import phantom_from_config
-from clrecon.simulation.phantoms import motion_field
 from clrecon.simulation.phantoms.analytic import inside
 
 
@@ -59,14 +59,11 @@ def main():
     x = voxel_coords(n, args.voxel)
     z = (np.arange(args.nz) - 0.5 * (args.nz - 1)) * args.slice
     (c0, a0), (c1, a1) = (tuple(map(float, s.split(","))) for s in args.pair.split(":"))
-    fixed, moving = (mu_to_hu(ph.voxelise(c, a, x, x, z, supersample=3), scene.phantom.mu_water_per_mm)
-                     .astype(np.float32) for c, a in ((c0, a0), (c1, a1)))
-    true = motion_field.displacement_fields(ph, x, x, z, (c0, a0), [(c1, a1)])[0]
+    fixed, moving, true, own = phantom_pair(ph, scene.phantom.mu_water_per_mm, x, x, z, (c0, a0), (c1, a1))
     cfg = flow.TVL1Config()
     u = registration.register(fixed, moving, (args.voxel, args.voxel, args.slice), cfg=cfg)
     Z, Y, X = np.meshgrid(z, x, x, indexing="ij")
     pts = np.stack([X, Y, Z], -1)
-    own = motion_field.owner(ph, pts, c0, a0)
     objs1 = ph.objects(c1, a1)
     moved = pts + np.moveaxis(true, 0, -1)
     kept = np.zeros(own.shape, bool)
