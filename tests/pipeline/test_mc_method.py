@@ -16,6 +16,7 @@ from run_compare import assert_identical, run_cli
 
 from clrecon.config.scene import SCENE_DIR, load_scene
 from clrecon.core.errors import ClreconError, SceneError
+from clrecon.core.runtime import HOST_ALIGN_BYTES
 from clrecon.outputs.volumes import VolumeWriter
 from clrecon.pipeline.run import run
 from clrecon.reconstruction.interpolation import default_methods, second_pass_methods
@@ -315,6 +316,7 @@ def test_slab_rows_are_the_same_bits_for_any_read_chunk(tmp_path, monkeypatch):
         got[per_chunk] = mcm.slab_rows(store, table, sc.scanner, cfg, "noisy", slab_z, ids, sc.recon.mc)
     whole = got[len(ids)]
     assert whole.rows.shape[0] == ids.size and np.abs(whole.rows).max() > 0
+    assert whole.rows.ctypes.data % HOST_ALIGN_BYTES == 0  # the backprojector reads them in place on a CPU
     for per_chunk in (1, 7):
         r = got[per_chunk]
         assert np.array_equal(r.rows, whole.rows) and np.array_equal(r.plane_first, whole.plane_first)

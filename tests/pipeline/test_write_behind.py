@@ -161,3 +161,35 @@ def test_a_failing_projection_write_fails_the_simulation(tmp_path, monkeypatch):
     sc = load_scene("tiny")
     with pytest.raises(OSError, match="store disk full"):
         simulate(sc, sc.scan.pitches[0], cache_dir=tmp_path, chunk=8, progress=False)
+
+
+@pytest.mark.parametrize("drain_first", [False, True])
+def test_a_unit_that_drains_first_starts_after_the_write_in_flight(drain_first):
+    """``Unit.drain_first`` (``mc``'s slabs): the previous unit's piece is written before the unit
+    starts, so the two are never held at once; without it the write runs beside the next unit."""
+    from collections import namedtuple
+
+    from clrecon.pipeline.executors.base import Executor, Unit, Work
+
+    ex = Executor()
+    ex.writer = write_behind.WriteBehind(background=True)
+    ex.run_ctx = namedtuple("Run", "progress")(False)
+    ex.done = {}
+    written, seen = [], []
+
+    def write(piece):
+        time.sleep(0.3)
+        written.append(piece)
+
+    def unit(k):
+        def here(emit, times):
+            seen.append(len(written))  # the pieces on disk when the unit starts
+            emit(k)
+        return Unit(here, None, f"unit {k}", drain_first=drain_first)
+
+    stage = namedtuple("Stage", "name write_part rest")("demo-stage", None, None)
+    ex.start_work((stage, None), Work([unit(k) for k in range(3)], write), time.perf_counter(), 0.0)
+    ex.writer.close()
+    assert written == [0, 1, 2]
+    # drained: every earlier piece written; else the previous one still in flight (0.3 s)
+    assert seen == ([0, 1, 2] if drain_first else [0, 0, 1])

@@ -62,11 +62,16 @@ class Unit:
     top-level function and picklable arguments for a Dask worker, ``fn(*args) -> (pieces,
     seconds, counts)``, made when the unit is sent (so that nothing it holds is kept before);
     None: this unit runs in the run's process only. ``label`` names it in errors.
+    ``drain_first``: in this process, wait for the pieces still being written behind
+    (:class:`clrecon.core.write_behind.WriteBehind`) before the unit starts, so that a unit whose
+    own working set is large never holds the previous unit's piece beside it (``mc``'s slabs:
+    :func:`clrecon.reconstruction.motion.memory.working_parts` counts one slab of output).
     """
 
     local: Callable[[Callable, StageTimes], None]
     remote: Callable[[], tuple] | None = None
     label: str = ""
+    drain_first: bool = False
 
 
 @dataclass
@@ -242,6 +247,8 @@ class Executor:
         try:
             for unit in work.units:
                 self.check()
+                if unit.drain_first:
+                    self.writer.drain()
                 unit.local(emit, times)
             self.writer.drain()
         except BaseException as e:

@@ -100,8 +100,10 @@ def _slab_unit(run, pitch: float, scan: mc_fbp.MCScan, a: int, b: int, variant: 
         return work_units.mc_slab, (run.recon_cfg, run.scene, pitch, str(run.cache_path), run.slices_z, a, b,
                                     run.targets, variant, model)
 
+    # drain_first: the previous slab's volumes are written before this slab's rows are made (the memory
+    # model's final pass holds one slab of output, memory.working_parts)
     return Unit(here, None if run.scene.measured else remote,
-                f"mc slab of slices {a}..{b - 1} ({variant}) at pitch {pitch:g}")
+                f"mc slab of slices {a}..{b - 1} ({variant}) at pitch {pitch:g}", drain_first=True)
 
 
 def models_to_do(run, pitch: float, plan, store, name: str):

@@ -422,10 +422,12 @@ class MCBackprojector:
                                  self.view_chunk)
         self._kernel = rt.kernel(_KERNEL_FILE, "mc_backproject", **self._defines)
         self._pb = pb.astype(np.float32)  # the per-call differences B_b(p) - B_b(t) start from it
-        self._bufs = [rt.to_device(rows.rows, np.float32, "plane rows"),
+        # the rows and the fields in place where the device reads host memory (a CPU device, page-aligned
+        # float32: method.slab_rows and method.refine make them so), else a device copy
+        self._bufs = [rt.share_with_device(rows.rows, "plane rows"),
                       rt.to_device(rows.plane_first, np.int32), rt.to_device(rows.plane_count, np.int32),
                       rt.to_device(rows.proj_z_mm, np.float32)]
-        self._fields = rt.to_device(model.fields, np.float32, "model fields")
+        self._fields = rt.share_with_device(model.fields, "model fields")
         self._trig = rt.to_device(view_table(geom), np.float32)
         self._slices = rt.to_device(self.slices_z, np.float32)
         S = len(self.slices_z)

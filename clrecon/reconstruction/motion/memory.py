@@ -128,14 +128,16 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       the rows kept for other variants, the slab's first-pass plan and slots (:data:`PLAN_BYTES`
       per (slice, view, target)), the model, the slab's plane rows, and the
       larger of what their making and their use add: the raw rows being read (3 chunks of
-      ``READ_CHUNK_BYTES``: the chunk, its covering range and its SSRB rows), or the rows' and the
-      model's copies on the device (host memory on a CPU driver) and the slab's images;
+      ``READ_CHUNK_BYTES``: the chunk, its covering range and its SSRB rows), or the model's copy on
+      the device (host memory on a CPU driver; the rows, page-aligned, are read in place there) and
+      the slab's images;
     - ``final pass`` (per slab and variant, :func:`mc_fbp.reconstruct_slab`): the plane rows (every
       variant's where kept), the plan and slots, every variant's model, the model refined to the
       reconstruction grid on the planes the slab reaches (:func:`slab_model_planes`; a copy of the
-      model's own planes where the grids coincide, none where those are half its planes or more),
-      and the larger of the read (rows not kept) or the device copies of the rows and the refined
-      planes (the model's where not copied) with two slabs of output (one being written behind);
+      model's own planes where the grids coincide), and the larger of the read (rows not kept) or
+      the slab's output (one slab: a slab waits for the previous one's write, ``Unit.drain_first``).
+      The rows and the refined planes are page-aligned and read in place on a CPU device (no device
+      copy); a GPU's copies are not host memory;
     - ``registration processes`` (a scikit-image Lucas-Kanade step, ``lucas_kanade``,
       :func:`method.uses_pool`): ``FLOW_BYTES_PER_VOXEL`` per voxel of the registration grid and
       :data:`WORKER_BYTES` in each, one per core up to
@@ -171,9 +173,13 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
         n_proj = min(n_proj, max_projections)
     rows = n_proj * per_row
     one_slab = s >= nz
-    # kept for the final pass where the scan is one slab and every variant's rows fit ROWS_BYTES: at most
-    # that (the modelled rows err high by up to a rotation's, so a run near the limit counts it)
-    kept = min(n_var * rows, ROWS_BYTES) if one_slab else 0.0
+    # kept for the final pass where the scan is one slab and every variant's rows fit ROWS_BYTES (mc_fbp.fit_model);
+    # the modelled rows err high by up to a rotation's: where they may or may not fit, at most the budget
+    rotation = scanner.views_per_rotation * per_row
+    if not one_slab or n_var * max(rows - rotation, 0.0) > ROWS_BYTES:
+        kept = 0.0
+    else:
+        kept = min(n_var * rows, ROWS_BYTES)
     f = mcm.factor_of(nx, ny, voxel_mm, knobs)
     cny, cnx = ny // f, nx // f
     n_reg = nz * cny * cnx
@@ -203,19 +209,18 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     # cardiac step also its averages' float32 copy) and one field's confidence.shrink_field at a time
     shrink = (max(n_resp * fld, n_cardiac * (fld + n_reg * 4)) + SHRINK_BYTES_PER_VOXEL * n_reg
               + SHRINK_CHUNK_BYTES_PER_VOXEL * min(n_reg, CHUNK_VOXELS)) if knobs.shrink else 0
-    # while a slab's rows are read, the raw rows of the read; while it is backprojected, their device copy,
-    # the model's and the images (never both at once)
-    # (the round's images, np.empty, are touched slab by slab: the earlier slabs' and this slab's)
+    # while a slab's rows are read, the raw rows of the read; while it is backprojected, the model's device
+    # copy and the images (never both at once). The rows are read in place on a CPU device (page-aligned,
+    # backproject.MCBackprojector); the round's images, np.empty, are touched slab by slab
     slab_imgs = n_targets * s * cny * cnx * 4
     rounds = (first + max(imgs - slab_imgs, 0) + max(kept - rows, 0) + rows + plan + nb * fld
-              + max(read, rows + nb * fld + slab_imgs)) if knobs.rounds > 1 else 0
+              + max(read, nb * fld + slab_imgs)) if knobs.rounds > 1 else 0
     # the model on the reconstruction grid, on the slab's planes (a copy of the model's own where f = 1)
     planes = slab_model_planes(s, slice_mm, knobs.margin_mm, nz)
-    refined = device = nb * 3 * planes * vox * 4  # the slab's planes on the host, and their device copy
-    if f == 1 and 2 * planes >= nz:  # the model itself (no copy, method.refine): its device copy is all planes
-        refined, device = 0, nb * fld
+    # the slab's planes on the host (page-aligned: read in place on a CPU device, no device copy)
+    refined = nb * 3 * planes * vox * 4
     final = ((kept if kept else rows) + plan + n_var * nb * fld + refined
-             + max(0 if kept else read, rows + device + 2 * n_targets * s * vox * 4))
+             + max(0 if kept else read, n_targets * s * vox * 4))
     pool = workers if workers > 1 else 0
     return {"fit": int(max(fit, registering + shrink)), "registering": int(registering),
             "round backprojection": int(rounds),

@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 from clrecon.core.resources import rss_mark
+from clrecon.core.runtime import aligned_empty
 from clrecon.reconstruction import rebin
 from clrecon.reconstruction.fbp import FanBeamGeometry
 from clrecon.reconstruction.motion import backproject as mcb
@@ -198,9 +199,9 @@ def refine(model: MotionModel, geom: FanBeamGeometry, slab_z=None, pairs=None) -
     With ``slab_z`` (the slab's slice z, mm) and ``pairs`` (its targets (c, a)), only the planes
     their voxels can reach (:func:`reach_planes` of :func:`reach_mm`), as a
     :class:`~clrecon.reconstruction.motion.backproject.ModelWindow` of the whole refined model
-    (where the grids coincide: a copy of those planes of the model itself, or the model where they
-    are half its planes or more: the copy and its device copy would hold more than the device's copy
-    of the model): the kernel's images are the same bits as with every plane. Without
+    (where the grids coincide: a copy of those planes of the model itself), page-aligned so that a
+    CPU device reads it in place (the model, made elsewhere, would be copied to the device whole):
+    the kernel's images are the same bits as with every plane. Without
     ``slab_z``, every plane (the model itself where the grids coincide: nothing is copied). Refined
     plane by plane: a plane depends on the model only, not on the planes kept; every plane is
     sampled for the whole model's displacement margin (curved detectors' kernel build), one plane
@@ -213,16 +214,16 @@ def refine(model: MotionModel, geom: FanBeamGeometry, slab_z=None, pairs=None) -
     fine = g if same else FieldGrid(nx=geom.nx, ny=geom.ny, nz=g.nz, voxel_mm=geom.voxel_mm, z0_mm=g.z0_mm,
                                     dz_mm=g.dz_mm)
     k0, k1 = (0, g.nz) if slab_z is None else reach_planes(fine, slab_z, reach_mm(model, pairs))
-    if same and 2 * (k1 - k0) >= g.nz:  # the model itself: a copy beside its device copy would hold more
-        return model
     if same:  # the slab's planes of the model itself
         held = dataclasses.replace(g, nz=k1 - k0, z0_mm=float(g.coords()[2][k0]))
-        return mcb.ModelWindow(model=MotionModel(basis=model.basis, grid=held, fields=model.fields[:, :, k0:k1].copy(),
+        planes = aligned_empty(model.fields[:, :, k0:k1].shape, np.float32)  # read in place on a CPU device
+        planes[...] = model.fields[:, :, k0:k1]
+        return mcb.ModelWindow(model=MotionModel(basis=model.basis, grid=held, fields=planes,
                                                  reference=model.reference),
                                whole=g, first=k0, margin_mm=mcb.displacement_margin_mm(model.fields))
     x, y, z = fine.coords()
     Y, X = np.meshgrid(y, x, indexing="ij")
-    out = np.empty((model.basis.size, 3, k1 - k0, geom.ny, geom.nx), np.float32)
+    out = aligned_empty((model.basis.size, 3, k1 - k0, geom.ny, geom.nx), np.float32)  # read in place on a CPU device
     flat = model.fields.reshape((-1,) + g.shape)
     margin = 0.0
     need_margin = slab_z is not None and geom.curved and model.basis.size > 1
@@ -275,7 +276,9 @@ def slab_rows(store, table, scanner, cfg, variant: str, run_z, proj_ids, knobs, 
     z_lo, z_hi = float(z.min()) - knobs.margin_mm, float(z.max()) + knobs.margin_mm
     ids = np.asarray(proj_ids, np.int64)
     first, count = mcb.plane_range(table.source_z_mm[ids], w, dz, z_lo, z_hi)
-    out = np.zeros((ids.size, int(count.max()) if ids.size else 1, scanner.n_cols), np.float32)
+    # page-aligned: the backprojector reads it in place on a CPU device (no device copy, mcb.MCBackprojector)
+    out = aligned_empty((ids.size, int(count.max()) if ids.size else 1, scanner.n_cols), np.float32)
+    out.fill(0.0)
     step = max(1, int(READ_CHUNK_BYTES // ((hi - lo) * scanner.n_cols * 4)))
     for i0 in range(0, ids.size, step):
         part = ids[i0:i0 + step]
