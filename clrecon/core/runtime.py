@@ -64,6 +64,16 @@ def aligned_empty(shape, dtype=np.float32) -> np.ndarray:
     return raw[off:off + nbytes].view(dtype).reshape(shape)
 
 
+def aligned_zeros(shape, dtype=np.float32) -> np.ndarray:
+    """Zero-filled :func:`aligned_empty`: NumPy's ``zeros`` (``calloc``), so a large array's pages
+    become resident only where they are written (a ``fill(0)`` would touch every page at once)."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    raw = np.zeros(nbytes + HOST_ALIGN_BYTES, np.uint8)
+    off = (-raw.ctypes.data) % HOST_ALIGN_BYTES
+    return raw[off:off + nbytes].view(dtype).reshape(shape)
+
+
 class KernelBuildError(OpenCLUnavailable):
     """A kernel file the chosen driver cannot build: one line naming file, device, options and the
     compiler's first error, and where to turn; the whole build log in ``.log``."""

@@ -83,3 +83,15 @@ def test_a_failed_build_names_the_file_the_device_and_the_options():
     msg = str(e.value)
     assert "\n" not in msg and "undeclared_name" in msg and "CLRECON_DEVICE=" in msg  # one line, the cause, a remedy
     assert "undeclared_name" in e.value.log
+
+
+@pytest.mark.parametrize("shape", [(0,), (3,), (7, 5), (300, 13, 240)])
+def test_aligned_arrays_start_on_a_page_and_zeros_are_zero(shape):
+    """``aligned_empty`` and ``aligned_zeros`` (what a CPU device reads in place) start on a page
+    boundary, C-contiguous, of the asked shape and dtype; ``aligned_zeros`` holds zeros."""
+    for make in (cl_runtime.aligned_empty, cl_runtime.aligned_zeros):
+        a = make(shape, np.float32)
+        assert a.shape == shape and a.dtype == np.float32 and a.flags.c_contiguous and a.flags.writeable
+        assert a.size == 0 or a.ctypes.data % cl_runtime.HOST_ALIGN_BYTES == 0
+    z = cl_runtime.aligned_zeros(shape, np.float64)
+    assert z.dtype == np.float64 and not z.any()

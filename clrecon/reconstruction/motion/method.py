@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from clrecon.core.resources import rss_mark
-from clrecon.core.runtime import aligned_empty
+from clrecon.core.runtime import aligned_empty, aligned_zeros
 from clrecon.reconstruction import rebin
 from clrecon.reconstruction.fbp import FanBeamGeometry
 from clrecon.reconstruction.motion import backproject as mcb
@@ -277,8 +277,7 @@ def slab_rows(store, table, scanner, cfg, variant: str, run_z, proj_ids, knobs, 
     ids = np.asarray(proj_ids, np.int64)
     first, count = mcb.plane_range(table.source_z_mm[ids], w, dz, z_lo, z_hi)
     # page-aligned: the backprojector reads it in place on a CPU device (no device copy, mcb.MCBackprojector)
-    out = aligned_empty((ids.size, int(count.max()) if ids.size else 1, scanner.n_cols), np.float32)
-    out.fill(0.0)
+    out = aligned_zeros((ids.size, int(count.max()) if ids.size else 1, scanner.n_cols), np.float32)
     step = max(1, int(READ_CHUNK_BYTES // ((hi - lo) * scanner.n_cols * 4)))
     for i0 in range(0, ids.size, step):
         part = ids[i0:i0 + step]
