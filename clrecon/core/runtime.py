@@ -253,12 +253,15 @@ class Runtime:
         ``CL_MEM_USE_HOST_PTR`` buffer: no copy, and no fresh pages to touch (a
         ``COPY_HOST_PTR`` buffer of 1 GB costs 0.8-2.5 s to fill here, docs/kernels.md
         "Rows read in place"). Anything else -- a GPU, another dtype, an unaligned or strided
-        array -- gets the copy of :meth:`to_device`. The caller must neither write ``array``
-        nor let it go while the buffer lives (the returned buffer keeps a reference to it)."""
+        array -- gets the copy of :meth:`to_device`; so does Oclgrind, whose uninitialised-value
+        plugin takes memory handed to it in place for unwritten (it reports every read of it). The
+        caller must neither write ``array`` nor let it go while the buffer lives (the returned
+        buffer keeps a reference to it)."""
         a = np.asarray(array)
         align = max(1, int(self.device.mem_base_addr_align) // 8)
+        oclgrind = "oclgrind" in self.device.platform.name.lower()
         # too large for one buffer: to_device raises the MemoryError with its message
-        if not (self.is_cpu and a.dtype == np.dtype(dtype) and a.flags.c_contiguous and a.nbytes > 0
+        if not (self.is_cpu and not oclgrind and a.dtype == np.dtype(dtype) and a.flags.c_contiguous and a.nbytes > 0
                 and a.ctypes.data % align == 0 and a.nbytes <= self.max_alloc_bytes):
             return self.to_device(a, dtype, name)
         mf = self.cl.mem_flags

@@ -520,3 +520,21 @@ def test_iterative_operator_kernels(grind, clean):
         ref = W.invert_field_reference(d, (2.0, 1.5, 3.0), 3)
         assert np.abs(got - ref).max() <= TOL["f32"] * np.abs(ref).max()
     clean()
+
+
+def test_memory_handed_in_place_is_copied_for_oclgrind(grind, clean):
+    """``share_with_device`` copies for Oclgrind: its uninitialised-value plugin takes memory handed
+    to it in place (``CL_MEM_USE_HOST_PTR``) for unwritten and reports every read of it, which made
+    the kernels' runs here fail whenever an input happened to be aligned (page-aligned plane rows)."""
+    from clrecon.core.runtime import aligned_zeros
+
+    a = aligned_zeros((64,))
+    a[:] = np.arange(64)
+    prg = grind.cl.Program(grind.context, """
+        __kernel void twice(__global const float *a, __global float *o) {
+            o[get_global_id(0)] = 2.0f * a[get_global_id(0)]; }
+        """).build()
+    out = grind.empty((64,))
+    prg.twice(grind.queue, (64,), None, grind.share_with_device(a, "a"), out).wait()
+    assert np.array_equal(grind.from_device(out, (64,)), 2.0 * np.arange(64, dtype=np.float32))
+    clean()
