@@ -51,27 +51,28 @@ def _format_define(key: str, value) -> str:
 HOST_ALIGN_BYTES = 4096
 
 
+def _aligned(shape, dtype, alloc) -> np.ndarray:
+    """A page-aligned C-contiguous array of ``shape`` and ``dtype`` inside ``alloc(n, uint8)``."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    raw = alloc(nbytes + HOST_ALIGN_BYTES, np.uint8)
+    off = (-raw.ctypes.data) % HOST_ALIGN_BYTES
+    return raw[off:off + nbytes].view(dtype).reshape(shape)
+
+
 def aligned_empty(shape, dtype=np.float32) -> np.ndarray:
     """Uninitialised C-contiguous host array whose data start on a page boundary.
 
     A page boundary satisfies any device's ``CL_DEVICE_MEM_BASE_ADDR_ALIGN`` (PoCL: 1024
     bits), so :meth:`Runtime.share_with_device` can hand the array to a CPU device without a
     copy (NumPy's own allocations start 16 bytes past one)."""
-    dtype = np.dtype(dtype)
-    nbytes = int(np.prod(shape)) * dtype.itemsize
-    raw = np.empty(nbytes + HOST_ALIGN_BYTES, np.uint8)
-    off = (-raw.ctypes.data) % HOST_ALIGN_BYTES
-    return raw[off:off + nbytes].view(dtype).reshape(shape)
+    return _aligned(shape, dtype, np.empty)
 
 
 def aligned_zeros(shape, dtype=np.float32) -> np.ndarray:
     """Zero-filled :func:`aligned_empty`: NumPy's ``zeros`` (``calloc``), so a large array's pages
     become resident only where they are written (a ``fill(0)`` would touch every page at once)."""
-    dtype = np.dtype(dtype)
-    nbytes = int(np.prod(shape)) * dtype.itemsize
-    raw = np.zeros(nbytes + HOST_ALIGN_BYTES, np.uint8)
-    off = (-raw.ctypes.data) % HOST_ALIGN_BYTES
-    return raw[off:off + nbytes].view(dtype).reshape(shape)
+    return _aligned(shape, dtype, np.zeros)
 
 
 class KernelBuildError(OpenCLUnavailable):
@@ -157,6 +158,11 @@ class Runtime:
     def is_cpu(self) -> bool:
         return bool(self.device.type & self.cl.device_type.CPU)
 
+    @property
+    def is_oclgrind(self) -> bool:
+        """Whether the device is Oclgrind's simulator (the suite's kernel checker)."""
+        return "oclgrind" in self.device.platform.name.lower()
+
     def program(self, name: str, **defines):
         """Build ``kernels/name`` with ``-Dkey=value`` options, once per runtime. ``_fast``: relaxed
         math; ``_folder``: a folder of kernels outside the package to look in first (a study's:
@@ -201,7 +207,7 @@ class Runtime:
     def _binary_path(self, src: str, opts: list[str]):
         """Where this program's binary is kept, or None where the driver keeps its own cache (PoCL)."""
         p = self.device.platform
-        if drivers.POCL.matches(p.name) or "oclgrind" in p.name.lower():
+        if drivers.POCL.matches(p.name) or self.is_oclgrind:
             return None
         key = "\0".join([p.name, p.version, self.device.name, self.device.driver_version, " ".join(opts), src])
         return default_cache_dir() / "kernels" / f"{hashlib.sha256(key.encode()).hexdigest()[:32]}.bin"
@@ -259,10 +265,9 @@ class Runtime:
         buffer keeps a reference to it)."""
         a = np.asarray(array)
         align = max(1, int(self.device.mem_base_addr_align) // 8)
-        oclgrind = "oclgrind" in self.device.platform.name.lower()
         # too large for one buffer: to_device raises the MemoryError with its message
-        if not (self.is_cpu and not oclgrind and a.dtype == np.dtype(dtype) and a.flags.c_contiguous and a.nbytes > 0
-                and a.ctypes.data % align == 0 and a.nbytes <= self.max_alloc_bytes):
+        if not (self.is_cpu and not self.is_oclgrind and a.dtype == np.dtype(dtype) and a.flags.c_contiguous
+                and a.nbytes > 0 and a.ctypes.data % align == 0 and a.nbytes <= self.max_alloc_bytes):
             return self.to_device(a, dtype, name)
         mf = self.cl.mem_flags
         return self.cl.Buffer(self.context, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=a)

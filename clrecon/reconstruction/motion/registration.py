@@ -133,8 +133,8 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
     kind = next((k for k in _BUILT_IN if isinstance(cfg, k)), None)
     if kind is not None:
         if initial is not None:
-            raise ValueError(f"initial: the {_BUILT_IN[kind]} registration starts from zero")
-        u = {TVL1Config: register_tvl1, LKConfig: register_lk, FlowConfig: _flow}[kind](f, m, spacing, cfg)
+            raise ValueError(f"initial: the {_BUILT_IN[kind][0]} registration starts from zero")
+        u = _BUILT_IN[kind][1](f, m, spacing, cfg)
     elif callable(getattr(cfg, "register", None)):
         u = cfg.register(f, m, spacing, tuple(float(o) for o in origin_mm), initial)
     else:
@@ -142,15 +142,16 @@ def register(fixed, moving, spacing_mm: tuple, origin_mm: tuple = (0.0, 0.0, 0.0
                         f"register() method, got {type(cfg).__name__}")
     bad = ~np.isfinite(u)
     if bad.any():  # never hand a later step NaN: a field is finite or the run stops here, naming the registration
-        raise RuntimeError(f"registration {_BUILT_IN.get(kind, type(cfg).__name__)} returned non-finite "
+        raise RuntimeError(f"registration {_BUILT_IN[kind][0] if kind else type(cfg).__name__} returned non-finite "
                            f"displacements in {int(bad.any(axis=0).sum())} of {bad[0].size} voxels of a "
                            f"{'x'.join(map(str, f.shape[::-1]))} pair: a defect of that registration, not of the "
                            f"data (its inputs were finite); please report it with the scene")
     return u
 
 
-#: The built-in registrations' config types (a subclass counts as its base) and their names in messages.
-_BUILT_IN = {TVL1Config: "TV-L1", LKConfig: "Lucas-Kanade (OpenCL)", FlowConfig: "Lucas-Kanade (scikit-image)"}
+#: The built-in registrations' config types (a subclass counts as its base): (name in messages, function).
+_BUILT_IN = {TVL1Config: ("TV-L1", register_tvl1), LKConfig: ("Lucas-Kanade (OpenCL)", register_lk),
+             FlowConfig: ("Lucas-Kanade (scikit-image)", _flow)}
 
 
 #: Peak bytes of one Lucas-Kanade registration per voxel of its volumes, above its process's
