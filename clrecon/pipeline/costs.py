@@ -18,6 +18,7 @@ from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.interpolation import METHODS
 from clrecon.reconstruction.iterative import method as mcir
 from clrecon.reconstruction.motion import memory as mc_memory
+from clrecon.reconstruction.motion import method as mc_method
 from clrecon.reconstruction.rebin import slice_window_mm
 from clrecon.reconstruction.reconstruct import KEEP_PLANS_BYTES, Targets, slab_bytes_per_slice, slices_per_slab
 from clrecon.scan.table import cached_projection_table, recorded_content
@@ -148,11 +149,13 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
                                                             slab_of(scene.scan.feed_mm(sc, p))[2],
                                                             voxel_mm=rc.voxel_mm)
                                     for p in pitches))
-    if mcir.NAME in methods:  # mcir's slabs after the model (the plans and truths still held)
-        peak = max(peak, held + max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius, z_extent, n_proj[p],
-                                                          scene.scan.feed_mm(sc, p),
-                                                          mcir.n_bins(cached_projection_table(scene, p), rc.mcir))
-                                    for p in pitches))
+    if mcir.NAME in methods:  # mcir's slabs after the model (the plans and truths still held, every variant's model)
+        z_run = reconstruct.slice_positions(scene) if slices_z is None else slices_z
+        n_basis = mc_method.basis_of(rc.mc, n_c, n_r).size
+        models = n_var * mc_memory.model_bytes(rc.mc, n_c, n_r, nz, rc.ny, rc.nx, voxel_mm=rc.voxel_mm)
+        peak = max(peak, held + models + max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius,
+                                                                   cached_projection_table(scene, p), z_run, n_basis)
+                                             for p in pitches))
     peak = max(peak, metrics_peak)
     if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)
         peak += measured_memory_bytes(scene)

@@ -14,7 +14,10 @@ from clrecon.config.overrides import load_scene
 from clrecon.core.errors import ClreconError, SceneError
 from clrecon.pipeline import executors
 from clrecon.pipeline.run import run
+from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.interpolation import METHODS, default_methods, first_pass, second_pass_methods
+from clrecon.reconstruction.iterative import method as mcir
+from clrecon.scan.table import cached_projection_table
 
 QUIET = dict(progress=False, log=lambda *a: None)
 METHODS_RUN = "barycentric,mc,mcir"
@@ -177,3 +180,41 @@ def test_mcir_starts_from_mc_or_the_first_pass_unless_asked_for_zero(tmp_path, r
         run(load_scene("tiny", recon__mcir__init="mc"), tmp_path / "refused", methods=["barycentric", "mcir"],
             cache_dir=tmp_path / "cache", **QUIET)
     assert "recon.mcir.init = 'mc'" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_preflight_models_the_slab_the_run_solves(reference):
+    """The pre-flight's mcir part (``method.run_memory_bytes``) sizes the same views, volume and bins
+    as the run's slab (its info in results.json), through the same cut."""
+    _, res = reference
+    scene = load_scene("tiny")
+    rc, sc = scene.recon, scene.scanner
+    z = reconstruct.slice_positions(scene)
+    table = cached_projection_table(scene, 0.1)
+    radius = reconstruct.object_radius_mm(scene)
+    cuts = mcir.slab_cuts(sc, rc, rc.mcir, radius, table, z, 6)
+    (info,) = res["stages"]["mcir"]["slabs"]["p0.100"]["noise-free"].values()
+    assert cuts == [(0, len(z))]
+    st = mcir.slab_setup(sc, rc, rc.mcir, radius, table.source_z_mm, z)
+    assert [st.grid.nz, st.grid.ny, st.grid.nx] == info["grid"] and st.views.size == info["views"]
+    assert mcir.n_bins(table.take(st.views), rc.mcir) == info["bins"]
+    nv = st.grid.nz * st.grid.ny * st.grid.nx
+    rays = 8 * info["views"] * sc.n_rows * sc.n_cols
+    assert mcir.run_memory_bytes(sc, rc, rc.mcir, radius, table, z, 6) == \
+        rays + 4 * nv * (3 + info["bins"] + 18 + 8) + 12 * nv * info["bins"]
+
+
+def test_a_budget_below_the_whole_cuts_slabs_under_it():
+    scene = load_scene("demo")
+    rc, sc = scene.recon, scene.scanner
+    z = reconstruct.slice_positions(scene)
+    table = cached_projection_table(scene, 0.1)
+    radius = reconstruct.object_radius_mm(scene)
+    whole = mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z, 6)
+    single = max(mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z[a:a + 1], 6) for a in range(len(z)))
+    assert single < whole
+    budget = 0.5 * (single + whole)  # some cut fits it; the whole does not
+    cuts = mcir.slab_cuts(sc, rc, rc.mcir, radius, table, z, 6, budget=budget)
+    assert len(cuts) > 1 and cuts[0][0] == 0 and cuts[-1][1] == len(z)
+    assert all(a2 == b1 for (_, b1), (a2, _) in zip(cuts, cuts[1:], strict=False))
+    sizes = [mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z[a:b], 6) for a, b in cuts]
+    assert max(sizes) <= budget < whole

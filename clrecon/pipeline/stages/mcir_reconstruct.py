@@ -15,8 +15,6 @@ Timed as ``registration`` (the model, when this stage fits it) and ``mcir_solve`
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from clrecon.outputs.volumes import pitch_key, recon_path
@@ -35,21 +33,10 @@ def skip(run) -> str | None:
     return None if NAME in run.methods else "the mcir method is not asked for (recon.methods)"
 
 
-def slabs(run, table) -> list[tuple[int, int]]:
-    """The slice ranges ``(a, b)``: the fewest equal slabs whose modelled memory is under :data:`SLAB_BYTES`."""
-    sc, knobs, z = run.scene.scanner, run.scene.recon.mcir, np.asarray(run.slices_z)
-    n = len(z)
-    for k in range(1, n + 1):
-        size = math.ceil(n / k)
-        cuts = [(a, min(n, a + size)) for a in range(0, n, size)]
-        worst = 0
-        for a, b in cuts:
-            st = mcir.slab_setup(sc, run.scene.recon, knobs, run.recon_cfg.object_radius_mm, table.source_z_mm, z[a:b])
-            worst = max(worst, mcir.memory_bytes(st.grid, st.views.size, sc.n_rows, sc.n_cols,
-                                                 mcir.n_bins(table.take(st.views), knobs), knobs.density))
-        if worst <= SLAB_BYTES:
-            return cuts
-    return [(a, a + 1) for a in range(n)]
+def slabs(run, table, n_basis: int) -> list[tuple[int, int]]:
+    """The slice ranges ``(a, b)`` (:func:`clrecon.reconstruction.iterative.method.slab_cuts`)."""
+    return mcir.slab_cuts(run.scene.scanner, run.scene.recon, run.scene.recon.mcir, run.recon_cfg.object_radius_mm,
+                          table, run.slices_z, n_basis)
 
 
 def start_method(run) -> str | None:
@@ -91,8 +78,9 @@ def _unit(run, pitch: float, table, store, a: int, b: int, variant: str, model, 
         return work_units.mcir_slab, (run.recon_cfg, run.scene, pitch, str(run.cache_path), run.slices_z, a, b,
                                       run.targets, variant, model, start_image(run, pk, variant, ref_ij, a, b))
 
+    # drain_first: the previous slab's volumes are written before this slab's solve (one slab of output held)
     return Unit(here, None if run.scene.measured else remote,
-                f"mcir slab of slices {a}..{b - 1} ({variant}) at pitch {pitch:g}")
+                f"mcir slab of slices {a}..{b - 1} ({variant}) at pitch {pitch:g}", drain_first=True)
 
 
 def stage(run, pitch: float, plan, store):
@@ -103,7 +91,7 @@ def stage(run, pitch: float, plan, store):
     todo, scan, models, seconds = got
     run.note("mcir", start=start_method(run) or "zero")
     table = scan.plan_table  # the usable views (a measured scan's excluded ones left out)
-    cuts = slabs(run, table)
+    cuts = slabs(run, table, max(m.fields.shape[0] for m in models.values()))
     units_ = [_unit(run, pitch, table, store, a, b, v, models[v], scan.ref_ij) for v in run.variants if todo[v].size
               for a, b in cuts if (~run.writer.done(recon_path(pk, v, NAME))[a:b]).any()]
 

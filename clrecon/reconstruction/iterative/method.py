@@ -32,6 +32,7 @@ import numpy as np
 import scipy.ndimage
 
 from clrecon.core.conventions import mu_to_hu, voxel_coords
+from clrecon.core.resources import rss_mark
 from clrecon.reconstruction.iterative import geometry as geo
 from clrecon.reconstruction.iterative.motion_operator import FIELD_CACHE_BYTES, MotionConeOperator
 from clrecon.reconstruction.iterative.sart import SARTConfig, os_sart
@@ -79,16 +80,18 @@ def needed_projections(scanner, recon, knobs, object_radius_mm: float, table, sl
     return np.asarray(table.index)[(src >= z.min() - w) & (src <= z.max() + w)]
 
 
-def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n_bins: int, density: bool) -> int:
-    """Peak bytes of :func:`reconstruct_slab` (a model, not measured): the projections and SART's
-    row weights (2 x 4 B per ray), the unknown and its update (K volumes each), SART's column
-    weights (K volumes per bin), the warp fields kept per bin (3 volumes per bin, at most
-    ``motion_operator.FIELD_CACHE_BYTES``), the model on the grid and a few working volumes."""
+def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n_bins: int, density: bool,
+                 n_basis: int) -> int:
+    """Peak bytes of :func:`reconstruct_slab` (a model): the projections and SART's row weights
+    (2 x 4 B per ray), the unknown and its update (K volumes each), SART's column weights (K volumes
+    per bin), the warp fields kept per bin (3 volumes per bin, at most
+    ``motion_operator.FIELD_CACHE_BYTES``), the model on the grid (3 volumes per basis field,
+    ``n_basis``) and 8 working volumes. Measured against a run's trace in docs/iterative.md "Memory"."""
     nv = grid.nx * grid.ny * grid.nz
     k = 2 if density else 1
     rays = 2 * 4 * n_views * n_rows * n_cols
     fields = min(FIELD_CACHE_BYTES, 3 * 4 * nv * n_bins)
-    return int(rays + 4 * nv * (3 * k + k * n_bins + 3 * 6 + 8) + fields)
+    return int(rays + 4 * nv * (3 * k + k * n_bins + 3 * n_basis + 8) + fields)
 
 
 def n_bins(table, knobs) -> int:
@@ -96,22 +99,37 @@ def n_bins(table, knobs) -> int:
     return len(state_bins(table.cardiac_phase, table.resp_amplitude, knobs.cardiac_bins, knobs.resp_bins))
 
 
-def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, z_extent_mm: float, n_total_views: int,
-                     feed_mm: float, bins: int) -> int:
-    """The modelled peak of a run's ``mcir`` stage (bytes): :func:`memory_bytes` of one volume over the
-    run's slices (``z_extent_mm``) and their views (sources within the cone's far half-width w of a
-    slice, at ``feed_mm`` per rotation, at most ``n_total_views``), or of a slab under
-    :data:`SLAB_BYTES` where the stage cuts the slices (a slab's views and planes scale with its z
-    extent plus the cone's); ``bins``: the motion-state bins the views fill (:func:`n_bins`)."""
-    w = geo.half_cone_mm(scanner, object_radius_mm)
-    n_views = int(min(n_total_views, (z_extent_mm + 2 * w) / feed_mm * scanner.views_per_rotation
-                      + scanner.views_per_rotation))
-    f = int(knobs.voxel_factor)
-    nz = int(np.ceil((z_extent_mm + 4 * w) / knobs.plane_dz_mm)) + 1
-    grid = geo.VolumeGrid(nx=recon.nx * f, ny=recon.ny * f, nz=nz, voxel_mm=recon.voxel_mm / f, z0_mm=0.0,
-                          dz_mm=knobs.plane_dz_mm)
-    whole = memory_bytes(grid, n_views, scanner.n_rows, scanner.n_cols, bins, knobs.density)
-    return int(min(whole, max(SLAB_BYTES, whole * (4 * w) / (z_extent_mm + 4 * w))))
+def slab_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int) -> int:
+    """:func:`memory_bytes` of the slab of slices ``slices_z`` (mm) over the views of ``table`` (the
+    scan's usable views, a :class:`~clrecon.scan.table.ProjectionTable`): its own views, volume
+    and filled bins (:func:`slab_setup`)."""
+    st = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
+    return memory_bytes(st.grid, st.views.size, scanner.n_rows, scanner.n_cols, n_bins(table.take(st.views), knobs),
+                        knobs.density, n_basis)
+
+
+def slab_cuts(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int,
+              budget: float = SLAB_BYTES) -> list[tuple[int, int]]:
+    """The slice ranges ``(a, b)`` of ``slices_z`` the stage solves one at a time: the fewest equal
+    slabs whose :func:`slab_memory_bytes` is under ``budget``, else one slice each."""
+    z = np.asarray(slices_z, np.float64)
+    n = len(z)
+    for k in range(1, n + 1):
+        size = -(-n // k)
+        cuts = [(a, min(n, a + size)) for a in range(0, n, size)]
+        if max(slab_memory_bytes(scanner, recon, knobs, object_radius_mm, table, z[a:b], n_basis)
+               for a, b in cuts) <= budget:
+            return cuts
+    return [(a, a + 1) for a in range(n)]
+
+
+def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int) -> int:
+    """The modelled peak of a run's ``mcir`` stage (bytes) on the slices ``slices_z`` (mm) of a scan
+    whose usable views are ``table``: the largest :func:`slab_memory_bytes` of :func:`slab_cuts`
+    (the same cut and the same views, volumes and bins as the stage's)."""
+    z = np.asarray(slices_z, np.float64)
+    return max(slab_memory_bytes(scanner, recon, knobs, object_radius_mm, table, z[a:b], n_basis)
+               for a, b in slab_cuts(scanner, recon, knobs, object_radius_mm, table, z, n_basis))
 
 
 def target_slices(vol, grid: geo.VolumeGrid, slices_z, nx: int, ny: int, voxel_mm: float) -> np.ndarray:
@@ -163,16 +181,19 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
     setup = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
     sub = table.take(setup.views)
     proj = np.asarray(projections(setup.views), np.float32)
+    rss_mark(f"mcir: the projections of {setup.views.size} views ({proj.nbytes / 1e9:.3f} GB)")
     groups = geo.view_groups(scanner, sub)
     bins = state_bins(sub.cardiac_phase, sub.resp_amplitude, knobs.cardiac_bins, knobs.resp_bins)
     op = MotionConeOperator(setup.grid, groups, bins, model, warp_mode=knobs.warp, density=knobs.density,
                             mu_water_per_mm=mu_water_per_mm, rt=rt)
+    rss_mark(f"mcir: the operator on {setup.grid.nz} x {setup.grid.ny} x {setup.grid.nx} voxels, {len(bins)} bins")
     cfg = SARTConfig(epochs=knobs.epochs, relaxation=knobs.relaxation, decay=knobs.decay, tol=knobs.tol)
     t1 = time.perf_counter()
     x0 = np.zeros(op.unknown_shape, np.float32)
     if start_hu is not None:
         x0[0] = start_volume(start_hu, setup.grid, slices_z, recon.voxel_mm, mu_water_per_mm)
     X, hist = os_sart(op, lambda s: proj[op.subset_rows(s)], x0, cfg, log=log)
+    rss_mark("mcir: the solve")
     t2 = time.perf_counter()
     nc, nr = targets.shape
     out = np.empty((nc, nr, len(slices_z), recon.ny, recon.nx), np.float32)
@@ -181,6 +202,7 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
             vol = op.state_volume(X, c, a)
             out[i, j] = mu_to_hu(target_slices(vol, setup.grid, slices_z, recon.nx, recon.ny, recon.voxel_mm),
                                  mu_water_per_mm)
+    rss_mark("mcir: the targets")
     info = {"views": int(setup.views.size), "grid": [setup.grid.nz, setup.grid.ny, setup.grid.nx],
             "plane_dz_mm": setup.grid.dz_mm, "voxel_mm": setup.grid.voxel_mm, "bins": len(bins),
             "sart": hist.as_dict(), "seconds": {"setup": round(t1 - t0, 3), "solve": round(t2 - t1, 3),

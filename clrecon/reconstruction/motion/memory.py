@@ -91,6 +91,15 @@ def slab_model_planes(s: int, slice_mm: float, margin_mm: float, nz: int) -> int
     return int(min(nz, s + 2 * np.ceil(margin_mm / slice_mm) + 4))
 
 
+def model_bytes(knobs, n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int, *, voxel_mm: float) -> int:
+    """Bytes of one fitted motion model (:class:`~clrecon.reconstruction.motion.model.MotionModel`): its
+    basis fields, 3 components float32 each, on the registration grid (``nz`` planes, the
+    reconstruction's ``ny`` x ``nx`` in-plane grid of ``voxel_mm`` voxels coarsened by
+    :func:`method.factor_of`)."""
+    f = mcm.factor_of(nx, ny, voxel_mm, knobs)
+    return mcm.basis_of(knobs, n_cardiac, n_resp).size * 3 * nz * (ny // f) * (nx // f) * 4
+
+
 def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm: float, n_var: int,
                   n_cardiac: int, n_resp: int, nz: int, ny: int, nx: int,
                   max_projections: int | None = None, unit_slices: int | None = None, *,
