@@ -115,10 +115,11 @@ def write_unit(folder: Path, stem: str, arrays: dict, meta: dict, fault: str, co
     tmp = folder / f".{stem}.{os.getpid()}.tmp"
     with open(tmp, "wb") as f:
         half = len(data) // 2
-        f.write(data[:half])
+        view = memoryview(data)  # the halves written without copies of the image
+        f.write(view[:half])
         f.flush()
         faults.point(fault)  # test hook: a SIGKILL in the middle of the write
-        f.write(data[half:])
+        f.write(view[half:])
         f.flush()
         os.fsync(f.fileno())
     final = folder / f"{stem}.{_digest(data)}{SUFFIX}"

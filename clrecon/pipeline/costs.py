@@ -139,10 +139,9 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     regions = n_targets * target_vox if any(g == "resp" for g in grid.values()) else 0
     metrics_peak = n_proc * (regions + 3 * target_vox * 4) + (n_proc - 1) * 0.4e9
     if "mc" in methods or mcir.NAME in methods:  # mc's model (mcir's too), at its worst pitch, after the reconstruction
-        # of its pitch: the pitch's plans (its input) and the truths beside it stay
-        # (docs/results/code-history.md "The mc working set against the measured peak")
-        held = plans + (truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx) if overlap
-                        else 0)
+        # of its pitch: the pitch's plans (its input) stay; the truths are done (both stages come after
+        # ``truth`` in the graph) (docs/results/code-history.md "The mc working set against the measured peak")
+        held = plans
         # the first pass's unit files hold the pitch's reconstruction slabs
         peak = max(peak, held + max(mc_memory.working_bytes(sc, window, rc.mc, z_extent, scene.scan.feed_mm(sc, p),
                                                             n_var, n_c, n_r, nz, rc.ny, rc.nx, n_proj[p],

@@ -28,6 +28,7 @@ import numpy as np
 from clrecon.core.conventions import voxel_coords
 from clrecon.core.detector import spot_shift_in_frame
 from clrecon.core.errors import ClreconError
+from clrecon.core.resources import rss_mark
 from clrecon.core.runtime import aligned_empty, get_runtime
 from clrecon.core.stage_times import StageTimes
 from clrecon.reconstruction import fbp as fbp_mod
@@ -332,6 +333,7 @@ def reconstruct(cfg: ReconstructionConfig, store, plan_: SlabWeights, variants=(
             continue
 
         def emit(key, vol, s0=s0, s1=s1):
+            rss_mark(f"reconstruct: slices {s0}..{s1 - 1} of {key} ({vol.nbytes / 1e9:.3f} GB)")
             if on_slab is not None:
                 on_slab(slice(s0, s1), {key: vol})
                 return

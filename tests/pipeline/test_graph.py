@@ -152,3 +152,19 @@ def test_the_executors_honour_after():
     assert not ex.ready((c, None))
     ex.done[(b, 0.2)] = None
     assert ex.ready((c, None)) and ex.inputs((c, None)) == {"thing": {0.1: 1, 0.2: 2}}
+
+
+@pytest.mark.parametrize("name", ["mc_reconstruct", "mcir_reconstruct"])
+def test_the_motion_stages_wait_for_the_truths(name):
+    """``mc`` and ``mcir`` start once the truths (a once-per-run stage beside the run) are done, so
+    their working sets never meet (the pre-flight counts them apart: ``costs.run_costs``)."""
+    ex = Executor()
+    ex.nodes = serial_order(graph_mod.GRAPH, (0.1, 0.02))
+    st = next(s for s in graph_mod.GRAPH if s.name == name)
+    truth = next(n for n in ex.nodes if n[0].name == "truth")
+    ex.done = {n: None for n in ex.nodes if n[0].name not in (name, "truth") and n[0].name in
+               ("plan", "simulate", "truth_free", "reconstruct", "mc_reconstruct")}
+    node = (st, 0.1)
+    assert not ex.ready(node)
+    ex.done[truth] = None
+    assert ex.ready(node)

@@ -28,10 +28,17 @@ from clrecon.reconstruction.motion.registration import FLOW_BYTES_PER_VOXEL, reg
 #: (``benchmarks/studies/motion-model/registration_memory.py``; docs/results/code-history.md "One
 #: Lucas-Kanade registration's memory").
 WORKER_BYTES = 95_000_000
-#: Bytes per (slice, view, target) of a slab's first-pass plan (barycentric: 3 neighbours of int64
-#: index and float64 weight, 48 bytes), its slots and the planning's transients (measured on
-#: ``demo``: docs/results/code-history.md "The mc working set against the measured peak").
-PLAN_BYTES = 300
+#: Bytes per (slice, view, target) of a slab's first-pass plan and slots: the plan's arrays (barycentric:
+#: 3 neighbours of int64 index and float64 weight and an int8 branch, 49 bytes) and the slots' (3 of
+#: int32 projection and float32 weight, 24 bytes) (:func:`plan_bytes`).
+PLAN_BYTES = 73
+#: Bytes per (slice, view, target) and SSRB candidate of that (slice, view) that the planning leaves
+#: in the process beyond its arrays (its per-candidate work; the resident set after the plan,
+#: measured on ``demo`` at pitches 0.10 and 0.02 and on ``paper-p010`` slabs of 8 and 32 slices:
+#: docs/results/code-history.md "The first-pass plan's memory").
+PLAN_CANDIDATE_BYTES = 10
+#: Bytes the planning of a slab leaves whatever its size (the same measurements: 25-45 MB).
+PLAN_FIXED_BYTES = 45_000_000
 #: Plane rows of one slab stay within this many bytes (half the reconstruction's slab budget).
 ROWS_BYTES = reconstruct.SLAB_BYTES / 2
 #: A slab may grow past the rows budget while its plane rows stay within this factor of its first
@@ -45,6 +52,15 @@ GROWTH = 1.5
 def _bytes_per_projection(scanner, window_mm: float, knobs) -> int:
     """Bytes of one projection's plane rows ((planes, n_cols) float32) for an SSRB window of ``window_mm``."""
     return (int((2 * (window_mm + knobs.plane_dz_mm)) / knobs.plane_dz_mm) + 2) * scanner.n_cols * 4
+
+
+def plan_bytes(slices: int, views_per_rotation: int, n_targets: int, candidates: float) -> int:
+    """Modelled bytes of one slab's first-pass plan and slots while ``mc`` uses them: ``slices`` x
+    ``views_per_rotation`` x ``n_targets`` elements of :data:`PLAN_BYTES` and :data:`PLAN_CANDIDATE_BYTES`
+    per SSRB candidate (``candidates`` per (slice, view): the SSRB window's turns, 2 w / feed), and
+    :data:`PLAN_FIXED_BYTES`."""
+    return int(PLAN_FIXED_BYTES + slices * views_per_rotation * n_targets
+               * (PLAN_BYTES + PLAN_CANDIDATE_BYTES * candidates))
 
 
 def plane_row_slabs(table, scanner, cfg, slices_z, knobs, budget: float | None = None) -> list[tuple[int, int]]:
@@ -134,12 +150,11 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
       kept rows, the registration's fields and averages, the previous round's model (the new model
       and the fit's block are made once the registrations are done);
     - ``round backprojection`` (rounds after the first, per slab): the first pass and the earlier slabs' images,
-      the rows kept for other variants, the slab's first-pass plan and slots (:data:`PLAN_BYTES`
-      per (slice, view, target)), the model, the slab's plane rows, and the
-      larger of what their making and their use add: the raw rows being read (3 chunks of
-      ``READ_CHUNK_BYTES``: the chunk, its covering range and its SSRB rows), or the model's copy on
-      the device (host memory on a CPU driver; the rows, page-aligned, are read in place there) and
-      the slab's images;
+      the rows kept for other variants, the slab's first-pass plan and slots (:func:`plan_bytes`), the
+      model, the slab's plane rows, and the larger of what their making and their use add: the raw
+      rows being read (3 chunks of ``READ_CHUNK_BYTES``: the chunk, its covering range and its SSRB
+      rows), or the model's copy on the device (host memory on a CPU driver; the rows, page-aligned,
+      are read in place there) and the slab's images;
     - ``final pass`` (per slab and variant, :func:`mc_fbp.reconstruct_slab`): the plane rows (every
       variant's where kept), the plan and slots, every variant's model, the model refined to the
       reconstruction grid on the planes the slab reaches (:func:`slab_model_planes`; a copy of the
@@ -201,7 +216,7 @@ def working_parts(scanner, window_mm: float, knobs, z_extent_mm: float, feed_mm:
     nb = mcm.basis_of(knobs, n_cardiac, n_resp).size  # the model's basis fields
     fit_block = (4 * n_targets + nb) * FIT_BLOCK * 8
     registration = (n_resp + n_cardiac) * fld + n_resp * n_reg * 4 + n_cardiac * n_reg * (8 + 4)
-    plan = PLAN_BYTES * s * scanner.views_per_rotation * n_targets
+    plan = plan_bytes(s, scanner.views_per_rotation, n_targets, 2 * w / feed_mm)
     read = 3 * min(mcm.READ_CHUNK_BYTES, n_proj * scanner.n_rows * scanner.n_cols * 4)
     # a scikit-image Lucas-Kanade step runs in a pool (1 worker: in this process); a TV-L1 or OpenCL
     # Lucas-Kanade step in this process on the OpenCL device. The steps run one after the other: the
