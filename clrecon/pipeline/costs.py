@@ -148,7 +148,7 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
                                                             slab_of(scene.scan.feed_mm(sc, p))[2],
                                                             voxel_mm=rc.voxel_mm)
                                     for p in pitches))
-    if mcir.NAME in methods:  # mcir's slabs after the model (the plans and truths still held, every variant's model)
+    if mcir.NAME in methods:  # mcir's slabs after the model (the plans and every variant's model held)
         z_run = reconstruct.slice_positions(scene) if slices_z is None else slices_z
         n_basis = mc_method.basis_of(rc.mc, n_c, n_r).size
         models = n_var * mc_memory.model_bytes(rc.mc, n_c, n_r, nz, rc.ny, rc.nx, voxel_mm=rc.voxel_mm)

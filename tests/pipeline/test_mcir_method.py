@@ -218,3 +218,16 @@ def test_a_budget_below_the_whole_cuts_slabs_under_it():
     assert all(a2 == b1 for (_, b1), (a2, _) in zip(cuts, cuts[1:], strict=False))
     sizes = [mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z[a:b], 6) for a, b in cuts]
     assert max(sizes) <= budget < whole
+
+
+def test_the_bins_counted_are_the_bins_solved():
+    """``n_bins`` (the pre-flight's count, from the bin keys alone) equals the bins ``state_bins`` makes."""
+    scene = load_scene("demo")
+    table = cached_projection_table(scene, 0.1)
+    knobs = scene.recon.mcir
+    rng = np.random.default_rng(3)
+    for views in (None, np.sort(rng.choice(len(table.source_z_mm), 700, replace=False)), np.arange(40)):
+        c, a = table.cardiac_phase, table.resp_amplitude
+        if views is not None:
+            c, a = c[views], a[views]
+        assert mcir.n_bins(table, knobs, views) == len(mcir.state_bins(c, a, knobs.cardiac_bins, knobs.resp_bins))

@@ -36,7 +36,7 @@ from clrecon.core.resources import rss_mark
 from clrecon.reconstruction.iterative import geometry as geo
 from clrecon.reconstruction.iterative.motion_operator import FIELD_CACHE_BYTES, MotionConeOperator
 from clrecon.reconstruction.iterative.sart import SARTConfig, os_sart
-from clrecon.reconstruction.iterative.state_bins import state_bins
+from clrecon.reconstruction.iterative.state_bins import bin_keys, state_bins
 from clrecon.reconstruction.motion.model import MotionModel
 
 #: The method this module makes (its registry entry: :mod:`clrecon.reconstruction.interpolation.mcir`).
@@ -94,9 +94,13 @@ def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n
     return int(rays + 4 * nv * (3 * k + k * n_bins + 3 * n_basis + 8) + fields)
 
 
-def n_bins(table, knobs) -> int:
-    """The motion-state bins the views of ``table`` fill (empty bins cost nothing)."""
-    return len(state_bins(table.cardiac_phase, table.resp_amplitude, knobs.cardiac_bins, knobs.resp_bins))
+def n_bins(table, knobs, views=None) -> int:
+    """The motion-state bins the views of ``table`` (or its positions ``views``) fill (empty bins cost
+    nothing): the number of :func:`state_bins`' bins."""
+    c, a = table.cardiac_phase, table.resp_amplitude
+    if views is not None:
+        c, a = c[views], a[views]
+    return int(np.unique(bin_keys(c, a, knobs.cardiac_bins, knobs.resp_bins)).size)
 
 
 def slab_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int) -> int:
@@ -104,7 +108,7 @@ def slab_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, sli
     scan's usable views, a :class:`~clrecon.scan.table.ProjectionTable`): its own views, volume
     and filled bins (:func:`slab_setup`)."""
     st = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
-    return memory_bytes(st.grid, st.views.size, scanner.n_rows, scanner.n_cols, n_bins(table.take(st.views), knobs),
+    return memory_bytes(st.grid, st.views.size, scanner.n_rows, scanner.n_cols, n_bins(table, knobs, st.views),
                         knobs.density, n_basis)
 
 
@@ -114,13 +118,19 @@ def slab_cuts(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n
     slabs whose :func:`slab_memory_bytes` is under ``budget``, else one slice each."""
     z = np.asarray(slices_z, np.float64)
     n = len(z)
+
+    def fits(a, b):
+        return slab_memory_bytes(scanner, recon, knobs, object_radius_mm, table, z[a:b], n_basis) <= budget
+
+    singles = [(a, a + 1) for a in range(n)]
+    if not all(fits(a, b) for a, b in singles):  # no cut fits where one slice alone does not
+        return singles
     for k in range(1, n + 1):
         size = -(-n // k)
         cuts = [(a, min(n, a + size)) for a in range(0, n, size)]
-        if max(slab_memory_bytes(scanner, recon, knobs, object_radius_mm, table, z[a:b], n_basis)
-               for a, b in cuts) <= budget:
+        if all(fits(a, b) for a, b in cuts):
             return cuts
-    return [(a, a + 1) for a in range(n)]
+    return singles
 
 
 def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int) -> int:

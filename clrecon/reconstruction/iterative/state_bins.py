@@ -26,9 +26,9 @@ class StateBins:
         return len(self.members)
 
 
-def state_bins(cardiac_phase, resp_amplitude, n_cardiac: int, n_resp: int) -> StateBins:
-    """Bins of views by (c, a): see the module docstring. ``cardiac_phase`` and ``resp_amplitude``
-    are (n,) arrays (the views' recorded states)."""
+def bin_keys(cardiac_phase, resp_amplitude, n_cardiac: int, n_resp: int) -> np.ndarray:
+    """Each view's bin number ``i_c n_resp + i_a`` (see the module docstring): (n,) int64. The same
+    arguments and checks as :func:`state_bins`."""
     c = np.asarray(cardiac_phase, np.float64)
     a = np.asarray(resp_amplitude, np.float64)
     if c.shape != a.shape or c.ndim != 1 or c.size == 0:
@@ -43,7 +43,15 @@ def state_bins(cardiac_phase, resp_amplitude, n_cardiac: int, n_resp: int) -> St
     lo, hi = float(a.min()), float(a.max())
     span = hi - lo
     ia = np.zeros_like(ic) if span <= 0 else np.minimum(((a - lo) / span * n_resp).astype(np.int64), n_resp - 1)
-    key = ic * n_resp + ia
+    return ic * n_resp + ia
+
+
+def state_bins(cardiac_phase, resp_amplitude, n_cardiac: int, n_resp: int) -> StateBins:
+    """Bins of views by (c, a): see the module docstring. ``cardiac_phase`` and ``resp_amplitude``
+    are (n,) arrays (the views' recorded states)."""
+    key = bin_keys(cardiac_phase, resp_amplitude, n_cardiac, n_resp)
+    c = np.asarray(cardiac_phase, np.float64)
+    a = np.asarray(resp_amplitude, np.float64)
     order = np.argsort(key, kind="stable")
     _, starts = np.unique(key[order], return_index=True)
     members, states = [], []
