@@ -54,7 +54,7 @@ Knobs (one changed at a time from the scene's setting, the *base*):
   ``THIN_Z_MM`` of slices, the base knobs on a run of every slice (``z64`` on demo: 64 mm of
   z for the registration), scored on the sweep's slices, its seconds the whole run's (the
   pipeline reconstructs every slice it registers); not in the quick sweep;
-- mcir: OS-SART epochs at most ``e4`` (base), ``e2``, ``e1`` (``recon.mcir.epochs``; ``tol`` may
+- mcir: OS-SART epochs at most ``e1`` (base), ``e2``, ``e4`` (``recon.mcir.epochs``; ``tol`` may
   stop it sooner: ``solver`` says), from mc's image (base) or from ``zero`` (``init``), on mc's
   base model; not in the quick sweep;
 - every method except mc: views per rotation N (base) and N/2 (``v180`` on demo), the image grid nx = ny
@@ -117,8 +117,8 @@ MC_POINTS = (("r2", "base", {}), ("r1", "rounds", {"rounds": 1}), ("ds2", "downs
 #: mcir's points: (code, knob, ``recon.mcir`` overrides, whether the run makes mc's volumes too); the first
 #: is the scene's setting with mc in the run (``init`` 'auto': OS-SART starts from mc's reference target).
 #: 'zero' starts from nothing, so its run has no mc pass (the mcir stage fits the motion model itself).
-MCIR_POINTS = (("e4", "base", {}, True), ("e2", "epochs", {"epochs": 2}, True), ("e1", "epochs", {"epochs": 1}, True),
-               ("zero", "init", {"init": "zero"}, False))
+MCIR_POINTS = (("e1", "base", {}, True), ("e2", "epochs", {"epochs": 2}, True), ("e4", "epochs", {"epochs": 4}, True),
+               ("zero", "init", {"init": "zero", "epochs": 4}, False))
 
 
 @dataclass(frozen=True)
@@ -636,7 +636,7 @@ def plot_tradeoff(result: dict, path) -> Path:
                   "widths; all / tN = every / the N nearest-in-z candidate turns; vN = N views per rotation; N² = "
                   "N x N image grid (same FOV);\nmc (base r2): rN = N registration rounds, ds2 = registration "
                   "at half the in-plane voxels, tvl1 = TV-L1 for both registration steps, zN = the base on a "
-                  "run of N mm of slices scored on these; mcir (base e4): eN = N OS-SART epochs from mc's image, "
+                  "run of N mm of slices scored on these; mcir (base e1): eN = N OS-SART epochs from mc's image, "
                   "zero = 4 epochs from zero", fontsize=6.5)
     fig.canvas.draw()  # lay out once, then place the labels in the final display coordinates
     fig.set_layout_engine("none")

@@ -112,9 +112,10 @@ class IterativeConfig(Section):
 
     SECTION = "recon.mcir"
 
-    epochs: int = F(4, integer_in(1, 100, "each epoch costs one projection and one backprojection of every view"),
+    epochs: int = F(1, integer_in(1, 100, "each epoch costs one projection and one backprojection of every view"),
                     "OS-SART epochs at most (each visits every motion-state bin once); fewer when an epoch lowers "
-                    "the data residual by less than tol")
+                    "the data residual by less than tol. From mc's image (init 'auto') one epoch had the lower MAE "
+                    "than 4 in every cell measured (docs/iterative.md \"Solver and stopping rule\")")
     cardiac_bins: int = F(20, integer_in(1, 200, "a bin spans 1/cardiac_bins of the R-R interval"),
                           "cardiac-phase bins the views are grouped into (one warp of the volume per bin)")
     resp_bins: int = F(10, integer_in(1, 100, "a bin spans 1/resp_bins of the amplitude range"),

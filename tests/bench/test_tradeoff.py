@@ -198,7 +198,7 @@ def test_mcir_points_run_with_their_first_pass_and_mc_and_count_the_motion_model
     second-pass method's method_seconds holds, counted once; the solver's figures are kept."""
     demo = load_scene("demo")
     pts = {p.code: p for p in tr.sweep_points(demo) if p.method == tr.mcir.NAME}
-    assert set(pts) == {"e4", "e2", "e1", "zero"} and pts["e4"].knob == "base" and not pts["e4"].recon
+    assert set(pts) == {"e4", "e2", "e1", "zero"} and pts["e1"].knob == "base" and not pts["e1"].recon
     fp = tr._methods.first_pass(tr.mcir.NAME)
     assert tr.run_methods(tr.mcir.NAME, pts["e1"].also) == (fp, tr.mc_fbp.NAME, tr.mcir.NAME)
     assert tr.run_methods(tr.mcir.NAME, pts["zero"].also) == (fp, tr.mcir.NAME)
