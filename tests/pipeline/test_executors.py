@@ -38,12 +38,15 @@ def serial(tmp_path_factory):
 
 
 def test_the_graph_is_in_order():
-    """The serial walk goes pitch by pitch (the graph's own checks: tests/pipeline/test_graph.py)."""
+    """The serial walk goes pitch by pitch through each run of per-pitch stages, the once-per-run
+    stages in place: the truths after the reconstruction, before the motion stages that wait for
+    them (the graph's own checks: tests/pipeline/test_graph.py)."""
     order = [(st.name, p) for st, p in serial_order(graph.GRAPH, PITCHES)]
-    assert order[:7] == [("plan", 0.1), ("simulate", 0.1), ("truth_free", 0.1), ("reconstruct", 0.1),
-                         ("mc_reconstruct", 0.1), ("mcir_reconstruct", 0.1), ("consistency", 0.1)]
-    assert order[7][1] == 0.2 and [n for n, p in order if p is None][0] == "truth"
-    assert [n for n, _ in order[-5:]] == ["truth", "assemble", "metrics", "results", "report"]
+    first = ["plan", "simulate", "truth_free", "reconstruct"]
+    motion = ["mc_reconstruct", "mcir_reconstruct", "consistency"]
+    assert order[:9] == [(n, p) for p in PITCHES for n in first] + [("truth", None)]
+    assert order[9:15] == [(n, p) for p in PITCHES for n in motion]
+    assert [n for n, _ in order[-4:]] == ["assemble", "metrics", "results", "report"]
 
 
 def test_overlapped_with_a_helper_is_the_serial_run(tmp_path, serial, monkeypatch):
