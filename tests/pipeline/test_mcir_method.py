@@ -182,15 +182,18 @@ def test_mcir_starts_from_mc_or_the_first_pass_unless_asked_for_zero(tmp_path, r
     assert "recon.mcir.init = 'mc'" in str(e.value) and "\n" not in str(e.value)
 
 
+def _slab_inputs(name: str):
+    """A scene's ``[recon]``, scanner, slice positions, pitch-0.1 table and object radius."""
+    scene = load_scene(name)
+    return (scene.recon, scene.scanner, reconstruct.slice_positions(scene), cached_projection_table(scene, 0.1),
+            reconstruct.object_radius_mm(scene))
+
+
 def test_the_preflight_models_the_slab_the_run_solves(reference):
     """The pre-flight's mcir part (``method.run_memory_bytes``) sizes the same views, volume and bins
     as the run's slab (its info in results.json), through the same cut."""
     _, res = reference
-    scene = load_scene("tiny")
-    rc, sc = scene.recon, scene.scanner
-    z = reconstruct.slice_positions(scene)
-    table = cached_projection_table(scene, 0.1)
-    radius = reconstruct.object_radius_mm(scene)
+    rc, sc, z, table, radius = _slab_inputs("tiny")
     cuts = mcir.slab_cuts(sc, rc, rc.mcir, radius, table, z, 6)
     (info,) = res["stages"]["mcir"]["slabs"]["p0.100"]["noise-free"].values()
     assert cuts == [(0, len(z))]
@@ -204,11 +207,7 @@ def test_the_preflight_models_the_slab_the_run_solves(reference):
 
 
 def test_a_budget_below_the_whole_cuts_slabs_under_it():
-    scene = load_scene("demo")
-    rc, sc = scene.recon, scene.scanner
-    z = reconstruct.slice_positions(scene)
-    table = cached_projection_table(scene, 0.1)
-    radius = reconstruct.object_radius_mm(scene)
+    rc, sc, z, table, radius = _slab_inputs("demo")
     whole = mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z, 6)
     single = max(mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z[a:a + 1], 6) for a in range(len(z)))
     assert single < whole
