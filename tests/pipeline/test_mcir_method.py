@@ -14,6 +14,7 @@ from clrecon.config.overrides import load_scene
 from clrecon.core.errors import ClreconError, SceneError
 from clrecon.pipeline import executors
 from clrecon.pipeline.run import run
+from clrecon.pipeline.stages import mcir_reconstruct as mcir_stage
 from clrecon.reconstruction import reconstruct
 from clrecon.reconstruction.interpolation import METHODS, default_methods, first_pass, second_pass_methods
 from clrecon.reconstruction.iterative import method as mcir
@@ -230,3 +231,13 @@ def test_the_bins_counted_are_the_bins_solved():
         if views is not None:
             c, a = c[views], a[views]
         assert mcir.n_bins(table, knobs, views) == len(mcir.state_bins(c, a, knobs.cardiac_bins, knobs.resp_bins))
+
+
+def test_the_slab_cut_is_said_and_a_slice_over_the_budget_warned(reference):
+    _, res = reference
+    cut = res["stages"]["mcir"]["slab_cut"]["p0.100"]
+    assert cut["slabs"] == 1 and not cut["over_budget"] and 0 < cut["largest_bytes"] < mcir_stage.SLAB_BYTES
+    assert mcir_stage.slab_line([(0, 2)], 10**9) == "1 slab of 2 slice(s), the largest modelled at 1.00 GB"
+    line = mcir_stage.slab_line([(0, 1), (1, 2), (2, 3)], 12 * 10**9)
+    assert line.startswith("3 slabs of 1 slice(s), the largest modelled at 12.00 GB: one slice alone is over the 6 GiB")
+    assert "coarser grid" in line and "\n" not in line

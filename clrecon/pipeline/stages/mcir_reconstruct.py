@@ -33,10 +33,27 @@ def skip(run) -> str | None:
     return None if NAME in run.methods else "the mcir method is not asked for (recon.methods)"
 
 
-def slabs(run, table, n_basis: int) -> list[tuple[int, int]]:
-    """The slice ranges ``(a, b)`` (:func:`clrecon.reconstruction.iterative.method.slab_cuts`)."""
-    return mcir.slab_cuts(run.scene.scanner, run.scene.recon, run.scene.recon.mcir, run.recon_cfg.object_radius_mm,
-                          table, run.slices_z, n_basis)
+def slabs(run, table, n_basis: int) -> tuple[list[tuple[int, int]], int]:
+    """The slice ranges ``(a, b)`` (:func:`clrecon.reconstruction.iterative.method.slab_cuts` under
+    :data:`SLAB_BYTES`) and the largest one's modelled bytes."""
+    sc, rc, radius = run.scene.scanner, run.scene.recon, run.recon_cfg.object_radius_mm
+    cuts = mcir.slab_cuts(sc, rc, rc.mcir, radius, table, run.slices_z, n_basis, budget=SLAB_BYTES)
+    worst = max(mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, run.slices_z[a:b], n_basis) for a, b in cuts)
+    return cuts, int(worst)
+
+
+def slab_line(cuts, worst_bytes: int, budget: float = SLAB_BYTES) -> str:
+    """One line on the slab cut for the log: how many slabs of how many slices, the largest's
+    modelled memory, and, where one slice alone is over ``budget``, what that costs and what
+    lowers it."""
+    sizes = sorted({b - a for a, b in cuts})
+    line = (f"{len(cuts)} slab{'s' * (len(cuts) != 1)} of {'/'.join(map(str, sizes))} slice(s), the largest "
+            f"modelled at {worst_bytes / 1e9:.2f} GB")
+    if worst_bytes > budget:
+        line += (f": one slice alone is over the {budget / 2**30:g} GiB slab budget, so every slice is solved on "
+                 "its own over the views it shares with its neighbours (slow); a coarser grid ([recon] nx, ny or "
+                 "[recon.mcir] plane_dz_mm) or fewer motion-state bins lowers it")
+    return line
 
 
 def start_method(run) -> str | None:
@@ -91,7 +108,10 @@ def stage(run, pitch: float, plan, store):
     todo, scan, models, seconds = got
     run.note("mcir", start=start_method(run) or "zero")
     table = scan.plan_table  # the usable views (a measured scan's excluded ones left out)
-    cuts = slabs(run, table, max(m.fields.shape[0] for m in models.values()))
+    cuts, worst = slabs(run, table, max(m.fields.shape[0] for m in models.values()))
+    run.log(f"[{pk}] mcir: {slab_line(cuts, worst)}")
+    run.note("mcir", slab_cut={**run.notes.get("mcir", {}).get("slab_cut", {}),
+                               pk: {"slabs": len(cuts), "largest_bytes": worst, "over_budget": worst > SLAB_BYTES}})
     units_ = [_unit(run, pitch, table, store, a, b, v, models[v], scan.ref_ij) for v in run.variants if todo[v].size
               for a, b in cuts if (~run.writer.done(recon_path(pk, v, NAME))[a:b]).any()]
 
