@@ -207,6 +207,8 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
                      writer=writer, rt=rt, need=need, force=force, executor_kind=executor_kind, **opts)
     if writer.resumed:
         run.log("resuming an interrupted run: finished slices and targets are kept")
+    if over := mcir_method.over_budget_note(run_costs.get("mcir_slab_bytes", 0)):  # before hours of work, not at it
+        run.log(f"note: mcir: {over}")
     if scene.measured:  # a DICOMDIR beside the projections (normal on media): one note each
         for name, why in dicom_ct_pd.series_index(scene.scan.projections).skipped:
             run.log(f"note: scan.projections: {name} skipped: {why}")

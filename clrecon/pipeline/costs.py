@@ -81,7 +81,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     ``projections_needed`` models the projections the slices use (those within the SSRB slice
     window of a slice, plus one rotation); ``volume_bytes`` is what ``volumes.h5`` holds: the
     5D methods on the full target grid, r4dct once per amplitude and helical once (they stand
-    for every cardiac phase / every target), in ``recon.volume_dtype``.
+    for every cardiac phase / every target), in ``recon.volume_dtype``. ``mcir_slab_bytes``: the
+    largest ``mcir`` slab's modelled bytes (0 without ``mcir``).
     """
     sc, rc = scene.scanner, scene.recon
     methods = tuple(methods or rc.methods)
@@ -152,9 +153,9 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
         z_run = reconstruct.slice_positions(scene) if slices_z is None else slices_z
         n_basis = mc_method.basis_of(rc.mc, n_c, n_r).size
         models = n_var * mc_memory.model_bytes(rc.mc, n_c, n_r, nz, rc.ny, rc.nx, voxel_mm=rc.voxel_mm)
-        peak = max(peak, held + models + max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius,
-                                                                   cached_projection_table(scene, p), z_run, n_basis)
-                                             for p in pitches))
+        mcir_slab = max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius, cached_projection_table(scene, p), z_run,
+                                              n_basis) for p in pitches)
+        peak = max(peak, held + models + mcir_slab)
     peak = max(peak, metrics_peak)
     if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)
         peak += measured_memory_bytes(scene)
@@ -164,7 +165,7 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
            "recon_bytes_per_pitch": int(vol_bytes * n_var * per_pitch_variant), "truth_bytes": int(2 * vol_bytes),
            "largest_dataset_bytes": int(vol_bytes), "peak_memory_bytes": int(peak), "slab_slices": slab,
            "volume_compression": resolve_compression(rc.volume_compression, int(vol_bytes * n_vols)),
-           "device_buffers": buffers}
+           "device_buffers": buffers, "mcir_slab_bytes": int(mcir_slab) if mcir.NAME in methods else 0}
     out.update(disk_model(out))
     return out
 

@@ -241,3 +241,21 @@ def test_the_slab_cut_is_said_and_a_slice_over_the_budget_warned(reference):
     line = mcir_stage.slab_line([(0, 1), (1, 2), (2, 3)], 12 * 10**9)
     assert line.startswith("3 slabs of 1 slice(s), the largest modelled at 12.00 GB: one slice alone is over the 6 GiB")
     assert "coarser grid" in line and "\n" not in line
+
+
+def test_a_slice_over_the_budget_is_noted_before_the_work(tmp_path, monkeypatch):
+    """The pre-flight's figure for the largest mcir slab reaches the run's log at its start, with the
+    same words as the stage's line (here forced: the budget below tiny's slab)."""
+    monkeypatch.setattr(mcir, "SLAB_BYTES", 1000)
+    monkeypatch.setattr(mcir_stage, "SLAB_BYTES", 1000)
+    lines = []
+    with pytest.raises(ClreconError):  # stopped at once after the notes (the fault below)
+        run(load_scene("tiny"), tmp_path / "o", methods=["barycentric", "mcir"], cache_dir=tmp_path / "c",
+            executor="serial", progress=False, log=lambda line: (lines.append(line),
+                                                                  _stop() if "mcir" in line else None))
+    note = next(x for x in lines if x.startswith("note: mcir: one slice alone is over the"))
+    assert "GB modelled" in note and "coarser grid" in note
+
+
+def _stop():
+    raise ClreconError("stop here")

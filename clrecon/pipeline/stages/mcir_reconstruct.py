@@ -42,18 +42,15 @@ def slabs(run, table, n_basis: int) -> tuple[list[tuple[int, int]], int]:
     return cuts, int(worst)
 
 
-def slab_line(cuts, worst_bytes: int, budget: float = SLAB_BYTES) -> str:
+def slab_line(cuts, worst_bytes: int, budget: float | None = None) -> str:
     """One line on the slab cut for the log: how many slabs of how many slices, the largest's
-    modelled memory, and, where one slice alone is over ``budget``, what that costs and what
-    lowers it."""
+    modelled memory, and, where one slice alone is over ``budget`` (default :data:`SLAB_BYTES`), what
+    that costs and what lowers it."""
     sizes = sorted({b - a for a, b in cuts})
     line = (f"{len(cuts)} slab{'s' * (len(cuts) != 1)} of {'/'.join(map(str, sizes))} slice(s), the largest "
             f"modelled at {worst_bytes / 1e9:.2f} GB")
-    if worst_bytes > budget:
-        line += (f": one slice alone is over the {budget / 2**30:g} GiB slab budget, so every slice is solved on "
-                 "its own over the views it shares with its neighbours (slow); a coarser grid ([recon] nx, ny or "
-                 "[recon.mcir] plane_dz_mm) or fewer motion-state bins lowers it")
-    return line
+    over = mcir.over_budget_note(worst_bytes, SLAB_BYTES if budget is None else budget)
+    return f"{line}: {over}" if over else line
 
 
 def start_method(run) -> str | None:

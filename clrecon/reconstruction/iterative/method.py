@@ -133,6 +133,18 @@ def slab_cuts(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n
     return singles
 
 
+def over_budget_note(largest_bytes: int, budget: float | None = None) -> str:
+    """What a slab cut whose largest slab models ``largest_bytes`` costs, where that is over ``budget``
+    (default :data:`SLAB_BYTES`; then one slice alone is over it: :func:`slab_cuts` solves every slice
+    on its own), and what lowers it; '' where it is not over."""
+    budget = SLAB_BYTES if budget is None else budget
+    if largest_bytes <= budget:
+        return ""
+    return (f"one slice alone is over the {budget / 2**30:g} GiB slab budget ({largest_bytes / 1e9:.2f} GB "
+            "modelled), so every slice is solved on its own over the views it shares with its neighbours (slow); "
+            "a coarser grid ([recon] nx, ny or [recon.mcir] plane_dz_mm) or fewer motion-state bins lowers it")
+
+
 def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int) -> int:
     """The modelled peak of a run's ``mcir`` stage (bytes) on the slices ``slices_z`` (mm) of a scan
     whose usable views are ``table``: the largest :func:`slab_memory_bytes` of :func:`slab_cuts`
