@@ -149,6 +149,7 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
                                                             slab_of(scene.scan.feed_mm(sc, p))[2],
                                                             voxel_mm=rc.voxel_mm)
                                     for p in pitches))
+    mcir_slab = 0
     if mcir.NAME in methods:  # mcir's slabs after the model (the plans and every variant's model held)
         z_run = reconstruct.slice_positions(scene) if slices_z is None else slices_z
         n_basis = mc_method.basis_of(rc.mc, n_c, n_r).size
@@ -165,7 +166,7 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
            "recon_bytes_per_pitch": int(vol_bytes * n_var * per_pitch_variant), "truth_bytes": int(2 * vol_bytes),
            "largest_dataset_bytes": int(vol_bytes), "peak_memory_bytes": int(peak), "slab_slices": slab,
            "volume_compression": resolve_compression(rc.volume_compression, int(vol_bytes * n_vols)),
-           "device_buffers": buffers, "mcir_slab_bytes": int(mcir_slab) if mcir.NAME in methods else 0}
+           "device_buffers": buffers, "mcir_slab_bytes": int(mcir_slab)}
     out.update(disk_model(out))
     return out
 

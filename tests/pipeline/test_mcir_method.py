@@ -195,7 +195,7 @@ def test_the_preflight_models_the_slab_the_run_solves(reference):
     as the run's slab (its info in results.json), through the same cut."""
     _, res = reference
     rc, sc, z, table, radius = _slab_inputs("tiny")
-    cuts = mcir.slab_cuts(sc, rc, rc.mcir, radius, table, z, 6)
+    cuts, _ = mcir.slab_plan(sc, rc, rc.mcir, radius, table, z, 6)
     (info,) = res["stages"]["mcir"]["slabs"]["p0.100"]["noise-free"].values()
     assert cuts == [(0, len(z))]
     st = mcir.slab_setup(sc, rc, rc.mcir, radius, table.source_z_mm, z)
@@ -213,7 +213,7 @@ def test_a_budget_below_the_whole_cuts_slabs_under_it():
     single = max(mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z[a:a + 1], 6) for a in range(len(z)))
     assert single < whole
     budget = 0.5 * (single + whole)  # some cut fits it; the whole does not
-    cuts = mcir.slab_cuts(sc, rc, rc.mcir, radius, table, z, 6, budget=budget)
+    cuts, _ = mcir.slab_plan(sc, rc, rc.mcir, radius, table, z, 6, budget=budget)
     assert len(cuts) > 1 and cuts[0][0] == 0 and cuts[-1][1] == len(z)
     assert all(a2 == b1 for (_, b1), (a2, _) in zip(cuts, cuts[1:], strict=False))
     sizes = [mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z[a:b], 6) for a, b in cuts]

@@ -34,22 +34,20 @@ def skip(run) -> str | None:
 
 
 def slabs(run, table, n_basis: int) -> tuple[list[tuple[int, int]], int]:
-    """The slice ranges ``(a, b)`` (:func:`clrecon.reconstruction.iterative.method.slab_cuts` under
-    :data:`SLAB_BYTES`) and the largest one's modelled bytes."""
-    sc, rc, radius = run.scene.scanner, run.scene.recon, run.recon_cfg.object_radius_mm
-    cuts = mcir.slab_cuts(sc, rc, rc.mcir, radius, table, run.slices_z, n_basis, budget=SLAB_BYTES)
-    worst = max(mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, run.slices_z[a:b], n_basis) for a, b in cuts)
-    return cuts, int(worst)
+    """The slice ranges ``(a, b)`` and the largest one's modelled bytes
+    (:func:`clrecon.reconstruction.iterative.method.slab_plan` under :data:`SLAB_BYTES`)."""
+    return mcir.slab_plan(run.scene.scanner, run.scene.recon, run.scene.recon.mcir, run.recon_cfg.object_radius_mm,
+                          table, run.slices_z, n_basis, budget=SLAB_BYTES)
 
 
-def slab_line(cuts, worst_bytes: int, budget: float | None = None) -> str:
+def slab_line(cuts, worst_bytes: int) -> str:
     """One line on the slab cut for the log: how many slabs of how many slices, the largest's
-    modelled memory, and, where one slice alone is over ``budget`` (default :data:`SLAB_BYTES`), what
-    that costs and what lowers it."""
+    modelled memory, and, where one slice alone is over :data:`SLAB_BYTES`, what that costs and what
+    lowers it."""
     sizes = sorted({b - a for a, b in cuts})
     line = (f"{len(cuts)} slab{'s' * (len(cuts) != 1)} of {'/'.join(map(str, sizes))} slice(s), the largest "
             f"modelled at {worst_bytes / 1e9:.2f} GB")
-    over = mcir.over_budget_note(worst_bytes, SLAB_BYTES if budget is None else budget)
+    over = mcir.over_budget_note(worst_bytes, SLAB_BYTES)
     return f"{line}: {over}" if over else line
 
 

@@ -112,30 +112,35 @@ def slab_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, sli
                         knobs.density, n_basis)
 
 
-def slab_cuts(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int,
-              budget: float = SLAB_BYTES) -> list[tuple[int, int]]:
-    """The slice ranges ``(a, b)`` of ``slices_z`` the stage solves one at a time: the fewest equal
-    slabs whose :func:`slab_memory_bytes` is under ``budget``, else one slice each."""
+def slab_plan(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int,
+              budget: float = SLAB_BYTES) -> tuple[list[tuple[int, int]], int]:
+    """The slice ranges ``(a, b)`` of ``slices_z`` the stage solves one at a time, and the largest
+    one's :func:`slab_memory_bytes`: the fewest equal slabs whose :func:`slab_memory_bytes` is under
+    ``budget``, else one slice each."""
     z = np.asarray(slices_z, np.float64)
     n = len(z)
+    sizes: dict = {}
 
-    def fits(a, b):
-        return slab_memory_bytes(scanner, recon, knobs, object_radius_mm, table, z[a:b], n_basis) <= budget
+    def size(a, b):  # each slab sized once, whichever cut tries it
+        if (a, b) not in sizes:
+            sizes[a, b] = slab_memory_bytes(scanner, recon, knobs, object_radius_mm, table, z[a:b], n_basis)
+        return sizes[a, b]
 
     singles = [(a, a + 1) for a in range(n)]
-    if not all(fits(a, b) for a, b in singles):  # no cut fits where one slice alone does not
-        return singles
-    for k in range(1, n + 1):
-        size = -(-n // k)
-        cuts = [(a, min(n, a + size)) for a in range(0, n, size)]
-        if all(fits(a, b) for a, b in cuts):
-            return cuts
-    return singles
+    cuts = singles
+    if all(size(a, b) <= budget for a, b in singles):  # else no cut fits: one slice alone does not
+        for k in range(1, n + 1):
+            step = -(-n // k)
+            trial = [(a, min(n, a + step)) for a in range(0, n, step)]
+            if all(size(a, b) <= budget for a, b in trial):
+                cuts = trial
+                break
+    return cuts, int(max(size(a, b) for a, b in cuts))
 
 
 def over_budget_note(largest_bytes: int, budget: float | None = None) -> str:
     """What a slab cut whose largest slab models ``largest_bytes`` costs, where that is over ``budget``
-    (default :data:`SLAB_BYTES`; then one slice alone is over it: :func:`slab_cuts` solves every slice
+    (default :data:`SLAB_BYTES`; then one slice alone is over it: :func:`slab_plan` solves every slice
     on its own), and what lowers it; '' where it is not over."""
     budget = SLAB_BYTES if budget is None else budget
     if largest_bytes <= budget:
@@ -147,11 +152,9 @@ def over_budget_note(largest_bytes: int, budget: float | None = None) -> str:
 
 def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int) -> int:
     """The modelled peak of a run's ``mcir`` stage (bytes) on the slices ``slices_z`` (mm) of a scan
-    whose usable views are ``table``: the largest :func:`slab_memory_bytes` of :func:`slab_cuts`
-    (the same cut and the same views, volumes and bins as the stage's)."""
-    z = np.asarray(slices_z, np.float64)
-    return max(slab_memory_bytes(scanner, recon, knobs, object_radius_mm, table, z[a:b], n_basis)
-               for a, b in slab_cuts(scanner, recon, knobs, object_radius_mm, table, z, n_basis))
+    whose usable views are ``table``: the largest slab of :func:`slab_plan` (the same cut and the
+    same views, volumes and bins as the stage's)."""
+    return slab_plan(scanner, recon, knobs, object_radius_mm, table, slices_z, n_basis)[1]
 
 
 def target_slices(vol, grid: geo.VolumeGrid, slices_z, nx: int, ny: int, voxel_mm: float) -> np.ndarray:
