@@ -14,12 +14,20 @@
 // uints per voxel (lo, hi), [z][y][x] order; `scale` is the host's power of two.
 //
 // The dot-product test (tests/reconstruction/test_cone_backprojector.py) checks the transpose.
+//
+// PAIR = 1: two projections on the same rays in one walk (proj, scale, acc as above and proj2,
+// scale2, acc2): A^T proj and A^T proj2 with each accumulator's values exactly those of two
+// single calls with the same scales. OS-SART's first visit of a subset needs both its update
+// A^T r and its column sums A^T m (the ray mask); the walk and the sample set-up are shared.
 
 #include "fixed_add.h"
 #include "joseph_ray.h"
 
 #ifndef CURVED
 #define CURVED 0
+#endif
+#ifndef PAIR
+#define PAIR 0
 #endif
 
 __kernel void voxel_backproject(__global const float *proj, const int nx, const int ny, const int nz,
@@ -29,15 +37,25 @@ __kernel void voxel_backproject(__global const float *proj, const int nx, const 
 #if CURVED
                                 __global const float *vscale,
 #endif
-                                const float scale, volatile __global uint *acc)
+                                const float scale, volatile __global uint *acc
+#if PAIR
+                                , __global const float *proj2, const float scale2, volatile __global uint *acc2
+#endif
+                                )
 {
     const int col = get_global_id(0), row = get_global_id(1), view = get_global_id(2);
     if (col >= n_cols || row >= n_rows)
         return;
     const size_t o = ((size_t)view * n_rows + row) * n_cols + col;
     const float y = proj[o];
+#if PAIR
+    const float y2 = proj2[o];
+    if (y == 0.0f && y2 == 0.0f)
+        return;
+#else
     if (y == 0.0f)
         return;
+#endif
 #if CURVED
     const float u = u_mm[col], v = v_mm[row] * vscale[col];
 #else
@@ -47,14 +65,26 @@ __kernel void voxel_backproject(__global const float *proj, const int nx, const 
     if (!joseph_ray(views + VIEW_REC * view, u, v, nx, ny, nz, hx, hy, hz, &r))
         return;                                                 // misses (or d = 0): no weight
     const float ys = y * r.mm;                                  // the forward's final g_k -> mm factor
+#if PAIR
+    const float ys2 = y2 * r.mm;
+#endif
     for (int i = r.i_lo; i <= r.i_hi; ++i) {
         size_t p;
         float fj, fl;
-        const float yw = ys * joseph_sample(&r, i, &p, &fj, &fl);
+        const float w = joseph_sample(&r, i, &p, &fj, &fl);
+        const float yw = ys * w;
         const float e0 = yw * (1.0f - fl), e1 = yw * fl;
         fixed_add(acc + 2 * p, e0 * (1.0f - fj), scale);
         fixed_add(acc + 2 * (p + r.dj), e0 * fj, scale);
         fixed_add(acc + 2 * (p + r.dl), e1 * (1.0f - fj), scale);
         fixed_add(acc + 2 * (p + r.dl + r.dj), e1 * fj, scale);
+#if PAIR
+        const float yw2 = ys2 * w;
+        const float f0 = yw2 * (1.0f - fl), f1 = yw2 * fl;
+        fixed_add(acc2 + 2 * p, f0 * (1.0f - fj), scale2);
+        fixed_add(acc2 + 2 * (p + r.dj), f0 * fj, scale2);
+        fixed_add(acc2 + 2 * (p + r.dl), f1 * (1.0f - fj), scale2);
+        fixed_add(acc2 + 2 * (p + r.dl + r.dj), f1 * fj, scale2);
+#endif
     }
 }

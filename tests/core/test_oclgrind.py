@@ -477,7 +477,8 @@ def test_lk_kernels(grind, clean):
 
 
 # ---------------------------------------------------------------------------------------
-# kernels/voxel_backproject.cl and kernels/warp.cl (the iterative operators' transposes: fixed-point atomics)
+# kernels/voxel_backproject.cl (single and PAIR), kernels/cone_gather.cl and kernels/warp.cl
+# (the iterative operators' transposes, fixed-point atomics, and the voxel-driven gather)
 def test_iterative_operator_kernels(grind, clean):
     from clrecon.core.conventions import detector_coords, detector_frames
     from clrecon.core.detector import CylindricalDetector, spot_shift_in_frame
@@ -499,14 +500,30 @@ def test_iterative_operator_kernels(grind, clean):
         got = bp.backproject_volume(y, shp, origin, spacing, src, det, eu, ev, u, v, rt=grind, chunk_views=3)
         ref = bp.backproject_volume_reference(y, shp, origin, spacing, src, det, eu, ev, u, v)
         assert np.abs(got - ref).max() <= TOL["f32"] * np.abs(ref).max()
+    w = (rng.uniform(size=y.shape) > 0.4).astype(np.float32)           # the PAIR variant (SART's mask)
+    got, got_w = bp.backproject_pair(y, w, shape, origin, spacing, src, det, eu, ev, u, v, rt=grind, chunk_views=3)
+    for g, arr in ((got, y), (got_w, w)):
+        ref = bp.backproject_volume_reference(arr, shape, origin, spacing, src, det, eu, ev, u, v)
+        assert np.abs(g - ref).max() <= TOL["f32"] * np.abs(ref).max()
     cyl = CylindricalDetector(sid_mm=60.0, sdd_mm=120.0, n_cols=9, n_rows=3, col_pitch_mm=12.0, row_pitch_mm=5.0,
                               central_col=4.25, central_row=1.0)
     shift = spot_shift_in_frame(np.array([[0.002, 0.8, 0.5]]), 60.0)[0]
     frames, (uc, vc, vs) = spot_frames(cyl, np.array([0.2, 1.9]), np.array([0.0, 2.0]), shift)
     yc = rng.normal(size=(2, 3, 9)).astype(np.float32)
     got = bp.backproject_volume(yc, shape, origin, spacing, *frames, uc, vc, v_scale=vs, rt=grind)
-    ref = bp.backproject_volume_reference(yc, shape, origin, spacing, *frames, uc, vc, v_scale=vs)
+    pair = bp.backproject_pair(yc, np.abs(yc), shape, origin, spacing, *frames, uc, vc, v_scale=vs, rt=grind)
+    for g, arr in ((got, yc), (pair[0], yc), (pair[1], np.abs(yc))):
+        ref = bp.backproject_volume_reference(arr, shape, origin, spacing, *frames, uc, vc, v_scale=vs)
+        assert np.any(ref != 0) and np.abs(g - ref).max() <= TOL["f32"] * np.abs(ref).max()
+    # kernels/cone_gather.cl (the voxel-driven B): flat single (views in two launches), cylindrical PAIR
+    from clrecon.reconstruction.iterative import cone_gather as cg
+    got = cg.gather_backproject(y, shape, origin, spacing, src, det, eu, ev, u, v, rt=grind, chunk_views=3)
+    ref = cg.gather_backproject_reference(y, shape, origin, spacing, src, det, eu, ev, u, v)
     assert np.any(ref != 0) and np.abs(got - ref).max() <= TOL["f32"] * np.abs(ref).max()
+    pair = cg.gather_backproject(yc, shape, origin, spacing, *frames, uc, vc, v_scale=vs, rt=grind, proj2=np.abs(yc))
+    for g, arr in ((pair[0], yc), (pair[1], np.abs(yc))):
+        ref = cg.gather_backproject_reference(arr, shape, origin, spacing, *frames, uc, vc, v_scale=vs)
+        assert np.any(ref != 0) and np.abs(g - ref).max() <= TOL["f32"] * np.abs(ref).max()
     vol = rng.normal(size=(3, 4, 5)).astype(np.float32)
     disp = rng.normal(0, 4.0, (3, 3, 4, 5)).astype(np.float32)          # past the edges: clamped
     for shp in ((3, 4, 5), (1, 4, 5)):

@@ -16,6 +16,8 @@ from clrecon.reconstruction.iterative.sart import SARTConfig, os_sart
 from clrecon.reconstruction.iterative.state_bins import state_bins
 from clrecon.reconstruction.motion import model as mm
 
+EPS32 = float(np.finfo(np.float32).eps)
+
 TOL = {
     # |<A W x, y> - <x, W^T A^T y>| / <|A W| |x|, |y|>: float32 weights and sums; measured below 1e-7
     "dot": 1e-6,
@@ -28,6 +30,11 @@ TOL = {
     # OS-SART on a 16 x 16 x 4 block phantom from 60 consistent views, 8 epochs: mean |x - truth|
     # over the inner voxels against the truth's mean (the block edges converge last); measured 0.11
     "sart_volume": 0.15,
+    # SART's row sums from the rays' chords against the projection of the warped ones (pull warp),
+    # per ray: |R - A W 1| <= k eps32 (A + N) (R + (1 + |alpha|) h_max), the projector's own bound
+    # (tests/simulation/test_voxel_projector.py "kernel_k": float32 index coordinates and sums; A
+    # the largest |index coordinate| of a source, N the largest axis); measured k 0.36
+    "row_sums_k": 4.0,
 }
 
 
@@ -72,6 +79,40 @@ def test_dot_product(warp_mode, density):
         rhs = float(np.sum(x.astype(np.float64) * aty))
         scale = float(np.sum(op.forward(np.abs(x), s, absolute=True).astype(np.float64) * np.abs(y)))
         assert abs(lhs - rhs) <= TOL["dot"] * scale, (s, lhs, rhs)
+
+
+@pytest.mark.parametrize("warp_mode", ["pull", "push"])
+@pytest.mark.parametrize("density", [False, True])
+def test_row_sums_and_the_paired_first_visit_are_the_separate_calls(warp_mode, density):
+    """row_sums (pull: the chords, no projection) is |A_s| 1 as projected; direction_and_col_sums
+    gives update_direction's and col_sums' bits and leaves the same density bookkeeping."""
+    grid = _grid()
+    groups, c, a = _groups()
+    make = lambda: MotionConeOperator(grid, groups, state_bins(c, a, 3, 2), _model(grid),  # noqa: E731
+                                      warp_mode=warp_mode, density=density)
+    one, two = make(), make()
+    rng = np.random.default_rng(4)
+    for s in range(one.n_subsets):
+        ones = one.forward(np.ones(one.unknown_shape, np.float32), s, absolute=True).astype(np.float64)
+        R = one.row_sums(s)
+        assert R.shape == ones.shape and R.dtype == np.float32
+        src = groups[0].frames[0]
+        A = np.abs((src - np.asarray(grid.origin_mm)) / np.asarray(grid.spacing_mm)).max()
+        f = 1.0 + abs(one.alpha(one._bin(s))) if density else 1.0
+        bound = TOL["row_sums_k"] * EPS32 * (A + max(grid.shape)) * (R + f * max(grid.spacing_mm))
+        assert np.all(np.abs(R - ones) <= bound), s
+        if warp_mode == "push":
+            np.testing.assert_array_equal(R, ones)
+        r = rng.normal(size=R.shape).astype(np.float32)
+        w = (R > 1.0).astype(np.float32)
+        d1, c1 = one.direction_and_col_sums(r, w, s)
+        c2 = two.col_sums(w, s)
+        d2 = two.update_direction(r, s)
+        np.testing.assert_array_equal(d1, d2)
+        np.testing.assert_array_equal(c1, c2)
+    if density:
+        np.testing.assert_array_equal(one._gd, two._gd)
+        np.testing.assert_array_equal(one._hd, two._hd)
 
 
 def test_inverse_field_inverts_the_model():

@@ -253,6 +253,28 @@ def test_uniform_cube_gives_mu_times_the_exact_chord():
     assert 0.2 < np.mean(chord > 0) < 0.95
 
 
+def test_chord_lengths_are_the_projection_of_ones():
+    """chord_lengths (host, no ray walk; SART's row sums) against the independent exact chord
+    (float32 output: 2 eps32 of the chord) and against the kernel's projection of a volume of ones
+    (the cube bound above), whatever the chunk of rays; misses are 0."""
+    rng = np.random.default_rng(9)
+    shape = (7, 11, 13)
+    spacing = np.array([2.0, 3.5, 4.0])
+    origin = np.array([5.0, -20.0, -3.0])
+    src, det, eu, ev = random_frames(rng, 6, origin + 0.5 * (np.array(shape[::-1]) - 1) * spacing)
+    u, v = detector_coords(23, 7.0), detector_coords(5, 6.0)
+    chord = exact_chord(origin, spacing, shape, src, det, eu, ev, u, v)
+    for chunk in (1, 40, 1 << 20):
+        got = vp.chord_lengths(origin, spacing, shape, src, det, eu, ev, u, v, chunk_rays=chunk)
+        assert got.dtype == np.float32 and got.shape == chord.shape
+        assert np.all(np.abs(got - chord) <= 2 * EPS32 * chord)
+    ones = vp.project_volume(np.ones(shape, np.float32), origin, spacing, src, det, eu, ev, u, v).astype(np.float64)
+    A = np.abs((src - origin) / spacing).max()
+    bound = tol("cube_k") * EPS32 * (A + max(shape)) * (chord + spacing.max())
+    assert np.all(np.abs(ones - got) <= bound)
+    assert np.all(got[chord == 0] == 0) and 0.2 < np.mean(chord > 0) < 0.95
+
+
 def test_water_cylinder_chords():
     """A water cylinder R = 100 mm (axis along z, off the grid's symmetry) voxelised at 1 mm:
     in-plane rays of a one-row detector give mu x 2 sqrt(R^2 - d^2) up to the edge sampling

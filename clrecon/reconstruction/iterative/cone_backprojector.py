@@ -91,41 +91,64 @@ def backproject_volume(proj, shape_zyx, origin_mm, spacing_mm, src, det_centre, 
     TypeError for a non-numeric array; ValueError for a wrong shape, a non-finite value (the
     message names the first one's index), a non-positive spacing.
     """
+    return _backproject((proj,), shape_zyx, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm, rt,
+                        chunk_views=chunk_views, v_scale=v_scale)[0]
+
+
+def backproject_pair(proj, proj2, shape_zyx, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm, rt=None,
+                     *, chunk_views: int | None = None, v_scale=None) -> tuple[np.ndarray, np.ndarray]:
+    """(A^T proj, A^T proj2) for two arrays on the same rays, in one walk of the rays (kernel
+    variant ``PAIR``): each result is bit-identical to :func:`backproject_volume` of that array
+    alone (each has its own fixed-point scale). Arguments and errors as :func:`backproject_volume`;
+    ``proj2`` has the shape of ``proj``. Costs less than two calls (one ray set-up and one set of
+    sample weights per ray; the scatters are not shared): SART's first visit of a subset needs
+    both its update and its column sums."""
+    return _backproject((proj, proj2), shape_zyx, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm, rt,
+                        chunk_views=chunk_views, v_scale=v_scale)
+
+
+def _backproject(projs, shape_zyx, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm, rt, *,
+                 chunk_views, v_scale) -> tuple:
+    """A^T of one or two arrays on the same rays (the ``PAIR`` kernel for two); a tuple of volumes."""
     shape, origin, spacing = _check_shape(shape_zyx, origin_mm, spacing_mm)
     src, det, eu, ev, u, v = _check_frames(src, det_centre, e_u, e_v, u_mm, v_mm)
     m, n_rows, n_cols = len(src), len(v), len(u)
-    proj = _check_proj(proj, m, n_rows, n_cols)
+    projs32 = [np.ascontiguousarray(_check_proj(p, m, n_rows, n_cols), np.float32) for p in projs]
     if chunk_views is not None and (int(chunk_views) != chunk_views or chunk_views < 1):
         raise ValueError(f"chunk_views must be an integer >= 1, got {chunk_views!r}")
-    proj32 = np.ascontiguousarray(proj, np.float32)
-    S = scale_exponent(float(np.linalg.norm(spacing)) * float(np.abs(proj32, dtype=np.float64).sum()))
+    exps = [scale_exponent(float(np.linalg.norm(spacing)) * float(np.abs(p, dtype=np.float64).sum()))
+            for p in projs32]
     nz, ny, nx = shape
-    if m == 0 or not np.any(proj32):
-        return np.zeros(shape, np.float32)
+    live = [k for k, p in enumerate(projs32) if m > 0 and np.any(p)]
+    out = [np.zeros(shape, np.float32) for _ in projs32]
+    if not live:
+        return tuple(out)
     rt = rt or get_runtime()
+    defines = {"PAIR": 1} if len(live) == 2 else {}
     extra = []
     if v_scale is not None:
         vs = np.asarray(v_scale, np.float64)
         if vs.shape != (n_cols,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
             raise ValueError(f"v_scale must be {n_cols} finite numbers > 0, got shape {vs.shape}")
-        kern = rt.kernel("voxel_backproject.cl", "voxel_backproject", CURVED=1)
+        defines["CURVED"] = 1
         extra = [rt.to_device(vs)]
-    else:
-        kern = rt.kernel("voxel_backproject.cl", "voxel_backproject")
+    kern = rt.kernel("voxel_backproject.cl", "voxel_backproject", **defines)
     views = np.concatenate([(src - origin) / spacing, det - src, eu, ev], axis=1)
-    acc = zero_accumulator(rt, nz * ny * nx)
+    accs = [zero_accumulator(rt, nz * ny * nx) for _ in live]
+    scales = [np.float32(2.0 ** exps[k]) for k in live]
     u_buf, v_buf = rt.to_device(u), rt.to_device(v)
     step = int(chunk_views or max(1, CHUNK_CELLS // (n_rows * n_cols)))
-    scale = np.float32(2.0 ** S)
     for a in range(0, m, step):
         b = min(m, a + step)
         view_buf = rt.to_device(views[a:b])
-        proj_buf = rt.to_device(proj32[a:b])
-        kern(rt.queue, (n_cols, n_rows, b - a), None, proj_buf, np.int32(nx), np.int32(ny), np.int32(nz),
+        bufs = [rt.to_device(projs32[k][a:b]) for k in live]
+        tail = [bufs[1], scales[1], accs[1]] if len(live) == 2 else []
+        kern(rt.queue, (n_cols, n_rows, b - a), None, bufs[0], np.int32(nx), np.int32(ny), np.int32(nz),
              np.float32(spacing[0]), np.float32(spacing[1]), np.float32(spacing[2]),
-             view_buf, u_buf, v_buf, np.int32(n_cols), np.int32(n_rows), *extra, scale, acc)
-    words = rt.from_device(acc, (nz * ny * nx, 2), np.uint32)
-    return to_float(words, S, shape)
+             view_buf, u_buf, v_buf, np.int32(n_cols), np.int32(n_rows), *extra, scales[0], accs[0], *tail)
+    for k, acc in zip(live, accs, strict=True):
+        out[k] = to_float(rt.from_device(acc, (nz * ny * nx, 2), np.uint32), exps[k], shape)
+    return tuple(out)
 
 
 # ---------------------------------------------------------------------------------------

@@ -210,6 +210,7 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
     groups = geo.view_groups(scanner, sub)
     bins = state_bins(sub.cardiac_phase, sub.resp_amplitude, knobs.cardiac_bins, knobs.resp_bins)
     op = MotionConeOperator(setup.grid, groups, bins, model, warp_mode=knobs.warp, density=knobs.density,
+                            backprojector=knobs.backprojector,
                             mu_water_per_mm=mu_water_per_mm, rt=rt)
     rss_mark(f"mcir: the operator on {setup.grid.nz} x {setup.grid.ny} x {setup.grid.nx} voxels, {len(bins)} bins")
     cfg = SARTConfig(epochs=knobs.epochs, relaxation=knobs.relaxation, decay=knobs.decay, tol=knobs.tol)

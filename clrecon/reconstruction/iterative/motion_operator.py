@@ -32,7 +32,13 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage
 
-from clrecon.reconstruction.iterative.operators import backproject_groups, project_groups, split_groups
+from clrecon.reconstruction.iterative.operators import (
+    BACKPROJECTORS,
+    backproject_groups,
+    chords_groups,
+    project_groups,
+    split_groups,
+)
 from clrecon.reconstruction.iterative.warp import invert_field, warp, warp_adjoint
 from clrecon.reconstruction.motion.model import FieldGrid, MotionModel, sample
 
@@ -78,6 +84,11 @@ def inverse_field(u, spacing_mm, iterations: int = INVERSION_STEPS, rt=None) -> 
 class MotionConeOperator:
     """A_b W_b over the views of motion-state bins (see the module docstring).
 
+    ``backprojector``: SART's backprojection (:meth:`update_direction`, :meth:`col_sums`,
+    :meth:`direction_and_col_sums`): ``"matched"`` the exact transpose (as :meth:`adjoint`, always
+    matched), ``"voxel"`` the voxel-driven gather B ~ A^T
+    (:mod:`~clrecon.reconstruction.iterative.cone_gather`); both through W^T.
+
     ``grid`` the volume grid; ``groups`` the scan's view groups
     (:func:`~clrecon.reconstruction.iterative.geometry.view_groups`);
     ``bins`` a :class:`~clrecon.reconstruction.iterative.state_bins.StateBins` over the same view
@@ -87,9 +98,12 @@ class MotionConeOperator:
 
     def __init__(self, grid, groups, bins, model: MotionModel, *, warp_mode: str = "pull", density: bool = True,
                  mu_water_per_mm: float = 0.0193, rt=None, order_seed: int = 0,
-                 field_cache_bytes: int = FIELD_CACHE_BYTES):
+                 field_cache_bytes: int = FIELD_CACHE_BYTES, backprojector: str = "matched"):
         if warp_mode not in WARPS:
             raise ValueError(f"warp_mode = {warp_mode!r}: must be one of {WARPS}")
+        if backprojector not in BACKPROJECTORS:
+            raise ValueError(f"backprojector = {backprojector!r}: must be one of {BACKPROJECTORS}")
+        self.backprojector = backprojector
         self.grid, self.rt, self.warp_mode, self.density = grid, rt, warp_mode, bool(density)
         self.model = model_on_grid(model, grid)
         self.a_ref = float(model.reference[1])
@@ -153,7 +167,7 @@ class MotionConeOperator:
         """SART's update direction for subset s: W_b^T A_b^T r for the attenuation; the density term
         gets none per subset (its per-bin step, sign(alpha) times the residual, is noisy where
         |alpha| is small) but accumulates alpha_b W_b^T A_b^T r for one step per epoch (:meth:`constrain`)."""
-        g = self.adjoint(r, s)
+        g = self.adjoint(r, s, kind=self.backprojector)
         if self.density:
             self._gd += g[1]              # alpha_b g_b
             g[1] = 0.0
@@ -161,10 +175,25 @@ class MotionConeOperator:
 
     def col_sums(self, w, s: int) -> np.ndarray:
         """|A_s|^T w (SART's C_s for the ray mask w); also accumulates the density step's scale."""
-        c = self.adjoint(w, s, absolute=True)
+        c = self.adjoint(w, s, absolute=True, kind=self.backprojector)
         if self.density:
             self._hd += float(self.alpha(self._bin(s))) ** 2 * c[0]
         return c
+
+    def direction_and_col_sums(self, r, w, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """(:meth:`update_direction` (r, s), :meth:`col_sums` (w, s)), with their bookkeeping, from one
+        walk of the bin's rays (the matched backprojector's pair kernel) and two transposed warps:
+        the same values as the two calls (each backprojection the same bits)."""
+        b = self._bin(s)
+        f = self._bin_field(b)
+        gr, gw = backproject_groups(r, self.grid, self._parts[b], self.rt, proj2=w, kind=self.backprojector)
+        gr, gw = self.from_state(gr, f), self.from_state(gw, f)
+        if not self.density:
+            return gr[None], gw[None]
+        al = self.alpha(b)
+        self._gd += al * gr               # as update_direction: alpha_b g_b, no per-subset step
+        self._hd += al ** 2 * gw          # as col_sums: its scale
+        return np.stack([gr, np.zeros_like(gr)]), np.stack([gw, abs(al) * gw])
 
     def constrain(self, X, epoch_end: bool) -> None:
         """The density term's step and constraint, in place, at each epoch's end (after the first,
@@ -193,16 +222,24 @@ class MotionConeOperator:
         state = self.to_state(np.ascontiguousarray(vol, np.float32), self._bin_field(b))
         return project_groups(state, self.grid, self._parts[b], self.rt)
 
-    def adjoint(self, r, s: int, *, absolute: bool = False) -> np.ndarray:
-        """W_b^T A_b^T r (and alpha_b times it for the density term): ``unknown_shape`` float32."""
+    def adjoint(self, r, s: int, *, absolute: bool = False, kind: str = "matched") -> np.ndarray:
+        """W_b^T A_b^T r (and alpha_b times it for the density term): ``unknown_shape`` float32 (``kind``
+        "voxel": B ~ A^T instead of the exact transpose, for SART's steps)."""
         b = self._bin(s)
-        g = self.from_state(backproject_groups(r, self.grid, self._parts[b], self.rt), self._bin_field(b))
+        g = self.from_state(backproject_groups(r, self.grid, self._parts[b], self.rt, kind=kind), self._bin_field(b))
         if not self.density:
             return g[None]
         al = abs(self.alpha(b)) if absolute else self.alpha(b)
         return np.stack([g, al * g])
 
     def row_sums(self, s: int) -> np.ndarray:
-        """|A_s| 1 (SART's R_s)."""
+        """|A_s| 1 (SART's R_s). The pull warp takes a volume of ones to ones (trilinear weights add up
+        to 1, the edges clamped), so there R_s is each ray's chord through the grid's box
+        (:func:`~clrecon.reconstruction.iterative.operators.chords_groups`), times 1 + |alpha_b| with the
+        density term, without warping or projecting; the push warp projects its warped ones."""
+        b = self._bin(s)
+        if self.warp_mode == "pull":
+            chords = chords_groups(self.grid, self._parts[b])
+            return chords * np.float32(1.0 + abs(self.alpha(b))) if self.density else chords
         return self.forward(np.ones(self.unknown_shape, np.float32), s, absolute=True)
 

@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from clrecon.reconstruction.iterative.cone_backprojector import backproject_volume
-from clrecon.simulation.voxel_projector import project_volume
+from clrecon.reconstruction.iterative.cone_backprojector import backproject_pair, backproject_volume
+from clrecon.reconstruction.iterative.cone_gather import gather_backproject
+from clrecon.simulation.voxel_projector import chord_lengths, project_volume
 
 
 def interleaved_subsets(n_views: int, n_subsets: int) -> list[np.ndarray]:
@@ -46,17 +47,45 @@ def project_groups(x, grid, parts, rt=None) -> np.ndarray:
     return outs[0] if len(outs) == 1 else np.concatenate(outs, axis=0)
 
 
-def backproject_groups(proj, grid, parts, rt=None) -> np.ndarray:
+def chords_groups(grid, parts) -> np.ndarray:
+    """A 1 over the views of ``parts`` (each ray's length in mm inside the grid's box), in the order of
+    :func:`project_groups`, without projecting (:func:`~clrecon.simulation.voxel_projector.chord_lengths`):
+    (m, n_rows, n_cols) float32; SART's row sums for a non-negative operator whose volume of ones
+    reaches the projector as ones."""
+    outs = [chord_lengths(grid.origin_mm, grid.spacing_mm, grid.shape, *p.frames, p.cells[0], p.cells[1],
+                          v_scale=p.cells[2]) for p in parts]
+    return outs[0] if len(outs) == 1 else np.concatenate(outs, axis=0)
+
+
+#: SART's backprojectors: the projector's exact transpose, or the voxel-driven gather (about A^T).
+BACKPROJECTORS = ("matched", "voxel")
+
+
+def backproject_groups(proj, grid, parts, rt=None, proj2=None, kind: str = "matched"):
     """A^T proj over the views of ``parts`` in the order of :func:`project_groups`: (nz, ny, nx) float32
-    (float64 sum over the groups, in their order)."""
+    (float64 sum over the groups, in their order). With ``proj2`` (same shape): the pair
+    (A^T proj, A^T proj2) from one pass over the rays
+    (:func:`~clrecon.reconstruction.iterative.cone_backprojector.backproject_pair`, each the same bits as a
+    call of its own). ``kind = "voxel"``: the voxel-driven B ~ A^T instead
+    (:func:`~clrecon.reconstruction.iterative.cone_gather.gather_backproject`, its pair likewise)."""
+    if kind not in BACKPROJECTORS:
+        raise ValueError(f"backprojector {kind!r}: must be one of {BACKPROJECTORS}")
     out, k = None, 0
     for p in parts:
         m = len(p.rows)
-        b = backproject_volume(proj[k:k + m], grid.shape, grid.origin_mm, grid.spacing_mm, *p.frames, p.cells[0],
-                               p.cells[1], rt=rt, v_scale=p.cells[2])
-        out = b.astype(np.float64) if out is None else out + b
+        geo = (grid.shape, grid.origin_mm, grid.spacing_mm, *p.frames, p.cells[0], p.cells[1])
+        if kind == "voxel":
+            b = gather_backproject(proj[k:k + m], *geo, rt=rt, v_scale=p.cells[2],
+                                   proj2=None if proj2 is None else proj2[k:k + m])
+            b = b if proj2 is not None else (b,)
+        elif proj2 is None:
+            b = (backproject_volume(proj[k:k + m], *geo, rt=rt, v_scale=p.cells[2]),)
+        else:
+            b = backproject_pair(proj[k:k + m], proj2[k:k + m], *geo, rt=rt, v_scale=p.cells[2])
+        out = [x.astype(np.float64) for x in b] if out is None else [o + x for o, x in zip(out, b, strict=True)]
         k += m
-    return out.astype(np.float32)
+    out = tuple(o.astype(np.float32) for o in out)
+    return out[0] if proj2 is None else out
 
 
 class ConeOperator:
@@ -82,3 +111,11 @@ class ConeOperator:
 
     def adjoint(self, r, s: int) -> np.ndarray:
         return backproject_groups(r, self.grid, self._parts[s], self.rt)
+
+    def row_sums(self, s: int) -> np.ndarray:
+        """A_s 1 (SART's R_s): the rays' chords through the grid's box, without projecting."""
+        return chords_groups(self.grid, self._parts[s])
+
+    def direction_and_col_sums(self, r, w, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """(A_s^T r, A_s^T w) from one walk of the rays: SART's update and column sums at a subset's first visit."""
+        return backproject_groups(r, self.grid, self._parts[s], self.rt, proj2=w)

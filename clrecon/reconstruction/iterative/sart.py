@@ -13,7 +13,9 @@ every subset and after every epoch: the motion operator's density term, :mod:`mo
 R_s is each ray's length through the volume (mm); rays shorter than ``min_ray_mm`` carry no
 update (grazing rays would divide by almost nothing); C_s is each voxel's total weight in the
 subset, and voxels with C_s = 0 are left alone. R_s and C_s are computed once per subset, the
-first time it is visited.
+first time it is visited; an operator with ``direction_and_col_sums(r, w, s)`` gives C_s and that
+visit's update from one pass (the matched backprojector's pair kernel: one walk of the rays
+instead of two), and ``row_sums(s)`` where it knows R_s without projecting (a ray's chord).
 
 **Residual**: the data misfit ``||p - A x|| / ||p||`` (relative, over all subsets' rays). The
 *running* residual of an epoch sums ``||p_s - A_s x||^2`` as each subset is visited (before its
@@ -92,6 +94,11 @@ def residual(op, data, x) -> tuple[float, float]:
     return rr, pp
 
 
+def _inverse_cols(C) -> np.ndarray:
+    """C_s^-1 where C_s > 0, else 0 (voxels no ray of the subset reaches are left alone)."""
+    return np.where(C > 0, 1.0 / np.maximum(C, 1e-30), 0.0).astype(np.float32)
+
+
 def os_sart(op, data, x0, cfg: SARTConfig = SARTConfig(), log=None) -> tuple[np.ndarray, SARTHistory]:
     """Run OS-SART from ``x0`` (``op.unknown_shape``); returns (x float32, :class:`SARTHistory`).
 
@@ -111,6 +118,7 @@ def os_sart(op, data, x0, cfg: SARTConfig = SARTConfig(), log=None) -> tuple[np.
     col_sums = getattr(op, "col_sums", op.adjoint)
     direction = getattr(op, "update_direction", op.adjoint)
     constrain = getattr(op, "constrain", None)
+    paired = hasattr(op, "direction_and_col_sums")
     attenuation = x[0] if x.ndim == 4 else x          # a view: the component kept >= 0
     prev = None
     hist.stop = f"reached {cfg.epochs} epochs"
@@ -120,14 +128,21 @@ def os_sart(op, data, x0, cfg: SARTConfig = SARTConfig(), log=None) -> tuple[np.
         run = 0.0
         for s in range(op.n_subsets):
             p = np.asarray(data(s), np.float32)
-            if s not in rows:
+            first = s not in rows
+            if first:
                 R = row_sums(s)
                 rows[s] = np.where(R > cfg.min_ray_mm, 1.0 / np.maximum(R, 1e-30), 0.0).astype(np.float32)
-                C = col_sums(np.where(rows[s] > 0, 1.0, 0.0).astype(np.float32), s)
-                cols[s] = np.where(C > 0, 1.0 / np.maximum(C, 1e-30), 0.0).astype(np.float32)
+                mask = np.where(rows[s] > 0, 1.0, 0.0).astype(np.float32)
+                if not paired:
+                    cols[s] = _inverse_cols(col_sums(mask, s))
             r = p - op.forward(x, s)
             run += float(np.sum(r.astype(np.float64) ** 2))
-            x += lam * cols[s] * direction(r * rows[s], s)
+            if first and paired:
+                d, C = op.direction_and_col_sums(r * rows[s], mask, s)
+                cols[s] = _inverse_cols(C)
+            else:
+                d = direction(r * rows[s], s)
+            x += lam * cols[s] * d
             if cfg.nonnegative:
                 np.maximum(attenuation, 0.0, out=attenuation)
             if constrain:
