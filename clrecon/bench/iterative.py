@@ -34,7 +34,8 @@ from clrecon.bench.voxel_projector import _median_time
 from clrecon.config.scene import load_scene
 from clrecon.core.conventions import detector_coords, detector_frames
 from clrecon.core.runtime import get_runtime
-from clrecon.reconstruction.iterative.cone_backprojector import backproject_volume
+from clrecon.reconstruction.iterative.cone_backprojector import backproject_pair, backproject_volume
+from clrecon.reconstruction.iterative.cone_gather import gather_backproject
 from clrecon.reconstruction.iterative.warp import warp, warp_adjoint
 from clrecon.simulation.phantoms.analytic import Phantom
 from clrecon.simulation.voxel_projector import project_volume, ray_samples
@@ -84,6 +85,18 @@ def bench_iterative(repeats: int = 3, quick: bool = False, *, scene="demo", n_vo
     _, t_wat = _median_time(lambda: warp_adjoint(backproject_volume(y, shape, origin, spacing, *geo, rt=rt), field,
                                                  spacing, rt=rt), repeats)
 
+    # SART's backprojections: the voxel-driven B beside A^T, and a subset's first visit (the update and the
+    # column sums from one pass: the matched pair kernel, the gather's pair)
+    mask = (rng.uniform(size=y.shape) > 0.1).astype(np.float32)
+    gather_backproject(y, shape, origin, spacing, *geo, rt=rt, proj2=mask)            # builds the kernels
+    backproject_pair(y, mask, shape, origin, spacing, *geo, rt=rt)
+    by, t_b = _median_time(lambda: gather_backproject(y, shape, origin, spacing, *geo, rt=rt), repeats)
+    _, t_b2 = _median_time(lambda: gather_backproject(y, shape, origin, spacing, *geo, rt=rt, proj2=mask), repeats)
+    _, t_at2 = _median_time(lambda: backproject_pair(y, mask, shape, origin, spacing, *geo, rt=rt), repeats)
+    b1 = gather_backproject(np.ones_like(y), shape, origin, spacing, *geo, rt=rt).astype(np.float64)
+    a1 = backproject_volume(np.ones_like(y), shape, origin, spacing, *geo, rt=rt).astype(np.float64)
+    seen = a1 > 0.5 * a1.max()
+
     rays = proj.size
     samples = int(ray_samples(origin, spacing, shape, *geo).sum())
     x64, y64 = mu.astype(np.float64), y.astype(np.float64)
@@ -102,6 +115,10 @@ def bench_iterative(repeats: int = 3, quick: bool = False, *, scene="demo", n_vo
         "dot_rel_projector": dot_a, "dot_rel_warp": dot_w,
         "warped_pair_seconds": t_aw + t_wat, "static_pair_seconds": t_a + t_at,
         "warped_over_static_pair": (t_aw + t_wat) / (t_a + t_at),
+        "gather_seconds": t_b, "gather_voxel_views_per_s": mu.size * m / t_b, "gather_over_backproject": t_b / t_at,
+        "gather_pair_seconds": t_b2, "matched_pair_seconds": t_at2,
+        "gather_ones_over_matched_ones_mean": float(np.mean(b1[seen] / a1[seen])),
+        "gather_ones_over_matched_ones_std": float(np.std(b1[seen] / a1[seen])),
     }
 
 
@@ -127,6 +144,11 @@ def report_lines(r: dict) -> list[str]:
         f"{fmt(r['warp_adjoint_voxels_per_s'] / 1e6)} Mvoxels/s; dot test {r['dot_rel_warp']:.1e}",
         f"   {'pair A W + W^T A^T':26s} {'':>8s} {'':>11s}  {r['warped_pair_seconds']:.3f} s against the static "
         f"pair's {r['static_pair_seconds']:.3f} s: {r['warped_over_static_pair']:.2f}x",
+        f"   {'voxel-driven B ~ A^T':26s} {'':>8s} {'':>11s}  {r['gather_seconds']:.3f} s: "
+        f"{r['gather_over_backproject']:.2f}x A^T's time ({fmt(r['gather_voxel_views_per_s'] / 1e6)} M voxel-views/s); "
+        f"B 1 / A^T 1 {r['gather_ones_over_matched_ones_mean']:.3f} +- {r['gather_ones_over_matched_ones_std']:.3f}",
+        f"   {'first visit (update + C_s)':26s} {'':>8s} {'':>11s}  B pair {r['gather_pair_seconds']:.3f} s, "
+        f"A^T pair {r['matched_pair_seconds']:.3f} s",
     ]
 
 

@@ -157,6 +157,8 @@ def test_iterative_section_tiny():
     assert "backprojector A^T" in "\n".join(report_lines(r))
     assert r["warped_pair_seconds"] > 0 and r["warped_over_static_pair"] > 0   # figures only: no timed assertion
     assert "pair A W + W^T A^T" in "\n".join(report_lines(r))
+    assert r["gather_seconds"] > 0 and r["gather_pair_seconds"] > 0 and r["matched_pair_seconds"] > 0
+    assert "voxel-driven B ~ A^T" in "\n".join(report_lines(r))
 
 
 def test_mc_section_tiny(monkeypatch):

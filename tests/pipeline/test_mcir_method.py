@@ -202,9 +202,24 @@ def test_the_preflight_models_the_slab_the_run_solves(reference):
     assert [st.grid.nz, st.grid.ny, st.grid.nx] == info["grid"] and st.views.size == info["views"]
     assert mcir.n_bins(table.take(st.views), rc.mcir) == info["bins"]
     nv = st.grid.nz * st.grid.ny * st.grid.nx
-    rays = 8 * info["views"] * sc.n_rows * sc.n_cols
+    # one epoch (the default): the projections, one bin's SART weights and ray arrays at a time
+    sub = table.take(st.views)
+    largest = max(len(m) for m in mcir.state_bins(sub.cardiac_phase, sub.resp_amplitude, rc.mcir.cardiac_bins,
+                                                   rc.mcir.resp_bins).members)
+    ray = 4 * sc.n_rows * sc.n_cols
+    assert rc.mcir.epochs == 1
     assert mcir.run_memory_bytes(sc, rc, rc.mcir, radius, table, z, 6) == \
-        rays + 4 * nv * (3 + info["bins"] + 18 + 8) + 12 * nv * info["bins"]
+        ray * (info["views"] + 6 * largest) + 4 * nv * (3 + 1 + 18 + 8) + 12 * nv * info["bins"]
+
+
+def test_the_weights_are_counted_whole_only_where_a_later_epoch_reuses_them():
+    """memory_bytes: with epochs > 1 every ray's row weight and every bin's column weights are held (the next
+    epoch reuses them); with one epoch one bin's at a time (os_sart drops a subset's after its visit)."""
+    grid = mcir.geo.VolumeGrid(nx=10, ny=12, nz=3, voxel_mm=4.0, z0_mm=0.0, dz_mm=2.0)
+    nv, ray = 10 * 12 * 3, 4 * 5 * 7
+    one = mcir.memory_bytes(grid, 100, 5, 7, 9, False, 4, epochs=1, largest_bin_views=20)
+    many = mcir.memory_bytes(grid, 100, 5, 7, 9, False, 4, epochs=3, largest_bin_views=20)
+    assert many - one == (ray * 100 + 4 * nv * 9) - (6 * ray * 20 + 4 * nv)
 
 
 def test_a_budget_below_the_whole_cuts_slabs_under_it():
@@ -230,7 +245,10 @@ def test_the_bins_counted_are_the_bins_solved():
         c, a = table.cardiac_phase, table.resp_amplitude
         if views is not None:
             c, a = c[views], a[views]
-        assert mcir.n_bins(table, knobs, views) == len(mcir.state_bins(c, a, knobs.cardiac_bins, knobs.resp_bins))
+        bins = mcir.state_bins(c, a, knobs.cardiac_bins, knobs.resp_bins)
+        assert mcir.n_bins(table, knobs, views) == len(bins)
+        counts = mcir.bin_counts(table, knobs, views)        # the largest bin the one-epoch model counts
+        assert sorted(counts) == sorted(len(m) for m in bins.members)
 
 
 def test_the_slab_cut_is_said_and_a_slice_over_the_budget_warned(reference):

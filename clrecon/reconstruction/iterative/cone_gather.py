@@ -2,8 +2,8 @@
 
 :func:`clrecon.reconstruction.iterative.cone_backprojector.backproject_volume` applies the exact
 transpose A^T of Joseph's projector by scattering each ray's value along its samples, a 64-bit
-fixed-point scatter that the CPU drivers run lane by lane: about 6x the projector's time on
-``demo`` (docs/iterative.md "Backprojectors"). :func:`gather_backproject` applies the voxel-driven
+fixed-point scatter that the CPU drivers run lane by lane, several times the projector's time
+(measured in docs/iterative.md "Backprojectors"). :func:`gather_backproject` applies the voxel-driven
 B instead, as RTK's SART and most iterative CT codes pair a ray-driven projector with it: each
 voxel centre is projected onto the detector in every view and reads the values there bilinearly
 (between cell centres, zero beyond the outermost ones), weighted by the voxel's expected Joseph

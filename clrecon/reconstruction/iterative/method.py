@@ -81,26 +81,39 @@ def needed_projections(scanner, recon, knobs, object_radius_mm: float, table, sl
 
 
 def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n_bins: int, density: bool,
-                 n_basis: int) -> int:
-    """Peak bytes of :func:`reconstruct_slab` (a model): the projections and SART's row weights
-    (2 x 4 B per ray), the unknown and its update (K volumes each), SART's column weights (K volumes
-    per bin), the warp fields kept per bin (3 volumes per bin, at most
+                 n_basis: int, epochs: int = 1, largest_bin_views: int | None = None) -> int:
+    """Peak bytes of :func:`reconstruct_slab` (a model): the projections (4 B per ray), the unknown and
+    its update (K volumes each), the warp fields kept per bin (3 volumes per bin, at most
     ``motion_operator.FIELD_CACHE_BYTES``), the model on the grid (3 volumes per basis field,
-    ``n_basis``) and 8 working volumes. Measured against a run's trace in docs/iterative.md "Memory"."""
+    ``n_basis``) and 8 working volumes; SART's weights: with ``epochs`` > 1 the row weights of every
+    ray (4 B) and the column weights of every bin (K volumes each), kept for the next epoch; with one
+    epoch one bin's at a time (K volumes and 6 x 4 B per ray of the largest bin,
+    ``largest_bin_views``, default ``n_views``: its data, residual, projection and weights). Measured
+    against a run's trace in docs/iterative.md "Memory"."""
     nv = grid.nx * grid.ny * grid.nz
     k = 2 if density else 1
-    rays = 2 * 4 * n_views * n_rows * n_cols
+    ray = 4 * n_rows * n_cols
+    if epochs > 1:
+        weights = ray * n_views + 4 * nv * k * n_bins
+    else:
+        weights = 6 * ray * (n_views if largest_bin_views is None else largest_bin_views) + 4 * nv * k
     fields = min(FIELD_CACHE_BYTES, 3 * 4 * nv * n_bins)
-    return int(rays + 4 * nv * (3 * k + k * n_bins + 3 * n_basis + 8) + fields)
+    return int(ray * n_views + weights + 4 * nv * (3 * k + 3 * n_basis + 8) + fields)
+
+
+def bin_counts(table, knobs, views=None) -> np.ndarray:
+    """The number of views in each motion-state bin the views of ``table`` (or its positions
+    ``views``) fill (:func:`state_bins`' bins; empty bins are not listed)."""
+    c, a = table.cardiac_phase, table.resp_amplitude
+    if views is not None:
+        c, a = c[views], a[views]
+    return np.unique(bin_keys(c, a, knobs.cardiac_bins, knobs.resp_bins), return_counts=True)[1]
 
 
 def n_bins(table, knobs, views=None) -> int:
     """The motion-state bins the views of ``table`` (or its positions ``views``) fill (empty bins cost
     nothing): the number of :func:`state_bins`' bins."""
-    c, a = table.cardiac_phase, table.resp_amplitude
-    if views is not None:
-        c, a = c[views], a[views]
-    return int(np.unique(bin_keys(c, a, knobs.cardiac_bins, knobs.resp_bins)).size)
+    return int(bin_counts(table, knobs, views).size)
 
 
 def slab_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int) -> int:
@@ -108,8 +121,9 @@ def slab_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, sli
     scan's usable views, a :class:`~clrecon.scan.table.ProjectionTable`): its own views, volume
     and filled bins (:func:`slab_setup`)."""
     st = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
-    return memory_bytes(st.grid, st.views.size, scanner.n_rows, scanner.n_cols, n_bins(table, knobs, st.views),
-                        knobs.density, n_basis)
+    counts = bin_counts(table, knobs, st.views)
+    return memory_bytes(st.grid, st.views.size, scanner.n_rows, scanner.n_cols, counts.size, knobs.density, n_basis,
+                        epochs=knobs.epochs, largest_bin_views=int(counts.max()) if counts.size else 0)
 
 
 def slab_plan(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int,

@@ -13,7 +13,8 @@ every subset and after every epoch: the motion operator's density term, :mod:`mo
 R_s is each ray's length through the volume (mm); rays shorter than ``min_ray_mm`` carry no
 update (grazing rays would divide by almost nothing); C_s is each voxel's total weight in the
 subset, and voxels with C_s = 0 are left alone. R_s and C_s are computed once per subset, the
-first time it is visited; an operator with ``direction_and_col_sums(r, w, s)`` gives C_s and that
+first time it is visited, and kept only where a later epoch will visit it again (``epochs`` > 1:
+one epoch holds one subset's weights at a time, not one volume per subset); an operator with ``direction_and_col_sums(r, w, s)`` gives C_s and that
 visit's update from one pass (the matched backprojector's pair kernel: one walk of the rays
 instead of two), and ``row_sums(s)`` where it knows R_s without projecting (a ray's chord).
 
@@ -119,6 +120,7 @@ def os_sart(op, data, x0, cfg: SARTConfig = SARTConfig(), log=None) -> tuple[np.
     direction = getattr(op, "update_direction", op.adjoint)
     constrain = getattr(op, "constrain", None)
     paired = hasattr(op, "direction_and_col_sums")
+    keep = cfg.epochs > 1
     attenuation = x[0] if x.ndim == 4 else x          # a view: the component kept >= 0
     prev = None
     hist.stop = f"reached {cfg.epochs} epochs"
@@ -143,6 +145,8 @@ def os_sart(op, data, x0, cfg: SARTConfig = SARTConfig(), log=None) -> tuple[np.
             else:
                 d = direction(r * rows[s], s)
             x += lam * cols[s] * d
+            if not keep:                      # no later epoch visits s: its weights go now
+                del rows[s], cols[s]
             if cfg.nonnegative:
                 np.maximum(attenuation, 0.0, out=attenuation)
             if constrain:
