@@ -150,13 +150,13 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
                                                             voxel_mm=rc.voxel_mm)
                                     for p in pitches))
     mcir_slab = 0
-    if mcir.NAME in methods:  # mcir's slabs after the model (the plans and every variant's model held)
+    if mcir.NAME in methods:  # mcir's slabs after the model (the plans, every variant's model and what mc's stage left)
         z_run = reconstruct.slice_positions(scene) if slices_z is None else slices_z
         n_basis = mc_method.basis_of(rc.mc, n_c, n_r).size
         models = n_var * mc_memory.model_bytes(rc.mc, n_c, n_r, nz, rc.ny, rc.nx, voxel_mm=rc.voxel_mm)
         mcir_slab = max(mcir.run_memory_bytes(sc, rc, rc.mcir, radius, cached_projection_table(scene, p), z_run,
                                               n_basis) for p in pitches)
-        peak = max(peak, held + models + mcir_slab)
+        peak = max(peak, held + models + mcir_slab + mc_memory.RESIDUE_BYTES)
     peak = max(peak, metrics_peak)
     if getattr(scene, "measured", False):  # the import's own needs and the process baseline (issue 35)
         peak += measured_memory_bytes(scene)

@@ -39,6 +39,11 @@ PLAN_BYTES = 73
 PLAN_CANDIDATE_BYTES = 10
 #: Bytes the planning of a slab leaves whatever its size (the same measurements: 25-45 MB).
 PLAN_FIXED_BYTES = 45_000_000
+#: What ``mc``'s stage leaves in the process for the stages after it (its kernels' programs, the
+#: registration's modules, the allocator's retained blocks), beyond the pre-flight's
+#: ``PROCESS_GROWTH_BYTES``: on ``demo`` p0.10 the process held 0.368 GB after the reconstruction
+#: stage and 0.495 GB when ``mcir``'s began (docs/results/iterative-study.md "7. Memory").
+RESIDUE_BYTES = 127_000_000
 #: Plane rows of one slab stay within this many bytes (half the reconstruction's slab budget).
 ROWS_BYTES = reconstruct.SLAB_BYTES / 2
 #: A slab may grow past the rows budget while its plane rows stay within this factor of its first
