@@ -18,7 +18,9 @@
 // kernels/voxel_backproject.cl.
 //
 // View record (GATHER_REC floats, host float64 -> float32): a = (s - o) / h (index units), n,
-// e_u, e_v, D . n, D . e_u, D . e_v. The sum over the launch's views runs in view order in float32
+// e_u, e_v, D . n, D . e_u, D . e_v, then the first and last z plane whose voxels can read a row
+// of the detector (host, conservative): a voxel outside them skips the view (a helical cone
+// covers a fraction of a slab's planes per view). The sum over the launch's views runs in view order in float32
 // (deterministic: no atomics; the host adds launches in their order).
 //
 // PAIR = 1: a second array on the same rays (proj2 -> out2) from the same projections and weights.
@@ -30,7 +32,7 @@
 #ifndef PAIR
 #define PAIR 0
 #endif
-#define GATHER_REC 16
+#define GATHER_REC 18
 
 // fractional index of x on the monotone increasing centres c[0..n-1] (n >= 2), extrapolated with
 // the end pitches beyond them; *pitch: the bracketing interval's length. tab[T]: for uniform bins of
@@ -71,6 +73,8 @@ __kernel void cone_gather(__global const float *proj, const int nx, const int ny
     const float gx = (float)x, gy = (float)y, gz = (float)z;
     for (int m = 0; m < n_views; ++m) {
         __global const float *r = views + GATHER_REC * m;
+        if (gz < r[15] || gz > r[16])
+            continue;                                       // no row of this view reaches the plane
         const float wx = (gx - r[0]) * hx, wy = (gy - r[1]) * hy, wz = (gz - r[2]) * hz;
         const float wn = wx * r[3] + wy * r[4] + wz * r[5];
         const float Dn = r[12];

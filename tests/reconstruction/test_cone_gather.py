@@ -82,6 +82,27 @@ def test_kernel_matches_reference_cylindrical_flying_focal_spot_and_reversed_cel
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("curved", [False, True])
+def test_the_planes_a_view_skips_get_nothing_from_it(curved):
+    """plane_ranges (the kernel skips a view on planes outside its range) is conservative: per view, the
+    reference puts nothing on the planes it skips; a thin cone over a tall volume skips most, and the
+    kernel still equals the reference."""
+    frames, u, v = geometry(n_views=5, n_rows=3, row_pitch=3.0, seed=4)
+    shape, origin, spacing = volume((30, 8, 9), (20.0, 20.0, 2.0))
+    vs = np.linspace(1.0, 1.3, len(u)) if curved else None
+    rng = np.random.default_rng(8)
+    y = rng.normal(size=(5, len(v), len(u)))
+    ranges = cg.plane_ranges(*[np.asarray(f, float) for f in frames], origin, spacing, shape, np.asarray(v, float), vs)
+    assert np.all(ranges[:, 1] - ranges[:, 0] + 1 < shape[0] // 2)       # most planes skipped per view
+    for m in range(5):
+        one = tuple(f[m:m + 1] for f in frames)
+        ref = cg.gather_backproject_reference(y[m:m + 1], shape, origin, spacing, *one, u, v, v_scale=vs)
+        outside = np.ones(shape[0], bool)
+        outside[ranges[m, 0]:ranges[m, 1] + 1] = False
+        assert np.any(ref != 0) and not ref[outside].any(), m
+    check(y, shape, origin, spacing, frames, u, v, vs)
+
+
 def test_voxels_off_the_detector_behind_the_source_and_far_outside_get_nothing():
     frames, u, v = geometry(n_views=2)
     shape, origin, spacing = (3, 4, 5), np.array([2000.0, 0.0, 0.0]), np.array([2.0, 2.0, 2.0])

@@ -37,11 +37,45 @@ from clrecon.reconstruction.iterative.cone_backprojector import _check_proj, _ch
 from clrecon.simulation.voxel_projector import CHUNK_CELLS, _check_frames
 
 #: floats per view record (kernels/cone_gather.cl)
-GATHER_REC = 16
+GATHER_REC = 18
 
 
-def _records(src, det, eu, ev, origin, spacing) -> np.ndarray:
-    """(m, GATHER_REC) float64: a = (s - o) / h, n = e_u x e_v, e_u, e_v, D . n, D . e_u, D . e_v, 0."""
+def plane_ranges(src, det, eu, ev, origin, spacing, shape, v, vs) -> np.ndarray:
+    """(m, 2) the first and last z plane (index) whose voxel centres can read a detector row in each view,
+    one plane of margin each side; (1, 0) where none can. On a plane in front of the source the
+    row coordinate ``v'`` is a linear-fractional function of the in-plane position, so its extremes
+    over the plane's rectangle of centres are at the corners; a plane is kept where that range meets
+    the rows' (one cell beyond the outermost centres, times the smallest and largest ``vscale``), or
+    where a corner is not in front of the source. Conservative: culled planes get exactly nothing."""
+    nz, ny, nx = shape
+    n = np.cross(eu, ev)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    D = det - src
+    Dn, Dv = np.sum(D * n, 1), np.sum(D * ev, 1)
+    xs = origin[0] + spacing[0] * np.array([0, nx - 1, 0, nx - 1])
+    ys = origin[1] + spacing[1] * np.array([0, 0, ny - 1, ny - 1])
+    zs = origin[2] + spacing[2] * np.arange(nz)
+    corners = np.stack(np.broadcast_arrays(xs[None, :], ys[None, :], zs[:, None]), -1)     # (nz, 4, 3)
+    w = corners[None] - src[:, None, None, :]                                               # (m, nz, 4, 3)
+    wn = np.einsum("mzcq,mq->mzc", w, n)
+    front = wn * Dn[:, None, None] > 0
+    vp = np.where(front, Dn[:, None, None] / np.where(front, wn, 1.0) * np.einsum("mzcq,mq->mzc", w, ev)
+                  - Dv[:, None, None], 0.0)
+    lo_row, hi_row = v[0] - (v[1] - v[0]), v[-1] + (v[-1] - v[-2])
+    scales = (1.0, 1.0) if vs is None else (float(np.min(vs)), float(np.max(vs)))
+    allow_lo = min(sc * lo_row for sc in scales)
+    allow_hi = max(sc * hi_row for sc in scales)
+    keep = ~np.all(front, axis=2) | ((vp.max(axis=2) >= allow_lo) & (vp.min(axis=2) <= allow_hi))   # (m, nz)
+    out = np.tile(np.array([1, 0]), (len(src), 1))
+    anyk = keep.any(axis=1)
+    out[anyk, 0] = np.maximum(np.argmax(keep[anyk], axis=1) - 1, 0)
+    out[anyk, 1] = np.minimum(nz - 1 - np.argmax(keep[anyk, ::-1], axis=1) + 1, nz - 1)
+    return out
+
+
+def _records(src, det, eu, ev, origin, spacing, shape, v, vs) -> np.ndarray:
+    """(m, GATHER_REC) float64: a = (s - o) / h, n = e_u x e_v, e_u, e_v, D . n, D . e_u, D . e_v,
+    the first and last z plane that can read the detector (:func:`plane_ranges`), 0."""
     n = np.cross(eu, ev)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     D = det - src
@@ -51,6 +85,7 @@ def _records(src, det, eu, ev, origin, spacing) -> np.ndarray:
     rec[:, 12] = np.sum(D * n, 1)
     rec[:, 13] = np.sum(D * eu, 1)
     rec[:, 14] = np.sum(D * ev, 1)
+    rec[:, 15:17] = plane_ranges(src, det, eu, ev, origin, spacing, shape, v, vs)
     return rec
 
 
@@ -127,7 +162,7 @@ def gather_backproject(proj, shape_zyx, origin_mm, spacing_mm, src, det_centre, 
     if proj2 is not None:
         defines["PAIR"] = 1
     kern = rt.kernel("cone_gather.cl", "cone_gather", **defines)
-    rec = _records(*frames, origin, spacing)
+    rec = _records(*frames, origin, spacing, shape, v, vs)
     u_buf, v_buf = rt.to_device(u), rt.to_device(v)
     tabs = []
     for c in (u, v):

@@ -14,9 +14,9 @@ R_s is each ray's length through the volume (mm); rays shorter than ``min_ray_mm
 update (grazing rays would divide by almost nothing); C_s is each voxel's total weight in the
 subset, and voxels with C_s = 0 are left alone. R_s and C_s are computed once per subset, the
 first time it is visited, and kept only where a later epoch will visit it again (``epochs`` > 1:
-one epoch holds one subset's weights at a time, not one volume per subset); an operator with ``direction_and_col_sums(r, w, s)`` gives C_s and that
-visit's update from one pass (the matched backprojector's pair kernel: one walk of the rays
-instead of two), and ``row_sums(s)`` where it knows R_s without projecting (a ray's chord).
+one epoch holds one subset's weights at a time, not one volume per subset). An operator with
+``direction_and_col_sums(r, w, s)`` gives C_s and that visit's update from one pass over the rays
+(a backprojector's pair), and ``row_sums(s)`` where it knows R_s without projecting (a ray's chord).
 
 **Residual**: the data misfit ``||p - A x|| / ||p||`` (relative, over all subsets' rays). The
 *running* residual of an epoch sums ``||p_s - A_s x||^2`` as each subset is visited (before its
