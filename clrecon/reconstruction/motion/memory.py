@@ -39,8 +39,8 @@ PLAN_BYTES = 73
 PLAN_CANDIDATE_BYTES = 10
 #: Bytes the planning of a slab leaves whatever its size (the same measurements: 25-45 MB).
 PLAN_FIXED_BYTES = 45_000_000
-#: What ``mc``'s stage leaves in the process for the stages after it (its kernels' programs, the
-#: registration's modules, the allocator's retained blocks), beyond the pre-flight's
+#: What ``mc``'s stage leaves in the process for the stages after it (not broken down: its kernels'
+#: programs, the registration's modules and the allocator's retained blocks are the candidates), beyond the pre-flight's
 #: ``PROCESS_GROWTH_BYTES``: on ``demo`` p0.10 the process held 0.368 GB after the reconstruction
 #: stage and 0.495 GB when ``mcir``'s began (docs/results/iterative-study.md "7. Memory").
 RESIDUE_BYTES = 127_000_000
