@@ -30,6 +30,17 @@
 #define PAIR 0
 #endif
 
+// one sample's value yw to the four voxels the projector reads, with its bilinear weights
+inline void scatter4(volatile __global uint *acc, const float yw, const size_t p, const int dj, const int dl,
+                     const float fj, const float fl, const float scale)
+{
+    const float e0 = yw * (1.0f - fl), e1 = yw * fl;
+    fixed_add(acc + 2 * p, e0 * (1.0f - fj), scale);
+    fixed_add(acc + 2 * (p + dj), e0 * fj, scale);
+    fixed_add(acc + 2 * (p + dl), e1 * (1.0f - fj), scale);
+    fixed_add(acc + 2 * (p + dl + dj), e1 * fj, scale);
+}
+
 __kernel void voxel_backproject(__global const float *proj, const int nx, const int ny, const int nz,
                                 const float hx, const float hy, const float hz,
                                 __global const float *views, __global const float *u_mm,
@@ -72,19 +83,9 @@ __kernel void voxel_backproject(__global const float *proj, const int nx, const 
         size_t p;
         float fj, fl;
         const float w = joseph_sample(&r, i, &p, &fj, &fl);
-        const float yw = ys * w;
-        const float e0 = yw * (1.0f - fl), e1 = yw * fl;
-        fixed_add(acc + 2 * p, e0 * (1.0f - fj), scale);
-        fixed_add(acc + 2 * (p + r.dj), e0 * fj, scale);
-        fixed_add(acc + 2 * (p + r.dl), e1 * (1.0f - fj), scale);
-        fixed_add(acc + 2 * (p + r.dl + r.dj), e1 * fj, scale);
+        scatter4(acc, ys * w, p, r.dj, r.dl, fj, fl, scale);
 #if PAIR
-        const float yw2 = ys2 * w;
-        const float f0 = yw2 * (1.0f - fl), f1 = yw2 * fl;
-        fixed_add(acc2 + 2 * p, f0 * (1.0f - fj), scale2);
-        fixed_add(acc2 + 2 * (p + r.dj), f0 * fj, scale2);
-        fixed_add(acc2 + 2 * (p + r.dl), f1 * (1.0f - fj), scale2);
-        fixed_add(acc2 + 2 * (p + r.dl + r.dj), f1 * fj, scale2);
+        scatter4(acc2, ys2 * w, p, r.dj, r.dl, fj, fl, scale2);
 #endif
     }
 }
