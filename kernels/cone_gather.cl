@@ -95,8 +95,11 @@ __kernel void cone_gather(__global const float *proj, const int nx, const int ny
         const int ok = (wn * Dn > 0.0f) & (fc > -1.0f) & (fc < (float)n_cols) & (fr > -1.0f) & (fr < (float)n_rows);
         const float aw = fabs(wn);
         const float weight = ok ? vol * sqrt(wx * wx + wy * wy + wz * wz) * Dn * Dn / (du * dv * vs * aw * aw * aw) : 0.0f;
-        const float fc0 = floor(fc), fr0 = floor(fr);
-        const float a = fc - fc0, b = fr - fr0;
+        // off the detector (or a voxel in the source's plane: t, fc, fr not finite) the reads below
+        // stay in range and finite, and carry weight 0
+        const float fcs = ok ? fc : 0.0f, frs = ok ? fr : 0.0f;
+        const float fc0 = floor(fcs), fr0 = floor(frs);
+        const float a = fcs - fc0, b = frs - fr0;
         const int c0 = (int)fc0, r0 = (int)fr0;
         // the four cells, clamped onto the detector; a cell off it gets weight 0
         const int ca = clamp(c0, 0, n_cols - 1), cb = clamp(c0 + 1, 0, n_cols - 1);

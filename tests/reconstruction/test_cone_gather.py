@@ -112,6 +112,19 @@ def test_voxels_off_the_detector_behind_the_source_and_far_outside_get_nothing()
     assert not cg.gather_backproject(y, shape, origin, spacing, *frames, u, v).any()   # far above the cone
 
 
+def test_a_voxel_in_the_sources_plane_parallel_to_the_detector_gets_a_finite_zero():
+    """A voxel centre on the plane through the source parallel to the detector (w . n = 0: no finite
+    projection) gets 0 from that view, not NaN; the other voxels are unaffected."""
+    frames = detector_frames(np.array([0.0]), np.array([0.0]), SID, SDD)     # source at (SID, 0, 0), n along x
+    u, v = detector_coords(9, 8.0), detector_coords(3, 4.0)
+    shape, origin, spacing = (3, 5, 4), np.array([SID - 30.0, -20.0, -4.0]), np.array([10.0, 10.0, 4.0])
+    y = np.ones((1, 3, 9))
+    got = cg.gather_backproject(y, shape, origin, spacing, *frames, u, v)
+    ref = cg.gather_backproject_reference(y, shape, origin, spacing, *frames, u, v)
+    assert np.all(np.isfinite(got)) and np.all(got[:, :, 3] == 0)          # x = SID: the source's plane
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-6 * np.abs(ref).max())
+
+
 def test_B_follows_the_matched_transpose_on_smooth_data():
     """B 1 against A^T 1 (the matched transpose), demo's detector (240 x 3.0 mm, 16 x 3.2 mm), 50 views of a
     helix over 40 mm of z, on the voxels inside the cone of many views."""

@@ -222,7 +222,8 @@ def gather_backproject_reference(proj, shape_zyx, origin_mm, spacing_mm, src, de
         scale = np.ones(len(p)) if vs is None else np.interp(np.clip(fc, 0, n_cols - 1), np.arange(n_cols), vs)
         fr, dv = coord(v, (q @ ev[m]) / scale)
         ok &= (fc > -1) & (fc < n_cols) & (fr > -1) & (fr < n_rows)
-        weight = np.prod(spacing) * np.linalg.norm(w, axis=1) * Dn ** 2 / (du * dv * scale * np.abs(wn) ** 3)
+        with np.errstate(divide="ignore", invalid="ignore"):          # wn = 0: not ok, weight unused
+            weight = np.prod(spacing) * np.linalg.norm(w, axis=1) * Dn ** 2 / (du * dv * scale * np.abs(wn) ** 3)
         c0, r0 = np.floor(fc).astype(int), np.floor(fr).astype(int)
         a, b = fc - c0, fr - r0
         val = np.zeros(len(p))
@@ -231,5 +232,6 @@ def gather_backproject_reference(proj, shape_zyx, origin_mm, spacing_mm, src, de
                 rr, cc = r0 + j, c0 + i
                 inside = ok & (rr >= 0) & (rr < n_rows) & (cc >= 0) & (cc < n_cols)
                 val[inside] += (wr * wc)[inside] * y[m, rr[inside], cc[inside]]
-        out += np.where(ok, weight * val, 0.0)
+        with np.errstate(invalid="ignore"):
+            out += np.where(ok, weight * val, 0.0)
     return out.reshape(shape)
