@@ -42,6 +42,7 @@ from clrecon.scan import signals
 from clrecon.simulation import quadrics as q
 from clrecon.simulation.phantom_sources import phantom_from_config
 from clrecon.simulation.phantoms import layout as ph
+from clrecon.simulation.voxel_projector import check_v_scale
 
 # ---------------------------------------------------------------------------------------
 # per (view, object) kernel record, float32; must match kernels/project.cl
@@ -337,9 +338,7 @@ class _Layout:
         self.v_range = (float(v.min()), float(v.max()))
         extra = []
         if self.curved:
-            vs = np.asarray(v_scale, np.float64)
-            if vs.shape != (self.n_cols,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
-                raise ValueError(f"v_scale must be {self.n_cols} finite numbers > 0, got shape {vs.shape}")
+            vs = check_v_scale(v_scale, self.n_cols)
             vs_pad = np.concatenate([vs, np.full(self.n_seg * VW - self.n_cols, vs[-1])]).reshape(self.n_seg, VW)
             vs_seg = np.stack([vs_pad.min(1), vs_pad.max(1)], 1)
             # a tile's rows at every column scale: v * [min, max] of the scales (conservative)

@@ -92,6 +92,17 @@ def check_grid(origin_mm, spacing_mm) -> tuple[np.ndarray, np.ndarray]:
     return origin, spacing
 
 
+def check_v_scale(v_scale, n_cols: int):
+    """A cylindrical detector's per-column row scale (flat-equivalent cells ``(u[c], v[r] * v_scale[c])``)
+    as float64 (n_cols,): finite and > 0 (else ValueError); None stays None (a flat detector)."""
+    if v_scale is None:
+        return None
+    vs = np.asarray(v_scale, np.float64)
+    if vs.shape != (n_cols,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
+        raise ValueError(f"v_scale must be {n_cols} finite numbers > 0, got shape {vs.shape}")
+    return vs
+
+
 def _check_frames(src, det_centre, e_u, e_v, u_mm, v_mm):
     src = _real(src, "src")
     if src.ndim != 2 or src.shape[1] != 3:
@@ -168,9 +179,7 @@ def project_volume(mu, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v
     n_rows, n_cols = len(v), len(u)
     extra = []
     if v_scale is not None:
-        vs = np.asarray(v_scale, np.float64)
-        if vs.shape != (n_cols,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
-            raise ValueError(f"v_scale must be {n_cols} finite numbers > 0, got shape {vs.shape}")
+        vs = check_v_scale(v_scale, n_cols)
         kern = rt.kernel("voxel_project.cl", "voxel_project", CURVED=1)
         extra = [rt.to_device(vs)]
     else:
@@ -259,6 +268,7 @@ def chord_lengths(origin_mm, spacing_mm, shape_zyx, src, det_centre, e_u, e_v, u
     """
     origin, spacing = check_grid(origin_mm, spacing_mm)
     src, det, eu, ev, u, v = _check_frames(src, det_centre, e_u, e_v, u_mm, v_mm)
+    v_scale = check_v_scale(v_scale, len(u))
     n = np.asarray(shape_zyx)[::-1]
     out = np.zeros((len(src), len(v), len(u)), np.float32)
     step = max(1, int(chunk_rays) // max(1, len(u) * len(v)))

@@ -44,6 +44,7 @@ from clrecon.simulation.voxel_projector import (
     _rays,
     _real,
     check_grid,
+    check_v_scale,
     joseph_samples,
 )
 
@@ -127,11 +128,8 @@ def _backproject(projs, shape_zyx, origin_mm, spacing_mm, src, det_centre, e_u, 
     defines = {"PAIR": 1} if len(live) == 2 else {}
     extra = []
     if v_scale is not None:
-        vs = np.asarray(v_scale, np.float64)
-        if vs.shape != (n_cols,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
-            raise ValueError(f"v_scale must be {n_cols} finite numbers > 0, got shape {vs.shape}")
         defines["CURVED"] = 1
-        extra = [rt.to_device(vs)]
+        extra = [rt.to_device(check_v_scale(v_scale, n_cols))]
     kern = rt.kernel("voxel_backproject.cl", "voxel_backproject", **defines)
     views = np.concatenate([(src - origin) / spacing, det - src, eu, ev], axis=1)
     accs = [zero_accumulator(rt, nz * ny * nx) for _ in live]

@@ -34,7 +34,7 @@ import numpy as np
 
 from clrecon.core.runtime import get_runtime
 from clrecon.reconstruction.iterative.cone_backprojector import _check_proj, _check_shape
-from clrecon.simulation.voxel_projector import CHUNK_CELLS, _check_frames
+from clrecon.simulation.voxel_projector import CHUNK_CELLS, _check_frames, check_v_scale
 
 #: floats per view record (kernels/cone_gather.cl)
 GATHER_REC = 18
@@ -122,12 +122,9 @@ def _prepare(projs, shape_zyx, origin_mm, spacing_mm, src, det_centre, e_u, e_v,
     projs = [_check_proj(p, m, n_rows, n_cols) for p in projs]
     u, flip_u = _monotone(u, "u_mm")
     v, flip_v = _monotone(v, "v_mm")
-    vs = None
-    if v_scale is not None:
-        vs = np.asarray(v_scale, np.float64)
-        if vs.shape != (n_cols,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
-            raise ValueError(f"v_scale must be {n_cols} finite numbers > 0, got shape {vs.shape}")
-        vs = vs[::-1].copy() if flip_u else vs
+    vs = check_v_scale(v_scale, n_cols)
+    if vs is not None and flip_u:
+        vs = vs[::-1].copy()
     if flip_u:
         projs = [p[:, :, ::-1] for p in projs]
     if flip_v:
