@@ -129,8 +129,7 @@ class IterativeConfig(Section):
     backprojector: str = F("voxel", one_of(("matched", "voxel")),
                            "SART's backprojection: 'voxel' (voxel-driven, a gather: about A^T for smooth data, and "
                            "faster) or 'matched' (the projector's exact transpose, a ray-driven fixed-point scatter); "
-                           "the MAE of the two within 0.2 % or lower with 'voxel' on the scenes measured "
-                           "(docs/iterative.md \"Backprojectors\")")
+                           "how the two compare: docs/iterative.md \"Backprojectors\"")
     plane_dz_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "about the detector row pitch at the isocentre"),
                            "spacing of the iterative volume's z planes")
     voxel_factor: int = F(1, integer_in(1, 4, "each factor of 2 costs about 2x per epoch"),

@@ -101,9 +101,9 @@ def backproject_pair(proj, proj2, shape_zyx, origin_mm, spacing_mm, src, det_cen
     """(A^T proj, A^T proj2) for two arrays on the same rays, in one walk of the rays (kernel
     variant ``PAIR``): each result is bit-identical to :func:`backproject_volume` of that array
     alone (each has its own fixed-point scale). Arguments and errors as :func:`backproject_volume`;
-    ``proj2`` has the shape of ``proj``. Costs less than two calls (one ray set-up and one set of
-    sample weights per ray; the scatters are not shared): SART's first visit of a subset needs
-    both its update and its column sums."""
+    ``proj2`` has the shape of ``proj``. It shares the ray set-up and the sample weights, not the
+    scatters, which are the cost: about two calls' time (docs/results/iterative-study.md
+    "9. Backprojectors"). SART's first visit of a subset needs both its update and its column sums."""
     return _backproject((proj, proj2), shape_zyx, origin_mm, spacing_mm, src, det_centre, e_u, e_v, u_mm, v_mm, rt,
                         chunk_views=chunk_views, v_scale=v_scale)
 

@@ -167,33 +167,34 @@ class MotionConeOperator:
         """SART's update direction for subset s: W_b^T A_b^T r for the attenuation; the density term
         gets none per subset (its per-bin step, sign(alpha) times the residual, is noisy where
         |alpha| is small) but accumulates alpha_b W_b^T A_b^T r for one step per epoch (:meth:`constrain`)."""
-        g = self.adjoint(r, s, kind=self.backprojector)
+        return self._as_direction(self.adjoint(r, s, kind=self.backprojector))
+
+    def col_sums(self, w, s: int) -> np.ndarray:
+        """|A_s|^T w (SART's C_s for the ray mask w); also accumulates the density step's scale."""
+        return self._as_col_sums(self.adjoint(w, s, absolute=True, kind=self.backprojector), self._bin(s))
+
+    def direction_and_col_sums(self, r, w, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """(:meth:`update_direction` (r, s), :meth:`col_sums` (w, s)), with their bookkeeping, from one
+        pass of the backprojector over the bin's rays (its pair) and two transposed warps: the same
+        values as the two calls (each backprojection the same bits)."""
+        b = self._bin(s)
+        f = self._bin_field(b)
+        gr, gw = backproject_groups(r, self.grid, self._parts[b], self.rt, proj2=w, kind=self.backprojector)
+        return (self._as_direction(self._lift(self.from_state(gr, f), b)),
+                self._as_col_sums(self._lift(self.from_state(gw, f), b, absolute=True), b))
+
+    def _as_direction(self, g) -> np.ndarray:
+        """A lifted W^T A^T r as SART's direction: the density term's part goes to its per-epoch step."""
         if self.density:
             self._gd += g[1]              # alpha_b g_b
             g[1] = 0.0
         return g
 
-    def col_sums(self, w, s: int) -> np.ndarray:
-        """|A_s|^T w (SART's C_s for the ray mask w); also accumulates the density step's scale."""
-        c = self.adjoint(w, s, absolute=True, kind=self.backprojector)
+    def _as_col_sums(self, c, b: int) -> np.ndarray:
+        """A lifted |W^T A^T| w as SART's column sums, accumulating the density step's scale."""
         if self.density:
-            self._hd += float(self.alpha(self._bin(s))) ** 2 * c[0]
+            self._hd += float(self.alpha(b)) ** 2 * c[0]
         return c
-
-    def direction_and_col_sums(self, r, w, s: int) -> tuple[np.ndarray, np.ndarray]:
-        """(:meth:`update_direction` (r, s), :meth:`col_sums` (w, s)), with their bookkeeping, from one
-        walk of the bin's rays (the matched backprojector's pair kernel) and two transposed warps:
-        the same values as the two calls (each backprojection the same bits)."""
-        b = self._bin(s)
-        f = self._bin_field(b)
-        gr, gw = backproject_groups(r, self.grid, self._parts[b], self.rt, proj2=w, kind=self.backprojector)
-        gr, gw = self.from_state(gr, f), self.from_state(gw, f)
-        if not self.density:
-            return gr[None], gw[None]
-        al = self.alpha(b)
-        self._gd += al * gr               # as update_direction: alpha_b g_b, no per-subset step
-        self._hd += al ** 2 * gw          # as col_sums: its scale
-        return np.stack([gr, np.zeros_like(gr)]), np.stack([gw, abs(al) * gw])
 
     def constrain(self, X, epoch_end: bool) -> None:
         """The density term's step and constraint, in place, at each epoch's end (after the first,
@@ -227,6 +228,11 @@ class MotionConeOperator:
         "voxel": B ~ A^T instead of the exact transpose, for SART's steps)."""
         b = self._bin(s)
         g = self.from_state(backproject_groups(r, self.grid, self._parts[b], self.rt, kind=kind), self._bin_field(b))
+        return self._lift(g, b, absolute)
+
+    def _lift(self, g, b: int, absolute: bool = False) -> np.ndarray:
+        """A reference-frame volume g as the unknown's shape: (1, ...) or, with the density term,
+        (g, alpha_b g) (``absolute``: |alpha_b|)."""
         if not self.density:
             return g[None]
         al = abs(self.alpha(b)) if absolute else self.alpha(b)
