@@ -16,6 +16,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from clrecon.bench.timing import load1
 from clrecon.config.scene import load_scene
 from clrecon.core.runtime import get_runtime
@@ -87,9 +89,10 @@ def slab_memory_model(scene, slab_slices: int, n_targets: int, n_variants: int, 
     The rebinned rows of every variant (host; each variant's rows move to the device, which
     on a CPU device is host memory too, when it is reconstructed), one backprojection launch
     (the interleaved sinograms, at most ``fbp.LAUNCH_BYTES``, and its images) and the images
-    of the one method being reconstructed (float32, twice: the batch and its reordered copy;
-    each (variant, method) goes to ``on_slab`` as soon as it is done, so they do not grow
-    with the number of methods).
+    of the one method being reconstructed (float32, twice: the batch and the returned volume
+    it is copied into, since the measuring child passes no ``on_slab``; in a run each (variant,
+    method) goes to the writer as soon as it is done, so they do not grow with the number of
+    methods).
     """
 
     sc, rc = scene.scanner, scene.recon
@@ -135,7 +138,8 @@ def run(quick: bool = False, repeats: int = 3, log=print, *, scene: str = "paper
     full_methods = len(sc.recon.methods)
     rows_per_slice = res["candidates_per_slice"]  # upper bound: every candidate used by some method
     per_slice = reconstruct.slab_bytes_per_slice(rows_per_slice, sc.scanner.n_cols, n_var, full_targets,
-                                                 sc.recon.ny, sc.recon.nx)
+                                                 sc.recon.ny, sc.recon.nx,
+                                                 volume_itemsize=np.dtype(sc.recon.volume_dtype).itemsize)
     slab = min(sc.recon.nz, reconstruct.slices_per_slab(per_slice))  # the run's rule (its plan not modelled)
     full = slab_memory_model(sc, slab, full_targets, n_var, rows_per_slice)
     base_mib = res["rss_before_mib"]

@@ -11,16 +11,19 @@ the backprojector, which keeps both cores busy, would wait for it. h5py releases
 it compresses, so the unit can be written while the next method's slab is interpolated and
 backprojected (the figures on paper-p010: docs/results/code-history.md "Writing volume units behind the work").
 
-One write is in flight at a time: :meth:`WriteBehind.submit` first waits for the previous
-one, so at most one finished slab (its float32 images and their converted, compressed copies)
-is held beside the one being reconstructed; the memory model counts it
-(:func:`extra_bytes`). The writes run in submission order, each unit is atomic as before, and
-the writer's done mask is set only after a unit is on disk: a SIGKILL at any instant loses at
-most the slabs not yet written, which a resumed run reconstructs again. The units hold the same
-values as written in the foreground (same arrays, same filters; not always the same bytes:
-h5py's LZF leaves liblzf's hash table uninitialised, so its output, though always decoded to the
-same values, can differ between two writes of the same array). An error in the thread is
-raised again in the run's thread at the next :meth:`submit` or at :meth:`drain`.
+One write is in flight at a time: :meth:`WriteBehind.submit` first waits for the previous one,
+so at most one finished slab is held beside the one being reconstructed. The executors convert
+it to the volume dtype in the run's thread before submitting it
+(:class:`clrecon.pipeline.executors.base.Work` ``prepare``), so what the thread holds is that
+copy and its compressed image, not the float32 images; the slab rule counts both
+(:func:`clrecon.reconstruction.reconstruct.slab_bytes_per_slice`). The writes run in submission
+order, each unit is atomic as before, and the writer's done mask is set only after a unit is on
+disk: a SIGKILL at any instant loses at most the slabs not yet written, which a resumed run
+reconstructs again. The units hold the same values as written in the foreground (same arrays,
+same filters; not always the same bytes: h5py's LZF leaves liblzf's hash table uninitialised, so
+its output, though always decoded to the same values, can differ between two writes of the same
+array). An error in the thread is raised again in the run's thread at the next :meth:`submit` or
+at :meth:`drain`.
 
 ``WriteBehind(background=False)`` writes in the caller's thread (the same files; the serial
 executor, :mod:`clrecon.pipeline.executors.base`, and the A/B benchmarks use it).
@@ -30,14 +33,6 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-
-
-def extra_bytes(slab_slices: int, n_targets: int, ny: int, nx: int, volume_itemsize: int) -> int:
-    """Memory the write behind adds at its peak (bytes): one finished slab of one (variant,
-    method), ``slab_slices x n_targets`` images of ``ny x nx`` in float32, with its copy in the
-    volume dtype and the compressed unit image (counted at the raw volume-dtype size: the
-    upper bound)."""
-    return int(slab_slices * n_targets * ny * nx * (4 + 2 * volume_itemsize))
 
 
 class WriteBehind:

@@ -277,11 +277,17 @@ class VolumeWriter:
 
     def _unit(self, name: str, vol: np.ndarray, meta: dict, fault: str, stem: str) -> None:
         meta = dict(meta, name=name, shape=list(self._specs[name][0]))
-        vol = np.ascontiguousarray(vol, self.dtype)
+        vol = self.as_stored(vol)
         p = units.write_unit(self.datasets_dir, stem, {"data": vol}, meta, fault,
                              compress={"data": self._chunks(vol.shape)}, filters=self.filters)
         self._units[name].append((p, meta))
         self.units_written[fault] += 1
+
+    def as_stored(self, vol: np.ndarray) -> np.ndarray:
+        """``vol`` as :meth:`write` stores it: C-contiguous in the volume dtype (a copy unless it
+        already is), the same values. Converting before :meth:`write` lets a caller drop its
+        float32 images before the write starts (the reconstruction's write behind)."""
+        return np.ascontiguousarray(vol, self.dtype)
 
     def write(self, name: str, vol: np.ndarray, z_index) -> None:
         """Write a full-axis block ``(n_c, n_r, s, ny, nx)`` into slice indices ``z_index`` (increasing).

@@ -7,7 +7,6 @@ import functools
 import numpy as np
 
 from clrecon.config.scene import builtin_scene_names, load_scene
-from clrecon.core import write_behind
 from clrecon.core.errors import SceneError
 from clrecon.outputs.volumes import resolve_compression
 from clrecon.pipeline import evaluate, slabs
@@ -106,13 +105,14 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     needed = {p: int(min(n_proj[p], ((z_extent + 2 * window) / scene.scan.feed_mm(sc, p) + 1)
                          * sc.views_per_rotation)) for p in pitches}
     # peak, as run.py walks it: one 512-projection read chunk (+ its noisy copy), one slab (its
-    # rebinned rows of every variant and one method's images, sized by reconstruct.slab_slices
-    # to at most SLAB_BYTES; the plan is part of that budget there, not modelled here), the plans
+    # rebinned rows of every variant, one method's images and the finished slab being written,
+    # sized by reconstruct.slab_slices to at most SLAB_BYTES; the plan is part of that budget
+    # there, not modelled here), the plans
     # kept between the planning pass and the reconstruction (kept_plans_bytes), one launch of
     # sinograms, and the truth
     def slab_of(feed_mm):  # the rebinned rows per slice and the reconstruction's slab (slices) at a feed
         rows = 2 * window / feed_mm * sc.views_per_rotation
-        per = slab_bytes_per_slice(rows, sc.n_cols, n_var, n_targets, rc.ny, rc.nx)
+        per = slab_bytes_per_slice(rows, sc.n_cols, n_var, n_targets, rc.ny, rc.nx, volume_itemsize=item)
         return rows, per, min(nz, slices_per_slab(per))
 
     rows_per_slice, per_slice, slab = slab_of(min(scene.scan.feed_mm(sc, p) for p in pitches))
@@ -129,8 +129,6 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     # ``overlap``: an executor that overlaps the stages (local, dask; not serial)
     if overlap:  # the truths beside the reconstruction: one target's working set on top
         peak += truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx)
-    if overlap:  # one finished (variant, method) slab held while the writer thread writes it
-        peak += write_behind.extra_bytes(slab, n_targets, rc.ny, rc.nx, item)
     # the metrics stage, after the reconstruction: in each of its processes the LV region masks of
     # every target (bool, when r4dct's respiratory-only study runs), one target's truth and volume in
     # float32 and their difference; a second process's interpreter and imports about 0.4 GB

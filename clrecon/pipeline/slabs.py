@@ -95,7 +95,8 @@ def reconstruction_slabs(bytes_per_slice, budget: float = reconstruct.SLAB_BYTES
     return out
 
 
-def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progress, plan_table=None):
+def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progress, plan_table=None,
+               volume_itemsize: int = 4):
     """Plan the slices ``todo`` slab by slab: ``(slabs, plans, needed, diagnostics_parts, plan_seconds)``.
 
     The slab sizes come from the plan of the densest slice (the most candidates, an interior
@@ -108,6 +109,7 @@ def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progres
     bool) and its weight diagnostics; the plans are kept for the reconstruction while they
     fit in :data:`clrecon.reconstruction.reconstruct.KEEP_PLANS_BYTES` (``plans[k]`` is None
     where a slab must be planned again). ``slabs``: (a, b) ranges into ``todo``.
+    ``volume_itemsize``: bytes per voxel of ``recon.volume_dtype`` (the finished slab the writer holds).
     ``plan_seconds``: method -> seconds, each slab's planning summed.
     """
     ptab = table if plan_table is None else plan_table  # the usable rows (recorded traces leave some out)
@@ -117,7 +119,7 @@ def plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants, progres
     rows, n_t, plan_b = reconstruct.probe_sizes(probe)
     share = counts / max(int(counts[dense]) if todo.size else 1, 1)  # each slice's rows and plan vs the probe's
     per_slice = reconstruct.slab_bytes_per_slice(rows * share, cfg.scanner.n_cols, n_variants, n_t,
-                                                 cfg.fbp.ny, cfg.fbp.nx, plan_b * share)
+                                                 cfg.fbp.ny, cfg.fbp.nx, plan_b * share, volume_itemsize)
     slabs = reconstruction_slabs(per_slice)
     needed = np.zeros(len(table), bool)
     plans, parts, plan_s, kept = [], [], {}, 0
@@ -163,7 +165,8 @@ def plan_pitch(scene, cfg, pitch: float, slices_z, todo, targets, methods, n_var
     ptab, excluded = geometry.usable_table(scene, table)
     t1 = time.perf_counter()
     slabs, plans, needed, parts, plan_s = plan_slabs(cfg, table, slices_z, todo, targets, methods, n_variants,
-                                                     progress, plan_table=ptab)
+                                                     progress, plan_table=ptab,
+                                                     volume_itemsize=np.dtype(scene.recon.volume_dtype).itemsize)
     t2 = time.perf_counter()
     # the candidates the plan uses: the run's window and max_turns, not the SSRB-exact default
     sampling = sampling_mod.sampling_summary(

@@ -363,16 +363,21 @@ def plan_bytes(plan_: SlabWeights) -> int:
 
 
 def slab_bytes_per_slice(rows_per_slice: float, n_cols: int, n_variants: int, n_targets: int, ny: int, nx: int,
-                         plan_bytes_per_slice: float = 0.0) -> float:
+                         plan_bytes_per_slice: float = 0.0, volume_itemsize: int = 4) -> float:
     """Bytes one slice adds to a slab's working set (the slab-size rule, :func:`slices_per_slab`).
 
     Its rebinned rows (``rows_per_slice`` x ``n_cols`` float32, one copy per noise variant),
     its plan (``plan_bytes_per_slice``, with the int32/float32 copies the slab makes of it:
-    half as large again), and the images of the one method being reconstructed (``n_targets``
-    x ny x nx float32, twice: the batch and its reordered copy).
+    half as large again), the images of the one method being reconstructed (``n_targets`` x ny
+    x nx float32), and the finished (variant, method) slab being written: its copy in the
+    volume dtype (``volume_itemsize`` bytes, 4 for float32, 2 for float16) and its compressed
+    unit image (counted at that size, the upper bound). The writer holds only those two: the
+    executors convert a finished slab in the run's thread once the previous one is on disk
+    (:class:`clrecon.pipeline.executors.base.Work` ``prepare``), so the float32 images of two
+    methods are never held at once (docs/results/code-history.md "The write behind's slab").
     """
     return (rows_per_slice * n_cols * 4 * max(n_variants, 1) + 1.5 * plan_bytes_per_slice
-            + 2 * n_targets * ny * nx * 4)
+            + n_targets * ny * nx * (4 + 2 * int(volume_itemsize)))
 
 
 def slices_per_slab(bytes_per_slice: float, budget: float = SLAB_BYTES) -> int:
@@ -394,12 +399,13 @@ def probe_sizes(probe: SlabWeights) -> tuple[float, int, float]:
     return len(proj) / S, n_t, plan_bytes(probe) / S
 
 
-def slab_slices(cfg: ReconstructionConfig, probe: SlabWeights, n_variants: int, budget: float = SLAB_BYTES) -> int:
+def slab_slices(cfg: ReconstructionConfig, probe: SlabWeights, n_variants: int, budget: float = SLAB_BYTES,
+                volume_itemsize: int = 4) -> int:
     """:func:`slices_per_slab` from the plan ``probe`` of a few slices, their mean size per slice
     (the run sizes its slabs slice by slice instead: :func:`clrecon.pipeline.slabs.plan_slabs`)."""
     rows, n_t, plan_b = probe_sizes(probe)
     return slices_per_slab(slab_bytes_per_slice(rows, cfg.scanner.n_cols, n_variants, n_t, cfg.fbp.ny, cfg.fbp.nx,
-                                                plan_b), budget)
+                                                plan_b, volume_itemsize), budget)
 
 
 class SlabTooLarge(ClreconError, MemoryError):

@@ -4,15 +4,18 @@ one in flight, errors raised in the run's thread, the same units as the foregrou
 import threading
 import time
 
+import numpy as np
 import pytest
 from run_compare import QUIET, assert_identical, reference_run
 
+from clrecon.config.overrides import load_scene as api_load_scene
 from clrecon.config.scene import load_scene
 from clrecon.core import units, write_behind
 from clrecon.outputs.volumes import VolumeWriter
 from clrecon.pipeline import costs
 from clrecon.pipeline.run import run
 from clrecon.pipeline.stages import truth as truth_stage
+from clrecon.reconstruction import reconstruct
 from clrecon.simulation import store as store_mod
 from clrecon.simulation.simulate import simulate
 
@@ -76,17 +79,53 @@ def test_foreground_mode_runs_each_call_at_once():
 
 
 def test_memory_model_counts_the_held_slab():
-    """An overlapping executor holds one finished slab while the writer thread writes it, and one
-    target's truth working set beside the reconstruction; the serial one neither."""
-    sc = load_scene("paper-p010")
+    """The slab rule holds the finished slab being written (in the volume dtype, with its
+    compressed image) beside the images being made; an overlapping executor adds one target's
+    truth working set beside the reconstruction; the serial one does not."""
+    sc = load_scene("paper-p010")  # recon.volume_dtype float16
     on = costs.run_costs(sc)
     off = costs.run_costs(sc, overlap=False)
-    held = write_behind.extra_bytes(on["slab_slices"], on["n_targets"], sc.recon.ny, sc.recon.nx, 2)
-    assert held == on["slab_slices"] * 50 * 512 * 512 * 8
     rc, scn = sc.recon, sc.scanner
+    per16 = reconstruct.slab_bytes_per_slice(1000.0, scn.n_cols, 2, 50, rc.ny, rc.nx, volume_itemsize=2)
+    per32 = reconstruct.slab_bytes_per_slice(1000.0, scn.n_cols, 2, 50, rc.ny, rc.nx, volume_itemsize=4)
+    assert per32 - per16 == 50 * rc.ny * rc.nx * 4  # the dtype copy and its compressed image, 2 B each
+    assert per16 - reconstruct.slab_bytes_per_slice(0.0, scn.n_cols, 2, 50, rc.ny, rc.nx, volume_itemsize=2) \
+        == 1000 * scn.n_cols * 4 * 2
     truths = truth_stage.working_bytes(rc.nz, scn.views_per_rotation, scn.n_cols, rc.ny, rc.nx)
-    # paper-p010: the reconstruction's peak is the larger (not the metrics'), so both add in full
-    assert on["peak_memory_bytes"] == off["peak_memory_bytes"] + held + truths
+    # paper-p010: the reconstruction's peak is the larger (not the metrics'): the truths add in full
+    assert on["peak_memory_bytes"] == off["peak_memory_bytes"] + truths
+
+
+def test_the_writer_is_handed_the_stored_copy(tmp_path, monkeypatch):
+    """The reconstruction's slabs reach the writer already in the volume dtype, converted after the
+    previous write finished (so the writer thread never holds float32 images): every array
+    VolumeWriter.write receives from the reconstruction is C-contiguous float16 on a float16 run,
+    and no write is in flight when a conversion starts."""
+    seen, converting_while_writing = [], []
+    busy = threading.Event()
+    real_write, real_stored = VolumeWriter.write, VolumeWriter.as_stored
+
+    def write(self, name, vol, z):
+        if name.startswith("recon/"):
+            seen.append((vol.dtype, vol.flags.c_contiguous))
+        busy.set()
+        try:
+            time.sleep(0.05)  # a slow disk: the next slab is made meanwhile
+            real_write(self, name, vol, z)
+        finally:
+            busy.clear()
+
+    def as_stored(self, vol):
+        if threading.current_thread() is threading.main_thread():
+            converting_while_writing.append(busy.is_set())
+        return real_stored(self, vol)
+
+    monkeypatch.setattr(VolumeWriter, "write", write)
+    monkeypatch.setattr(VolumeWriter, "as_stored", as_stored)
+    run(api_load_scene("tiny", recon__volume_dtype="float16"), tmp_path / "run", cache_dir=tmp_path / "cache",
+        executor="local", **QUIET)
+    assert seen and all(dt == np.float16 and c for dt, c in seen)
+    assert converting_while_writing and not any(converting_while_writing)
 
 
 @pytest.fixture(scope="module")

@@ -81,6 +81,11 @@ class Work:
     ``finish(times)``: after every piece is written; gives the node's product (``times``: the
     units' seconds and counts, their ``a:b`` keys included). ``abort(exc)``: on an error, before
     it is raised. ``progress``: ``(desc, total, unit)`` of a counter advanced by ``weight(piece)``.
+    ``prepare(piece) -> piece``: optional, run in this process's thread once the previous piece is
+    written and before this one is handed to ``write`` (which may run in the writer thread): the
+    reconstruction converts its finished slab to the volume dtype there, so the writer never holds
+    a float32 slab beside the next one being made (the slab rule,
+    :func:`clrecon.reconstruction.reconstruct.slab_bytes_per_slice`, counts what it does hold).
     """
 
     units: Iterable[Unit]
@@ -89,6 +94,7 @@ class Work:
     abort: Callable[[BaseException], None] = lambda exc: None
     progress: tuple | None = None
     weight: Callable[[Any], int] = lambda piece: 1
+    prepare: Callable[[Any], Any] | None = None
 
 
 @dataclass
@@ -242,6 +248,9 @@ class Executor:
         def emit(piece):
             if bar is not None:
                 bar.update(work.weight(piece))
+            if work.prepare is not None:
+                self.writer.drain()  # what submit waits for first anyway: the previous piece is on disk
+                piece = work.prepare(piece)
             self.writer.submit(work.write, piece)
 
         try:

@@ -72,6 +72,12 @@ def stage(run, pitch: float, plan, store, tuning):
         return Idle()
     pk, n_out = pitch_key(pitch), len(run.variants) * len(plan.methods)
 
+    def prepare(piece):
+        """The finished slab in the volume dtype, made here (the run's thread) so that the writer
+        thread holds only that copy, not the float32 images (Work.prepare)."""
+        z, slab = piece
+        return z, {key: run.writer.as_stored(vol) for key, vol in slab.items()}
+
     def write(piece) -> None:
         z, slab = piece
         for (v, m), vol in slab.items():  # r4dct (1, n_r), helical (1, 1): stored as they are
@@ -100,4 +106,4 @@ def stage(run, pitch: float, plan, store, tuning):
 
     units = [_slab(run, plan, store, tuning, k, plan.todo[a:b]) for k, (a, b) in enumerate(plan.pp.slabs)]
     return Work(units, write, finish, progress=(f"reconstruct {pk}", plan.todo.size * n_out, "slice-volumes"),
-                weight=lambda piece: len(piece[0]) * len(piece[1]))
+                weight=lambda piece: len(piece[0]) * len(piece[1]), prepare=prepare)
