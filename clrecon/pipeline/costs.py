@@ -125,7 +125,11 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     buffers = device_buffers(scene, rows_per_slice)
     # one launch's images twice: the device buffer (host memory on a CPU device) and its host copy
     launch_images = 2 * buffers["the images of one backprojection launch"]
-    peak = chunk + slab * per_slice + plans + slab_sinos + 2 * nz * rc.ny * rc.nx * 4 + launch_images
+    # the read chunk lives while the slab's rows are made, the images, their launch buffers and the
+    # finished slab being written while they are backprojected: the rows and plans are under both
+    images = n_targets * rc.ny * rc.nx * (4 + 2 * item)  # per slice: slab_bytes_per_slice's images part
+    peak = (slab * (per_slice - images) + max(chunk, slab * images + slab_sinos + launch_images) + plans
+            + 2 * nz * rc.ny * rc.nx * 4)
     # ``overlap``: an executor that overlaps the stages (local, dask; not serial)
     if overlap:  # the truths beside the reconstruction: one target's working set on top
         peak += truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx)

@@ -471,6 +471,7 @@ def _reconstruct_slab(cfg: ReconstructionConfig, store, plan_: SlabWeights, s0, 
                                             pair_dz[lo:hi].astype(np.float32), sc, rt=rt, first_row=r_lo,
                                             pair_shift=shift)
             times.add("rebin", time.perf_counter() - t1)
+    clean = data = None  # the last read chunk is not held through the FBP (the cost model counts them apart)
 
     # Cosine weighting and ramp filtering act on each row alone and linearly, so they commute
     # with the interpolation (weighted sums of rows of the same view): each rebinned row is

@@ -223,16 +223,23 @@ def test_the_weights_are_counted_whole_only_where_a_later_epoch_reuses_them():
 
 
 def test_a_budget_below_the_whole_cuts_slabs_under_it():
+    """A slab keeps the warp fields its budget leaves (the field cache shrinks first); slabs are cut only
+    where the rest of a slab alone (cache 0) is over the budget, and every slab cut fits it."""
     rc, sc, z, table, radius = _slab_inputs("demo")
-    whole = mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z, 6)
-    single = max(mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z[a:a + 1], 6) for a in range(len(z)))
-    assert single < whole
-    budget = 0.5 * (single + whole)  # some cut fits it; the whole does not
+    whole, cache = mcir.slab_memory(sc, rc, rc.mcir, radius, table, z, 6)
+    assert 0 < cache <= mcir.FIELD_CACHE_BYTES and whole <= mcir.SLAB_BYTES
+    whole_rest, none = mcir.slab_memory(sc, rc, rc.mcir, radius, table, z, 6, budget=0)
+    assert none == 0 and whole_rest < whole  # the fields are demo's largest part after the projections
+    squeezed, part = mcir.slab_memory(sc, rc, rc.mcir, radius, table, z, 6, budget=0.5 * (whole + whole_rest))
+    assert part == int(0.5 * (whole + whole_rest)) - whole_rest and squeezed <= 0.5 * (whole + whole_rest)
+    single = max(mcir.slab_memory(sc, rc, rc.mcir, radius, table, z[a:a + 1], 6, budget=0)[0] for a in range(len(z)))
+    assert single < whole_rest
+    budget = 0.5 * (single + whole_rest)  # some cut fits it; the whole does not, even with no fields kept
     cuts, _ = mcir.slab_plan(sc, rc, rc.mcir, radius, table, z, 6, budget=budget)
     assert len(cuts) > 1 and cuts[0][0] == 0 and cuts[-1][1] == len(z)
     assert all(a2 == b1 for (_, b1), (a2, _) in zip(cuts, cuts[1:], strict=False))
-    sizes = [mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z[a:b], 6) for a, b in cuts]
-    assert max(sizes) <= budget < whole
+    sizes = [mcir.slab_memory_bytes(sc, rc, rc.mcir, radius, table, z[a:b], 6, budget) for a, b in cuts]
+    assert max(sizes) <= budget < whole_rest
 
 
 def test_the_bins_counted_are_the_bins_solved():

@@ -115,6 +115,23 @@ def test_row_sums_and_the_paired_first_visit_are_the_separate_calls(warp_mode, d
         np.testing.assert_array_equal(one._hd, two._hd)
 
 
+def test_the_field_cache_changes_time_not_values():
+    """An operator that keeps no field (a slab whose budget leaves none: method.field_cache_within)
+    makes each bin's field again at each use and gives the same bits as one that keeps them all."""
+    grid = _grid()
+    groups, c, a = _groups()
+    kept = MotionConeOperator(grid, groups, state_bins(c, a, 3, 2), _model(grid), warp_mode="pull")
+    none = MotionConeOperator(grid, groups, state_bins(c, a, 3, 2), _model(grid), warp_mode="pull",
+                              field_cache_bytes=0)
+    x = np.random.default_rng(5).random(kept.unknown_shape).astype(np.float32)
+    for _ in range(2):  # the second pass reads the kept fields back
+        for s in range(kept.n_subsets):
+            y = kept.forward(x, s)
+            np.testing.assert_array_equal(y, none.forward(x, s))
+            np.testing.assert_array_equal(kept.update_direction(y, s), none.update_direction(y, s))
+    assert none.fields_kept == 0 and kept.fields_kept == kept.n_subsets
+
+
 def test_inverse_field_inverts_the_model():
     grid = _grid()
     model = _model(grid)

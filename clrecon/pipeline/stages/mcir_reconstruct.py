@@ -83,7 +83,8 @@ def _unit(run, pitch: float, table, store, a: int, b: int, variant: str, model, 
         hu, info = mcir.reconstruct_slab_from_store(
             run.scene, run.recon_cfg, table, store, run.slices_z[a:b], run.targets, variant, model,
             start_hu=start_image(run, pk, variant, ref_ij, a, b), rt=run.rt,
-            log=lambda line: run.log(f"[{pk}] mcir {variant} slices {a}..{b - 1}: {line}"), times=times)
+            log=lambda line: run.log(f"[{pk}] mcir {variant} slices {a}..{b - 1}: {line}"), times=times,
+            budget=SLAB_BYTES)
         emit((np.arange(a, b), variant, hu, info))
 
     def remote():

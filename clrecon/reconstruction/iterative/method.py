@@ -81,10 +81,11 @@ def needed_projections(scanner, recon, knobs, object_radius_mm: float, table, sl
 
 
 def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n_bins: int, density: bool,
-                 n_basis: int, epochs: int = 1, largest_bin_views: int | None = None) -> int:
+                 n_basis: int, epochs: int = 1, largest_bin_views: int | None = None,
+                 field_cache_bytes: int = FIELD_CACHE_BYTES) -> int:
     """Peak bytes of :func:`reconstruct_slab` (a model): the projections (4 B per ray), the unknown and
     its update (K volumes each), the warp fields kept per bin (3 volumes per bin, at most
-    ``motion_operator.FIELD_CACHE_BYTES``), the model on the grid (3 volumes per basis field,
+    ``field_cache_bytes``; the others are made again at each use), the model on the grid (3 volumes per basis field,
     ``n_basis``) and 8 working volumes; SART's weights: with ``epochs`` > 1 the row weights of every
     ray (4 B) and the column weights of every bin (K volumes each), kept for the next epoch; with one
     epoch one bin's at a time (K volumes and 6 x 4 B per ray of the largest bin,
@@ -97,7 +98,7 @@ def memory_bytes(grid: geo.VolumeGrid, n_views: int, n_rows: int, n_cols: int, n
         weights = ray * n_views + 4 * nv * k * n_bins
     else:
         weights = 6 * ray * (n_views if largest_bin_views is None else largest_bin_views) + 4 * nv * k
-    fields = min(FIELD_CACHE_BYTES, 3 * 4 * nv * n_bins)
+    fields = min(int(field_cache_bytes), 3 * 4 * nv * n_bins)
     return int(ray * n_views + weights + 4 * nv * (3 * k + 3 * n_basis + 8) + fields)
 
 
@@ -116,28 +117,51 @@ def n_bins(table, knobs, views=None) -> int:
     return int(bin_counts(table, knobs, views).size)
 
 
-def slab_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int) -> int:
-    """:func:`memory_bytes` of the slab of slices ``slices_z`` (mm) over the views of ``table`` (the
-    scan's usable views, a :class:`~clrecon.scan.table.ProjectionTable`): its own views, volume
-    and filled bins (:func:`slab_setup`)."""
+def field_cache_within(rest_bytes: int, budget: float) -> int:
+    """The field cache (bytes) that keeps a slab whose other arrays model ``rest_bytes`` within
+    ``budget``: what is left of it, at most ``motion_operator.FIELD_CACHE_BYTES``, at least 0 (then
+    every bin's field is made again at each use: the same values, more time)."""
+    return int(max(0.0, min(float(FIELD_CACHE_BYTES), float(budget) - float(rest_bytes))))
+
+
+def slab_memory(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int,
+                budget: float | None = None) -> tuple[int, int]:
+    """``(bytes, field cache bytes)`` of the slab of slices ``slices_z`` (mm) over the views of
+    ``table`` (the scan's usable views, a :class:`~clrecon.scan.table.ProjectionTable`): its own
+    views, volume and filled bins (:func:`slab_setup`), with the field cache that keeps it within
+    ``budget`` (:func:`field_cache_within`; default :data:`SLAB_BYTES`); the bytes are over
+    ``budget`` only where the slab's other arrays alone are."""
+    budget = SLAB_BYTES if budget is None else budget
     st = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
     counts = bin_counts(table, knobs, st.views)
-    return memory_bytes(st.grid, st.views.size, scanner.n_rows, scanner.n_cols, counts.size, knobs.density, n_basis,
-                        epochs=knobs.epochs, largest_bin_views=int(counts.max()) if counts.size else 0)
+
+    def model(cache):
+        return memory_bytes(st.grid, st.views.size, scanner.n_rows, scanner.n_cols, counts.size, knobs.density,
+                            n_basis, epochs=knobs.epochs, largest_bin_views=int(counts.max()) if counts.size else 0,
+                            field_cache_bytes=cache)
+
+    cache = field_cache_within(model(0), budget)
+    return model(cache), cache
+
+
+def slab_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int,
+                      budget: float | None = None) -> int:
+    """The bytes of :func:`slab_memory`."""
+    return slab_memory(scanner, recon, knobs, object_radius_mm, table, slices_z, n_basis, budget)[0]
 
 
 def slab_plan(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int,
               budget: float = SLAB_BYTES) -> tuple[list[tuple[int, int]], int]:
     """The slice ranges ``(a, b)`` of ``slices_z`` the stage solves one at a time, and the largest
-    one's :func:`slab_memory_bytes`: the fewest equal slabs whose :func:`slab_memory_bytes` is under
-    ``budget``, else one slice each."""
+    one's :func:`slab_memory_bytes`: the fewest equal slabs whose :func:`slab_memory_bytes` (with the
+    field cache fitted to ``budget``) is under ``budget``, else one slice each."""
     z = np.asarray(slices_z, np.float64)
     n = len(z)
     sizes: dict = {}
 
     def size(a, b):  # each slab sized once, whichever cut tries it
         if (a, b) not in sizes:
-            sizes[a, b] = slab_memory_bytes(scanner, recon, knobs, object_radius_mm, table, z[a:b], n_basis)
+            sizes[a, b] = slab_memory_bytes(scanner, recon, knobs, object_radius_mm, table, z[a:b], n_basis, budget)
         return sizes[a, b]
 
     singles = [(a, a + 1) for a in range(n)]
@@ -205,7 +229,7 @@ def start_volume(start_hu, grid: geo.VolumeGrid, slices_z, voxel_mm: float, mu_w
 
 def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_per_mm: float, table, projections,
                      slices_z, targets, model: MotionModel, *, start_hu=None, rt=None,
-                     log=None) -> tuple[np.ndarray, dict]:
+                     log=None, budget: float | None = None) -> tuple[np.ndarray, dict]:
     """``mcir``'s volumes of the slab of slices ``slices_z`` (s,) mm: (n_c, n_r, s, ny, nx) HU float32.
 
     ``table``: the whole scan's :class:`~clrecon.scan.table.ProjectionTable`; ``projections(views)``
@@ -213,10 +237,14 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
     noise variant's); ``targets``: the run's ``Targets``; ``model``: ``mc``'s motion model (any grid:
     resampled to the volume); ``start_hu``: None (start from zero) or the reference state's image
     (s, ny, nx) HU at ``slices_z`` (:func:`start_volume`; the density term starts at zero).
-    ``log(line)``: the solver's residual per epoch. Returns (volumes, info: the views, the volume
-    grid, the bins, SART's history, seconds).
+    ``log(line)``: the solver's residual per epoch. ``budget``: the slab's memory budget (bytes,
+    default :data:`SLAB_BYTES`); the
+    warp fields kept between uses are what the rest of the slab leaves of it (:func:`slab_memory`;
+    the others are made again: the same values). Returns (volumes, info: the views, the volume
+    grid, the bins, the field cache, SART's history, seconds).
     """
     t0 = time.perf_counter()
+    _, cache = slab_memory(scanner, recon, knobs, object_radius_mm, table, slices_z, model.basis.size, budget)
     setup = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
     sub = table.take(setup.views)
     proj = np.asarray(projections(setup.views), np.float32)
@@ -224,7 +252,7 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
     groups = geo.view_groups(scanner, sub)
     bins = state_bins(sub.cardiac_phase, sub.resp_amplitude, knobs.cardiac_bins, knobs.resp_bins)
     op = MotionConeOperator(setup.grid, groups, bins, model, warp_mode=knobs.warp, density=knobs.density,
-                            backprojector=knobs.backprojector,
+                            backprojector=knobs.backprojector, field_cache_bytes=cache,
                             mu_water_per_mm=mu_water_per_mm, rt=rt)
     rss_mark(f"mcir: the operator on {setup.grid.nz} x {setup.grid.ny} x {setup.grid.nx} voxels, {len(bins)} bins")
     cfg = SARTConfig(epochs=knobs.epochs, relaxation=knobs.relaxation, decay=knobs.decay, tol=knobs.tol)
@@ -245,23 +273,25 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
     rss_mark("mcir: the targets")
     info = {"views": int(setup.views.size), "grid": [setup.grid.nz, setup.grid.ny, setup.grid.nx],
             "plane_dz_mm": setup.grid.dz_mm, "voxel_mm": setup.grid.voxel_mm, "bins": len(bins),
+            "field_cache_bytes": cache, "fields_kept": op.fields_kept,
             "sart": hist.as_dict(), "seconds": {"setup": round(t1 - t0, 3), "solve": round(t2 - t1, 3),
                                                 "targets": round(time.perf_counter() - t2, 3)}}
     return out, info
 
 
 def reconstruct_slab_from_store(scene, cfg, table, store, slices_z, targets, variant: str, model: MotionModel, *,
-                                start_hu=None, rt=None, log=None, times=None) -> tuple[np.ndarray, dict]:
+                                start_hu=None, rt=None, log=None, times=None,
+                                budget: float | None = None) -> tuple[np.ndarray, dict]:
     """:func:`reconstruct_slab` of a run: the one body of the stage's unit, in the run's process and
     on a Dask worker. ``scene`` gives the scanner, ``[recon]`` and ``[recon.mcir]``; ``cfg`` the
     :class:`~clrecon.reconstruction.reconstruct.ReconstructionConfig` (radius, mu_water); ``table``
     the scan's usable views; ``store`` the projection store (``read_indices``; ``variant`` "noisy"
-    draws the run's noise); ``start_hu`` as :func:`reconstruct_slab`'s. ``times``: optional
+    draws the run's noise); ``start_hu`` and ``budget`` as :func:`reconstruct_slab`'s. ``times``: optional
     ``StageTimes`` given ``mcir_solve`` and ``method:mcir:<variant>`` seconds."""
     t0 = time.perf_counter()
     out = reconstruct_slab(scene.scanner, scene.recon, scene.recon.mcir, cfg.object_radius_mm, cfg.mu_water_per_mm,
                            table, lambda views: store.read_indices(table.index[views], noisy=variant == "noisy"),
-                           slices_z, targets, model, start_hu=start_hu, rt=rt, log=log)
+                           slices_z, targets, model, start_hu=start_hu, rt=rt, log=log, budget=budget)
     if times is not None:
         times.add("mcir_solve", time.perf_counter() - t0)
         times.add(f"method:{NAME}:{variant}", time.perf_counter() - t0)

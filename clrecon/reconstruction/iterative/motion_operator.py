@@ -52,7 +52,8 @@ DENSITY_HU = (-980.0, -300.0)
 #: Gaussian smoothing (voxels) of the density term after each epoch: the change of lung density
 #: with breathing varies over centimetres, not voxels.
 DENSITY_SIGMA_VOXELS = 1.0
-#: Bytes of per-bin fields kept between uses (beyond it they are recomputed each time).
+#: Bytes of per-bin fields kept between uses at most (beyond it they are recomputed each time); a
+#: run's slab keeps what its memory budget leaves of it (``method.field_cache_within``).
 FIELD_CACHE_BYTES = 2 << 30
 
 
@@ -138,6 +139,11 @@ class MotionConeOperator:
         if self.warp_mode == "push":
             return u
         return inverse_field(u, self.grid.spacing_mm, rt=self.rt)
+
+    @property
+    def fields_kept(self) -> int:
+        """How many bins' fields the cache holds (the others are made again at each use)."""
+        return len(self._fields)
 
     def _bin_field(self, b: int) -> np.ndarray:
         f = self._fields.get(b)
