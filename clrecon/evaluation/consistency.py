@@ -51,6 +51,9 @@ REGIONS = ("all", "heart")
 METHOD = "mc"
 #: The method every other is compared with: ``mc``'s first pass (the registry's ``Method.first_pass``).
 REFERENCE = interpolation.first_pass(METHOD)
+#: The iterative method and what it is judged against: ``mc``, the image it starts from by default
+#: (``recon.mcir.init`` "auto"), so its verdict says whether the iterations added anything.
+ITERATIVE, ITERATIVE_AGAINST = "mcir", METHOD
 #: |z| of the jackknife's difference above which a comparison says "helped" / "worse".
 Z_DECIDES = 2.0
 #: The smallest effect a comparison reports: an RMS ratio within this of 1 (|ratio - 1| <= 0.005,
@@ -359,7 +362,8 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
                       "regions": {"all": "channels whose ray passes through the reconstruction circle",
                                   "heart": "... and crosses the heart box recon.small_fov_mm"},
                       "z_decides": Z_DECIDES, "min_effect": MIN_EFFECT},
-           "n_rows": int(flat.size), "residual": {}, "verdict": {}}
+           "n_rows": int(flat.size), "residual": {}, "verdict": {},
+           **({"mcir_verdict": {}} if ITERATIVE in methods and ITERATIVE_AGAINST in methods else {})}
     t_pred = 0.0
     for v in variants:
         if flat.size == 0:
@@ -387,6 +391,8 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
             ent[m] = e
         out["residual"][v] = ent
         out["verdict"][v] = verdict(res)
+        if "mcir_verdict" in out:
+            out["mcir_verdict"][v] = verdict(res, ITERATIVE, ITERATIVE_AGAINST)
     out["seconds"] = {"plan": round(t_plan, 3), "read_rebin": round(t_read, 3), "predict": round(t_pred, 3),
                       "total": round(time.perf_counter() - t0, 3)}
     return out

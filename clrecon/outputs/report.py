@@ -258,6 +258,8 @@ def consistency_markdown(results: dict) -> list[str]:
             ver = ent["verdict"][v]
             lines.append(f"| {v} | " + " | ".join(cells) + f" | {ver.get('text', ver.get('null_because', ''))} |")
         lines.append("")
+        for v, ver in (ent.get("mcir_verdict") or {}).items():  # the iterations against the image they start from
+            lines += [f"mcir against mc, {v}: {ver.get('text', ver.get('null_because', ''))}.", ""]
     return lines
 
 

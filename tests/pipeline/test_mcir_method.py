@@ -258,6 +258,22 @@ def test_the_bins_counted_are_the_bins_solved():
         assert sorted(counts) == sorted(len(m) for m in bins.members)
 
 
+def test_the_consistency_check_judges_mcir_against_mc(reference):
+    """The truth-free check of a run with mc and mcir: mc against barycentric (``verdict``) and mcir
+    against mc, the image it starts from (``mcir_verdict``), per variant, in results.json, the log
+    and the report."""
+    out, res = reference
+    ent = res["consistency"]["p0.100"]
+    assert ent["config"]["methods"] == ["barycentric", "mc", "mcir"]
+    for v in ("noise-free", "noisy"):
+        r, ver = ent["residual"][v], ent["mcir_verdict"][v]
+        assert ver["against"] == "mc" and ver["helped"] in (True, False, None)
+        assert ver["regions"]["all"]["ratio"] == pytest.approx(r["mcir"]["rms_hu_mm"] / r["mc"]["rms_hu_mm"])
+        assert ver["text"].startswith("mcir ") and "of mc's" in ver["text"]
+        assert ent["verdict"][v]["against"] == "barycentric"  # mc's own verdict unchanged
+    assert "mcir against mc, noisy: mcir " in (out / "report.md").read_text()
+
+
 def test_the_slab_cut_is_said_and_a_slice_over_the_budget_warned(reference):
     _, res = reference
     cut = res["stages"]["mcir"]["slab_cut"]["p0.100"]

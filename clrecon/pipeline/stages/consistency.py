@@ -4,7 +4,8 @@ After ``mc_reconstruct`` (``after``: its units are on disk), every 5D method's v
 sampled slices are read back from the writer's unit files and projected at the states of the
 sampled rows; the RMS residual of the rows against those predictions
 (:func:`clrecon.evaluation.consistency.check`) is compared between ``mc`` and its first pass,
-barycentric, per noise variant (docs/consistency.md "Did it help? A truth-free check"). Methods
+barycentric, and, in a run with ``mcir``, between ``mcir`` and ``mc``, per noise variant
+(docs/consistency.md "Did it help? A truth-free check"). Methods
 on other target grids (r4DCT, helical) are left out with the reason.
 ``results.json["consistency"][pitch]``, a report section and a log line per variant.
 A run without ``mc`` skips it; the projections it reads are added to the plan's (plan stage).
@@ -60,5 +61,6 @@ def stage(run, pitch: float, plan, store):
         r = res["residual"][v]
         run.log(f"[{pk}] consistency {v}: " + ", ".join(f"{m} {e['rms_hu_mm']:.1f}/{e['heart_rms_hu_mm']:.1f}"
                                                         for m, e in r.items())
-                + f" HU mm (all/heart); {ver.get('text', ver.get('null_because', ''))}")
+                + f" HU mm (all/heart); {ver.get('text', ver.get('null_because', ''))}"
+                + (f"; {res['mcir_verdict'][v]['text']}" if "mcir_verdict" in res else ""))
     return res
