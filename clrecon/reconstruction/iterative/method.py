@@ -185,7 +185,8 @@ def over_budget_note(largest_bytes: int, budget: float | None = None) -> str:
         return ""
     return (f"one slice alone is over the {budget / 2**30:g} GiB slab budget ({largest_bytes / 1e9:.2f} GB "
             "modelled), so every slice is solved on its own over the views it shares with its neighbours (slow); "
-            "a coarser grid ([recon] nx, ny or [recon.mcir] plane_dz_mm) or fewer motion-state bins lowers it")
+            "a coarser grid ([recon] nx, ny or [recon.mcir] plane_dz_mm) lowers it (the warp fields kept are "
+            "already what the budget leaves)")
 
 
 def run_memory_bytes(scanner, recon, knobs, object_radius_mm: float, table, slices_z, n_basis: int) -> int:
