@@ -127,7 +127,7 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     launch_images = 2 * buffers["the images of one backprojection launch"]
     # the read chunk lives while the slab's rows are made, the images, their launch buffers and the
     # finished slab being written while they are backprojected: the rows and plans are under both
-    images = n_targets * rc.ny * rc.nx * (4 + 2 * item)  # per slice: slab_bytes_per_slice's images part
+    images = reconstruct.slab_images_bytes_per_slice(n_targets, rc.ny, rc.nx, item)
     peak = (slab * (per_slice - images) + max(chunk, slab * images + slab_sinos + launch_images) + plans
             + 2 * nz * rc.ny * rc.nx * 4)
     # ``overlap``: an executor that overlaps the stages (local, dask; not serial)

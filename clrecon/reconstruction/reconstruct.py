@@ -371,13 +371,21 @@ def slab_bytes_per_slice(rows_per_slice: float, n_cols: int, n_variants: int, n_
     half as large again), the images of the one method being reconstructed (``n_targets`` x ny
     x nx float32), and the finished (variant, method) slab being written: its copy in the
     volume dtype (``volume_itemsize`` bytes, 4 for float32, 2 for float16) and its compressed
-    unit image (counted at that size, the upper bound). The writer holds only those two: the
+    unit image, which :func:`clrecon.core.units.h5_image` holds twice at its end (the in-memory
+    file and the bytes it returns; each counted at the raw size, the upper bound: LZF + shuffle
+    leaves HU images at about 0.8 of it). The writer holds only those: the
     executors convert a finished slab in the run's thread once the previous one is on disk
     (:class:`clrecon.pipeline.executors.base.Work` ``prepare``), so the float32 images of two
     methods are never held at once (docs/results/code-history.md "The write behind's slab").
     """
     return (rows_per_slice * n_cols * 4 * max(n_variants, 1) + 1.5 * plan_bytes_per_slice
-            + n_targets * ny * nx * (4 + 2 * int(volume_itemsize)))
+            + slab_images_bytes_per_slice(n_targets, ny, nx, volume_itemsize))
+
+
+def slab_images_bytes_per_slice(n_targets: int, ny: int, nx: int, volume_itemsize: int = 4) -> int:
+    """The images' part of :func:`slab_bytes_per_slice` (bytes per slice): one method's float32
+    images and the finished slab being written (its volume-dtype copy and its compressed image twice)."""
+    return int(n_targets * ny * nx * (4 + 3 * int(volume_itemsize)))
 
 
 def slices_per_slab(bytes_per_slice: float, budget: float = SLAB_BYTES) -> int:
