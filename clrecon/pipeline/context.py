@@ -28,6 +28,7 @@ from clrecon.core.errors import ClreconError
 from clrecon.outputs.volumes import VolumeWriter
 from clrecon.pipeline import costs as costs_mod
 from clrecon.pipeline import preflight
+from clrecon.pipeline.stages import truth as truth_stage
 from clrecon.pipeline.variants import noise_variants
 from clrecon.reconstruction import interpolation, reconstruct
 from clrecon.reconstruction.iterative import method as mcir_method
@@ -184,9 +185,10 @@ def open_run(scene: Scene, out: Path, methods, cardiac, resp, slice_range, pitch
                                "recon.methods (or --methods), or set init to 'first_pass' or 'zero'")
         if mc_method.uses_library(scene.recon.mc):  # only 'lucas_kanade' (scikit-image); the others run on OpenCL
             registration.require("skimage.registration")  # before any work: one line naming the extra
-    run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches,
-                                    overlap=executor_kind != "serial", targets=targets)
     cache_path = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    run_costs = costs_mod.run_costs(scene, methods, len(targets.cardiac), len(targets.resp), slices_z, pitches,
+                                    overlap=executor_kind != "serial", targets=targets,
+                                    truths_computed=not truth_stage.all_cached(cache_path, scene, slices_z, targets))
     need = (preflight.needs(scene, run_costs, cache_path, out) if force
             else preflight.check(scene, run_costs, cache_path, out, rt=rt))
     variants = noise_variants(scene)

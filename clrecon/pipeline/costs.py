@@ -71,11 +71,13 @@ def _widest_plan_bytes(scene, pitch: float, fixed: tuple, targets: Targets, z: t
 
 
 def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, pitches=None,
-              overlap: bool = True, targets: Targets | None = None) -> dict:
+              overlap: bool = True, targets: Targets | None = None, truths_computed: bool = True) -> dict:
     """:func:`scene_costs` of one run: the scene narrowed to ``methods``, targets, slices, ``pitches``.
 
     ``targets``: the run's (default: the scene's first ``n_cardiac`` phases and ``n_resp``
     amplitudes); the plans it keeps are probed with them (:func:`kept_plans_bytes`).
+    ``truths_computed``: False where the truth cache holds them all (the truth stage's working set,
+    beside the reconstruction, is then left out).
 
     ``projections_needed`` models the projections the slices use (those within the SSRB slice
     window of a slice, plus one rotation); ``volume_bytes`` is what ``volumes.h5`` holds: the
@@ -131,7 +133,7 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
     peak = (slab * (per_slice - images) + max(chunk, slab * images + slab_sinos + launch_images) + plans
             + 2 * nz * rc.ny * rc.nx * 4)
     # ``overlap``: an executor that overlaps the stages (local, dask; not serial)
-    if overlap:  # the truths beside the reconstruction: one target's working set on top
+    if overlap and truths_computed:  # the truths beside the reconstruction: one target's working set on top
         peak += truth_stage.working_bytes(nz, sc.views_per_rotation, sc.n_cols, rc.ny, rc.nx)
     # the metrics stage, after the reconstruction: in each of its processes the LV region masks of
     # every target (bool, when r4dct's respiratory-only study runs), one target's truth and volume in

@@ -386,3 +386,26 @@ def test_the_kept_plans_are_counted_from_a_planned_slice_not_above_a_quarter_mor
     assert held <= got <= 1.25 * held, (got, held)
     assert kept_plans_bytes(scene, ("mc",), targets, z, scene.scan.pitches) > 0  # mc's first pass is planned
     assert kept_plans_bytes(scene, ("cv_tuned",), targets, z, scene.scan.pitches) == 0  # planned apart, later
+
+
+def test_truths_already_cached_are_not_counted_beside_the_reconstruction(tmp_path, monkeypatch):
+    """The pre-flight counts the truth stage's working set beside the reconstruction only where the
+    truth cache does not already hold every target's truths (then the stage computes nothing)."""
+    from clrecon.pipeline import costs
+    from clrecon.pipeline.stages import truth as truth_stage
+    seen = []
+    real = costs.run_costs
+    monkeypatch.setattr(costs, "run_costs", lambda *a, **k: (seen.append(k["truths_computed"]), real(*a, **k))[1])
+    sc = load_scene("tiny")
+    z = reconstruct.slice_positions(sc)
+    targets = resolve_targets(sc, None, None)
+    assert not truth_stage.all_cached(tmp_path / "c", sc, z, targets)
+    run(sc, tmp_path / "a", methods=["barycentric"], cache_dir=tmp_path / "c", progress=False, report=False,
+        log=lambda *a: None)
+    assert truth_stage.all_cached(tmp_path / "c", sc, z, targets)
+    run(sc, tmp_path / "b", methods=["barycentric"], cache_dir=tmp_path / "c", progress=False, report=False,
+        log=lambda *a: None)
+    assert seen == [True, False]
+    on, off = real(sc, ["barycentric"]), real(sc, ["barycentric"], truths_computed=False)
+    assert on["peak_memory_bytes"] - off["peak_memory_bytes"] in (0, truth_stage.working_bytes(
+        sc.recon.nz, sc.scanner.views_per_rotation, sc.scanner.n_cols, sc.recon.ny, sc.recon.nx))

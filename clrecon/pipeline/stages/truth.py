@@ -16,6 +16,7 @@ import numpy as np
 from clrecon.core.runtime import get_runtime
 from clrecon.evaluation import groundtruth
 from clrecon.evaluation.truth_cache import TruthCache, truth_key
+from clrecon.outputs.volumes import VolumeWriter
 from clrecon.pipeline import slabs as slabs_mod
 from clrecon.pipeline import work_units
 from clrecon.pipeline.executors.base import Unit, Work
@@ -63,6 +64,15 @@ def _target(cfg, run, k: int, which: tuple) -> Unit:
 
     return Unit(here, lambda: (work_units.truth_target, (cfg, run.slices_z, run.targets, k, which)),
                 f"truth of target {k} ({', '.join(which)})")
+
+
+def all_cached(cache_path, scene, slices_z, targets) -> bool:
+    """Whether the truth cache holds every target's unit of both truths for this scene, slices and
+    targets (then the stage computes nothing: the pre-flight leaves its working set out). A damaged
+    cached unit is found only when it is read; the stage then computes that target again."""
+    truths = TruthCache(cache_path, truth_key(scene, slices_z, targets))
+    n_t = int(np.prod(targets.shape))
+    return all(truths.find(VolumeWriter.target_stem(name, k)) is not None for name in NAMES for k in range(n_t))
 
 
 def stage(run, pitch=None) -> Work:
