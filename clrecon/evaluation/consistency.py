@@ -43,6 +43,7 @@ from clrecon.reconstruction import interpolation
 from clrecon.reconstruction import reconstruct as rc_mod
 from clrecon.reconstruction.fbp import FanBeamGeometry
 from clrecon.reconstruction.interpolation import weights as interpolate
+from clrecon.reconstruction.iterative import method as mcir_method
 from clrecon.simulation import projector as analytic_projector
 from clrecon.simulation.voxel_projector import project_volume
 
@@ -53,7 +54,7 @@ METHOD = "mc"
 REFERENCE = interpolation.first_pass(METHOD)
 #: The iterative method and what it is judged against: ``mc``, the image it starts from by default
 #: (``recon.mcir.init`` "auto"), so its verdict says whether the iterations added anything.
-ITERATIVE, ITERATIVE_AGAINST = "mcir", METHOD
+ITERATIVE, ITERATIVE_AGAINST = mcir_method.NAME, METHOD
 #: |z| of the jackknife's difference above which a comparison says "helped" / "worse".
 Z_DECIDES = 2.0
 #: The smallest effect a comparison reports: an RMS ratio within this of 1 (|ratio - 1| <= 0.005,

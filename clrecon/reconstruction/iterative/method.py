@@ -131,9 +131,13 @@ def slab_memory(scanner, recon, knobs, object_radius_mm: float, table, slices_z,
     views, volume and filled bins (:func:`slab_setup`), with the field cache that keeps it within
     ``budget`` (:func:`field_cache_within`; default :data:`SLAB_BYTES`); the bytes are over
     ``budget`` only where the slab's other arrays alone are."""
-    budget = SLAB_BYTES if budget is None else budget
     st = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
-    counts = bin_counts(table, knobs, st.views)
+    return _fitted_memory(scanner, knobs, st, bin_counts(table, knobs, st.views), n_basis, budget)
+
+
+def _fitted_memory(scanner, knobs, st: SlabSetup, counts, n_basis: int, budget: float | None) -> tuple[int, int]:
+    """:func:`slab_memory` of the slab ``st`` whose filled bins hold ``counts`` views each."""
+    budget = SLAB_BYTES if budget is None else budget
 
     def model(cache):
         return memory_bytes(st.grid, st.views.size, scanner.n_rows, scanner.n_cols, counts.size, knobs.density,
@@ -239,14 +243,13 @@ def reconstruct_slab(scanner, recon, knobs, object_radius_mm: float, mu_water_pe
     resampled to the volume); ``start_hu``: None (start from zero) or the reference state's image
     (s, ny, nx) HU at ``slices_z`` (:func:`start_volume`; the density term starts at zero).
     ``log(line)``: the solver's residual per epoch. ``budget``: the slab's memory budget (bytes,
-    default :data:`SLAB_BYTES`); the
-    warp fields kept between uses are what the rest of the slab leaves of it (:func:`slab_memory`;
-    the others are made again: the same values). Returns (volumes, info: the views, the volume
-    grid, the bins, the field cache, SART's history, seconds).
+    default :data:`SLAB_BYTES`); the warp fields kept between uses are what the rest of the slab
+    leaves of it (:func:`slab_memory`; the others are made again: the same values). Returns
+    (volumes, info: the views, the volume grid, the bins, the field cache, SART's history, seconds).
     """
     t0 = time.perf_counter()
-    _, cache = slab_memory(scanner, recon, knobs, object_radius_mm, table, slices_z, model.basis.size, budget)
     setup = slab_setup(scanner, recon, knobs, object_radius_mm, table.source_z_mm, slices_z)
+    _, cache = _fitted_memory(scanner, knobs, setup, bin_counts(table, knobs, setup.views), model.basis.size, budget)
     sub = table.take(setup.views)
     proj = np.asarray(projections(setup.views), np.float32)
     rss_mark(f"mcir: the projections of {setup.views.size} views ({proj.nbytes / 1e9:.3f} GB)")
