@@ -105,3 +105,22 @@ def test_levers_rows_can_be_picked():
     assert set(res) == {"posing"} and "phantom posing" in "\n".join(levers.report_lines(res))
     with pytest.raises(SystemExit, match="rows are"):
         levers.bench_levers(quick=True, only=("nope",))
+
+
+def test_mc_reads_study_runs_its_builds_on_tiny():
+    """benchmarks/studies/motion-model/mc_reads.py: its substitutions still match the production
+    kernel once each (else it stops), and the study kernel computes the production kernel's images
+    (plain and with paired taps) to float32 rounding; the read variants differ by construction."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "studies" / "motion-model" / "mc_reads.py"
+    spec = importlib.util.spec_from_file_location("mc_reads", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = mod.run(repeats=1, scene="tiny", n_slices=2)
+    d = res["max_diff_over_max"]
+    assert d["vec"] < 2e-5 and d["vec-pair"] < 2e-5
+    assert d["lanes-noread"] > 1e-3 and d["vec-noread"] > 1e-3
+    assert res["static_single_max_diff_over_max"] < 2e-5
+    assert all(v > 0 for v in res["m_updates_per_s"].values())
