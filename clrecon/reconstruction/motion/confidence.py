@@ -126,26 +126,161 @@ def shrink_voxels(fixed, residual, field_vox, radius: int, inside,
     q = None
     if unregistered is not None:
         q = local_prior_scale(unregistered, r, A, g_noise, prior, size).ravel()
-    A = np.moveaxis(A.reshape(3, 3, -1), -1, 0)                      # (N, 3, 3)
-    vf = v.reshape(3, -1).T                                          # (N, 3)
+    comps = [(A[i, j] - (g_noise[i] if i == j else 0.0)).ravel() for i, j in _UPPER]  # A - diag(noise)
+    del A
+    vf = v.reshape(3, -1)                                            # (3, N)
     out = np.empty_like(vf)
-    trace = np.empty(vf.shape[0])
-    for i0 in range(0, vf.shape[0], chunk):
-        a = A[i0:i0 + chunk] - np.diag(g_noise)
-        w, V = np.linalg.eigh(a)
-        a_s = np.einsum("nik,nk,njk->nij", V, np.maximum(w, 0.0), V)
+    trace = np.empty(vf.shape[1])
+    for i0 in range(0, vf.shape[1], chunk):
+        part = slice(i0, i0 + chunk)
+        a_s = psd_part([a[part] for a in comps])
         if q is None:
-            S = np.linalg.solve(a_s + ridge, a_s)
+            r = [np.full(a_s[0].shape, ridge[k, k]) for k in range(3)]
         else:  # the prior P q(x): the ridge c / (P q), as large as 1 / floor where nothing is seen
-            rq = c / np.maximum(prior[None, :] * q[i0:i0 + chunk, None], c * floor)
-            S = np.linalg.solve(a_s + rq[:, :, None] * np.eye(3), a_s)
-        out[i0:i0 + chunk] = np.einsum("nij,nj->ni", S, vf[i0:i0 + chunk])
-        trace[i0:i0 + chunk] = np.trace(S, axis1=1, axis2=2) / 3.0
+            r = [c / np.maximum(prior[k] * q[part], c * floor) for k in range(3)]
+        out[:, part], trace[part] = shrink_solve(a_s, r, vf[:, part])
     info = {"residual_std": s_r, "n_eff": n_eff, "prior_rms_vox": np.sqrt(prior).tolist(),
             "gradient_noise_var": g_noise.tolist(), "mean_gain": float(trace[m.ravel()].mean())}
     if q is not None:
         info["mean_prior_scale"] = float(q[m.ravel()].mean())
-    return out.T.reshape(v.shape), info
+    return out.reshape(v.shape), info
+
+
+#: Eigenvalue gap (of a matrix scaled to a largest component of 1) below which :func:`psd_part`
+#: hands the matrix to LAPACK: the closed form's error there is about sqrt(eps) / gap * eps.
+NEAR_DEGENERATE = 1e-4
+#: The upper triangle of a symmetric 3 x 3 matrix, in the order :func:`psd_part` and
+#: :func:`shrink_solve` take its components: (0,0), (0,1), (0,2), (1,1), (1,2), (2,2).
+_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _eigvals_sym3(a00, a01, a02, a11, a12, a22):
+    """Eigenvalues (lo, mid, hi) of symmetric 3 x 3 matrices given by their upper-triangle
+    components (arrays of one shape), in closed form (the trigonometric solution of the
+    characteristic cubic; Smith, Comm. ACM 4:168, 1961): absolute error a few ulp of the matrix's
+    norm, which is all the sign tests of :func:`psd_part` need."""
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0)
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(p > 0, det / (2.0 * p * p * p), 0.0)
+    phi = np.arccos(np.clip(r, -1.0, 1.0)) / 3.0
+    hi = q + 2.0 * p * np.cos(phi)
+    lo = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    return lo, 3.0 * q - lo - hi, hi
+
+
+def _eigvec_sym3(a, lam):
+    """Unit eigenvectors (3 arrays) of the symmetric matrices ``a`` (6 upper-triangle components)
+    for their eigenvalues ``lam``: the largest of the three cross products of the rows of
+    ``a - lam I`` (stable to about eps |a| / the gap to the other eigenvalues; where every cross
+    product vanishes the vector is (1, 0, 0), a case the callers weight by a vanishing amount)."""
+    a00, a01, a02, a11, a12, a22 = a
+    r0 = (a00 - lam, a01, a02)
+    r1 = (a01, a11 - lam, a12)
+    r2 = (a02, a12, a22 - lam)
+
+    def cross(u, w):
+        return (u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0])
+
+    cands = [cross(r0, r1), cross(r0, r2), cross(r1, r2)]
+    norms = np.stack([c[0] * c[0] + c[1] * c[1] + c[2] * c[2] for c in cands])
+    pick = np.argmax(norms, axis=0)
+    n2 = np.take_along_axis(norms, pick[None], 0)[0]
+    vec = [np.choose(pick, [c[k] for c in cands]) for k in range(3)]
+    ok = n2 > 0
+    inv = np.where(ok, 1.0 / np.sqrt(np.where(ok, n2, 1.0)), 0.0)
+    return vec[0] * inv + np.where(ok, 0.0, 1.0), vec[1] * inv, vec[2] * inv
+
+
+def psd_part(a):
+    """The nearest positive semi-definite matrices (in the Frobenius norm) to the symmetric 3 x 3
+    matrices ``a``: their eigen-decompositions with the negative eigenvalues set to 0.
+
+    ``a``: the 6 upper-triangle components (:data:`_UPPER`'s order), float64 arrays of one shape;
+    returns the same for the result. Closed form per voxel, vectorised (the per-matrix LAPACK call
+    of ``numpy.linalg.eigh`` on millions of 3 x 3 matrices was most of a registration round's
+    shrinking): with no negative eigenvalue the matrix itself; with all three, zero; with one, the
+    matrix less ``lam_lo v_lo v_lo^T``; with two, ``lam_hi v_hi v_hi^T`` -- the eigenvector used is
+    always that of an eigenvalue separated from the others by at least its own magnitude, so its
+    error is at most a few ulp of the matrix's norm. Where that eigenvalue lies within
+    :data:`NEAR_DEGENERATE` of another (there the closed form's eigenvalues lose half their digits),
+    ``numpy.linalg.eigh`` does those matrices. Tested against ``eigh`` on random and degenerate
+    matrices to 1e-12 of the norm (tests/reconstruction/test_motion_confidence.py)."""
+    a = [np.asarray(x, np.float64) for x in a]
+    big = np.maximum.reduce([np.abs(x) for x in a])
+    unit = [x / np.where(big > 0, big, 1.0) for x in a]               # scale-free: no under- or overflow
+    lo, mid, hi = _eigvals_sym3(*unit)
+    n_neg = (lo < 0).astype(np.int8) + (mid < 0) + (hi < 0)
+    # the closed form's eigenvalues err by up to sqrt(eps) where two of them meet: LAPACK where the
+    # eigenvalue whose vector is used lies that close to another (a pair at 0 of exactly repeated
+    # eigenvalues: zeros, diagonal blocks; rare in images)
+    near = ((n_neg == 1) & (mid - lo < NEAR_DEGENERATE)) | ((n_neg == 2) & (hi - mid < NEAR_DEGENERATE))
+    n_neg[near] = -1
+    out = [x.copy() for x in a]
+    if near.any():
+        w, vec = np.linalg.eigh(np.stack([np.stack([unit[_UPPER.index(tuple(sorted((i, j))))][near]
+                                                    for j in range(3)], -1) for i in range(3)], -2))
+        fixed = np.einsum("nik,nk,njk->nij", vec, np.maximum(w, 0.0), vec) * big[near][:, None, None]
+        for k, (i, j) in enumerate(_UPPER):
+            out[k][near] = fixed[:, i, j]
+    one = n_neg == 1
+    if one.any():
+        v = _eigvec_sym3([x[one] for x in unit], lo[one])
+        for k, (i, j) in enumerate(_UPPER):
+            out[k][one] -= (lo[one] * big[one]) * v[i] * v[j]
+    two = n_neg == 2
+    if two.any():
+        v = _eigvec_sym3([x[two] for x in unit], hi[two])
+        for k, (i, j) in enumerate(_UPPER):
+            out[k][two] = (hi[two] * big[two]) * v[i] * v[j]
+    three = n_neg == 3
+    for x in out:
+        x[three] = 0.0
+    return out
+
+
+def shrink_solve(a_s, ridge, v):
+    """``S v`` and ``trace(S) / 3`` of the shrinkage ``S = (a_s + R)^-1 a_s`` per voxel.
+
+    ``a_s``: 6 upper-triangle components of positive semi-definite 3 x 3 matrices (arrays of N);
+    ``ridge``: the diagonal of R (3 arrays of N, or broadcastable), positive; ``v``: (3, N).
+    With ``M = a_s + R`` (symmetric positive definite), solved by a Cholesky factorisation of ``M``
+    scaled to a unit diagonal (the ridge may exceed the texture by 12 orders of magnitude where
+    nothing is seen): ``S v = M^-1 (a_s v)`` (exactly 0 where ``a_s`` is), and, as ``S = I - M^-1 R``,
+    ``trace(S) = 3 - sum_k R_kk (M^-1)_kk``. Returns ((3, N), (N,))."""
+    m = [np.asarray(x, np.float64).copy() for x in a_s]
+    r = [np.broadcast_to(np.asarray(x, np.float64), m[0].shape) for x in ridge]
+    m[0] += r[0]
+    m[3] += r[1]
+    m[5] += r[2]
+    d = [1.0 / np.sqrt(m[0]), 1.0 / np.sqrt(m[3]), 1.0 / np.sqrt(m[5])]   # M' = D M D, unit diagonal
+    b01, b02, b12 = m[1] * d[0] * d[1], m[2] * d[0] * d[2], m[4] * d[1] * d[2]
+    tiny = np.finfo(np.float64).tiny
+    l11 = np.sqrt(np.maximum(1.0 - b01 * b01, tiny))                 # M' = L L^T, l00 = 1
+    l21 = (b12 - b02 * b01) / l11
+    l22 = np.sqrt(np.maximum(1.0 - b02 * b02 - l21 * l21, tiny))
+    # L^-1 (lower triangular): its column norms squared are the diagonal of M'^-1
+    i10 = -b01 / l11
+    i20 = (b01 * l21 / l11 - b02) / l22
+    i21 = -l21 / (l11 * l22)
+    i11, i22 = 1.0 / l11, 1.0 / l22
+    minv_diag = [(1.0 + i10 * i10 + i20 * i20) * d[0] ** 2, (i11 * i11 + i21 * i21) * d[1] ** 2,
+                 (i22 * i22) * d[2] ** 2]
+    a = a_s
+    av = [a[0] * v[0] + a[1] * v[1] + a[2] * v[2], a[1] * v[0] + a[3] * v[1] + a[4] * v[2],
+          a[2] * v[0] + a[4] * v[1] + a[5] * v[2]]
+    rhs = [av[k] * d[k] for k in range(3)]                            # D (a_s v)
+    y0 = rhs[0]                                                       # L y = D a_s v
+    y1 = i10 * rhs[0] + i11 * rhs[1]
+    y2 = i20 * rhs[0] + i21 * rhs[1] + i22 * rhs[2]
+    x2 = y2 * i22                                                     # L^T x = y
+    x1 = (y1 - l21 * x2) * i11
+    x0 = y0 - b01 * x1 - b02 * x2
+    out = np.stack([x0 * d[0], x1 * d[1], x2 * d[2]])
+    trace = (3.0 - (r[0] * minv_diag[0] + r[1] * minv_diag[1] + r[2] * minv_diag[2])) / 3.0
+    return out, trace
 
 
 def local_prior_scale(unregistered, registered, A, g_noise, prior, size: int) -> np.ndarray:
