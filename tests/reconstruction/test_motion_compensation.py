@@ -737,9 +737,9 @@ def test_shrinking_a_field_peaks_within_its_modelled_bytes():
     """``estimate.shrunk`` (``knobs.shrink``) holds a copy of the step's fields and shrinks one field at a
     time: measured as ``confidence.SHRINK_BYTES_PER_VOXEL`` and ``SHRINK_CHUNK_BYTES_PER_VOXEL`` were
     (a spawned process's peak above its baseline, the call's inputs taken off, under the beat step's
-    local prior, the larger) on ``demo``'s registration grid, at most the modelled bytes (no lower
-    bound: 161 MB in a fresh interpreter, 146 MB after tests/pipeline/test_mc_method.py in one
-    session, with the global prior)."""
+    local prior) on ``demo``'s registration grid, at most the modelled bytes (164 MB; no lower bound:
+    156 MB in a fresh interpreter on 2026-12-07, and before the closed-form solve 161 MB fresh and
+    146 MB after tests/pipeline/test_mc_method.py in one session)."""
     if not os.path.exists("/proc/self/clear_refs"):
         pytest.skip("needs Linux's /proc/<pid>/status and clear_refs")
     m = registration_memory.measure_shrink((16, 128, 128), local=True)

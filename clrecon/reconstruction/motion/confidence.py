@@ -47,21 +47,21 @@ import scipy.ndimage
 
 #: MAD to standard deviation of a normal distribution.
 MAD_TO_STD = 1.4826
-#: Voxels of one chunk of :func:`shrink_voxels`' per-voxel eigen-solve.
+#: Voxels of one chunk of :func:`shrink_voxels`' per-voxel 3 x 3 algebra (:func:`psd_part`, :func:`shrink_solve`).
 CHUNK_VOXELS = 1 << 18
 #: Peak bytes of one field's shrinking per voxel beside its inputs (``estimate.shrunk``: the moving
 #: image seen through the field, float32, then :func:`shrink_field` in float64: the field in mm and
 #: in voxels, the normalised images, the residual and its box mean, the gradients, the (3, 3)
 #: structure tensor per voxel, the shrunk field; under the beat's local prior also the unregistered
 #: difference, two more box means and the prior's scale), and beside those the bytes per voxel of
-#: one chunk of :func:`shrink_voxels`' eigen-solve (:data:`CHUNK_VOXELS`, or the grid where smaller).
-#: Both from a spawned process's peak above its baseline while ``estimate.shrunk`` shrinks one of two
-#: fields under the local prior, the larger of the two steps' (its copy of the fields taken off): the
-#: line through the peaks on two grids of two and eight full chunks, rounded up; one pair for both
-#: steps (measured with ``benchmarks/studies/motion-model/registration_memory.py --shrink --local``;
+#: one chunk of :func:`shrink_voxels`' closed-form solve (:data:`CHUNK_VOXELS`, or the grid where
+#: smaller). Both from a spawned process's peak above its baseline while ``estimate.shrunk`` shrinks
+#: one of two fields (its copy of the fields taken off): the line through the peaks on two grids of
+#: two and eight full chunks, for each prior, rounded up to 10 bytes; one pair for both steps
+#: (measured with ``benchmarks/studies/motion-model/registration_memory.py --shrink [--local]``;
 #: the figures: docs/results/code-history.md "One Lucas-Kanade registration's memory").
-SHRINK_BYTES_PER_VOXEL = 210
-SHRINK_CHUNK_BYTES_PER_VOXEL = 490
+SHRINK_BYTES_PER_VOXEL = 180
+SHRINK_CHUNK_BYTES_PER_VOXEL = 420
 
 
 def _robust_std(x: np.ndarray) -> float:
