@@ -230,3 +230,14 @@ def test_the_closed_form_shrinkage_solve_is_lapacks_with_ridges_over_24_orders()
     big = _sym(n, rng, np.full((n, 3), 1.0))
     keep, tk = confidence.shrink_solve(_upper(big), [np.full(n, 1e-14)] * 3, v)
     assert np.abs(keep - v).max() < 1e-12 and np.abs(tk - 1.0).max() < 1e-12
+
+
+def test_the_local_prior_with_a_residual_of_exactly_zero_is_finite_and_keeps_the_field():
+    """Identical images (residual and unexplained difference both 0, so c = 0 and q = 0): the ridge
+    is the global prior's floor, not 0 / 0 (a NaN field before 2026-12-07); the textured half keeps
+    its field as under the global prior."""
+    fixed, _, u, left, _ = _half_moving_pair(seed=5)
+    loc, info = confidence.shrink_field(fixed, fixed, u, SPACING, 4, HU, moving=fixed)
+    glob, _ = confidence.shrink_field(fixed, fixed, u, SPACING, 4, HU)
+    assert info["residual_std"] == 0.0 and np.isfinite(loc).all()
+    assert np.allclose(loc[:, left], glob[:, left], atol=1e-4)

@@ -136,8 +136,10 @@ def shrink_voxels(fixed, residual, field_vox, radius: int, inside,
         a_s = psd_part([a[part] for a in comps])
         if q is None:
             r = [np.full(a_s[0].shape, ridge[k, k]) for k in range(3)]
-        else:  # the prior P q(x): the ridge c / (P q), as large as 1 / floor where nothing is seen
-            r = [c / np.maximum(prior[k] * q[part], c * floor) for k in range(3)]
+        elif c > 0:  # the prior P q(x): the ridge c / (P q), as large as 1 / floor where nothing is seen
+            r = [np.maximum(c / np.maximum(prior[k] * q[part], c * floor), floor) for k in range(3)]
+        else:  # a residual of exactly 0 (nothing unexplained): the global prior's floor, not 0 / 0
+            r = [np.full(a_s[0].shape, floor)] * 3
         out[:, part], trace[part] = shrink_solve(a_s, r, vf[:, part])
     info = {"residual_std": s_r, "n_eff": n_eff, "prior_rms_vox": np.sqrt(prior).tolist(),
             "gradient_noise_var": g_noise.tolist(), "mean_gain": float(trace[m.ravel()].mean())}
