@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import re
 import tempfile
 from pathlib import Path
@@ -44,6 +43,7 @@ import numpy as np
 from clrecon.bench import reference_kernels
 from clrecon.bench.mc_kernel import STATIC_BATCH, synthetic_case
 from clrecon.bench.timing import load1, timed
+from clrecon.core import drivers
 from clrecon.core.kernel_sources import load_source
 from clrecon.core.runtime import get_runtime
 from clrecon.reconstruction import fbp
@@ -64,16 +64,6 @@ VEC_VARIANTS = {"vec": {}, "vec-pair": {"PAIR": 1}, "vec-hot": {"HOTREAD": 0}, "
                 "vec-noread": {"NOREAD": 1}}
 #: The study kernel's local size: 16 work-items along x (one AVX-512 vector), 4 rows.
 VEC_LOCAL = (16, 4)
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def lanes_source(pattern: re.Pattern, new: str) -> str:
@@ -121,7 +111,7 @@ def run(repeats: int = 5, scene: str = "demo", n_slices: int = 4) -> dict:
         single_diff = float(np.abs(images.pop("static-single") - static).max() / np.abs(static).max())
     counts = {k: updates for k in times}
     counts["static"] = counts["static-single"] = int(geom.fov_mask().sum()) * geom.n_views * STATIC_BATCH
-    out = {"device": rt.description, "cpu": cpu_model(), "updates": updates, "repeats": repeats,
+    out = {"device": rt.description, "cpu": drivers.cpu_line(), "updates": updates, "repeats": repeats,
            "lanes": bp.lanes, "local_size": list(bp.local_size), "vec_local_size": list(VEC_LOCAL),
            "load_average_1min": loads,
            "m_updates_per_s": {k: round(counts[k] / float(np.median(v)) / 1e6, 1) for k, v in times.items()},

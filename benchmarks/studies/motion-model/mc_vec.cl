@@ -19,26 +19,7 @@
 #define COL_CENTRE (0.5f * (float)(n_cols - 1))
 #endif
 #define GRID_Z_FIRST mz_first
-// motion_grid.h's GRID_CORNERS with int offsets (the production kernel's, kernels/mc_lanes.h)
-#define GRIDI_CORNERS(px, py, pz)                                                              \
-    float fx = (px) * inv_voxel + 0.5f * (float)(nx - 1);                                     \
-    float fy = (py) * inv_voxel + 0.5f * (float)(ny - 1);                                     \
-    float fz = ((pz) - model_z0) * inv_model_dz;                                              \
-    fx = fx > 0.0f ? (fx < (float)(nx - 1) ? fx : (float)(nx - 1)) : 0.0f;                    \
-    fy = fy > 0.0f ? (fy < (float)(ny - 1) ? fy : (float)(ny - 1)) : 0.0f;                    \
-    fz = fz > 0.0f ? (fz < (float)(mz - 1) ? fz : (float)(mz - 1)) : 0.0f;                    \
-    int ix0 = (int)fx, iy0 = (int)fy, iz0 = (int)fz;                                          \
-    ix0 = ix0 > nx - 2 ? nx - 2 : ix0;                                                        \
-    iy0 = iy0 > ny - 2 ? ny - 2 : iy0;                                                        \
-    iz0 = iz0 > mz - 2 ? mz - 2 : iz0;                                                        \
-    const float tx = fx - (float)ix0, ty = fy - (float)iy0, tz = fz - (float)iz0;             \
-    const int o000 = ((iz0 - GRID_Z_FIRST) * ny + iy0) * nx + ix0;                   \
-    const int sy = nx, sz = nx * ny;
-#define TRILINEAR(f)                                                                          \
-    ((1.0f - tz) * ((1.0f - ty) * ((1.0f - tx) * (f)[o000] + tx * (f)[o000 + 1])              \
-                    + ty * ((1.0f - tx) * (f)[o000 + sy] + tx * (f)[o000 + sy + 1]))          \
-     + tz * ((1.0f - ty) * ((1.0f - tx) * (f)[o000 + sz] + tx * (f)[o000 + sz + 1])           \
-             + ty * ((1.0f - tx) * (f)[o000 + sz + sy] + tx * (f)[o000 + sz + sy + 1])))
+#include "motion_grid.h"
 
 __kernel __attribute__((reqd_work_group_size(LX, LY, 1)))
 void mc_backproject(__global const float *restrict rows,
@@ -82,7 +63,7 @@ void mc_backproject(__global const float *restrict rows,
     {
         float rx = x, ry = yy, rz = z;
         for (int it = 0; it < NINV; ++it) {
-            GRIDI_CORNERS(rx, ry, rz)
+            GRID_CORNERS(rx, ry, rz)
             const float ux = TRILINEAR(target_field);
             const float uy = TRILINEAR(target_field + fstride);
             const float uz = TRILINEAR(target_field + 2 * fstride);
@@ -90,7 +71,7 @@ void mc_backproject(__global const float *restrict rows,
             ry = yy - uy;
             rz = z - uz;
         }
-        GRIDI_CORNERS(rx, ry, rz)
+        GRID_CORNERS(rx, ry, rz)
         for (int b = 1; b < NB; ++b) {
             __global const float *f = fields + b * 3 * fstride;
             W[b][0] = TRILINEAR(f);
