@@ -149,7 +149,8 @@ def shrink_voxels(fixed, residual, field_vox, radius: int, inside,
 
 
 #: Eigenvalue gap (of a matrix scaled to a largest component of 1) below which :func:`psd_part`
-#: hands the matrix to LAPACK: the closed form's error there is about sqrt(eps) / gap * eps.
+#: hands the matrix to LAPACK: the closed form's eigenvalues err by about eps / gap there (1e-12 at
+#: this gap), up to sqrt(eps) where two eigenvalues meet.
 NEAR_DEGENERATE = 1e-4
 #: The upper triangle of a symmetric 3 x 3 matrix, in the order :func:`psd_part` and
 #: :func:`shrink_solve` take its components: (0,0), (0,1), (0,2), (1,1), (1,2), (2,2).
@@ -160,7 +161,8 @@ def _eigvals_sym3(a00, a01, a02, a11, a12, a22):
     """Eigenvalues (lo, mid, hi) of symmetric 3 x 3 matrices given by their upper-triangle
     components (arrays of one shape), in closed form (the trigonometric solution of the
     characteristic cubic; Smith, Comm. ACM 4:168, 1961): absolute error a few ulp of the matrix's
-    norm, which is all the sign tests of :func:`psd_part` need."""
+    norm where the eigenvalues lie apart, growing as eps / gap where two approach each other (up to
+    sqrt(eps) where they meet: :func:`psd_part` hands those matrices to LAPACK)."""
     q = (a00 + a11 + a22) / 3.0
     b00, b11, b22 = a00 - q, a11 - q, a22 - q
     p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0)
