@@ -122,7 +122,7 @@ def shrink_voxels(fixed, residual, field_vox, radius: int, inside,
     # (identical images: nothing to shrink towards but nothing seen where A_s = 0 either)
     scale = float(np.mean((A[0, 0] + A[1, 1] + A[2, 2])[m])) / 3.0
     floor = 1e-12 * (scale if scale > 0 else 1.0)
-    ridge = np.diag(np.maximum(c / np.maximum(prior, 1e-12), floor))
+    ridge = np.maximum(c / np.maximum(prior, 1e-12), floor)          # the global prior's, per axis
     q = None
     if unregistered is not None:
         q = local_prior_scale(unregistered, r, A, g_noise, prior, size).ravel()
@@ -135,12 +135,12 @@ def shrink_voxels(fixed, residual, field_vox, radius: int, inside,
         part = slice(i0, i0 + chunk)
         a_s = psd_part([a[part] for a in comps])
         if q is None:
-            r = [np.full(a_s[0].shape, ridge[k, k]) for k in range(3)]
+            ridges = list(ridge)
         elif c > 0:  # the prior P q(x): the ridge c / (P q), as large as 1 / floor where nothing is seen
-            r = [np.maximum(c / np.maximum(prior[k] * q[part], c * floor), floor) for k in range(3)]
+            ridges = [np.maximum(c / np.maximum(prior[k] * q[part], c * floor), floor) for k in range(3)]
         else:  # a residual of exactly 0 (nothing unexplained): the global prior's floor, not 0 / 0
-            r = [np.full(a_s[0].shape, floor)] * 3
-        out[:, part], trace[part] = shrink_solve(a_s, r, vf[:, part])
+            ridges = [floor] * 3
+        out[:, part], trace[part] = shrink_solve(a_s, ridges, vf[:, part])
     info = {"residual_std": s_r, "n_eff": n_eff, "prior_rms_vox": np.sqrt(prior).tolist(),
             "gradient_noise_var": g_noise.tolist(), "mean_gain": float(trace[m.ravel()].mean())}
     if q is not None:
@@ -155,6 +155,8 @@ NEAR_DEGENERATE = 1e-4
 #: The upper triangle of a symmetric 3 x 3 matrix, in the order :func:`psd_part` and
 #: :func:`shrink_solve` take its components: (0,0), (0,1), (0,2), (1,1), (1,2), (2,2).
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+#: Entry (i, j) of the full matrix: its index in :data:`_UPPER`.
+_FULL = ((0, 1, 2), (1, 3, 4), (2, 4, 5))
 
 
 def _eigvals_sym3(a00, a01, a02, a11, a12, a22):
@@ -224,8 +226,8 @@ def psd_part(a):
     n_neg[near] = -1
     out = [x.copy() for x in a]
     if near.any():
-        w, vec = np.linalg.eigh(np.stack([np.stack([unit[_UPPER.index(tuple(sorted((i, j))))][near]
-                                                    for j in range(3)], -1) for i in range(3)], -2))
+        w, vec = np.linalg.eigh(np.stack([np.stack([unit[_FULL[i][j]][near] for j in range(3)], -1)
+                                          for i in range(3)], -2))
         fixed = np.einsum("nik,nk,njk->nij", vec, np.maximum(w, 0.0), vec) * big[near][:, None, None]
         for k, (i, j) in enumerate(_UPPER):
             out[k][near] = fixed[:, i, j]
@@ -272,9 +274,7 @@ def shrink_solve(a_s, ridge, v):
     i11, i22 = 1.0 / l11, 1.0 / l22
     minv_diag = [(1.0 + i10 * i10 + i20 * i20) * d[0] ** 2, (i11 * i11 + i21 * i21) * d[1] ** 2,
                  (i22 * i22) * d[2] ** 2]
-    a = a_s
-    av = [a[0] * v[0] + a[1] * v[1] + a[2] * v[2], a[1] * v[0] + a[3] * v[1] + a[4] * v[2],
-          a[2] * v[0] + a[4] * v[1] + a[5] * v[2]]
+    av = [sum(a_s[_FULL[i][j]] * v[j] for j in range(3)) for i in range(3)]
     rhs = [av[k] * d[k] for k in range(3)]                            # D (a_s v)
     y0 = rhs[0]                                                       # L y = D a_s v
     y1 = i10 * rhs[0] + i11 * rhs[1]
