@@ -90,7 +90,7 @@ def run(repeats: int = 5, scene: str = "demo", n_slices: int = 4) -> dict:
             kern = rt.kernel("mc_backproject.cl", "mc_backproject", _folder=folder, **bp._defines)
             fns[name] = lambda kern=kern: bp._launch(kern, gs, bp.local_size, sp, sw, target)
         base = {k: v for k, v in bp._defines.items() if k not in ("LANES", "LX", "LY", "VCHUNK")}
-        vgs = (-(-geom.nx // VEC_LOCAL[0]) * VEC_LOCAL[0], -(-geom.ny // VEC_LOCAL[1]) * VEC_LOCAL[1], len(zs))
+        vgs = _global_size(geom, len(zs), 1, VEC_LOCAL)  # one voxel per work-item
         for name, opts in VEC_VARIANTS.items():
             kern = rt.kernel("mc_vec.cl", "mc_backproject", _folder=HERE, **base, **opts,
                              LX=VEC_LOCAL[0], LY=VEC_LOCAL[1], VCHUNK=1 << 20)
