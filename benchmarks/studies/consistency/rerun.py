@@ -1,10 +1,12 @@
 """The consistency check (clrecon/evaluation/consistency.py) again on a finished run folder, with the
 ground truth's volumes as a pseudo-method beside the run's, and the study's variants: rows band-limited
 along the channels (``--sigma``, Gaussian, in channels), only rows near their slice (``--max-dz``), only
-rows barycentric did not use (``--unused``). Prints each method's residual beside its MAE.
-docs/consistency.md "Did it help? A truth-free check".
+rows barycentric did not use (``--unused``), and the measured rows replaced by ideal in-plane rows of
+the phantom at each row's own state (``--ideal``: the check without the rows' data model, which every
+method shares; the volumes are still the ones made from the measured rows). Prints each method's
+residual beside its MAE. docs/consistency.md "Did it help? A truth-free check".
 
-    python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused]
+    python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused] [--ideal]
 """
 
 import argparse
@@ -17,10 +19,32 @@ from scipy.ndimage import gaussian_filter1d
 
 from clrecon.config.scene import load_scene
 from clrecon.evaluation import consistency as cs
+from clrecon.evaluation import groundtruth as gt
+from clrecon.evaluation import truth_free
 from clrecon.outputs.volumes import recon_path
 from clrecon.reconstruction import reconstruct as rc
 from clrecon.scan import table as geometry
+from clrecon.simulation import projector
 from clrecon.simulation.store import ProjectionStore, default_cache_dir
+
+
+def ideal_rows(scene, cfg, table, zs):
+    """A stand-in for ``truth_free.read_rows`` that returns, for every variant, the ideal in-plane
+    rows of the phantom at each sampled row's own state (c, a), view and slice z (no noise: no
+    variance), as ``data_model.py`` computes them."""
+    g, det = cfg.fbp, cfg.scanner.detector_model
+    ph = gt.GroundTruthConfig.from_scene(scene).source()
+
+    def read(store, groups, flat, sc, variants, noise, rt=None):
+        gof = np.repeat(np.arange(groups.n_groups), np.diff(groups.offsets))[flat]
+        view, z = groups.group_view[gof], np.asarray(zs)[gof // groups.views_per_rotation]
+        c, a = table.cardiac_phase[groups.row[flat]], table.resp_amplitude[groups.row[flat]]
+        (src, centre, eu, ev), u, vs = cs.inplane_frames(det, g, view, z)
+        objs = np.stack([ph.objects(ck, ak) for ck, ak in zip(c, a, strict=True)])
+        ideal = projector.project_views(objs, src, centre, eu, ev, u, np.zeros(1), v_scale=vs)[:, 0, :]
+        return {v: (ideal, None) for v in variants}
+
+    return read
 
 
 def main():
@@ -30,6 +54,7 @@ def main():
     ap.add_argument("--sigma", type=float, default=0.0)
     ap.add_argument("--max-dz", type=float, default=None)
     ap.add_argument("--unused", action="store_true")
+    ap.add_argument("--ideal", action="store_true", help="ideal in-plane rows of the phantom instead of the measured rows")
     args = ap.parse_args()
     scene = load_scene(args.scene)
     res = json.load(open(f"{args.run}/results.json"))
@@ -52,15 +77,21 @@ def main():
         pitch = float(pk[1:])
         table = geometry.projection_table(scene, pitch)
         store = ProjectionStore.open(scene, pitch, cache_dir=default_cache_dir(), table=table)
+        if args.ideal:
+            cs.truth_free.read_rows = ideal_rows(scene, cfg, geometry.usable_table(scene, table)[0],
+                                                 truth_free.sample_slices(slices_z, ccfg.max_slices))
 
         def volumes(v, m, s, pk=pk):
-            return np.asarray(f["groundtruth" if m == "groundtruth" else recon_path(pk, v, m)][:, :, list(s)],
-                              np.float32)
+            d = f["groundtruth" if m == "groundtruth" else recon_path(pk, v, m)]
+            if d.ndim == 3:  # one target (a motionless scene): (S, ny, nx)
+                return np.asarray(d[list(s)], np.float32)[None, None]
+            return np.asarray(d[:, :, list(s)], np.float32)
 
         t = time.time()
         ent = cs.check(store, geometry.usable_table(scene, table)[0], slices_z, cfg, targets, req["variants"],
                        tuple(scene.recon.small_fov_mm), volumes, methods, ccfg)
-        print(f"== {pk} sigma {args.sigma} max_dz {args.max_dz} unused {args.unused}: {ent['n_rows']} rows, "
+        print(f"== {pk} sigma {args.sigma} max_dz {args.max_dz} unused {args.unused} ideal {args.ideal}: "
+              f"{ent['n_rows']} rows, "
               f"{time.time() - t:.0f} s")
         for v, bym in ent["residual"].items():
             met = res["metrics"][pk][v]
