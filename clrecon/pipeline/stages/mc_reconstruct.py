@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from clrecon.core.errors import ClreconError
+from clrecon.core.progress import progress as progress_counter
 from clrecon.evaluation.motion_model import registration_error
 from clrecon.outputs.volumes import pitch_key, recon_path
 from clrecon.pipeline import work_units
@@ -94,7 +95,14 @@ def motion_model(run, scan: mc_fbp.MCScan, pk: str, variant: str, seconds: dict)
 
 def _slab_unit(run, pitch: float, scan: mc_fbp.MCScan, a: int, b: int, variant: str, model: MotionModel) -> Unit:
     def here(emit, times):
-        emit((np.arange(a, b), variant, mc_fbp.reconstruct_slab(scan, a, b, variant, model, times)))
+        # the targets of the slab counted with an ETA: one slab of a whole paper-scale scan takes tens of
+        # minutes, and the stage's own counter moves only when a slab is done
+        bar = progress_counter(len(scan.pairs), f"mc {pitch_key(pitch)} slices {a}..{b - 1} ({variant})",
+                               run.progress, "targets")
+        try:
+            emit((np.arange(a, b), variant, mc_fbp.reconstruct_slab(scan, a, b, variant, model, times, bar)))
+        finally:
+            bar.close()
 
     def remote():
         return work_units.mc_slab, (run.recon_cfg, run.scene, pitch, str(run.cache_path), run.slices_z, a, b,

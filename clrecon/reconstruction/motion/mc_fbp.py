@@ -215,13 +215,15 @@ def model_of(scan: MCScan, fields, grid: FieldGrid, reference) -> MotionModel:
                        reference=tuple(reference))
 
 
-def reconstruct_slab(scan: MCScan, a: int, b: int, variant: str, model: MotionModel, times=None) -> np.ndarray:
+def reconstruct_slab(scan: MCScan, a: int, b: int, variant: str, model: MotionModel, times=None,
+                     progress=None) -> np.ndarray:
     """``mc``'s volumes of slices ``a .. b-1`` for one variant: (n_c, n_r, b - a, ny, nx) HU float32.
 
     The slab's first-pass plan, its plane rows (:meth:`MCScan.rows`), ``model`` refined to the
     reconstruction grid on the planes the slab's voxels reach (:func:`method.refine`: the same bits
     as every plane) and the motion-compensated backprojection of every target. ``times``: optional
-    ``StageTimes`` given ``plane_rows``, ``mc_backproject`` and ``method:mc:<variant>`` seconds.
+    ``StageTimes`` given ``plane_rows``, ``mc_backproject`` and ``method:mc:<variant>`` seconds;
+    ``progress``: optional ``update(n)`` counter, one step per target backprojected.
     The same bits for any slab cut and in any process: a projection's plane rows are on the planes
     within the margin of the run's slices, whatever the slab (:meth:`MCScan.rows`).
     """
@@ -233,7 +235,7 @@ def reconstruct_slab(scan: MCScan, a: int, b: int, variant: str, model: MotionMo
     slab_z = scan.slices_z[a:b]
     refined = mcm.refine(model, geom, slab_z, scan.pairs)  # the planes the slab reaches
     hu = mcm.backproject_slab(rows, plan, refined, scan.table, slab_z, geom, scan.pairs,
-                              scan.cfg.mu_water_per_mm, scan.knobs, rt=scan.rt)
+                              scan.cfg.mu_water_per_mm, scan.knobs, rt=scan.rt, progress=progress)
     t2 = time.perf_counter()
     if times is not None:
         times.add("plane_rows", t1 - t0)
