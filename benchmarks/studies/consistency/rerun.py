@@ -3,10 +3,13 @@ ground truth's volumes as a pseudo-method beside the run's, and the study's vari
 along the channels (``--sigma``, Gaussian, in channels), only rows near their slice (``--max-dz``), only
 rows barycentric did not use (``--unused``), and the measured rows replaced by ideal in-plane rows of
 the phantom at each row's own state (``--ideal``: the check without the rows' data model, which every
-method shares; the volumes are still the ones made from the measured rows). Prints each method's
+method shares; the volumes are still the ones made from the measured rows), and only rows whose state
+(c, a) lies within a share of the target lattice's spacing of a target (``--near F``: the prediction of
+such a row is nearly one target's image, so the lattice's bilinear interpolation between targets,
+whose images a method may have made sharp, plays no part). Prints each method's
 residual beside its MAE. docs/consistency.md "Did it help? A truth-free check".
 
-    python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused] [--ideal]
+    python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused] [--ideal] [--near 0.1]
 """
 
 import argparse
@@ -55,6 +58,8 @@ def main():
     ap.add_argument("--max-dz", type=float, default=None)
     ap.add_argument("--unused", action="store_true")
     ap.add_argument("--ideal", action="store_true", help="ideal in-plane rows of the phantom instead of the measured rows")
+    ap.add_argument("--near", type=float, default=None,
+                    help="only rows within this share of the lattice spacing of a target, in c and in a")
     args = ap.parse_args()
     scene = load_scene(args.scene)
     res = json.load(open(f"{args.run}/results.json"))
@@ -70,6 +75,23 @@ def main():
             return plain(smooth(rows), smooth(pred), *a, **k)
 
         cs.residual = residual
+    if args.near is not None:  # the rows' states, seen by the prediction; the masks keep the near ones
+        plain_pred, plain_res = cs.predicted_rows, cs.residual
+        C, R = np.asarray(targets.cardiac), np.asarray(targets.resp)
+        dc = np.min(np.diff(np.sort(np.r_[C, C[0] + 1]))) if C.size > 1 else 1.0
+        da = np.min(np.diff(np.sort(R))) if R.size > 1 else 1.0
+        near = {}
+
+        def predicted(vol, cardiac, resp, row_slice, row_view, row_c, row_a, **k):
+            gc = np.abs((np.asarray(row_c)[:, None] - C[None] + 0.5) % 1.0 - 0.5).min(1) <= args.near * dc
+            ga = np.abs(np.asarray(row_a)[:, None] - R[None]).min(1) <= args.near * da
+            near["rows"] = gc & ga
+            return plain_pred(vol, cardiac, resp, row_slice, row_view, row_c, row_a, **k)
+
+        def residual(rows, pred, masks, *a, **k):
+            return plain_res(rows, pred, {r: m & near["rows"][:, None] for r, m in masks.items()}, *a, **k)
+
+        cs.predicted_rows, cs.residual = predicted, residual
     f = h5py.File(f"{args.run}/volumes.h5", "r")
     methods = [m for m in req["methods"] if m in ("barycentric", "local_linear", "nearest", "mc")] + ["groundtruth"]
     ccfg = cs.ConsistencyConfig(max_dz_mm=args.max_dz, unused_only=args.unused)
@@ -90,8 +112,9 @@ def main():
         t = time.time()
         ent = cs.check(store, geometry.usable_table(scene, table)[0], slices_z, cfg, targets, req["variants"],
                        tuple(scene.recon.small_fov_mm), volumes, methods, ccfg)
-        print(f"== {pk} sigma {args.sigma} max_dz {args.max_dz} unused {args.unused} ideal {args.ideal}: "
-              f"{ent['n_rows']} rows, "
+        n_near = "" if args.near is None else f" ({int(near['rows'].sum())} near a target)"
+        print(f"== {pk} sigma {args.sigma} max_dz {args.max_dz} unused {args.unused} ideal {args.ideal} near {args.near}: "
+              f"{ent['n_rows']} rows{n_near}, "
               f"{time.time() - t:.0f} s")
         for v, bym in ent["residual"].items():
             met = res["metrics"][pk][v]
