@@ -6,10 +6,11 @@ the phantom at each row's own state (``--ideal``: the check without the rows' da
 method shares; the volumes are still the ones made from the measured rows), and only rows whose state
 (c, a) lies within a share of the target lattice's spacing of a target (``--near F``: the prediction of
 such a row is nearly one target's image, so the lattice's bilinear interpolation between targets,
-whose images a method may have made sharp, plays no part). Prints each method's
+whose images a method may have made sharp, plays no part), and other slices than the check's
+evenly spread ones (``--slices 30,50,80,100``: indices into the run's slices). Prints each method's
 residual beside its MAE. docs/consistency.md "Did it help? A truth-free check".
 
-    python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused] [--ideal] [--near 0.1]
+    python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused] [--ideal] [--near 0.1] [--slices 30,50]
 """
 
 import argparse
@@ -58,6 +59,7 @@ def main():
     ap.add_argument("--max-dz", type=float, default=None)
     ap.add_argument("--unused", action="store_true")
     ap.add_argument("--ideal", action="store_true", help="ideal in-plane rows of the phantom instead of the measured rows")
+    ap.add_argument("--slices", default=None, help="comma list of slice indices to sample instead of the check's")
     ap.add_argument("--near", type=float, default=None,
                     help="only rows within this share of the lattice spacing of a target, in c and in a")
     args = ap.parse_args()
@@ -92,6 +94,9 @@ def main():
             return plain_res(rows, pred, {r: m & near["rows"][:, None] for r, m in masks.items()}, *a, **k)
 
         cs.predicted_rows, cs.residual = predicted, residual
+    if args.slices:
+        chosen = slices_z[[int(x) for x in args.slices.split(",")]]
+        truth_free.sample_slices = lambda z, n: np.asarray(chosen, np.float64)
     f = h5py.File(f"{args.run}/volumes.h5", "r")
     methods = [m for m in req["methods"] if m in ("barycentric", "local_linear", "nearest", "mc")] + ["groundtruth"]
     ccfg = cs.ConsistencyConfig(max_dz_mm=args.max_dz, unused_only=args.unused)
@@ -113,7 +118,7 @@ def main():
         ent = cs.check(store, geometry.usable_table(scene, table)[0], slices_z, cfg, targets, req["variants"],
                        tuple(scene.recon.small_fov_mm), volumes, methods, ccfg)
         n_near = "" if args.near is None else f" ({int(near['rows'].sum())} near a target)"
-        print(f"== {pk} sigma {args.sigma} max_dz {args.max_dz} unused {args.unused} ideal {args.ideal} near {args.near}: "
+        print(f"== {pk} sigma {args.sigma} max_dz {args.max_dz} unused {args.unused} ideal {args.ideal} near {args.near} slices {args.slices}: "
               f"{ent['n_rows']} rows{n_near}, "
               f"{time.time() - t:.0f} s")
         for v, bym in ent["residual"].items():
@@ -123,7 +128,8 @@ def main():
                 z = f"z {ab['all']['z']:+6.1f} / {ab['heart']['z']:+6.1f}" if ab else " " * 17
                 mae = f"{met[m]['large']['mae_hu']:.1f} / {met[m]['small']['mae_hu']:.1f}" if m in met else "--"
                 print(f"{v:10s} {m:13s} all {e['rms_hu_mm']:7.1f} heart {e['heart_rms_hu_mm']:7.1f} {z}  "
-                      f"noise floor {e.get('noise_floor_hu_mm', 0):5.1f}  MAE {mae}")
+                      f"noise floor {e.get('noise_floor_hu_mm', 0):5.1f}  MAE {mae}  per slice "
+                      + " ".join(f"{x:.0f}" for x in e["per_slice_rms_hu_mm"]))
             print("  ", ent["verdict"][v]["text"])
 
 
