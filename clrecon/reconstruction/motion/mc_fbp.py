@@ -87,7 +87,6 @@ class MCScan:
         self.coarse = mcm.coarse_geometry(cfg.fbp, self.f)
         self.ref_ij = mcm.reference_index(targets.cardiac, targets.resp, knobs)
         self.kept: dict = {}  # (a, b, variant) -> plane rows of the last round's slab, for the final pass
-        self._plan: tuple = (None, None)  # ((a, b), the first pass's plan of that slab): the last one made
         self.workers = 1  # registrations at once (registration_workers), set when the pool is made
         self._pool = None
 
@@ -117,15 +116,9 @@ class MCScan:
         self._pool = None
 
     def first_pass_plan(self, a: int, b: int):
-        """The first pass's ``MethodPlan`` of slices ``a .. b-1``: the rows and weights ``mc`` moves.
-
-        The last slab's plan is kept (one at a time, so a many-slab scan holds one): a one-slab
-        scan plans once for every round and variant instead of once per use."""
-        if self._plan[0] != (a, b):
-            self._plan = (None, None)  # the previous slab's plan released before this one is made
-            p = reconstruct.plan(self.cfg, self.plan_table, self.slices_z[a:b], self.targets, (FIRST_PASS,))
-            self._plan = ((a, b), p.methods[FIRST_PASS])
-        return self._plan[1]
+        """The first pass's ``MethodPlan`` of slices ``a .. b-1``: the rows and weights ``mc`` moves."""
+        p = reconstruct.plan(self.cfg, self.plan_table, self.slices_z[a:b], self.targets, (FIRST_PASS,))
+        return p.methods[FIRST_PASS]
 
     def rows(self, a: int, b: int, variant: str, plan) -> PlaneRows:
         """The plane rows of slices ``a .. b-1`` that ``plan`` (:meth:`first_pass_plan`) uses: kept
