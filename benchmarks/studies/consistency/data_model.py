@@ -21,6 +21,18 @@ from clrecon.simulation import projector
 from clrecon.simulation.store import ProjectionStore, default_cache_dir
 
 
+def ideal_rows(ph, detector, geom, groups, flat, table, zs):
+    """Ideal in-plane rows (p, C) line integrals of the phantom ``ph`` for the candidate rows ``flat`` of
+    ``groups`` (the check's sampling of slices ``zs``), each at its own state (c, a) in ``table``, its
+    group's view and its slice's z; returns (rows, view (p,))."""
+    gof = np.repeat(np.arange(groups.n_groups), np.diff(groups.offsets))[flat]
+    view, z = groups.group_view[gof], np.asarray(zs)[gof // groups.views_per_rotation]
+    c, a = table.cardiac_phase[groups.row[flat]], table.resp_amplitude[groups.row[flat]]
+    (src, centre, eu, ev), u, vs = cs.inplane_frames(detector, geom, view, z)
+    objs = np.stack([ph.objects(ck, ak) for ck, ak in zip(c, a, strict=True)])
+    return projector.project_views(objs, src, centre, eu, ev, u, np.zeros(1), v_scale=vs)[:, 0, :], view
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("run")
@@ -42,13 +54,8 @@ def main():
         groups = rc.candidate_groups_of(cfg, tab, zs)
         gsel = np.flatnonzero(groups.group_view % args.view_step == 0)
         flat = np.concatenate([np.arange(groups.offsets[x], groups.offsets[x + 1]) for x in gsel])
-        gof = np.repeat(np.arange(groups.n_groups), np.diff(groups.offsets))[flat]
         y = truth_free.read_rows(store, groups, flat, cfg.scanner, ("noise-free",), cfg.noise)["noise-free"][0]
-        view, z = groups.group_view[gof], zs[gof // groups.views_per_rotation]
-        c, a = tab.cardiac_phase[groups.row[flat]], tab.resp_amplitude[groups.row[flat]]
-        (src, centre, eu, ev), u, vs = cs.inplane_frames(det, g, view, z)
-        objs = np.stack([ph.objects(ck, ak) for ck, ak in zip(c, a, strict=True)])
-        ideal = projector.project_views(objs, src, centre, eu, ev, u, np.zeros(1), v_scale=vs)[:, 0, :]
+        ideal, view = ideal_rows(ph, det, g, groups, flat, tab, zs)
         circ = cs.channels_through_circle(det, g, view, cfg.object_radius_mm)
         e = (y - ideal) * scale
         dz = np.abs(groups.dz_mm[flat])

@@ -17,6 +17,7 @@ import argparse
 import json
 import time
 
+import data_model  # this folder's study (on sys.path when run as a script): the ideal rows
 import h5py
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
@@ -28,24 +29,17 @@ from clrecon.evaluation import truth_free
 from clrecon.outputs.volumes import recon_path
 from clrecon.reconstruction import reconstruct as rc
 from clrecon.scan import table as geometry
-from clrecon.simulation import projector
 from clrecon.simulation.store import ProjectionStore, default_cache_dir
 
 
-def ideal_rows(scene, cfg, table, zs):
+def ideal_read(scene, cfg, table, zs):
     """A stand-in for ``truth_free.read_rows`` that returns, for every variant, the ideal in-plane
-    rows of the phantom at each sampled row's own state (c, a), view and slice z (no noise: no
-    variance), as ``data_model.py`` computes them."""
-    g, det = cfg.fbp, cfg.scanner.detector_model
+    rows of the phantom at each sampled row's own state (:func:`data_model.ideal_rows`; no noise: no
+    variance)."""
     ph = gt.GroundTruthConfig.from_scene(scene).source()
 
     def read(store, groups, flat, sc, variants, noise, rt=None):
-        gof = np.repeat(np.arange(groups.n_groups), np.diff(groups.offsets))[flat]
-        view, z = groups.group_view[gof], np.asarray(zs)[gof // groups.views_per_rotation]
-        c, a = table.cardiac_phase[groups.row[flat]], table.resp_amplitude[groups.row[flat]]
-        (src, centre, eu, ev), u, vs = cs.inplane_frames(det, g, view, z)
-        objs = np.stack([ph.objects(ck, ak) for ck, ak in zip(c, a, strict=True)])
-        ideal = projector.project_views(objs, src, centre, eu, ev, u, np.zeros(1), v_scale=vs)[:, 0, :]
+        ideal = data_model.ideal_rows(ph, cfg.scanner.detector_model, cfg.fbp, groups, flat, table, zs)[0]
         return {v: (ideal, None) for v in variants}
 
     return read
@@ -105,7 +99,7 @@ def main():
         table = geometry.projection_table(scene, pitch)
         store = ProjectionStore.open(scene, pitch, cache_dir=default_cache_dir(), table=table)
         if args.ideal:
-            cs.truth_free.read_rows = ideal_rows(scene, cfg, geometry.usable_table(scene, table)[0],
+            cs.truth_free.read_rows = ideal_read(scene, cfg, geometry.usable_table(scene, table)[0],
                                                  truth_free.sample_slices(slices_z, ccfg.max_slices))
 
         def volumes(v, m, s, pk=pk):
