@@ -97,12 +97,9 @@ def _slab_unit(run, pitch: float, scan: mc_fbp.MCScan, a: int, b: int, variant: 
     def here(emit, times):
         # the targets of the slab counted with an ETA: one slab of a whole paper-scale scan takes tens of
         # minutes, and the stage's own counter moves only when a slab is done
-        bar = progress_counter(len(scan.pairs), f"mc {pitch_key(pitch)} slices {a}..{b - 1} ({variant})",
-                               run.progress, "targets")
-        try:
+        with progress_counter(len(scan.pairs), f"mc {pitch_key(pitch)} slices {a}..{b - 1} ({variant})",
+                              run.progress, "targets") as bar:
             emit((np.arange(a, b), variant, mc_fbp.reconstruct_slab(scan, a, b, variant, model, times, bar)))
-        finally:
-            bar.close()
 
     def remote():
         return work_units.mc_slab, (run.recon_cfg, run.scene, pitch, str(run.cache_path), run.slices_z, a, b,
