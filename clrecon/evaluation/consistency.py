@@ -25,9 +25,13 @@ rows were used to make the volumes (for ``mc``'s variant A with the same barycen
 barycentric itself, so the leakage is comparable between the two); SSRB rows differ from ideal
 in-plane rows by 0.5-0.8 % of the row norm and the FBP's filter window smooths every image, the
 same for every method; noise adds var(y_k) to every method's mean square alike. A method is
-compared with another by the difference of their mean squared residuals, with a jackknife over
-blocks of (slice, consecutive sampled views) (:func:`compare`): it says whether the difference is
-consistent over the sampled geometry, not what another noise draw would give.
+compared with another slice by slice: at each sampled slice by the difference of their mean squared
+residuals, with a jackknife over blocks of consecutive sampled views (:func:`compare`), and over the
+slices by a sign test on the slices where it is lower against those where it is higher
+(:func:`verdict`): each slice counts once, so a few slices whose residual is large (an error that
+adds up along the rays) do not carry the verdict. The pooled comparison over every block is reported
+beside it. It says whether the difference is consistent over the sampled geometry, not what another
+noise draw would give.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import binomtest
 
 from clrecon.core.conventions import detector_frames
 from clrecon.evaluation import truth_free
@@ -66,6 +71,11 @@ Z_DECIDES = 2.0
 #: for every method; module docstring), and several times below the effect the check exists to see
 #: (``mc`` against barycentric where it helped on ``demo``: docs/results/mc-consistency.md).
 MIN_EFFECT = 0.005
+#: Two-sided significance of the sign test over slices (:func:`verdict`): a region says "lower" or
+#: "higher" when so many more slices are lower than higher (or the reverse) that a fair coin would
+#: give it at most this often. The same level as |z| > Z_DECIDES (0.046). At least 6 slices must
+#: differ for it to decide (2 x 0.5^6 = 0.031; 5 of 5 give 0.0625).
+SIGN_TEST_ALPHA = 0.05
 #: z spacing (mm) of stacked in-plane images projected at once: any value > 0 keeps in-plane rays in their plane.
 STACK_DZ_MM = 10.0
 
@@ -82,13 +92,14 @@ def inplane_frames(detector, geom: FanBeamGeometry, view, z_mm):
 
 @dataclass(frozen=True)
 class ConsistencyConfig:
-    """Sampling of the check: at most ``max_slices`` slices (evenly spread), every ``view_step``-th
-    view (the truth-free defaults, so the same projections serve both), ``block_views`` sampled
-    views per jackknife block. For studies (the run uses the defaults): ``max_dz_mm`` keeps only
-    the rows within that axial distance of their slice; ``unused_only`` only the rows barycentric
-    gave no weight at any target (:func:`unused_rows`; none at pitch 0.10 on ``demo``)."""
+    """Sampling of the check: at most ``max_slices`` slices (evenly spread: 12, so the sign test over
+    slices can decide with one or two slices against: 10 of 12 give p = 0.039), every
+    ``view_step``-th view, ``block_views`` sampled views per jackknife block. For studies (the run
+    uses the defaults): ``max_dz_mm`` keeps only the rows within that axial distance of their slice;
+    ``unused_only`` only the rows barycentric gave no weight at any target (:func:`unused_rows`; none
+    at pitch 0.10 on ``demo``)."""
 
-    max_slices: int = 4
+    max_slices: int = 12
     view_step: int = 4
     block_views: int = 8
     max_dz_mm: float | None = None
@@ -227,33 +238,44 @@ def channels_through_circle(detector, geom, view, radius_mm: float) -> np.ndarra
 class Residual:
     """Squared residuals of one method pooled per block and region: ``sq[region]`` and ``cells[region]``
     (B,) over the B blocks, ``floor[region]`` (B,) the sum of the rows' noise variance (0 without a
-    noise model)."""
+    noise model). The blocks are slice-major, B / ``n_slices`` per slice."""
 
     sq: dict
     cells: dict
     floor: dict
+    n_slices: int = 1
 
     def rms(self, region: str) -> float:
         n = self.cells[region].sum()
         return float(np.sqrt(self.sq[region].sum() / n)) if n else float("nan")
 
-    def per_slice_rms(self, region: str, n_slices: int) -> np.ndarray:
-        """(n_slices,) RMS per slice (the blocks are slice-major, the same number per slice)."""
-        sq = self.sq[region].reshape(n_slices, -1).sum(axis=1)
-        n = self.cells[region].reshape(n_slices, -1).sum(axis=1)
-        return np.sqrt(sq / np.maximum(n, 1))
+    def per_slice_rms(self, region: str) -> np.ndarray:
+        """(n_slices,) RMS per slice (NaN at a slice without cells in the region)."""
+        sq = self.sq[region].reshape(self.n_slices, -1).sum(axis=1)
+        n = self.cells[region].reshape(self.n_slices, -1).sum(axis=1)
+        return np.where(n > 0, np.sqrt(sq / np.maximum(n, 1)), np.nan)
+
+    def slice(self, s: int) -> Residual:
+        """The blocks of slice ``s`` alone, as a one-slice Residual."""
+        def part(d):
+            return {r: x.reshape(self.n_slices, -1)[s] for r, x in d.items()}
+        return Residual(part(self.sq), part(self.cells), part(self.floor), 1)
 
     def floor_rms(self, region: str) -> float:
         n = self.cells[region].sum()
         return float(np.sqrt(self.floor[region].sum() / n)) if n else float("nan")
 
 
-def residual(rows, predicted, masks: dict, block, n_blocks: int, row_var=None, scale: float = 1.0) -> Residual:
+def residual(rows, predicted, masks: dict, block, n_blocks: int, row_var=None, scale: float = 1.0,
+             n_slices: int = 1) -> Residual:
     """Pooled squared residuals ``(y - P) * scale`` of rows (p, C) against ``predicted`` (p, C).
 
-    ``masks`` ``{region: (p, C) bool}``; ``block`` (p,) the block of each row in [0, n_blocks);
-    ``row_var`` (p, C) the rows' noise variance (line integral^2) or None.
+    ``masks`` ``{region: (p, C) bool}``; ``block`` (p,) the block of each row in [0, n_blocks),
+    slice-major with n_blocks / ``n_slices`` blocks per slice; ``row_var`` (p, C) the rows' noise
+    variance (line integral^2) or None.
     """
+    if n_blocks % n_slices:
+        raise ValueError(f"{n_blocks} blocks do not split into {n_slices} slices of equally many")
     e = (np.asarray(rows, np.float64) - np.asarray(predicted, np.float64)) * scale
     e2 = e * e
     blk = np.asarray(block, np.int64)
@@ -264,7 +286,7 @@ def residual(rows, predicted, masks: dict, block, n_blocks: int, row_var=None, s
         floor[r] = (np.zeros(n_blocks) if row_var is None else
                     np.bincount(blk, (np.asarray(row_var, np.float64) * m).sum(axis=1) * scale * scale,
                                 minlength=n_blocks))
-    return Residual(sq, cells, floor)
+    return Residual(sq, cells, floor, n_slices)
 
 
 def compare(a: Residual, b: Residual, region: str) -> dict:
@@ -293,21 +315,54 @@ def compare(a: Residual, b: Residual, region: str) -> dict:
     return dict(out, se_hu_mm2=se, z=float(z), says=says, **({"below_min_effect": True} if small else {}))
 
 
+def by_slices(a: Residual, b: Residual, region: str) -> dict:
+    """Method a against method b in ``region``, slice by slice: :func:`compare` at each slice (over its
+    own blocks), then a two-sided sign test over the slices that differ (``lower`` against ``higher``;
+    a slice with no clear difference is a tie and drops out). ``says`` is ``"lower"`` / ``"higher"``
+    where the majority's sign-test p is at most :data:`SIGN_TEST_ALPHA`, else ``"no clear difference"``.
+    Each slice counts once whatever the size of its residual."""
+    if a.n_slices != b.n_slices:
+        raise ValueError(f"{a.n_slices} and {b.n_slices} slices: the residuals are not of the same sampling")
+    per = [compare(a.slice(s), b.slice(s), region) for s in range(a.n_slices)]
+    lower = sum(p["says"] == "lower" for p in per)
+    higher = sum(p["says"] == "higher" for p in per)
+    p = float(binomtest(lower, lower + higher, 0.5).pvalue) if lower + higher else 1.0
+    says = ("lower" if lower > higher and p <= SIGN_TEST_ALPHA else
+            "higher" if higher > lower and p <= SIGN_TEST_ALPHA else "no clear difference")
+    return {"says": says, "slices": a.n_slices, "slices_lower": int(lower), "slices_higher": int(higher),
+            "sign_test_p": p, "per_slice": [{k: x[k] for k in ("ratio", "z", "says")} for x in per]}
+
+
 def verdict(res: dict, method: str = METHOD, reference: str = REFERENCE) -> dict:
     """Did ``method`` help against ``reference`` (its first pass)? From ``{method: Residual}`` of one
-    variant: per region the :func:`compare` entry, and ``helped``: True when the residual is lower
-    in both regions, False when it is higher in either, else None (no clear difference)."""
+    variant: per region the slice-by-slice decision (:func:`by_slices`: ``says``, the counts, the sign
+    test's p, ``per_slice``) beside the comparison pooled over every block (:func:`compare`: ``ratio``,
+    ``z``, ... and its own ``pooled_says``), and ``helped``: True when ``method`` is lower in both
+    regions, False when it is higher in either, else None (no clear difference). Fewer than 6 slices
+    that differ cannot decide (the sign test's smallest p is then above :data:`SIGN_TEST_ALPHA`)."""
     if method not in res or reference not in res:
         return {"helped": None, "null_because": f"{method} or {reference} is not in this run"}
-    by = {r: compare(res[method], res[reference], r) for r in REGIONS}
+    by = {}
+    for r in REGIONS:
+        pooled = compare(res[method], res[reference], r)
+        by[r] = dict(pooled, pooled_says=pooled["says"], **by_slices(res[method], res[reference], r))
     says = [by[r]["says"] for r in REGIONS]
     helped = False if "higher" in says else True if all(s == "lower" for s in says) else None
     word = {True: "helped", False: "did not help", None: "no clear difference"}[helped]
-    text = (f"{method} {word}: residual x {by['all']['ratio']:.3f} of {reference}'s (z {by['all']['z']:+.1f}), "
-            f"heart x {by['heart']['ratio']:.3f} (z {by['heart']['z']:+.1f})")
+
+    def counts(e):
+        return f"lower at {e['slices_lower']}, higher at {e['slices_higher']} of {e['slices']} slices " \
+               f"(sign test p {e['sign_test_p']:.3g})"
+
+    a, h = by["all"], by["heart"]
+    text = (f"{method} {word}: {counts(a)}, heart {counts(h)}; pooled residual x {a['ratio']:.3f} of "
+            f"{reference}'s (z {a['z']:+.1f}), heart x {h['ratio']:.3f} (z {h['z']:+.1f})")
+    if a["slices"] < 6:
+        text += f"; {a['slices']} slices cannot decide (a sign test needs at least 6 that differ)"
     small = [r for r in REGIONS if by[r].get("below_min_effect")]
     if small:
-        text += f"; {' and '.join(small)} within {100 * MIN_EFFECT:g} % of 1: below the smallest effect it reports"
+        text += (f"; pooled {' and '.join(small)} within {100 * MIN_EFFECT:g} % of 1: below the smallest effect "
+                 "it reports")
     return {"helped": helped, "against": reference, "regions": by, "text": text}
 
 
@@ -362,7 +417,7 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
                       "units": "HU mm (line integral x 1000 / mu_water)",
                       "regions": {"all": "channels whose ray passes through the reconstruction circle",
                                   "heart": "... and crosses the heart box recon.small_fov_mm"},
-                      "z_decides": Z_DECIDES, "min_effect": MIN_EFFECT},
+                      "z_decides": Z_DECIDES, "min_effect": MIN_EFFECT, "sign_test_alpha": SIGN_TEST_ALPHA},
            "n_rows": int(flat.size), "residual": {}, "verdict": {},
            **({"mcir_verdict": {}} if ITERATIVE in methods and ITERATIVE_AGAINST in methods else {})}
     t_pred = 0.0
@@ -377,18 +432,21 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
             pred = predicted_rows(vol, targets.cardiac, targets.resp, row_slice, row_view, row_c, row_a, geom=geom,
                                   detector=sc.detector_model, mu_water=recon_cfg.mu_water_per_mm, rt=rt)
             t_pred += time.perf_counter() - t2
-            res[m] = residual(rows, pred, masks, block, n_blocks, row_var=var, scale=scale)
+            res[m] = residual(rows, pred, masks, block, n_blocks, row_var=var, scale=scale, n_slices=len(zs))
         ent = {}
         for m, r in res.items():
             e = {"rms_hu_mm": r.rms("all"), "heart_rms_hu_mm": r.rms("heart"), "n_rows": int(flat.size),
                  "cells": int(r.cells["all"].sum()), "heart_cells": int(r.cells["heart"].sum()),
-                 "per_slice_rms_hu_mm": r.per_slice_rms("all", len(zs)).tolist()}
+                 "per_slice_rms_hu_mm": r.per_slice_rms("all").tolist()}
             if var is not None:
                 e["noise_floor_hu_mm"] = r.floor_rms("all")
                 e["heart_noise_floor_hu_mm"] = r.floor_rms("heart")
             if m != REFERENCE and REFERENCE in res:
-                e[f"against_{REFERENCE}"] = {g: {k: x[k] for k in ("ratio", "z", "says")}
-                                             for g, x in ((g, compare(r, res[REFERENCE], g)) for g in REGIONS)}
+                e[f"against_{REFERENCE}"] = {
+                    g: {"ratio": x["ratio"], "z": x["z"], "pooled_says": x["says"],
+                        **{k: y[k] for k in ("says", "slices_lower", "slices_higher", "sign_test_p")}}
+                    for g, x, y in ((g, compare(r, res[REFERENCE], g), by_slices(r, res[REFERENCE], g))
+                                    for g in REGIONS)}
             ent[m] = e
         out["residual"][v] = ent
         out["verdict"][v] = verdict(res)

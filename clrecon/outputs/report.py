@@ -233,8 +233,10 @@ def consistency_markdown(results: dict) -> list[str]:
              "heart box. Lower is more consistent with the data; no ground truth is used, so it also runs on "
              "measured scans. The rows made the volumes, so every residual is biased low, and it is mostly the "
              "data model every method shares; the comparison of mc with its first pass (barycentric: the same rows "
-             "and weights) is the point: z is their difference of mean squares over its jackknife error across "
-             "blocks of views. On demo it saw mc's gain at pitch 0.10, not at 0.02, and it does not order the "
+             "and weights) is the point. At each sampled slice a difference of mean squares that holds over the "
+             "slice's blocks of views (jackknife |z| > 2, and more than 0.5 %) counts the slice as lower or higher; "
+             "a sign test over the slices decides, so each slice counts once (the ratio and z pooled over every "
+             "block are given too). On demo it saw mc's gain at pitch 0.10, not at 0.02, and it does not order the "
              "paper methods as the error against truth does (docs/consistency.md \"Did it help? A truth-free "
              "check\").", ""]
     for pk, ent in cons.items():

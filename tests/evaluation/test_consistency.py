@@ -130,44 +130,97 @@ def test_rigid_motion_control_the_right_states_beat_one_state_and_a_wrong_image(
     assert cs.compare(res["one state"], res["right"], "all")["says"] == "higher"
 
 
-def _residual(sq, cells=10):
+def _residual(sq, cells=10, n_slices=1):
     sq = np.asarray(sq, float)
     z = np.zeros_like(sq)
     return cs.Residual({"all": sq, "heart": sq / 2}, {"all": np.full(sq.size, cells), "heart": np.full(sq.size, cells)},
-                       {"all": z, "heart": z})
+                       {"all": z, "heart": z}, n_slices)
 
 
-def test_verdict_says_helped_only_when_the_difference_is_consistent_over_blocks():
-    base = _residual([100, 120, 90, 110, 105, 95])
-    better = _residual([90, 108, 81, 99, 95, 85])   # 10 % lower in every block
-    mixed = _residual([60, 150, 50, 140, 105, 95])  # lower on average, not consistently
+BLOCKS = np.array([100, 120, 90, 110, 105, 95], float)  # one slice's six blocks
+
+
+def _slices(*factors):
+    """Residual of len(factors) slices, slice s the six BLOCKS times factors[s] (a mean-square factor)."""
+    return _residual(np.concatenate([BLOCKS * f for f in factors]), n_slices=len(factors))
+
+
+def test_verdict_says_helped_only_when_most_slices_are_consistently_lower():
+    """Per slice a consistent difference over its blocks decides; over slices a sign test: 12 slices
+    all 10 % lower in mean square help, all higher do not, 5 lower and 5 higher decide nothing."""
+    base = _slices(*[1.0] * 12)
+    better = _slices(*[0.9] * 12)
     assert cs.verdict({"mc": better, "barycentric": base})["helped"] is True
     assert cs.verdict({"mc": base, "barycentric": better})["helped"] is False
-    v = cs.verdict({"mc": mixed, "barycentric": base})
+    half = _slices(*[0.9] * 5, *[1.1] * 5, 1.0, 1.0)
+    v = cs.verdict({"mc": half, "barycentric": base})
     assert v["helped"] is None and v["regions"]["all"]["says"] == "no clear difference"
-    assert v["regions"]["all"]["ratio"] < 1
+    e = v["regions"]["all"]
+    assert (e["slices_lower"], e["slices_higher"], e["slices"]) == (5, 5, 12) and e["sign_test_p"] == 1.0
     assert cs.verdict({"barycentric": base})["helped"] is None
+
+
+def test_within_a_slice_a_difference_must_be_consistent_over_its_blocks():
+    base = _slices(*[1.0] * 8)
+    mixed = np.concatenate([np.array([60, 150, 50, 140, 105, 95.0])] * 8)  # lower on average, not consistently
+    v = cs.verdict({"mc": _residual(mixed, n_slices=8), "barycentric": base})
+    assert v["regions"]["all"]["ratio"] < 1 and v["regions"]["all"]["slices_lower"] == 0
+    assert v["helped"] is None and v["regions"]["all"]["says"] == "no clear difference"
+
+
+def test_one_slice_with_a_large_residual_does_not_carry_the_verdict():
+    """The whole-paper-p010 case (docs/results/mc-consistency.md): mc lower at most slices and twice
+    barycentric's residual at one slice whose residual is large. Pooled over every block the one slice
+    wins ("higher", z > 2); slice by slice mc is lower at 11 of 12 (sign test p 2 x 13 / 4096 = 0.006) and helped."""
+    ref = [1.0] * 11 + [4.0]            # the last slice's residual is twice the others' RMS
+    base = _slices(*ref)
+    mc = _slices(*[0.81] * 11, 4.0 * 2.0 ** 2)
+    v = cs.verdict({"mc": mc, "barycentric": base})
+    e = v["regions"]["all"]
+    assert e["pooled_says"] == "higher" and e["ratio"] > 1 and e["z"] > cs.Z_DECIDES
+    assert (e["slices_lower"], e["slices_higher"]) == (11, 1) and e["sign_test_p"] == pytest.approx(2 * 13 / 4096)
+    assert e["says"] == "lower" and v["helped"] is True
+    assert "lower at 11, higher at 1 of 12 slices" in v["text"]
+
+
+def test_a_sign_test_needs_six_slices_that_differ():
+    """5 of 5 slices lower give p = 0.0625 (two-sided): no decision; 6 of 6 give 0.031: helped."""
+    for n, helped in ((5, None), (6, True)):
+        v = cs.verdict({"mc": _slices(*[0.9] * n), "barycentric": _slices(*[1.0] * n)})
+        assert v["regions"]["all"]["sign_test_p"] == pytest.approx(2 * 0.5 ** n)
+        assert v["helped"] is helped, (n, v["text"])
+    assert "cannot decide" in cs.verdict({"mc": _slices(*[0.9] * 4), "barycentric": _slices(*[1.0] * 4)})["text"]
 
 
 def test_a_difference_within_the_minimum_effect_is_no_clear_difference_whatever_z():
     """The static case (issue 41): mc equal to barycentric up to rounding has a residual lower or
     higher in every block by the same sliver, so the jackknife's SE is tiny and |z| large (z +8.9
-    was reported as "did not help"); within MIN_EFFECT of 1 the comparison says no clear difference.
-    Just outside it, a consistent difference still decides."""
-    base = _residual([100, 120, 90, 110, 105, 95])
+    was reported as "did not help"); within MIN_EFFECT of 1 the comparison says no clear difference,
+    at every slice and pooled. Just outside it, a consistent difference still decides."""
+    base = _slices(*[1.0] * 8)
     for ratio in (1 + 1e-6, 1 - 1e-6, 1 + 0.9 * cs.MIN_EFFECT, 1 - 0.9 * cs.MIN_EFFECT):  # of the RMS
-        sliver = _residual(np.array([100, 120, 90, 110, 105, 95]) * ratio ** 2)
+        sliver = _slices(*[ratio ** 2] * 8)
         c = cs.compare(sliver, base, "all")
         assert c["ratio"] == pytest.approx(ratio, abs=1e-12)
         assert abs(c["z"]) > 10 * cs.Z_DECIDES  # consistent over the blocks: z alone would decide
         assert c["says"] == "no clear difference" and c["below_min_effect"] is True, (ratio, c)
         v = cs.verdict({"mc": sliver, "barycentric": base})
         assert v["helped"] is None and "below the smallest effect" in v["text"], v
+        assert v["regions"]["all"]["slices_lower"] == v["regions"]["all"]["slices_higher"] == 0
     for ratio, says, helped in ((1 + 1.2 * cs.MIN_EFFECT, "higher", False), (1 - 1.2 * cs.MIN_EFFECT, "lower", True)):
-        outside = _residual(np.array([100, 120, 90, 110, 105, 95]) * ratio ** 2)
+        outside = _slices(*[ratio ** 2] * 8)
         c = cs.compare(outside, base, "all")
         assert c["says"] == says and "below_min_effect" not in c, (ratio, c)
-        assert cs.verdict({"mc": outside, "barycentric": base})["helped"] is helped
+        v = cs.verdict({"mc": outside, "barycentric": base})
+        assert v["helped"] is helped and v["regions"]["all"]["says"] == says
+
+
+def test_residuals_split_into_slices_of_their_blocks():
+    r = _residual(np.arange(12.0), n_slices=3)
+    assert r.slice(1).sq["all"].tolist() == [4.0, 5.0, 6.0, 7.0] and r.slice(1).n_slices == 1
+    assert r.per_slice_rms("all") == pytest.approx(np.sqrt(np.arange(12.0).reshape(3, 4).sum(1) / 40))
+    with pytest.raises(ValueError, match="12 blocks do not split into 5 slices"):
+        cs.residual(np.zeros((2, 3)), np.zeros((2, 3)), {"all": np.ones((2, 3), bool)}, [0, 1], 12, n_slices=5)
 
 
 def test_channels_through_the_circle_on_a_flat_detector(tiny_cfg):

@@ -10,7 +10,7 @@ whose images a method may have made sharp, plays no part), and other slices than
 evenly spread ones (``--slices 30,50,80,100``: indices into the run's slices). Prints each method's
 residual beside its MAE. docs/consistency.md "Did it help? A truth-free check".
 
-    python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused] [--ideal] [--near 0.1] [--slices 30,50]
+    python benchmarks/studies/consistency/rerun.py /tmp/run --scene demo [--sigma 2] [--max-dz 2] [--unused] [--ideal] [--near 0.1] [--slices 30,50] [--max-slices 4]
 """
 
 import argparse
@@ -54,6 +54,8 @@ def main():
     ap.add_argument("--unused", action="store_true")
     ap.add_argument("--ideal", action="store_true", help="ideal in-plane rows of the phantom instead of the measured rows")
     ap.add_argument("--slices", default=None, help="comma list of slice indices to sample instead of the check's")
+    ap.add_argument("--max-slices", type=int, default=cs.ConsistencyConfig.max_slices,
+                    help="how many evenly spread slices the check samples")
     ap.add_argument("--near", type=float, default=None,
                     help="only rows within this share of the lattice spacing of a target, in c and in a")
     args = ap.parse_args()
@@ -93,7 +95,7 @@ def main():
         truth_free.sample_slices = lambda z, n: np.asarray(chosen, np.float64)
     f = h5py.File(f"{args.run}/volumes.h5", "r")
     methods = [m for m in req["methods"] if m in ("barycentric", "local_linear", "nearest", "mc")] + ["groundtruth"]
-    ccfg = cs.ConsistencyConfig(max_dz_mm=args.max_dz, unused_only=args.unused)
+    ccfg = cs.ConsistencyConfig(max_slices=args.max_slices, max_dz_mm=args.max_dz, unused_only=args.unused)
     for pk in res["metrics"]:
         pitch = float(pk[1:])
         table = geometry.projection_table(scene, pitch)
@@ -119,7 +121,8 @@ def main():
             met = res["metrics"][pk][v]
             for m, e in bym.items():
                 ab = e.get("against_barycentric")
-                z = f"z {ab['all']['z']:+6.1f} / {ab['heart']['z']:+6.1f}" if ab else " " * 17
+                z = (f"z {ab['all']['z']:+6.1f} / {ab['heart']['z']:+6.1f} slices -{ab['all']['slices_lower']}"
+                     f"/+{ab['all']['slices_higher']}" if ab else " " * 29)
                 mae = f"{met[m]['large']['mae_hu']:.1f} / {met[m]['small']['mae_hu']:.1f}" if m in met else "--"
                 print(f"{v:10s} {m:13s} all {e['rms_hu_mm']:7.1f} heart {e['heart_rms_hu_mm']:7.1f} {z}  "
                       f"noise floor {e.get('noise_floor_hu_mm', 0):5.1f}  MAE {mae}  per slice "
