@@ -18,6 +18,8 @@ The figures reproduce the paper's (Wang et al., 5DCT; ``docs/README.md`` "The pa
 - ``error_vs_time.png``: pooled MAE against reconstruction seconds per method, pitch, variant.
 - ``motion_metrics.png``: edge width, LV volume error, target localisation error and noise std
   (:mod:`clrecon.evaluation.motion`) per method, pitch and variant.
+- ``consistency_slices.png``: the truth-free check's residual per sampled slice and method, with
+  the slices where ``mc`` is lower or higher than its first pass (runs with ``mc``).
 
 Everything is matplotlib with the Agg backend (no display). Display conventions: coronal
 images with patient right on the left (+x, patient left, to the right) and superior up;
@@ -34,6 +36,7 @@ import numpy as np
 from clrecon.core import atomic
 from clrecon.core.conventions import circular_difference
 from clrecon.core.errors import ClreconError
+from clrecon.evaluation.consistency import METHOD as METHOD_JUDGED
 from clrecon.evaluation.groundtruth import offers_lv_region
 from clrecon.outputs.rundir import RunDirectory
 from clrecon.reconstruction import interpolation as _methods
@@ -577,9 +580,60 @@ def fig_motion_metrics(results: dict, path: Path) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
+# truth-free consistency, per slice
+#: Line colours of the methods: matplotlib's cycle without its green and red (the triangles').
+LINE_COLOURS = ("C0", "C1", "C4", "C5", "C6", "C7", "C8", "C9")
+
+
+def fig_consistency_slices(results: dict, path: Path) -> str:
+    """The consistency check's RMS residual (HU mm, channels through the circle) per sampled slice
+    z, one line per method, one panel per (pitch, variant) (``results["consistency"]``); the slices
+    where the verdict's method is lower than its first pass marked on its line by a filled triangle
+    pointing down, higher by one pointing up, in the whole circle (``verdict[variant].regions.all.per_slice``)."""
+    plt = _plt()
+    cons = {pk: e for pk, e in (results.get("consistency") or {}).items() if "residual" in e}
+    cells = [(pk, v) for pk, e in cons.items() for v in e["residual"]]
+    fig, axes = plt.subplots(1, len(cells), figsize=(4.6 * len(cells) + 1.6, 3.6), squeeze=False,
+                             layout="constrained")
+    for ax, (pk, v) in zip(axes[0], cells, strict=True):
+        ent = cons[pk]
+        z = np.asarray(ent["config"]["slices_z_mm"], float)
+        ver = ent["verdict"].get(v) or {}
+        who = None
+        for k, (m, e) in enumerate(ent["residual"][v].items()):
+            ax.plot(z, e["per_slice_rms_hu_mm"], marker=MARKERS.get(m, "o"), ms=4, lw=1.2, color=LINE_COLOURS[k % 8],
+                    label=_label(m))
+            if m == METHOD_JUDGED:
+                who = np.asarray(e["per_slice_rms_hu_mm"], float)
+        per = ((ver.get("regions") or {}).get("all") or {}).get("per_slice") or []
+        if who is not None and len(per) == z.size:
+            for says, mk, col in (("lower", "v", "tab:green"), ("higher", "^", "tab:red")):
+                at = np.array([p["says"] == says for p in per])
+                if at.any():
+                    ax.scatter(z[at], who[at], marker=mk, s=44, color=col, zorder=5,
+                               label=f"{_label(METHOD_JUDGED)} {says} than {_label(ver['against'])} here")
+        ax.set_title(f"pitch {float(pk[1:]):g}, {v}: " + ("helped" if ver.get("helped") else
+                                                          "did not help" if ver.get("helped") is False else
+                                                          "no clear difference"), fontsize=9)
+        ax.set_xlabel("slice z (mm)", fontsize=8)
+        ax.set_ylabel("RMS residual (HU mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0, -1].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, loc="outside right center")
+    fig.suptitle("Truth-free consistency per sampled slice (lower: the volumes explain the rows better)", fontsize=9)
+    atomic.save_figure(fig, path, dpi=110)  # whole or not at all
+    plt.close(fig)
+    return (f"RMS residual of the rows against each method's volumes per sampled slice (channels through the "
+            f"reconstruction circle, HU mm); triangles mark the slices where {METHOD_JUDGED} is consistently lower "
+            f"(down) or higher (up) than its first pass. The verdict is a sign test over these slices "
+            f"(docs/consistency.md).")
+
+
+# ---------------------------------------------------------------------------------------------
 #: The figures drawn from ``results`` alone (no volumes): name -> function(results, path, *args).
 _RESULTS_FIGURES = {"mae_per_target": fig_mae_per_target, "error_vs_time": fig_error_vs_time,
-                    "motion_metrics": fig_motion_metrics}
+                    "motion_metrics": fig_motion_metrics, "consistency_slices": fig_consistency_slices}
 def _draw_results_figure(kind: str, results: dict, path: str, args: tuple) -> tuple[bool, str]:
     """(ok, caption or error) of one results-only figure; run in the figure process or here."""
     try:
@@ -657,6 +711,8 @@ def write_figures(out_dir, results: dict, pool=None) -> list[str]:
         has_motion = any(byv for byv in (results.get("motion") or {}).values())
         add_results("motion_metrics.png", "Motion metrics", "motion_metrics", (),
                     None if has_motion else "results.json has no motion metrics")
+        if any("residual" in e for e in (results.get("consistency") or {}).values()):  # runs with mc only
+            add_results("consistency_slices.png", f"Did {METHOD_JUDGED} help? Per slice", "consistency_slices")
         tail, entries[:] = entries[:], []
         has_5d = results.get("dimensions", {}).get("cardiac", True) or results.get("dimensions", {}).get("resp", True)
         add("phase_space.png", "Phase space of one slice and view", lambda p: fig_phase_space(run, p),

@@ -131,3 +131,23 @@ def test_figures_drawn_in_a_helper_process_are_the_same(tmp_path):
     assert here == there and "failed" not in "\n".join(here)
     for p in sorted((tmp_path / "a" / "figures").glob("*.png")):
         assert np.array_equal(_img(p), _img(tmp_path / "b" / "figures" / p.name)), p.name
+
+
+def test_the_consistency_figure_marks_the_slices_where_mc_is_lower_or_higher(tmp_path):
+    """Per (pitch, variant) a panel of each method's residual per sampled slice; the slices where
+    the verdict's per-slice comparison says lower / higher get a green / red triangle."""
+    z = np.linspace(-50, 50, 12)
+    says = ["lower"] * 10 + ["higher", "no clear difference"]
+    per = [{"ratio": 1.0, "z": 0.0, "says": s} for s in says]
+    ent = {"config": {"slices_z_mm": z.tolist()},
+           "residual": {"noise-free": {"barycentric": {"per_slice_rms_hu_mm": (1400 + 10 * z).tolist()},
+                                       "mc": {"per_slice_rms_hu_mm": (1300 + 10 * z).tolist()}}},
+           "verdict": {"noise-free": {"helped": True, "against": "barycentric",
+                                      "regions": {"all": {"per_slice": per}}}}}
+    path = tmp_path / "c.png"
+    caption = figures.fig_consistency_slices({"consistency": {"p0.100": ent}}, path)
+    assert "sign test" in caption
+    rgb = __import__("matplotlib.image").image.imread(path)[..., :3]
+    green = (rgb[..., 1] > 0.45) & (rgb[..., 0] < 0.3) & (rgb[..., 2] < 0.3)   # tab:green triangles
+    red = (rgb[..., 0] > 0.75) & (rgb[..., 1] < 0.25) & (rgb[..., 2] < 0.25)   # tab:red triangle
+    assert green.sum() > 10 * 20 and 20 < red.sum() < green.sum() / 4, (green.sum(), red.sum())

@@ -97,10 +97,17 @@ def test_the_consistency_check_judges_mc_against_its_first_pass(reference):
         ver = ent["verdict"][v]
         assert ver["helped"] in (True, False, None) and ver["against"] == "barycentric"
         assert ver["regions"]["all"]["ratio"] == pytest.approx(r["mc"]["rms_hu_mm"] / r["barycentric"]["rms_hu_mm"])
+        for g in ("all", "heart"):  # slice by slice: tiny's 2 slices, too few for the sign test to decide
+            e = ver["regions"][g]
+            assert e["slices"] == len(ent["config"]["slices_z_mm"]) == len(e["per_slice"]) == 2
+            assert e["says"] == "no clear difference" and e["sign_test_p"] >= 0.25
+        assert ver["helped"] is None and "cannot decide" in ver["text"]
     assert "noise_floor_hu_mm" in ent["residual"]["noisy"]["mc"] and "noise_floor_hu_mm" not in \
         ent["residual"]["noise-free"]["mc"]
     assert res["stages"]["consistency"]["ran"]
-    assert "Did mc help?" in (out / "report.md").read_text()
+    md = (out / "report.md").read_text()
+    assert "Did mc help?" in md and "(figures/consistency_slices.png)" in md
+    assert (out / "figures" / "consistency_slices.png").stat().st_size > 10_000
 
 
 # fault -> (recon unit files the rerun writes, models it loads, variants it registers again); the
