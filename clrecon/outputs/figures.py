@@ -619,8 +619,11 @@ def fig_consistency_slices(results: dict, path: Path) -> str:
         ax.set_ylabel("RMS residual (HU mm)", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
-    handles, labels = axes[0, -1].get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=7, loc="outside right center")
+    legend = {}  # every panel's entries once (a panel may lack a triangle another has)
+    for ax in axes[0]:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            legend.setdefault(lab, h)
+    fig.legend(list(legend.values()), list(legend), fontsize=7, loc="outside right center")
     fig.suptitle("Truth-free consistency per sampled slice (lower: the volumes explain the rows better)", fontsize=9)
     atomic.save_figure(fig, path, dpi=110)  # whole or not at all
     plt.close(fig)
