@@ -95,8 +95,13 @@ class MotionCompensationConfig(Section):
     reference_amplitude: float = F(0.45, number_in(0.0, 1.0, "", "amplitude units"),
                                    "the model's reference state: the respiratory target nearest this amplitude "
                                    "(mid amplitude: the smallest largest displacement to any target)")
-    plane_dz_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "about the detector row pitch at the isocentre"),
-                           "spacing of the z planes the rows are rebinned onto")
+    plane_dz_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "at most about the detector row pitch at the "
+                                          "isocentre; 2 mm fits demo's 1.75 mm, on 1-mm slices 0.5 reads better"),
+                           "spacing of the z planes the rows are rebinned onto (a row is read between two planes, "
+                           "linearly: a z blur of up to this; where the slices lie on planes a motionless voxel "
+                           "reads as the first pass does). paper-p010's rows are 0.44 mm apart at the isocentre: "
+                           "there 2 mm blurs the ribs' axial edges and 0.5 is better, at more memory for the rows "
+                           "(docs/motion-model.md, the table of knobs)")
     taper_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "within the SSRB window"),
                         "width of the row weight's fall to 0 at the end of its SSRB window")
     margin_mm: float = F(20.0, number_in(0.0, 200.0, "mm", "beyond the largest displacement along z"),

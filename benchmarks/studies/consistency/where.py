@@ -28,6 +28,16 @@ from clrecon.reconstruction import reconstruct as rc
 REGIONS = (("outside", -np.inf, -900.0), ("lung", -900.0, -300.0), ("soft", -300.0, 300.0), ("dense", 300.0, np.inf))
 
 
+class _OneTarget:
+    """A (S, ny, nx) dataset seen as (1, 1, S, ny, nx): ``[0, 0, s]`` is slice s."""
+
+    def __init__(self, d):
+        self.d, self.shape = d, (1, 1) + d.shape
+
+    def __getitem__(self, key):
+        return self.d[key[2]]
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("run")
@@ -47,7 +57,10 @@ def main():
     v = args.variant or res["request"]["variants"][0]
     views = np.arange(0, g.n_views, args.view_step)
     f = h5py.File(f"{args.run}/volumes.h5", "r")
-    gt = f["groundtruth"]
+    def lattice(d):  # (n_c, n_r, S, ny, nx); a motionless scene's one target is stored (S, ny, nx)
+        return d if d.ndim == 5 else _OneTarget(d)
+
+    gt = lattice(f["groundtruth"])
     nc, nr = gt.shape[:2]
     pick = [(i, j) for k, (i, j) in enumerate((i, j) for i in range(nc) for j in range(nr)) if k % args.targets == 0]
     print(f"{pk} {v}: {len(pick)} targets, {views.size} views, regions by the ground truth's HU")
@@ -56,7 +69,7 @@ def main():
         masks = {name: (G >= lo) & (G < hi) for name, lo, hi in REGIONS}
         line = f"slice {s}:"
         for m in args.methods.split(","):
-            d = f[recon_path(pk, v, m)]
+            d = lattice(f[recon_path(pk, v, m)])
             V = np.stack([np.asarray(d[min(i, d.shape[0] - 1), min(j, d.shape[1] - 1), s], np.float64)
                           for i, j in pick])
             E = V - G
