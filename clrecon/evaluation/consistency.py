@@ -73,9 +73,13 @@ Z_DECIDES = 2.0
 MIN_EFFECT = 0.005
 #: Two-sided significance of the sign test over slices (:func:`verdict`): a region says "lower" or
 #: "higher" when so many more slices are lower than higher (or the reverse) that a fair coin would
-#: give it at most this often. The same level as |z| > Z_DECIDES (0.046). At least 6 slices must
-#: differ for it to decide (2 x 0.5^6 = 0.031; 5 of 5 give 0.0625).
+#: give it at most this often. The same level as |z| > Z_DECIDES (0.046).
 SIGN_TEST_ALPHA = 0.05
+#: The fewest slices that must differ for the sign test to decide: all of them agreeing then has a
+#: two-sided p of 2 x 0.5^n <= SIGN_TEST_ALPHA (6: 0.031; 5 of 5 give 0.0625).
+MIN_DECIDING_SLICES = next(n for n in range(1, 64) if 2 * 0.5 ** n <= SIGN_TEST_ALPHA)
+#: What ``results.json`` keeps of each method's verdict against the reference, per region, beside its residual.
+AGAINST_KEYS = ("ratio", "z", "pooled_says", "says", "slices_lower", "slices_higher", "sign_test_p")
 #: z spacing (mm) of stacked in-plane images projected at once: any value > 0 keeps in-plane rays in their plane.
 STACK_DZ_MM = 10.0
 
@@ -338,8 +342,8 @@ def verdict(res: dict, method: str = METHOD, reference: str = REFERENCE) -> dict
     variant: per region the slice-by-slice decision (:func:`by_slices`: ``says``, the counts, the sign
     test's p, ``per_slice``) beside the comparison pooled over every block (:func:`compare`: ``ratio``,
     ``z``, ... and its own ``pooled_says``), and ``helped``: True when ``method`` is lower in both
-    regions, False when it is higher in either, else None (no clear difference). Fewer than 6 slices
-    that differ cannot decide (the sign test's smallest p is then above :data:`SIGN_TEST_ALPHA`)."""
+    regions, False when it is higher in either, else None (no clear difference). Fewer than
+    :data:`MIN_DECIDING_SLICES` slices that differ cannot decide."""
     if method not in res or reference not in res:
         return {"helped": None, "null_because": f"{method} or {reference} is not in this run"}
     by = {}
@@ -357,8 +361,9 @@ def verdict(res: dict, method: str = METHOD, reference: str = REFERENCE) -> dict
     a, h = by["all"], by["heart"]
     text = (f"{method} {word}: {counts(a)}, heart {counts(h)}; pooled residual x {a['ratio']:.3f} of "
             f"{reference}'s (z {a['z']:+.1f}), heart x {h['ratio']:.3f} (z {h['z']:+.1f})")
-    if a["slices"] < 6:
-        text += f"; {a['slices']} slices cannot decide (a sign test needs at least 6 that differ)"
+    if a["slices"] < MIN_DECIDING_SLICES:
+        text += (f"; {a['slices']} slices cannot decide (a sign test needs at least {MIN_DECIDING_SLICES} that "
+                 "differ)")
     small = [r for r in REGIONS if by[r].get("below_min_effect")]
     if small:
         text += (f"; pooled {' and '.join(small)} within {100 * MIN_EFFECT:g} % of 1: below the smallest effect "
@@ -433,6 +438,7 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
                                   detector=sc.detector_model, mu_water=recon_cfg.mu_water_per_mm, rt=rt)
             t_pred += time.perf_counter() - t2
             res[m] = residual(rows, pred, masks, block, n_blocks, row_var=var, scale=scale, n_slices=len(zs))
+        against = {m: verdict(res, m) for m in res if m != REFERENCE and REFERENCE in res}
         ent = {}
         for m, r in res.items():
             e = {"rms_hu_mm": r.rms("all"), "heart_rms_hu_mm": r.rms("heart"), "n_rows": int(flat.size),
@@ -441,15 +447,12 @@ def check(store, table, slices_z, recon_cfg, targets, variants, box, volumes, me
             if var is not None:
                 e["noise_floor_hu_mm"] = r.floor_rms("all")
                 e["heart_noise_floor_hu_mm"] = r.floor_rms("heart")
-            if m != REFERENCE and REFERENCE in res:
-                e[f"against_{REFERENCE}"] = {
-                    g: {"ratio": x["ratio"], "z": x["z"], "pooled_says": x["says"],
-                        **{k: y[k] for k in ("says", "slices_lower", "slices_higher", "sign_test_p")}}
-                    for g, x, y in ((g, compare(r, res[REFERENCE], g), by_slices(r, res[REFERENCE], g))
-                                    for g in REGIONS)}
+            if m in against:  # the summary of its verdict against the reference
+                e[f"against_{REFERENCE}"] = {g: {k: against[m]["regions"][g][k] for k in AGAINST_KEYS}
+                                             for g in REGIONS}
             ent[m] = e
         out["residual"][v] = ent
-        out["verdict"][v] = verdict(res)
+        out["verdict"][v] = against[METHOD] if METHOD in against else verdict(res)
         if "mcir_verdict" in out:
             out["mcir_verdict"][v] = verdict(res, ITERATIVE, ITERATIVE_AGAINST)
     out["seconds"] = {"plan": round(t_plan, 3), "read_rebin": round(t_read, 3), "predict": round(t_pred, 3),

@@ -10,6 +10,7 @@ from pathlib import Path
 from clrecon.core import atomic, machine_speed
 from clrecon.core.resources import folder_bytes, peak_rss_bytes
 from clrecon.evaluation import claims as claims_mod
+from clrecon.evaluation import consistency
 from clrecon.outputs import figures, measured_record, report_html
 from clrecon.reconstruction.diagnostics import pooled as _pooled_diagnostics
 from clrecon.reconstruction.interpolation import by_rank
@@ -234,7 +235,8 @@ def consistency_markdown(results: dict) -> list[str]:
              "measured scans. The rows made the volumes, so every residual is biased low, and it is mostly the "
              "data model every method shares; the comparison of mc with its first pass (barycentric: the same rows "
              "and weights) is the point. At each sampled slice a difference of mean squares that holds over the "
-             "slice's blocks of views (jackknife |z| > 2, and more than 0.5 %) counts the slice as lower or higher; "
+             f"slice's blocks of views (jackknife |z| > {consistency.Z_DECIDES:g}, and more than "
+             f"{100 * consistency.MIN_EFFECT:g} %) counts the slice as lower or higher; "
              "a sign test over the slices decides, so each slice counts once (the ratio and z pooled over every "
              "block are given too). On demo it saw mc's gain at pitch 0.10, not at 0.02, and it does not order the "
              "paper methods as the error against truth does (docs/consistency.md \"Did it help? A truth-free "

@@ -28,14 +28,12 @@ from clrecon.reconstruction import reconstruct as rc
 REGIONS = (("outside", -np.inf, -900.0), ("lung", -900.0, -300.0), ("soft", -300.0, 300.0), ("dense", 300.0, np.inf))
 
 
-class _OneTarget:
-    """A (S, ny, nx) dataset seen as (1, 1, S, ny, nx): ``[0, 0, s]`` is slice s."""
-
-    def __init__(self, d):
-        self.d, self.shape = d, (1, 1) + d.shape
-
-    def __getitem__(self, key):
-        return self.d[key[2]]
+def image(d, i: int, j: int, s: int) -> np.ndarray:
+    """Slice ``s`` of target (i, j) of a volumes dataset, float64 (ny, nx): (n_c, n_r, S, ny, nx), an
+    axis of length 1 serving every target of it, or (S, ny, nx), a motionless scene's one target."""
+    if d.ndim == 3:
+        return np.asarray(d[s], np.float64)
+    return np.asarray(d[min(i, d.shape[0] - 1), min(j, d.shape[1] - 1), s], np.float64)
 
 
 def main():
@@ -57,26 +55,20 @@ def main():
     v = args.variant or res["request"]["variants"][0]
     views = np.arange(0, g.n_views, args.view_step)
     f = h5py.File(f"{args.run}/volumes.h5", "r")
-    def lattice(d):  # (n_c, n_r, S, ny, nx); a motionless scene's one target is stored (S, ny, nx)
-        return d if d.ndim == 5 else _OneTarget(d)
-
-    gt = lattice(f["groundtruth"])
-    nc, nr = gt.shape[:2]
+    gt = f["groundtruth"]
+    nc, nr = gt.shape[:2] if gt.ndim == 5 else (1, 1)
     pick = [(i, j) for k, (i, j) in enumerate((i, j) for i in range(nc) for j in range(nr)) if k % args.targets == 0]
+    img = np.repeat(np.arange(len(pick)), views.size)  # every picked target's image at every view
+    vw = np.tile(views, len(pick))
     print(f"{pk} {v}: {len(pick)} targets, {views.size} views, regions by the ground truth's HU")
     for s in (int(x) for x in args.slices.split(",")):
-        G = np.stack([np.asarray(gt[i, j, s], np.float64) for i, j in pick])          # (T, ny, nx)
+        G = np.stack([image(gt, i, j, s) for i, j in pick])          # (T, ny, nx)
         masks = {name: (G >= lo) & (G < hi) for name, lo, hi in REGIONS}
         line = f"slice {s}:"
         for m in args.methods.split(","):
-            d = lattice(f[recon_path(pk, v, m)])
-            V = np.stack([np.asarray(d[min(i, d.shape[0] - 1), min(j, d.shape[1] - 1), s], np.float64)
-                          for i, j in pick])
-            E = V - G
+            d = f[recon_path(pk, v, m)]
+            E = np.stack([image(d, i, j, s) for i, j in pick]) - G
             parts = {"all": E, **{name: E * mk for name, mk in masks.items()}}
-            q = len(pick)
-            img = np.repeat(np.arange(q), views.size)
-            vw = np.tile(views, q)
             out = []
             for name, part in parts.items():
                 p = cs.inplane_projections(part.astype(np.float32), g.voxel_mm, det, g, img, vw).astype(np.float64)
