@@ -55,7 +55,7 @@ def _registration_round(first, sc, slices_z, repeats: int) -> dict:
     """One registration round on ``first`` with ``sc``'s registrations: one after the other, and where a
     step registers in a process pool (:func:`method.uses_pool`) in the pool too, alternating."""
     cfg = reconstruct.ReconstructionConfig.from_scene(sc)
-    knobs = sc.recon.mc
+    knobs = sc.recon.mc_knobs
     targets = resolve_targets(sc)
     pairs = targets.pairs
     ref_ij = mcm.reference_index(targets.cardiac, targets.resp, knobs)

@@ -196,7 +196,7 @@ def needs_motion_extra(scene, point: SweepPoint) -> bool:
     point whose ``recon.mc`` (the scene's with the point's overrides) names ``lucas_kanade`` for a step."""
     if not _methods.second_pass_methods((point.method,)):
         return False
-    knobs = scene.replace(recon=point.recon).recon.mc if point.recon else scene.recon.mc
+    knobs = (scene.replace(recon=point.recon) if point.recon else scene).recon.mc_knobs
     return mcm.uses_library(knobs)
 
 

@@ -136,7 +136,7 @@ def mc_slab(cfg, scene, pitch: float, cache_dir: str, slices_z, a: int, b: int, 
     table = cached_projection_table(scene, pitch)
     store = ProjectionStore.open(scene, pitch, cache_dir=cache_dir, table=table, create=False)
     try:
-        scan = mc_fbp.MCScan(cfg, scene.recon.mc, scene.scanner, table, usable_table(scene, table)[0], store,
+        scan = mc_fbp.MCScan(cfg, scene.recon.mc_knobs, scene.scanner, table, usable_table(scene, table)[0], store,
                              slices_z, targets, rt=get_runtime(), slabs=[(a, b)])
         hu = mc_fbp.reconstruct_slab(scan, a, b, variant, model, times)
     finally:

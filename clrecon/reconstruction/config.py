@@ -8,6 +8,7 @@ methods, ramp-filter windows); :mod:`clrecon.config.scene` composes it into the 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from clrecon.core.config import (
@@ -42,6 +43,10 @@ VOXEL_MM = number_in(0.005, 100.0, "mm", "micro-CT 0.005-0.1 mm, clinical 0.3-1 
 #: Largest extent of the reconstruction grid along any axis (mm): a body is under 2 m.
 MAX_GRID_MM = 2000.0
 
+
+#: ``mc``'s z-plane spacing (mm) at most, with ``[recon.mc] plane_dz_mm = 0`` (auto; below it half the slice
+#: spacing): about ``demo``'s detector row pitch at the isocentre (1.75 mm).
+MC_PLANE_DZ_MM = 2.0
 
 #: The ``mc`` method's registrations (``[recon.mc] registration``, ``beat_registration``).
 REGISTRATIONS = ("lucas_kanade", "tvl1", "lucas_kanade_cl")
@@ -95,13 +100,14 @@ class MotionCompensationConfig(Section):
     reference_amplitude: float = F(0.45, number_in(0.0, 1.0, "", "amplitude units"),
                                    "the model's reference state: the respiratory target nearest this amplitude "
                                    "(mid amplitude: the smallest largest displacement to any target)")
-    plane_dz_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "at most about the detector row pitch at the "
-                                          "isocentre; 2 mm fits demo's 1.75 mm, on 1-mm slices 0.5 reads better"),
+    plane_dz_mm: float = F(0.0, zero_or_in(0.1, 50.0, "mm", "0: auto, min(2 mm, half the slice spacing); at most "
+                                          "about the detector row pitch at the isocentre"),
                            "spacing of the z planes the rows are rebinned onto (a row is read between two planes, "
                            "linearly: a z blur of up to this; where the slices lie on planes a motionless voxel "
-                           "reads as the first pass does). paper-p010's rows are 0.44 mm apart at the isocentre: "
-                           "there 2 mm blurs the ribs' axial edges and 0.5 is better, at more memory for the rows "
-                           "(docs/motion-model.md, the table of knobs)")
+                           "reads as the first pass does). 0 (auto): min(2 mm, recon.slice_mm / 2) "
+                           "(ReconConfig.mc_knobs): 2 mm on demo's 4-mm slices (its rows are 1.75 mm apart at the "
+                           "isocentre), 0.5 mm on the paper scenes' 1-mm slices, where 2 mm blurred the ribs' axial "
+                           "edges; finer planes hold more rows in memory (docs/motion-model.md, the table of knobs)")
     taper_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "within the SSRB window"),
                         "width of the row weight's fall to 0 at the end of its SSRB window")
     margin_mm: float = F(20.0, number_in(0.0, 200.0, "mm", "beyond the largest displacement along z"),
@@ -232,6 +238,14 @@ class ReconConfig(Section):
         if self.local_linear_points == "quadrants" and 4 * self.local_linear_count > LL_MAX_SLOTS:
             raise SceneError(f"recon.local_linear_count = {self.local_linear_count}: with local_linear_points = "
                              f"'quadrants' must be at most {LL_MAX_SLOTS // 4} (4 x count <= {LL_MAX_SLOTS} slots)")
+
+    @property
+    def mc_knobs(self) -> MotionCompensationConfig:
+        """``[recon.mc]`` with what its 0 (auto) values derive from this grid resolved: ``plane_dz_mm`` =
+        min(:data:`MC_PLANE_DZ_MM`, ``slice_mm`` / 2). What ``mc``'s code takes as its knobs."""
+        if self.mc.plane_dz_mm:
+            return self.mc
+        return dataclasses.replace(self.mc, plane_dz_mm=min(MC_PLANE_DZ_MM, self.slice_mm / 2))
 
     @property
     def resp_targets(self) -> tuple[float, ...]:

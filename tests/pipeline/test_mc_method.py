@@ -192,7 +192,7 @@ def test_the_fit_from_a_reader_of_blocks_is_the_same_bits(reference, tmp_path):
     store = simulate.simulate(sc, pitch, cache_dir=tmp_path, progress=False)
     with h5py.File(out / "volumes.h5", "r") as f:
         first = f["recon/p0.100/noise-free/barycentric"][()]
-    with mc_fbp.MCScan(reconstruct.ReconstructionConfig.from_scene(sc), sc.recon.mc, sc.scanner, table,
+    with mc_fbp.MCScan(reconstruct.ReconstructionConfig.from_scene(sc), sc.recon.mc_knobs, sc.scanner, table,
                        geometry.usable_table(sc, table)[0], store, reconstruct.slice_positions(sc, None),
                        resolve_targets(sc)) as scan:
         assert scan.f == 2
@@ -221,6 +221,23 @@ def test_a_bad_knob_is_refused_in_one_line(tmp_path, table, key):
     assert p.returncode != 0 and "Traceback" not in p.stderr
     lines = [x for x in p.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and key in lines[0], p.stderr
+
+
+def test_the_z_planes_follow_the_slices_unless_set():
+    """``plane_dz_mm = 0`` (auto, the default): min(2 mm, half the slice spacing) -- 2 mm on demo's 4-mm
+    slices, 0.5 mm on paper-p010's 1-mm ones (docs/motion-model.md "Knobs"); a value set is kept; and the
+    memory model refuses an unresolved 0 rather than dividing by it."""
+    from clrecon.reconstruction.motion import memory
+
+    assert load_scene("demo").recon.mc.plane_dz_mm == 0
+    assert load_scene("demo").recon.mc_knobs.plane_dz_mm == 2.0
+    assert load_scene("paper-p010").recon.mc_knobs.plane_dz_mm == 0.5
+    assert load_scene("demo").replace(recon={"slice_mm": 3.0}).recon.mc_knobs.plane_dz_mm == 1.5
+    assert load_scene("paper-p010").replace(recon={"mc": {"plane_dz_mm": 2.0}}).recon.mc_knobs.plane_dz_mm == 2.0
+    sc = load_scene("paper-p010")
+    with pytest.raises(ValueError, match="must be resolved"):
+        memory.working_parts(sc.scanner, 10.0, sc.recon.mc, 109.0, 10.0, 1, 5, 10, 110, 64, 64, 1000, 1,
+                             voxel_mm=1.0)
 
 
 def test_mc_needs_its_first_pass(tmp_path):
@@ -320,7 +337,7 @@ def test_slab_rows_are_the_same_bits_for_any_read_chunk(tmp_path, monkeypatch):
     got = {}
     for per_chunk in (1, 7, len(ids)):
         monkeypatch.setattr(mcm, "READ_CHUNK_BYTES", per_chunk * raw)
-        got[per_chunk] = mcm.slab_rows(store, table, sc.scanner, cfg, "noisy", slab_z, ids, sc.recon.mc)
+        got[per_chunk] = mcm.slab_rows(store, table, sc.scanner, cfg, "noisy", slab_z, ids, sc.recon.mc_knobs)
     whole = got[len(ids)]
     assert whole.rows.shape[0] == ids.size and np.abs(whole.rows).max() > 0
     assert whole.rows.ctypes.data % HOST_ALIGN_BYTES == 0  # the backprojector reads them in place on a CPU
@@ -357,18 +374,19 @@ def test_slabs_grow_past_the_budget_while_rows_stay_near_one_slices(monkeypatch,
     cfg = reconstruct.ReconstructionConfig.from_scene(sc)
     ptab = geometry.projection_table(sc, 0.1)
     z = reconstruct.slice_positions(sc, (0, sc.recon.nz))
-    cut = memory.plane_row_slabs(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0)
+    cut = memory.plane_row_slabs(ptab, sc.scanner, cfg, z, sc.recon.mc_knobs, budget=1.0)
     assert cut[0][0] == 0 and cut[-1][1] == len(z) and all(a[1] == b[0] for a, b in zip(cut[:-1], cut[1:], strict=True))
     assert 1 < len(cut) < len(z)  # grown past the budget, not whole
-    assert memory.plane_row_slabs(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1e18) == [(0, len(z))]
+    assert memory.plane_row_slabs(ptab, sc.scanner, cfg, z, sc.recon.mc_knobs, budget=1e18) == [(0, len(z))]
     monkeypatch.setattr(memory, "GROWTH", 0.0)  # the budget alone: one slice per slab
-    assert memory.plane_row_slabs(ptab, sc.scanner, cfg, z, sc.recon.mc, budget=1.0) == [
+    assert memory.plane_row_slabs(ptab, sc.scanner, cfg, z, sc.recon.mc_knobs, budget=1.0) == [
         (i, i + 1) for i in range(len(z))]
 
     tiny = load_scene("tiny")
     tz = reconstruct.slice_positions(tiny, (0, tiny.recon.nz))
     tcut = memory.plane_row_slabs(geometry.projection_table(tiny, 0.1), tiny.scanner,
-                                      reconstruct.ReconstructionConfig.from_scene(tiny), tz, tiny.recon.mc, budget=1.0)
+                                  reconstruct.ReconstructionConfig.from_scene(tiny), tz, tiny.recon.mc_knobs,
+                                  budget=1.0)
     assert len(tcut) == len(tz) > 1
 
     real = memory.plane_row_slabs
@@ -416,7 +434,7 @@ def test_mc_volumes_are_the_same_bits_for_any_slab_cut(monkeypatch, tmp_path):
     table = geometry.projection_table(sc, 0.1)
     store = simulate.simulate(sc, 0.1, cache_dir=tmp_path / "cache", progress=False)
     z = reconstruct.slice_positions(sc, (5, 11))
-    scan = mc_fbp.MCScan(reconstruct.ReconstructionConfig.from_scene(sc), sc.recon.mc, sc.scanner, table,
+    scan = mc_fbp.MCScan(reconstruct.ReconstructionConfig.from_scene(sc), sc.recon.mc_knobs, sc.scanner, table,
                          geometry.usable_table(sc, table)[0], store, z, resolve_targets(sc), slabs=[(0, 6)])
     whole = scan.rows(0, 6, "noise-free", scan.first_pass_plan(0, 6))
     for a, b in cut:
@@ -443,7 +461,7 @@ def test_the_entry_point_makes_the_stages_volumes(tmp_path, reference):
     pitch = sc.scan.pitches[0]
     table = geometry.projection_table(sc, pitch)
     store = simulate.simulate(sc, pitch, cache_dir=tmp_path, progress=False)
-    scan = mc_fbp.MCScan(reconstruct.ReconstructionConfig.from_scene(sc), sc.recon.mc, sc.scanner, table,
+    scan = mc_fbp.MCScan(reconstruct.ReconstructionConfig.from_scene(sc), sc.recon.mc_knobs, sc.scanner, table,
                          geometry.usable_table(sc, table)[0], store, reconstruct.slice_positions(sc, None),
                          resolve_targets(sc), n_variants=2)
     assert mc_fbp.FIRST_PASS == interpolation.first_pass("mc") == "barycentric"

@@ -198,7 +198,7 @@ def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
     sc, rc = scene.scanner, scene.recon
     w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
     ext = (rc.nz - 1) * rc.slice_mm
-    args = {p: (sc, w, rc.mc, ext, scene.scan.feed_mm(sc, p), 2, 5, 10, rc.nz, rc.ny, rc.nx,
+    args = {p: (sc, w, rc.mc_knobs, ext, scene.scan.feed_mm(sc, p), 2, 5, 10, rc.nz, rc.ny, rc.nx,
                 scene.scan.projection_count(sc, p)) for p in scene.scan.pitches}
     per_pitch = {p: memory.working_bytes(*a, voxel_mm=rc.voxel_mm) for p, a in args.items()}
     assert per_pitch[0.02] > per_pitch[0.1] > 0   # the lower pitch: more projections per slab
@@ -208,7 +208,7 @@ def test_the_mc_method_adds_its_working_set_at_its_worst_pitch():
     assert per_pitch[0.02] == max(parts["registering"] + parts["registration processes"], parts["fit"] + idle,
                                   parts["round backprojection"] + idle, parts["final pass"])
     one_round = api.load_scene("demo", recon={"mc": {"rounds": 1}})
-    assert memory.working_parts(*args[0.02][:2], one_round.recon.mc, *args[0.02][3:],
+    assert memory.working_parts(*args[0.02][:2], one_round.recon.mc_knobs, *args[0.02][3:],
                                 voxel_mm=rc.voxel_mm)["round backprojection"] == 0
     coarse = api.load_scene("demo", recon={"mc": {"downsample": 2}})
     assert run_costs(coarse, methods=(*paper, "mc"))["peak_memory_bytes"] < with_mc
@@ -231,7 +231,7 @@ def test_the_mc_model_follows_the_registration_it_runs():
     n_reg = rc.nz * rc.ny * rc.nx
 
     def parts(reg, beat):
-        knobs = api.load_scene("demo", recon={"mc": {"registration": reg, "beat_registration": beat}}).recon.mc
+        knobs = api.load_scene("demo", recon={"mc": {"registration": reg, "beat_registration": beat}}).recon.mc_knobs
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
                                     scene.scan.projection_count(sc, 0.1), 1, voxel_mm=rc.voxel_mm)
 
@@ -260,7 +260,7 @@ def test_the_mc_model_follows_the_registration_it_runs():
     assert cl["registration processes"] == cl["idle registration processes"] == 0
     for part in ("fit", "registering"):
         assert cl[part] - tv[part] == (max(lkcl.BYTES_PER_VOXEL, flow.BYTES_PER_VOXEL) - flow.BYTES_PER_VOXEL) * n_reg
-    default = memory.working_parts(sc, w, rc.mc, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
+    default = memory.working_parts(sc, w, rc.mc_knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
                                    scene.scan.projection_count(sc, 0.1), 1, voxel_mm=rc.voxel_mm)
     assert default == cl
 
@@ -280,8 +280,8 @@ def test_the_mc_model_counts_the_registration_processes_beside_the_registrations
         scene = api.load_scene("demo", recon={"mc": {"shrink": shrink, "registration": "lucas_kanade"}})
         sc, rc = scene.scanner, scene.recon
         w = slice_window_mm(sc, min(sc.fov_radius_mm, rc.fov_radius_mm))
-        return rc, memory.working_parts(sc, w, rc.mc, (rc.nz - 1) * rc.slice_mm, scene.scan.feed_mm(sc, 0.1), 2, 5,
-                                        10, rc.nz, rc.ny, rc.nx, scene.scan.projection_count(sc, 0.1), 1,
+        return rc, memory.working_parts(sc, w, rc.mc_knobs, (rc.nz - 1) * rc.slice_mm, scene.scan.feed_mm(sc, 0.1),
+                                        2, 5, 10, rc.nz, rc.ny, rc.nx, scene.scan.projection_count(sc, 0.1), 1,
                                         voxel_mm=rc.voxel_mm)
 
     rc, p = parts(False)
@@ -313,7 +313,7 @@ def test_the_mc_model_holds_the_first_pass_on_the_registration_grid_only():
     def fit(ds, unit_slices, rounds=2):
         # without the fields' shrinking (its own part of the fit, counted in the test above)
         knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds, "rounds": rounds,
-                                                           "shrink": False}}).recon.mc
+                                                           "shrink": False}}).recon.mc_knobs
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny, rc.nx,
                                     scene.scan.projection_count(sc, 0.1), unit_slices, voxel_mm=rc.voxel_mm)["fit"]
 
@@ -346,7 +346,7 @@ def test_the_mc_final_pass_counts_only_the_model_planes_a_slab_reaches(monkeypat
         return seen[-1]
 
     def final(ds, planes):
-        knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds}}).recon.mc
+        knobs = api.load_scene("paper-p010", recon={"mc": {"downsample": ds}}).recon.mc_knobs
         monkeypatch.setattr(memory, "slab_model_planes", planes)
         return memory.working_parts(sc, w, knobs, ext, scene.scan.feed_mm(sc, 0.1), 2, 5, 10, rc.nz, rc.ny,
                                     rc.nx, scene.scan.projection_count(sc, 0.1), 1, voxel_mm=rc.voxel_mm)["final pass"]

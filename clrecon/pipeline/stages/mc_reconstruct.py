@@ -49,7 +49,7 @@ def motion_scan(run, pitch, plan, store) -> mc_fbp.MCScan:
     else:
         table = geometry.cached_projection_table(run.scene, pitch)
         ptab = geometry.usable_table(run.scene, table)[0]
-    return mc_fbp.MCScan(run.recon_cfg, run.scene.recon.mc, run.scene.scanner, table, ptab, store, run.slices_z,
+    return mc_fbp.MCScan(run.recon_cfg, run.scene.recon.mc_knobs, run.scene.scanner, table, ptab, store, run.slices_z,
                          run.targets, rt=run.rt, n_variants=len(run.variants))
 
 

@@ -55,7 +55,11 @@ GROWTH = 1.5
 
 
 def _bytes_per_projection(scanner, window_mm: float, knobs) -> int:
-    """Bytes of one projection's plane rows ((planes, n_cols) float32) for an SSRB window of ``window_mm``."""
+    """Bytes of one projection's plane rows ((planes, n_cols) float32) for an SSRB window of ``window_mm``.
+    ``knobs``: ``[recon.mc]`` resolved (``ReconConfig.mc_knobs``: its ``plane_dz_mm`` > 0)."""
+    if not knobs.plane_dz_mm > 0:
+        raise ValueError(f"plane_dz_mm = {knobs.plane_dz_mm!r}: 0 (auto) must be resolved first "
+                         "(ReconConfig.mc_knobs)")
     return (int((2 * (window_mm + knobs.plane_dz_mm)) / knobs.plane_dz_mm) + 2) * scanner.n_cols * 4
 
 
