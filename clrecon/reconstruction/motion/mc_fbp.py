@@ -186,6 +186,9 @@ def fit_model(scan: MCScan, first_pass, variant: str, *, log=None, progress: boo
                 scan.kept[(a, b, variant)] = rows  # the final pass's rows (one slab, every variant's within budget)
             rss_mark(f"mc {variant}: round {r}'s backprojection of slices {a}..{b - 1} "
                      f"(rows {rows.rows.nbytes / 1e9:.3f} GB)")
+            # let go of the slab's rows and plan before the next slab's are made and through the round's
+            # registrations (memory.working_parts counts one slab's); kept rows stay in scan.kept
+            del rows, plan
         t_bp = time.perf_counter() - t0
         say(f"registering {variant} (round {r} of {knobs.rounds})")
         model, info = mcm.register(imgs.reshape((nc, nr) + imgs.shape[1:]), scan.ref_ij, grid, scan.pairs, knobs,
