@@ -100,14 +100,14 @@ class MotionCompensationConfig(Section):
     reference_amplitude: float = F(0.45, number_in(0.0, 1.0, "", "amplitude units"),
                                    "the model's reference state: the respiratory target nearest this amplitude "
                                    "(mid amplitude: the smallest largest displacement to any target)")
-    plane_dz_mm: float = F(0.0, zero_or_in(0.1, 50.0, "mm", "0: auto, min(2 mm, half the slice spacing); at most "
+    plane_dz_mm: float = F(2.0, zero_or_in(0.1, 50.0, "mm", "0: auto, min(2 mm, half the slice spacing); at most "
                                           "about the detector row pitch at the isocentre"),
                            "spacing of the z planes the rows are rebinned onto (a row is read between two planes, "
-                           "linearly: a z blur of up to this; where the slices lie on planes a motionless voxel "
-                           "reads as the first pass does). 0 (auto): min(2 mm, recon.slice_mm / 2) "
-                           "(ReconConfig.mc_knobs): 2 mm on demo's 4-mm slices (its rows are 1.75 mm apart at the "
-                           "isocentre), 0.5 mm on the paper scenes' 1-mm slices, where 2 mm blurred the ribs' axial "
-                           "edges; finer planes hold more rows in memory (docs/motion-model.md, the table of knobs)")
+                           "linearly: a z blur of up to this, which also averages noise along z; where the slices lie "
+                           "on planes a motionless voxel reads as the first pass does). 0 (auto): min(2 mm, "
+                           "recon.slice_mm / 2) (ReconConfig.mc_knobs). On paper-p010's 1-mm slices 0.5 mm lowered "
+                           "mc's noise-free MAE and its dense-bone bias but raised its noisy large-FOV MAE on the "
+                           "whole scan, so the default stays 2 mm (docs/motion-model.md, the table of knobs)")
     taper_mm: float = F(2.0, number_in(0.1, 50.0, "mm", "within the SSRB window"),
                         "width of the row weight's fall to 0 at the end of its SSRB window")
     margin_mm: float = F(20.0, number_in(0.0, 200.0, "mm", "beyond the largest displacement along z"),

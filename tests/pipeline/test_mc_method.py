@@ -272,18 +272,18 @@ def test_a_bad_knob_is_refused_in_one_line(tmp_path, table, key):
     assert len(lines) == 1 and key in lines[0], p.stderr
 
 
-def test_the_z_planes_follow_the_slices_unless_set():
-    """``plane_dz_mm = 0`` (auto, the default): min(2 mm, half the slice spacing) -- 2 mm on demo's 4-mm
-    slices, 0.5 mm on paper-p010's 1-mm ones (docs/motion-model.md "Knobs"); a value set is kept; and the
-    memory model refuses an unresolved 0 rather than dividing by it."""
+def test_the_z_planes_follow_the_slices_when_auto():
+    """``plane_dz_mm = 0`` (auto): min(2 mm, half the slice spacing) -- 2 mm on demo's 4-mm slices, 0.5 mm
+    on paper-p010's 1-mm ones (docs/motion-model.md "Knobs"); a value set (the default 2 mm) is kept; and
+    the memory model refuses an unresolved 0 rather than dividing by it."""
     from clrecon.reconstruction.motion import memory
 
-    assert load_scene("demo").recon.mc.plane_dz_mm == 0
-    assert load_scene("demo").recon.mc_knobs.plane_dz_mm == 2.0
-    assert load_scene("paper-p010").recon.mc_knobs.plane_dz_mm == 0.5
-    assert load_scene("demo").replace(recon={"slice_mm": 3.0}).recon.mc_knobs.plane_dz_mm == 1.5
-    assert load_scene("paper-p010").replace(recon={"mc": {"plane_dz_mm": 2.0}}).recon.mc_knobs.plane_dz_mm == 2.0
-    sc = load_scene("paper-p010")
+    assert load_scene("paper-p010").recon.mc_knobs.plane_dz_mm == 2.0  # the default
+    for name, slice_mm, want in (("demo", None, 2.0), ("paper-p010", None, 0.5), ("demo", 3.0, 1.5)):
+        grid = {"slice_mm": slice_mm} if slice_mm else {}
+        sc = load_scene(name).replace(recon={"mc": {"plane_dz_mm": 0.0}, **grid})
+        assert sc.recon.mc.plane_dz_mm == 0 and sc.recon.mc_knobs.plane_dz_mm == want, (name, slice_mm)
+    sc = load_scene("paper-p010").replace(recon={"mc": {"plane_dz_mm": 0.0}})
     with pytest.raises(ValueError, match="must be resolved"):
         memory.working_parts(sc.scanner, 10.0, sc.recon.mc, 109.0, 10.0, 1, 5, 10, 110, 64, 64, 1000, 1,
                              voxel_mm=1.0)
