@@ -147,8 +147,8 @@ def run_costs(scene, methods=None, n_cardiac=None, n_resp=None, slices_z=None, p
         # of its pitch: the pitch's plans (its input) stay; the truths are done (both stages come after
         # ``truth`` in the graph) (docs/results/code-history.md "The mc working set against the measured peak")
         held = plans
-        # the first pass's unit files hold the pitch's reconstruction slabs
         knobs = rc.mc_knobs
+        # the first pass's unit files hold the pitch's reconstruction slabs
         peak = max(peak, held + max(mc_memory.working_bytes(sc, window, knobs, z_extent, scene.scan.feed_mm(sc, p),
                                                             n_var, n_c, n_r, nz, rc.ny, rc.nx, n_proj[p],
                                                             slab_of(scene.scan.feed_mm(sc, p))[2],

@@ -44,8 +44,8 @@ VOXEL_MM = number_in(0.005, 100.0, "mm", "micro-CT 0.005-0.1 mm, clinical 0.3-1 
 MAX_GRID_MM = 2000.0
 
 
-#: ``mc``'s z-plane spacing (mm) at most, with ``[recon.mc] plane_dz_mm = 0`` (auto; below it half the slice
-#: spacing): about ``demo``'s detector row pitch at the isocentre (1.75 mm).
+#: ``mc``'s z-plane spacing (mm) by default, and at most with ``[recon.mc] plane_dz_mm = 0`` (auto; below it
+#: half the slice spacing): about ``demo``'s detector row pitch at the isocentre (1.75 mm).
 MC_PLANE_DZ_MM = 2.0
 
 #: The ``mc`` method's registrations (``[recon.mc] registration``, ``beat_registration``).
@@ -100,8 +100,8 @@ class MotionCompensationConfig(Section):
     reference_amplitude: float = F(0.45, number_in(0.0, 1.0, "", "amplitude units"),
                                    "the model's reference state: the respiratory target nearest this amplitude "
                                    "(mid amplitude: the smallest largest displacement to any target)")
-    plane_dz_mm: float = F(2.0, zero_or_in(0.1, 50.0, "mm", "0: auto, min(2 mm, half the slice spacing); at most "
-                                          "about the detector row pitch at the isocentre"),
+    plane_dz_mm: float = F(MC_PLANE_DZ_MM, zero_or_in(0.1, 50.0, "mm", "0: auto, min(2 mm, half the slice "
+                                                     "spacing); at most about the detector row pitch at the isocentre"),
                            "spacing of the z planes the rows are rebinned onto (a row is read between two planes, "
                            "linearly: a z blur of up to this, which also averages noise along z; where the slices lie "
                            "on planes a motionless voxel reads as the first pass does). 0 (auto): min(2 mm, "
